@@ -1,0 +1,7 @@
+"""abd_gym: batched affine-body dynamics with joint and limit constitutions, on Warp."""
+from .scene import Scene
+from .shapes import Box, Capsule, Cylinder, Inertia, Sphere
+from .simulator import Simulator
+
+__all__ = ["Scene", "Simulator", "Box", "Sphere", "Capsule", "Cylinder", "Inertia"]
+__version__ = "0.1.0"

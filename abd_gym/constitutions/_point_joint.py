@@ -1,0 +1,82 @@
+"""Shared kernel for joints made of coincident points (revolute: 2 on the axis; fixed: 4).
+
+``E = K/2 Σ_p ‖x_i(P_p) − x_j(P_p)‖²`` with ``x_k(P) = J(P_k) q_k``: linear constraints, so
+``∇E = K Σ (J(P_i)ᵀC, −J(P_j)ᵀC)`` and the Hessian ``K Σ JᵀJ`` is exact and PSD.
+"""
+
+import functools
+
+import numpy as np
+import warp as wp
+
+from .. import affine
+from ..warp_ops import ops
+
+
+def point_joint_np(q, points_i, points_j, K):
+    """Energy, gradient, Hessian of the stacked pair q = (q_i, q_j) (float64)."""
+    E, g, H = 0.0, np.zeros(24), np.zeros((24, 24))
+    for pi, pj in zip(points_i, points_j):
+        L = affine.on_pair(affine.J(pi), 0) - affine.on_pair(affine.J(pj), 1)
+        C = L @ q
+        E += 0.5 * K * C @ C
+        g += K * L.T @ C
+        H += K * L.T @ L
+    return E, g, H
+
+
+@functools.lru_cache(maxsize=None)
+def kernel(dtype):
+    o = ops(dtype)
+    vec3, vec12, mat12 = o.vec3, o.vec12, o.mat12
+    point, JT, unit, add_energy, scatter_pair = o.point, o.JT, o.unit, o.add_energy, o.scatter_pair
+    one, half = dtype(1.0), dtype(0.5)
+
+    @wp.kernel(module="unique")
+    def point_joint(
+        q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32),
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+        pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3), npts: int, K: wp.array2d(dtype=dtype),
+        active: wp.array(dtype=wp.int32), derivs: int, col: int,
+        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        bi = body_a[j]
+        bj = body_b[j]
+        qi = q[w, bi]
+        qj = q[w, bj]
+        kk = K[w, j]
+        e = dtype(0.0)
+        gi = vec12()
+        gj = vec12()
+        hii = mat12()
+        hij = mat12()
+        hjj = mat12()
+        for p in range(npts):
+            xi = pts_a[w, j, p]
+            xj = pts_b[w, j, p]
+            C = point(qi, xi) - point(qj, xj)
+            e += half * kk * wp.dot(C, C)
+            if derivs != 0:
+                gi += kk * JT(xi, C, one)
+                gj -= kk * JT(xj, C, one)
+                for m in range(3):
+                    ri = JT(xi, unit(m), one)
+                    rj = JT(xj, unit(m), one)
+                    hii += kk * wp.outer(ri, ri)
+                    hij -= kk * wp.outer(ri, rj)
+                    hjj += kk * wp.outer(rj, rj)
+        add_energy(E, w, col, e)
+        if derivs != 0:
+            scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
+
+    return point_joint
+
+
+def launch_points(model, kind, npts, q, E, g, H, active, derivs, col):
+    wp.launch(kernel(model.dtype), dim=(model.num_worlds, model.joint_count[kind]),
+              inputs=[q, model.joint_ids[kind], model.body_a, model.body_b, model.dof, model.pts_a, model.pts_b,
+                      npts, model.K, active, derivs, col, E, g, H], device=model.device)  # fmt: skip

@@ -1,0 +1,178 @@
+"""Affine body (libuipc UID 1): inertia and the orthogonality potential.
+
+Inertia of the incremental potential: ``½ (q − q̃)ᵀ M (q − q̃)`` with ``M = ∫ρ J(x)ᵀJ(x) dV``
+built from the mass m [kg], first moment m·c [kg·m] and second moment S [kg·m²].
+
+Orthogonality: ``V(A) = κ·vol·‖A Aᵀ − I‖²_F`` [J] (κ [Pa]), inside h² in the solve.  With
+``R = A Aᵀ − I`` and rows a_k: ``∂V/∂a_k = 4κv Σ_l R_kl a_l`` and the exact Hessian block
+``4κv (δ_kl AᵀA + a_l a_kᵀ + R_kl I)``; the solver uses R's positive part R⁺ in the last term,
+which keeps the Hessian PSD and is exact whenever R ⪰ 0.
+"""
+
+import functools
+
+import numpy as np
+import warp as wp
+
+from .. import affine
+from ..warp_ops import ops
+
+UID = 1
+NAME = "affine_body"
+TERMS = ("inertia", "orthogonality")
+
+
+# ----------------------------------------------------------------------------- float64 NumPy
+def orthogonality_np(q, kv):
+    """V, gradient, exact Hessian and the PSD Hessian the solver uses (12-vector q)."""
+    A = q[3:].reshape(3, 3)
+    R = A @ A.T - np.eye(3)
+    V = kv * np.sum(R * R)
+    g = np.zeros(12)
+    g[3:] = (4.0 * kv * R @ A).reshape(-1)
+    ata = A.T @ A
+    w, v = np.linalg.eigh(R)
+    Rp = (v * np.maximum(w, 0.0)) @ v.T
+    H, Hp = np.zeros((12, 12)), np.zeros((12, 12))
+    for k in range(3):
+        for l in range(3):
+            blk = 4.0 * kv * ((k == l) * ata + np.outer(A[l], A[k]))
+            H[3 + 3 * k : 6 + 3 * k, 3 + 3 * l : 6 + 3 * l] = blk + 4.0 * kv * R[k, l] * np.eye(3)
+            Hp[3 + 3 * k : 6 + 3 * k, 3 + 3 * l : 6 + 3 * l] = blk + 4.0 * kv * Rp[k, l] * np.eye(3)
+    return V, g, H, Hp
+
+
+def inertia_np(q, q_tilde, mass, com, second_moment):
+    M = affine.mass_matrix(mass, com, second_moment)
+    d = q - q_tilde
+    return 0.5 * d @ M @ d, M @ d, M
+
+
+# ----------------------------------------------------------------------------- Warp
+@functools.lru_cache(maxsize=None)
+def kernels(dtype):
+    o = ops(dtype)
+    vec3, vec12, mat33, mat12 = o.vec3, o.vec12, o.mat33, o.mat12
+    add_energy, add_grad, add_block = o.add_energy, o.add_grad, o.add_block
+    half, four = dtype(0.5), dtype(4.0)
+
+    @wp.func
+    def row(q: vec12, k: int):
+        return vec3(q[3 + 3 * k], q[4 + 3 * k], q[5 + 3 * k])
+
+    @wp.kernel(module="unique")
+    def body_terms(
+        q: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
+        free: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+        mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33),
+        kv: wp.array2d(dtype=dtype), ortho_scale: dtype, active: wp.array(dtype=wp.int32),
+        derivs: int, col: int, col_ortho: int,
+        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        b = free[k]
+        o = dof[b]
+        qb = q[w, b]
+        d = qb - q_tilde[w, b]
+        m = mass[w, b]
+        c = mc[w, b]
+        s = S[w, b]
+        # M d: translation m dp + A_d c; row k of A: c dp_k + S da_k
+        dp = vec3(d[0], d[1], d[2])
+        f = vec12()
+        f[0] = m * dp[0] + wp.dot(row(d, 0), c)
+        f[1] = m * dp[1] + wp.dot(row(d, 1), c)
+        f[2] = m * dp[2] + wp.dot(row(d, 2), c)
+        for r in range(3):
+            fr = c * dp[r] + s * row(d, r)
+            f[3 + 3 * r] = fr[0]
+            f[4 + 3 * r] = fr[1]
+            f[5 + 3 * r] = fr[2]
+        add_energy(E, w, col, half * wp.dot(d, f))
+        # orthogonality: R = A Aᵀ − I
+        a0 = row(qb, 0)
+        a1 = row(qb, 1)
+        a2 = row(qb, 2)
+        A = wp.matrix_from_rows(a0, a1, a2)
+        R = A * wp.transpose(A) - wp.identity(3, dtype)
+        ks = kv[w, b] * ortho_scale
+        add_energy(E, w, col_ortho, ks * wp.ddot(R, R))
+        if derivs == 0:
+            return
+        G = (four * ks) * (R * A)
+        for r in range(3):
+            f[3 + 3 * r] += G[r, 0]
+            f[4 + 3 * r] += G[r, 1]
+            f[5 + 3 * r] += G[r, 2]
+        add_grad(g, w, o, f)
+        # Hessian: mass matrix plus the PSD orthogonality blocks
+        Q, lam = wp.eig3(R)
+        Rp = Q * wp.diag(wp.max(lam, vec3())) * wp.transpose(Q)
+        ata = wp.transpose(A) * A
+        h = mat12()
+        for r in range(3):
+            h[r, r] = m
+            for a in range(3):
+                h[r, 3 + 3 * r + a] = c[a]
+                h[3 + 3 * r + a, r] = c[a]
+        for kk in range(3):
+            ak = row(qb, kk)
+            for ll in range(3):
+                al = row(qb, ll)
+                blk = wp.outer(al, ak) + Rp[kk, ll] * wp.identity(3, dtype)
+                if kk == ll:
+                    blk = blk + ata
+                blk = (four * ks) * blk
+                if kk == ll:
+                    blk = blk + s
+                for a in range(3):
+                    for bb in range(3):
+                        h[3 + 3 * kk + a, 3 + 3 * ll + bb] = blk[a, bb]
+        add_block(H, w, o, o, h)
+
+    @wp.kernel(module="unique")
+    def body_report(
+        q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), free: wp.array(dtype=wp.int32),
+        mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33),
+        gravity: vec3, E: wp.array2d(dtype=dtype), col_kinetic: int, col_gravity: int,
+    ):  # fmt: skip
+        """Physical kinetic ½ q̇ᵀMq̇ and gravity −g·(m p + A m c) energies [J]."""
+        w, k = wp.tid()
+        b = free[k]
+        v = qd[w, b]
+        qb = q[w, b]
+        m = mass[w, b]
+        c = mc[w, b]
+        s = S[w, b]
+        vp = vec3(v[0], v[1], v[2])
+        ke = m * wp.dot(vp, vp)
+        for r in range(3):
+            vr = row(v, r)
+            ke += dtype(2.0) * vp[r] * wp.dot(vr, c) + wp.dot(vr, s * vr)
+        wp.atomic_add(E, w, col_kinetic, half * ke)
+        com = m * vec3(qb[0], qb[1], qb[2]) + vec3(wp.dot(row(qb, 0), c), wp.dot(row(qb, 1), c), wp.dot(row(qb, 2), c))
+        wp.atomic_add(E, w, col_gravity, -wp.dot(gravity, com))
+
+    return body_terms, body_report
+
+
+# ----------------------------------------------------------------------------- wiring
+def terms(model, physical=False):
+    return ("kinetic", "gravity", "orthogonality") if physical else TERMS
+
+
+def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
+    body_terms, body_report = kernels(model.dtype)
+    dim = (model.num_worlds, model.num_free)
+    common = [model.free, model.mass, model.mc, model.S]
+    if physical:
+        wp.launch(body_report, dim=dim, inputs=[q, state.qd, *common, model.gravity, E,
+                                                cols["kinetic"], cols["gravity"]], device=model.device)  # fmt: skip
+        col_inertia, scale = cols["scratch"], 1.0
+    else:
+        col_inertia, scale = cols["inertia"], ctx.h * ctx.h
+    wp.launch(body_terms, dim=dim, inputs=[q, ctx.q_tilde, model.free, model.dof, model.mass, model.mc, model.S,
+                                           model.kv, model.dtype(scale), active, derivs, col_inertia,
+                                           cols["orthogonality"], E, g, H], device=model.device)  # fmt: skip

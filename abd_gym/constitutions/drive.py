@@ -1,0 +1,147 @@
+"""Joint drives: motors and implicit PD targets on a revolute angle or prismatic displacement.
+
+The drive coordinate x is the multi-turn angle [rad] (x_prev + ΔΘ(q, q^{t−1})) or the
+displacement [m].  Drives are physical potentials, so they sit inside h² in the solve:
+
+- effort (motor): ``E = −τ (x − x_prev)`` with ``τ = clip(u, ±max_effort)`` [N·m or N]; the
+  Hessian of x is dropped (a force held over the step).
+- position / velocity (implicit PD): force ``f(x) = k(x − x*) + (d/h)(x − x_prev − h v*)``
+  (position: x* = u, v* = 0; velocity: k = 0, v* = u).  The energy is the integral of
+  ``clip(f, ±max_effort)``: a Huber function of x, convex, so large gains stay stable and the
+  effort limit holds inside the solve.  ``E = a·huber(x − x0, max_effort/a)``, ``a = k + d/h``.
+
+``energies()["drive"]`` reports the physical spring energy ½k(x − x*)² of position drives.
+"""
+
+import functools
+
+import numpy as np
+import warp as wp
+
+from ..angles import angle_ops
+from ..warp_ops import ops
+
+NAME = "drive"
+EFFORT, POSITION, VELOCITY = 0, 1, 2
+MODES = {"effort": EFFORT, "position": POSITION, "velocity": VELOCITY}
+
+
+def drive_np(x, x_prev, u, mode, k, d, max_effort, h):
+    """E(x), E'(x), E''(x) of one drive per unit h² (float64)."""
+    if mode == EFFORT:
+        tau = float(np.clip(u, -max_effort, max_effort))
+        return -tau * (x - x_prev), -tau, 0.0
+    xs, vs = (u, 0.0) if mode == POSITION else (0.0, u)
+    a = k + d / h
+    x0 = (k * xs + d / h * (x_prev + h * vs)) / a
+    e = x - x0
+    cap = max_effort / a
+    if abs(e) <= cap:
+        return 0.5 * a * e * e, a * e, a
+    return max_effort * (abs(e) - 0.5 * cap), max_effort * np.sign(e), 0.0
+
+
+@functools.lru_cache(maxsize=None)
+def kernel(dtype):
+    o = ops(dtype)
+    a = angle_ops(dtype)
+    vec12 = o.vec12
+    vec3 = o.vec3
+    add_energy, scatter_pair = o.add_energy, o.scatter_pair
+    cos_sin, delta_theta, theta_grad = a.cos_sin, a.delta_theta, a.theta_grad
+    displacement, displacement_grad = a.displacement, a.displacement_grad
+    half = dtype(0.5)
+    zero = dtype(0.0)
+
+    @wp.kernel(module="unique")
+    def drive(
+        q: wp.array2d(dtype=vec12), joint: wp.array(dtype=wp.int32), joint_kind: wp.array(dtype=wp.int32),
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
+        n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+        mode: wp.array(dtype=wp.int32), stiffness: wp.array2d(dtype=dtype), damping: wp.array2d(dtype=dtype),
+        max_effort: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype), x_prev_joint: wp.array2d(dtype=dtype),
+        h: dtype, scale: dtype, physical: int, active: wp.array(dtype=wp.int32), derivs: int, col: int,
+        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = joint[k]
+        bi = body_a[j]
+        bj = body_b[j]
+        qi = q[w, bi]
+        qj = q[w, bj]
+        rev = joint_kind[j] == 0
+        xp = x_prev_joint[w, j]  # multi-turn angle / displacement at the start of the step
+        c = zero
+        s = zero
+        x = zero
+        if rev:
+            c, s = cos_sin(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j])
+            x = xp + delta_theta(c, s, c_prev[w, j], s_prev[w, j])
+        else:
+            x = displacement(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
+        md = mode[k]
+        u = control[w, k]
+        fmax = max_effort[w, k]
+        kp = stiffness[w, k]
+        if physical != 0:
+            if md == 1:
+                add_energy(E, w, col, half * kp * (x - u) * (x - u))
+            return
+        e = zero
+        de = zero
+        dde = zero
+        if md == 0:
+            tau = wp.clamp(u, -fmax, fmax)
+            e = -tau * (x - xp)
+            de = -tau
+        else:
+            kd = damping[w, k] / h
+            xs = u
+            vs = zero
+            if md == 2:
+                xs = zero
+                vs = u
+            aa = kp + kd
+            x0 = (kp * xs + kd * (xp + h * vs)) / aa
+            r = x - x0
+            cap = fmax / aa
+            if wp.abs(r) <= cap:
+                e = half * aa * r * r
+                de = aa * r
+                dde = aa
+            else:
+                e = fmax * (wp.abs(r) - half * cap)
+                de = fmax * wp.sign(r)
+        add_energy(E, w, col, scale * e)
+        if derivs == 0:
+            return
+        gi = vec12()
+        gj = vec12()
+        if rev:
+            gi, gj = theta_grad(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], c, s)
+        else:
+            gi, gj = displacement_grad(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
+        de = scale * de
+        dde = scale * dde
+        scatter_pair(g, H, w, dof[bi], dof[bj], de * gi, de * gj,
+                     dde * wp.outer(gi, gi), dde * wp.outer(gi, gj), dde * wp.outer(gj, gj))  # fmt: skip
+
+    return drive
+
+
+def terms(model, physical=False):
+    return (NAME,) if model.num_drives else ()
+
+
+def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
+    m = model
+    scale = 1.0 if physical else ctx.h * ctx.h
+    wp.launch(kernel(m.dtype), dim=(m.num_worlds, m.num_drives),
+              inputs=[q, m.drive_joint, m.joint_kind, m.body_a, m.body_b, m.dof, m.c_a, m.c_b, m.t_a,
+                      m.n_a, m.b_a, m.n_b, m.b_b, state.c_prev, state.s_prev, m.drive_mode, m.drive_stiffness,
+                      m.drive_damping, m.drive_max_effort, state.control, state.unwrapped, m.dtype(ctx.h),
+                      m.dtype(scale), int(physical), active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip

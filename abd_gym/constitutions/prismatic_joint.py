@@ -1,0 +1,130 @@
+"""Prismatic joint (libuipc UID 20), exactly the seed ``affine_body_prismatic_joint.md``.
+
+Frame ``(c, t̂, n̂, b̂)`` captured in both bodies at creation; with ``c_k = J(c) q_k`` etc.::
+
+    C0 = (c_j − c_i) × t̂_i      C1 = (c_i − c_j) × t̂_j
+    C2 = n̂_i − n̂_j              C3 = b̂_i − b̂_j
+    E  = Σ_k K/2 ‖C_k‖²  [J],   K = strength_ratio·(m_i + m_j)
+
+Gradient exact; the Hessian is the Gauss–Newton part ``K Σ ∇C_mᵀ∇C_m`` (PSD; C0 and C1 are
+bilinear, and the dropped ``K Σ C_m ∇²C_m`` vanishes as the constraint is met).
+"""
+
+import functools
+
+import numpy as np
+import warp as wp
+
+from .. import affine
+from ..warp_ops import ops
+
+UID = 20
+NAME = "prismatic_joint"
+KIND = "prismatic"
+
+
+def prismatic_joint_np(q, ci, cj, ti, tj, ni, nj, bi, bj, K):
+    """Energy, gradient, exact Hessian and Gauss–Newton Hessian in the stacked pair q (float64)."""
+    D = affine.on_pair(affine.J(cj), 1) - affine.on_pair(affine.J(ci), 0)
+    E, g, H, Hgn = 0.0, np.zeros(24), np.zeros((24, 24)), np.zeros((24, 24))
+    parts = [
+        affine.cross_derivs(D, affine.on_pair(affine.Jo(ti), 0), q),
+        affine.cross_derivs(-D, affine.on_pair(affine.Jo(tj), 1), q),
+    ]
+    for ui, uj in ((ni, nj), (bi, bj)):
+        L = affine.on_pair(affine.Jo(ui), 0) - affine.on_pair(affine.Jo(uj), 1)
+        parts.append((L @ q, L, np.zeros((3, 24, 24))))
+    for C, jac, hes in parts:
+        E += 0.5 * K * C @ C
+        g += K * jac.T @ C
+        Hgn += K * jac.T @ jac
+        H += K * (jac.T @ jac + np.einsum("m,mab->ab", C, hes))
+    return E, g, H, Hgn
+
+
+@functools.lru_cache(maxsize=None)
+def kernel(dtype):
+    o = ops(dtype)
+    vec3, vec12, mat12 = o.vec3, o.vec12, o.mat12
+    point, direction, JT, unit, skew_row = o.point, o.direction, o.JT, o.unit, o.skew_row
+    add_energy, scatter_pair = o.add_energy, o.scatter_pair
+    one, zero, half = dtype(1.0), dtype(0.0), dtype(0.5)
+
+    @wp.kernel(module="unique")
+    def prismatic_joint(
+        q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32),
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3), t_b: wp.array2d(dtype=vec3),
+        n_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        K: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), derivs: int, col: int,
+        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        bi = body_a[j]
+        bj = body_b[j]
+        qi = q[w, bi]
+        qj = q[w, bj]
+        kk = K[w, j]
+        ci = c_a[w, j]
+        cj = c_b[w, j]
+        ti = t_a[w, j]
+        tj = t_b[w, j]
+        d = point(qj, cj) - point(qi, ci)
+        Ti = direction(qi, ti)
+        Tj = direction(qj, tj)
+        C0 = wp.cross(d, Ti)
+        C1 = wp.cross(-d, Tj)
+        C2 = direction(qi, n_a[w, j]) - direction(qj, n_b[w, j])
+        C3 = direction(qi, b_a[w, j]) - direction(qj, b_b[w, j])
+        add_energy(E, w, col, half * kk * (wp.dot(C0, C0) + wp.dot(C1, C1) + wp.dot(C2, C2) + wp.dot(C3, C3)))
+        if derivs == 0:
+            return
+        gi = vec12()
+        gj = vec12()
+        hii = mat12()
+        hij = mat12()
+        hjj = mat12()
+        for c in range(4):
+            for m in range(3):
+                # scalar constraint component C_c[m] and its gradients (rows of the Jacobian)
+                v = zero
+                ri = vec12()
+                rj = vec12()
+                if c == 0:
+                    v = C0[m]
+                    ri = JT(ci, skew_row(Ti, m), one) + JT(ti, skew_row(d, m), zero)
+                    rj = -JT(cj, skew_row(Ti, m), one)
+                elif c == 1:
+                    v = C1[m]
+                    ri = -JT(ci, skew_row(Tj, m), one)
+                    rj = JT(cj, skew_row(Tj, m), one) + JT(tj, skew_row(-d, m), zero)
+                elif c == 2:
+                    v = C2[m]
+                    ri = JT(n_a[w, j], unit(m), zero)
+                    rj = -JT(n_b[w, j], unit(m), zero)
+                else:
+                    v = C3[m]
+                    ri = JT(b_a[w, j], unit(m), zero)
+                    rj = -JT(b_b[w, j], unit(m), zero)
+                gi += (kk * v) * ri
+                gj += (kk * v) * rj
+                hii += kk * wp.outer(ri, ri)
+                hij += kk * wp.outer(ri, rj)
+                hjj += kk * wp.outer(rj, rj)
+        scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
+
+    return prismatic_joint
+
+
+def terms(model, physical=False):
+    return (NAME,) if model.joint_count[KIND] else ()
+
+
+def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
+    m = model
+    wp.launch(kernel(m.dtype), dim=(m.num_worlds, m.joint_count[KIND]),
+              inputs=[q, m.joint_ids[KIND], m.body_a, m.body_b, m.dof, m.c_a, m.c_b, m.t_a, m.t_b, m.n_a, m.n_b,
+                      m.b_a, m.b_b, m.K, active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip

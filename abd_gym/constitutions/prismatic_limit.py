@@ -1,0 +1,108 @@
+"""Prismatic joint limit (libuipc UID 669): a one-sided cubic on the displacement.
+
+``x = t̂_i·(c_j − c_i)`` [m] (``angles.py``).  As in libuipc the overshoot is divided by the
+range width ``w = u − l``::
+
+    E(x) = s((x − u)/w)³  (x > u),   s((l − x)/w)³  (x < l),   0 on [l, u]          [J]
+
+falling back to ``s|x − l|³`` when ``u = l``.  Gradient ``E'(x)∇x`` exact; Hessian
+``E''(x)∇x∇xᵀ`` (PSD), the ``E'(x)∇²x`` term dropped.
+"""
+
+import functools
+
+import numpy as np
+import warp as wp
+
+from ..angles import angle_ops, prismatic_displacement_np
+from ..warp_ops import ops
+
+UID = 669
+NAME = "prismatic_limit"
+KIND = "prismatic"
+
+
+def cubic_np(x, lower, upper, s):
+    width = upper - lower
+    scale = 1.0 / width if width > 0.0 else 1.0
+    if x > upper:
+        e = (x - upper) * scale
+        return s * e**3, 3 * s * e**2 * scale, 6 * s * e * scale**2
+    if x < lower:
+        e = (lower - x) * scale
+        return s * e**3, -3 * s * e**2 * scale, 6 * s * e * scale**2
+    return 0.0, 0.0, 0.0
+
+
+def prismatic_limit_np(q, ci, cj, ti, lower, upper, s):
+    """E, gradient, exact Hessian, solver Hessian in the stacked pair q (float64)."""
+    x, gx, hx = prismatic_displacement_np(q, ci, cj, ti)
+    e, de, dde = cubic_np(x, lower, upper, s)
+    return e, de * gx, dde * np.outer(gx, gx) + de * hx, dde * np.outer(gx, gx)
+
+
+@functools.lru_cache(maxsize=None)
+def kernel(dtype):
+    o = ops(dtype)
+    a = angle_ops(dtype)
+    vec3, vec12 = o.vec3, o.vec12
+    add_energy, scatter_pair = o.add_energy, o.scatter_pair
+    displacement, displacement_grad = a.displacement, a.displacement_grad
+    one, three, six = dtype(1.0), dtype(3.0), dtype(6.0)
+
+    @wp.kernel(module="unique")
+    def prismatic_limit(
+        q: wp.array2d(dtype=vec12), joint: wp.array(dtype=wp.int32),
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
+        lower: wp.array2d(dtype=dtype), upper: wp.array2d(dtype=dtype), strength: wp.array2d(dtype=dtype),
+        active: wp.array(dtype=wp.int32), derivs: int, col: int,
+        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = joint[k]
+        bi = body_a[j]
+        bj = body_b[j]
+        qi = q[w, bi]
+        qj = q[w, bj]
+        x = displacement(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
+        lo = lower[w, k]
+        up = upper[w, k]
+        st = strength[w, k]
+        inv = one
+        if up > lo:
+            inv = one / (up - lo)
+        e = dtype(0.0)
+        de = dtype(0.0)
+        dde = dtype(0.0)
+        if x > up:
+            r = (x - up) * inv
+            e = st * r * r * r
+            de = three * st * r * r * inv
+            dde = six * st * r * inv * inv
+        elif x < lo:
+            r = (lo - x) * inv
+            e = st * r * r * r
+            de = -three * st * r * r * inv
+            dde = six * st * r * inv * inv
+        add_energy(E, w, col, e)
+        if derivs == 0 or de == dtype(0.0):
+            return
+        gi, gj = displacement_grad(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
+        scatter_pair(g, H, w, dof[bi], dof[bj], de * gi, de * gj,
+                     dde * wp.outer(gi, gi), dde * wp.outer(gi, gj), dde * wp.outer(gj, gj))  # fmt: skip
+
+    return prismatic_limit
+
+
+def terms(model, physical=False):
+    return (NAME,) if model.limit_joints[KIND] else ()
+
+
+def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
+    m = model
+    wp.launch(kernel(m.dtype), dim=(m.num_worlds, len(m.limit_joints[KIND])),
+              inputs=[q, m.limit_joint_ids[KIND], m.body_a, m.body_b, m.dof, m.c_a, m.c_b, m.t_a,
+                      *m.limit_params[KIND], active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip

@@ -1,0 +1,108 @@
+"""Revolute joint limit (libuipc UID 670), exactly the seed ``affine_body_revolute_joint_limit.md``.
+
+``x = θ0 + δ`` [rad] with ``θ0 = ΔΘ(q^{t−1}, q_ref)`` (fixed during the step) and
+``δ = ΔΘ(q, q^{t−1})`` (the atan2 increment of ``angles.py``); then::
+
+    E(x) = s(x − u)³  (x > u),   s(l − x)³  (x < l),   0 on [l, u] (bounds included)  [J]
+
+Not normalised by the range (unlike 669).  Gradient ``E'(x)∇x`` exact; Hessian ``E''(x)∇x∇xᵀ``
+(PSD since E'' ≥ 0); the indefinite ``E'(x)∇²x`` term is dropped (tests show Newton still
+converges in a few iterations against the limit).
+"""
+
+import functools
+
+import numpy as np
+import warp as wp
+
+from ..angles import angle_ops, revolute_angle_np
+from ..warp_ops import ops
+
+UID = 670
+NAME = "revolute_limit"
+KIND = "revolute"
+
+
+def cubic_np(x, lower, upper, s):
+    """E, E', E'' of the seed's one-sided cubic."""
+    if x > upper:
+        e = x - upper
+        return s * e**3, 3 * s * e**2, 6 * s * e
+    if x < lower:
+        e = lower - x
+        return s * e**3, -3 * s * e**2, 6 * s * e
+    return 0.0, 0.0, 0.0
+
+
+def revolute_limit_np(q, q_prev, q_ref, frames, lower, upper, s):
+    """E, gradient, exact Hessian, solver Hessian (E''∇x∇xᵀ) in the stacked pair q (float64)."""
+    x, gx, hx = revolute_angle_np(q, q_prev, q_ref, frames)
+    e, de, dde = cubic_np(x, lower, upper, s)
+    return e, de * gx, dde * np.outer(gx, gx) + de * hx, dde * np.outer(gx, gx)
+
+
+@functools.lru_cache(maxsize=None)
+def kernel(dtype):
+    o = ops(dtype)
+    a = angle_ops(dtype)
+    vec3, vec12 = o.vec3, o.vec12
+    add_energy, scatter_pair = o.add_energy, o.scatter_pair
+    cos_sin, delta_theta, theta_grad = a.cos_sin, a.delta_theta, a.theta_grad
+    three, six = dtype(3.0), dtype(6.0)
+
+    @wp.kernel(module="unique")
+    def revolute_limit(
+        q: wp.array2d(dtype=vec12), joint: wp.array(dtype=wp.int32),
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+        n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+        lower: wp.array2d(dtype=dtype), upper: wp.array2d(dtype=dtype), strength: wp.array2d(dtype=dtype),
+        active: wp.array(dtype=wp.int32), derivs: int, col: int,
+        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = joint[k]
+        bi = body_a[j]
+        bj = body_b[j]
+        qi = q[w, bi]
+        qj = q[w, bj]
+        c, s = cos_sin(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j])
+        x = theta0[w, j] + delta_theta(c, s, c_prev[w, j], s_prev[w, j])
+        lo = lower[w, k]
+        up = upper[w, k]
+        st = strength[w, k]
+        e = dtype(0.0)
+        de = dtype(0.0)
+        dde = dtype(0.0)
+        if x > up:
+            r = x - up
+            e = st * r * r * r
+            de = three * st * r * r
+            dde = six * st * r
+        elif x < lo:
+            r = lo - x
+            e = st * r * r * r
+            de = -three * st * r * r
+            dde = six * st * r
+        add_energy(E, w, col, e)
+        if derivs == 0 or de == dtype(0.0):
+            return
+        gi, gj = theta_grad(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], c, s)
+        scatter_pair(g, H, w, dof[bi], dof[bj], de * gi, de * gj,
+                     dde * wp.outer(gi, gi), dde * wp.outer(gi, gj), dde * wp.outer(gj, gj))  # fmt: skip
+
+    return revolute_limit
+
+
+def terms(model, physical=False):
+    return (NAME,) if model.limit_joints[KIND] else ()
+
+
+def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
+    m = model
+    wp.launch(kernel(m.dtype), dim=(m.num_worlds, len(m.limit_joints[KIND])),
+              inputs=[q, m.limit_joint_ids[KIND], m.body_a, m.body_b, m.dof, m.n_a, m.b_a, m.n_b, m.b_b,
+                      state.theta0, state.c_prev, state.s_prev, *m.limit_params[KIND], active, derivs, cols[NAME],
+                      E, g, H], device=m.device)  # fmt: skip

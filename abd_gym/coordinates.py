@@ -1,0 +1,84 @@
+"""Kernels that bracket a step: joint-angle history before it, coordinates and velocities after.
+
+Per revolute joint the state keeps ``θ0 = ΔΘ(q^{t−1}, q_ref)`` and ``(cos, sin)θ(q^{t−1})`` for
+the limit (seed 670), and a multi-turn angle that accumulates each step's ``δ``.
+"""
+
+import functools
+
+import warp as wp
+
+from .angles import angle_ops
+from .warp_ops import ops
+
+REVOLUTE_CODE, PRISMATIC_CODE, FIXED_CODE = 0, 1, 2
+
+
+@functools.lru_cache(maxsize=None)
+def kernels(dtype):
+    o = ops(dtype)
+    a = angle_ops(dtype)
+    vec3, vec12 = o.vec3, o.vec12
+    cos_sin, delta_theta, displacement = a.cos_sin, a.delta_theta, a.displacement
+    theta_grad, displacement_grad = a.theta_grad, a.displacement_grad
+
+    @wp.kernel(module="unique")
+    def begin_step(
+        q: wp.array2d(dtype=vec12), body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32),
+        kind: wp.array(dtype=wp.int32),
+        n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        c_ref: wp.array2d(dtype=dtype), s_ref: wp.array2d(dtype=dtype),
+        theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+        mask: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """θ0 and cos/sin θ of q^{t−1} (the state at the start of the step)."""
+        w, j = wp.tid()
+        if kind[j] != REVOLUTE_CODE or mask[w] == 0:
+            return
+        c, s = cos_sin(q[w, body_a[j]], q[w, body_b[j]], n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j])
+        c_prev[w, j] = c
+        s_prev[w, j] = s
+        theta0[w, j] = delta_theta(c, s, c_ref[w, j], s_ref[w, j])
+
+    @wp.kernel(module="unique")
+    def coordinates(
+        q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), kind: wp.array(dtype=wp.int32),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
+        n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+        h: dtype, healthy: wp.array(dtype=wp.int32), accumulate: int, rate_from_qd: int,
+        coord: wp.array2d(dtype=dtype), velocity: wp.array2d(dtype=dtype), unwrapped: wp.array2d(dtype=dtype),
+    ):  # fmt: skip
+        """x = θ0 + ΔΘ(q, q^{t−1}) (seed), its rate δ/h, and the multi-turn angle; displacement.
+
+        ``rate_from_qd``: after a state is set there is no step to take a rate over, so the rate is
+        the instantaneous ∇x·q̇.
+        """
+        w, j = wp.tid()
+        if healthy[w] == 0:
+            return
+        qi = q[w, body_a[j]]
+        qj = q[w, body_b[j]]
+        if kind[j] == REVOLUTE_CODE:
+            c, s = cos_sin(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j])
+            d = delta_theta(c, s, c_prev[w, j], s_prev[w, j])
+            coord[w, j] = theta0[w, j] + d
+            velocity[w, j] = d / h
+            if rate_from_qd != 0:
+                gi, gj = theta_grad(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], c, s)
+                velocity[w, j] = wp.dot(gi, qd[w, body_a[j]]) + wp.dot(gj, qd[w, body_b[j]])
+            if accumulate != 0:
+                unwrapped[w, j] = unwrapped[w, j] + d
+        elif kind[j] == PRISMATIC_CODE:
+            x = displacement(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
+            xp = displacement(q_prev[w, body_a[j]], q_prev[w, body_b[j]], c_a[w, j], c_b[w, j], t_a[w, j])
+            coord[w, j] = x
+            velocity[w, j] = (x - xp) / h
+            if rate_from_qd != 0:
+                gi, gj = displacement_grad(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
+                velocity[w, j] = wp.dot(gi, qd[w, body_a[j]]) + wp.dot(gj, qd[w, body_b[j]])
+            if accumulate != 0:
+                unwrapped[w, j] = x
+
+    return begin_step, coordinates

@@ -1,0 +1,141 @@
+"""Model: a scene compiled to static device arrays, one batch row per world.
+
+Everything a task may randomise per world (mass moments, joint frames and strengths, limit
+bounds and strengths, drive gains) has a leading world dimension; topology (which bodies a
+joint links, which constitutions exist) is shared by all worlds.  Built once from a validated
+``Scene``; the only writes afterwards come from the ``Simulator.set_*`` parameter setters.
+"""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from . import angles
+from .constitutions import drive as drive_mod
+from .warp_ops import ops
+from .coordinates import FIXED_CODE, PRISMATIC_CODE, REVOLUTE_CODE
+from .scene import FIXED, PRISMATIC, REVOLUTE, Scene
+
+_KIND_CODE = {REVOLUTE: REVOLUTE_CODE, PRISMATIC: PRISMATIC_CODE, FIXED: FIXED_CODE}
+_DTYPES = {"float32": wp.float32, "float64": wp.float64, np.float32: wp.float32, np.float64: wp.float64}
+
+
+def resolve_dtype(dtype):
+    if dtype in (wp.float32, wp.float64):
+        return dtype
+    key = dtype if dtype in _DTYPES else getattr(np.dtype(dtype), "name", None) if dtype is not None else None
+    if key not in _DTYPES:
+        raise ValueError(f"dtype must be float32 or float64, got {dtype!r}")
+    return _DTYPES[key]
+
+
+class Model:
+    """Device arrays of one scene for ``num_worlds`` worlds (see module docstring)."""
+
+    def __init__(self, scene: Scene, num_worlds: int, dtype=wp.float32, device="cpu"):
+        if not isinstance(num_worlds, (int, np.integer)) or num_worlds < 1:
+            raise ValueError(f"num_worlds must be a positive integer, got {num_worlds!r}")
+        if scene.num_bodies == 0:
+            raise ValueError("the scene has no bodies")
+        self.scene = scene
+        self.num_worlds = W = int(num_worlds)
+        self.dtype = resolve_dtype(dtype)
+        self.np_dtype = np.float32 if self.dtype == wp.float32 else np.float64
+        self.device = wp.get_device(device)
+        o = ops(self.dtype)
+        self.vec3, self.vec12, self.mat33 = o.vec3, o.vec12, o.mat33
+        bodies, joints = scene.bodies, scene.joints
+
+        # ---- bodies: dof offsets (fixed bodies carry no unknowns)
+        dof, free = [], []
+        for k, b in enumerate(bodies):
+            dof.append(-1 if b.fixed else 12 * len(free))
+            if not b.fixed:
+                free.append(k)
+        if not free:
+            raise ValueError("the scene has no free (non-fixed) body")
+        self.num_bodies, self.num_free = len(bodies), len(free)
+        self.num_dofs = 12 * len(free)
+        self.dof = self._int(dof)
+        self.free = self._int(free)
+        self.gravity = self.vec3(*scene.gravity)
+        self.base_mass = np.array([b.mass for b in bodies])
+        self.base_mc = np.array([b.mass * b.moments.com for b in bodies])
+        self.base_S = np.array([b.moments.second_moment for b in bodies])
+        self.base_kv = np.array([b.stiffness * b.shape.volume() for b in bodies])
+        self.mass = self._world(self.base_mass)
+        self.mc = self._world(self.base_mc, self.vec3)
+        self.S = self._world(self.base_S, self.mat33)
+        self.kv = self._world(self.base_kv)
+        self.q0 = np.stack([b.q() for b in bodies])  # (bodies, 12) float64 initial pose
+        self.qd0 = np.stack([b.qdot() for b in bodies])
+
+        # ---- joints: frames in each body's local coordinates at creation (q_ref)
+        nj = self.num_joints = len(joints)
+        self.joint_kind_np = np.array([_KIND_CODE[j.kind] for j in joints], dtype=np.int32)
+        self.body_a = self._int([j.body_a for j in joints])
+        self.body_b = self._int([j.body_b for j in joints])
+        self.joint_kind = self._int(self.joint_kind_np)
+        frames = np.zeros((8, max(nj, 1), 3))
+        pts = np.zeros((2, max(nj, 1), 4, 3))
+        K = np.zeros(max(nj, 1))
+        cs_ref = np.zeros((2, max(nj, 1)))
+        for k, j in enumerate(joints):
+            A, B = bodies[j.body_a], bodies[j.body_b]
+            t, n, b = j.frame
+            frames[:, k] = [A.to_local_point(j.anchor), B.to_local_point(j.anchor), A.to_local_dir(t), B.to_local_dir(t),
+                            A.to_local_dir(n), B.to_local_dir(n), A.to_local_dir(b), B.to_local_dir(b)]  # fmt: skip
+            L = j.half_length
+            if j.kind == FIXED:
+                world_pts = [j.anchor] + [j.anchor + L * e for e in np.eye(3)]
+            else:
+                world_pts = [j.anchor + L * t, j.anchor - L * t]
+            for p, x in enumerate(world_pts):
+                pts[0, k, p] = A.to_local_point(x)
+                pts[1, k, p] = B.to_local_point(x)
+            K[k] = j.strength_ratio * (A.mass + B.mass)
+            qpair = np.concatenate([A.q(), B.q()])
+            (c, *_), (s, *_) = angles.cos_sin_np(qpair, frames[4, k], frames[6, k], frames[5, k], frames[7, k])
+            cs_ref[:, k] = c, s
+        self.base_frames, self.base_points, self.base_K = frames, pts, K
+        self.c_a, self.c_b, self.t_a, self.t_b, self.n_a, self.n_b, self.b_a, self.b_b = (
+            self._world(f, self.vec3) for f in frames
+        )
+        self.pts_a, self.pts_b = (self._world(p, self.vec3) for p in pts)
+        self.K = self._world(K)
+        self.c_ref, self.s_ref = (self._world(v) for v in cs_ref)
+        self.joint_ids = {kind: self._int(scene.joints_of(kind)) for kind in (REVOLUTE, PRISMATIC, FIXED)}
+        self.joint_count = {kind: len(scene.joints_of(kind)) for kind in (REVOLUTE, PRISMATIC, FIXED)}
+
+        # ---- limits (per kind, in joint order)
+        self.limit_joints, self.limit_params = {}, {}
+        for kind in (REVOLUTE, PRISMATIC):
+            ids = [k for k, j in enumerate(joints) if j.kind == kind and j.has_limit]
+            self.limit_joints[kind] = ids
+            vals = np.array([[joints[k].attributes[f"limit/{a}"] for k in ids] for a in ("lower", "upper", "strength")])
+            self.limit_params[kind] = [self._world(v.reshape(-1)) for v in vals.reshape(3, -1)]
+        self.limit_joint_ids = {kind: self._int(v) for kind, v in self.limit_joints.items()}
+
+        # ---- drives
+        drives = scene.drives
+        self.num_drives = len(drives)
+        self.drive_joint = self._int([d.joint for d in drives])
+        self.drive_mode = self._int([drive_mod.MODES[d.mode] for d in drives])
+        self.drive_stiffness = self._world(np.array([d.stiffness for d in drives]))
+        self.drive_damping = self._world(np.array([d.damping for d in drives]))
+        self.drive_max_effort = self._world(np.array([min(d.max_effort, 1e30) for d in drives]))
+
+    # ------------------------------------------------------------------ helpers
+    def _int(self, values):
+        v = np.asarray(values, dtype=np.int32).reshape(-1)
+        return wp.array(v if v.size else np.zeros(1, np.int32), dtype=wp.int32, device=self.device)
+
+    def _world(self, per_item, vtype=None):
+        """Tile a per-item array over worlds: (W, items, ...) on the device."""
+        a = np.asarray(per_item, dtype=np.float64)
+        if a.shape[0] == 0:
+            a = np.zeros((1,) + a.shape[1:])
+        tiled = np.ascontiguousarray(np.broadcast_to(a, (self.num_worlds,) + a.shape), dtype=self.np_dtype)
+        if vtype is None:
+            return wp.array(tiled, dtype=self.dtype, device=self.device)
+        return wp.array(tiled, dtype=vtype, device=self.device)

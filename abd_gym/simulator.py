@@ -1,0 +1,381 @@
+"""Simulator: the public face of one scene stepped in ``num_worlds`` parallel worlds.
+
+Data flows one way: ``Scene`` → ``Model`` (static arrays) → ``State`` (per step) → ``Solver``.
+Getters return NumPy by default; ``backend="warp"`` gives the device array itself and
+``backend="torch"`` a zero-copy Torch view on the simulator's device.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from .model import Model
+from .scene import FIXED, PRISMATIC, REVOLUTE, Scene
+from .solver import Solver, SolverSettings
+from .state import State
+
+
+def _rot(axis, angle):
+    """Rotation matrices (N, 3, 3) about unit axis (3,) by angles (N,) (Rodrigues)."""
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
+
+
+def _skew(w):
+    z = np.zeros(w.shape[:-1])
+    return np.stack(
+        [np.stack([z, -w[..., 2], w[..., 1]], -1), np.stack([w[..., 2], z, -w[..., 0]], -1),
+         np.stack([-w[..., 1], w[..., 0], z], -1)], -2)  # fmt: skip
+
+
+def _finite_array(name, values, shape):
+    a = np.asarray(values, dtype=np.float64)
+    try:
+        a = np.broadcast_to(a, shape)
+    except ValueError:
+        raise ValueError(f"{name} must have shape {shape}, got {np.shape(values)}") from None
+    bad = np.argwhere(~np.isfinite(a))
+    if bad.size:
+        raise ValueError(f"{name} has a non-finite value {a[tuple(bad[0])]} at index {tuple(bad[0].tolist())}")
+    return a
+
+
+class Simulator:
+    """Step ``num_worlds`` copies of ``scene`` with implicit Euler (Newton on the incremental potential).
+
+    ``dt`` [s]; ``dtype`` float32 (default) or float64; ``tol`` the Newton stop on ``‖Δq‖∞/h`` [m/s].
+    """
+
+    def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device="cpu", dtype="float32",
+                 tol: float = 1e-5, max_iterations: int = 50, max_line_search: int = 12):  # fmt: skip
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be a positive finite number, got {dt!r}")
+        if not (tol > 0):
+            raise ValueError(f"tol must be positive, got {tol!r}")
+        self.scene = scene
+        self.model = Model(scene, num_worlds, dtype=dtype, device=device)
+        self.state = State(self.model)
+        self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search)))
+        self.dt = float(dt)
+        self.num_worlds = self.model.num_worlds
+        self.device = self.model.device
+        m = self.model
+        self._ratio = np.broadcast_to([j.strength_ratio for j in scene.joints], (self.num_worlds, m.num_joints)).copy()
+        self._mass = np.broadcast_to(m.base_mass, (self.num_worlds, m.num_bodies)).copy()
+        self.reset()
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, num_steps: int = 1):
+        """Advance every world ``num_steps`` steps of ``dt``."""
+        for _ in range(int(num_steps)):
+            self.solver.step(self.state)
+            self.state.time += self.dt
+
+    # ------------------------------------------------------------------ output
+    def _out(self, array, backend):
+        if backend == "numpy":
+            return array.numpy().astype(np.float64, copy=False) if array.dtype != wp.int32 else array.numpy()
+        if backend == "warp":
+            return array
+        if backend == "torch":
+            return wp.to_torch(array)
+        raise ValueError(f"backend must be 'numpy', 'warp' or 'torch', got {backend!r}")
+
+    def joint_coordinates(self, backend="numpy"):
+        """(num_worlds, num_joints): revolute angle [rad] (the seed's x = θ0 + δ), slider displacement [m]."""
+        return self._out(self.state.coord, backend)[:, : self.model.num_joints]
+
+    def joint_velocities(self, backend="numpy"):
+        """(num_worlds, num_joints): rates of the coordinates over the last step [rad/s, m/s]."""
+        return self._out(self.state.coord_vel, backend)[:, : self.model.num_joints]
+
+    def joint_angles_unwrapped(self, backend="numpy"):
+        """(num_worlds, num_joints): multi-turn revolute angle [rad] (displacement for sliders)."""
+        return self._out(self.state.unwrapped, backend)[:, : self.model.num_joints]
+
+    def body_q(self, backend="numpy"):
+        """(num_worlds, num_bodies, 12): affine coordinates (p, a1, a2, a3)."""
+        if backend == "numpy":
+            return self.state.q.numpy().astype(np.float64)
+        return self._out(self.state.q, backend)
+
+    def body_positions(self, backend="numpy"):
+        """(num_worlds, num_bodies, 3): p of each body [m]."""
+        return self.body_q(backend)[..., :3]
+
+    def body_rotations(self, backend="numpy"):
+        """(num_worlds, num_bodies, 3, 3): A of each body (rows a_k)."""
+        q = self.body_q(backend)
+        return q[..., 3:].reshape(q.shape[:-1] + (3, 3))
+
+    def body_velocities(self):
+        """(num_worlds, num_bodies, 12): q̇ over the last step."""
+        return self.state.qd.numpy().astype(np.float64)
+
+    def energies(self) -> dict:
+        """Each term's own energy [J] per world: "kinetic", "gravity", "orthogonality" and the joint,
+        limit and drive terms the scene has (K/2 Σ‖C‖² for joints, the seed's E(x) for limits)."""
+        return self.solver.energies(self.state)
+
+    def joint_violation(self) -> np.ndarray:
+        """(num_worlds,) largest joint position residual [m]: ‖x_i(P) − x_j(P)‖ of revolute and fixed
+        joint points, ‖C0‖ and ‖C1‖ of prismatic joints."""
+        m = self.model
+        out = np.zeros(self.num_worlds)
+        if not m.num_joints:
+            return out
+        q = self.body_q()
+        p, A = q[..., :3], q[..., 3:].reshape(q.shape[:-1] + (3, 3))
+        ia, ib = m.body_a.numpy()[: m.num_joints], m.body_b.numpy()[: m.num_joints]
+        pa, Aa, pb, Ab = p[:, ia], A[:, ia], p[:, ib], A[:, ib]
+        pts_a, pts_b = m.pts_a.numpy().astype(np.float64), m.pts_b.numpy().astype(np.float64)
+        xa = pa[:, :, None] + np.einsum("wjkl,wjpl->wjpk", Aa, pts_a[:, : m.num_joints])
+        xb = pb[:, :, None] + np.einsum("wjkl,wjpl->wjpk", Ab, pts_b[:, : m.num_joints])
+        res = np.linalg.norm(xa - xb, axis=-1)  # (W, nj, 4)
+        kind = m.joint_kind_np
+        res[:, kind == 0, 2:] = 0.0  # revolute joints use two points
+        viol = res.max(axis=-1)
+        pris = kind == 1
+        if pris.any():
+            f = {n: getattr(m, n).numpy().astype(np.float64)[:, : m.num_joints] for n in ("c_a", "c_b", "t_a", "t_b")}
+            ca = pa + np.einsum("wjkl,wjl->wjk", Aa, f["c_a"])
+            cb = pb + np.einsum("wjkl,wjl->wjk", Ab, f["c_b"])
+            ta, tb = np.einsum("wjkl,wjl->wjk", Aa, f["t_a"]), np.einsum("wjkl,wjl->wjk", Ab, f["t_b"])
+            c0 = np.linalg.norm(np.cross(cb - ca, ta), axis=-1)
+            c1 = np.linalg.norm(np.cross(ca - cb, tb), axis=-1)
+            viol[:, pris] = np.maximum(c0, c1)[:, pris]
+        return viol.max(axis=1)
+
+    def failed_worlds(self) -> np.ndarray:
+        """Indices of worlds whose state went non-finite or whose system broke; reset them."""
+        return np.flatnonzero(self.state.status.numpy() != 0)
+
+    def converged(self) -> np.ndarray:
+        """(num_worlds,) bool: the last step's Newton solve met the tolerance."""
+        return self.state.converged.numpy().astype(bool)
+
+    def newton_iterations(self) -> np.ndarray:
+        """(num_worlds,) Newton iterations used in the last step."""
+        return self.state.iterations.numpy()
+
+    # ------------------------------------------------------------------ input
+    def _worlds(self, worlds):
+        if worlds is None:
+            return np.arange(self.num_worlds)
+        w = np.asarray(worlds)
+        if w.dtype == bool:
+            if w.shape != (self.num_worlds,):
+                raise ValueError(f"a world mask must have shape ({self.num_worlds},), got {w.shape}")
+            return np.flatnonzero(w)
+        w = w.astype(np.int64).reshape(-1)
+        if w.size and (w.min() < 0 or w.max() >= self.num_worlds):
+            raise ValueError(f"world indices must lie in [0, {self.num_worlds}), got {w.tolist()}")
+        return w
+
+    def _mask(self, idx):
+        mask = np.zeros(self.num_worlds, dtype=np.int32)
+        mask[idx] = 1
+        return wp.array(mask, dtype=wp.int32, device=self.device)
+
+    def _write_rows(self, array, idx, values):
+        """array[idx] = values for a (W, ...) device array (host round trip; not on the step path)."""
+        host = array.numpy()
+        host[idx] = values
+        array.assign(host)
+
+    def set_controls(self, values, worlds=None):
+        """Drive inputs (num_worlds or len(worlds), num_drives): torque/force [N·m, N] of effort drives,
+        target position [rad, m] of position drives, target velocity of velocity drives."""
+        nd = self.model.num_drives
+        if nd == 0:
+            raise ValueError("the scene has no drives")
+        idx = self._worlds(worlds)
+        if worlds is None and not isinstance(values, np.ndarray) and hasattr(values, "__cuda_array_interface__") \
+                or (worlds is None and type(values).__module__.startswith("torch")):  # fmt: skip
+            src = wp.from_torch(values.contiguous().to(dtype=wp.to_torch(self.state.control).dtype))
+            if tuple(src.shape) != (self.num_worlds, nd):
+                raise ValueError(f"controls must have shape ({self.num_worlds}, {nd}), got {tuple(src.shape)}")
+            wp.copy(self.state.control, src)
+            return
+        vals = _finite_array("controls", values, (len(idx), nd))
+        if worlds is None:
+            self.state.control.assign(vals.astype(self.model.np_dtype))
+        else:
+            self._write_rows(self.state.control, idx, vals)
+
+    def set_body_states(self, positions, rotations, linear_velocities=None, angular_velocities=None, worlds=None):
+        """Set poses (N, bodies, 3) and (N, bodies, 3, 3) [and velocities] of the worlds listed (default all).
+
+        Fixed bodies keep their scene pose.  The joint-angle history restarts: q^{t−1} = q.
+        """
+        idx = self._worlds(worlds)
+        nb = self.model.num_bodies
+        p = _finite_array("positions", positions, (len(idx), nb, 3))
+        R = _finite_array("rotations", rotations, (len(idx), nb, 3, 3))
+        v = _finite_array("linear_velocities", 0.0 if linear_velocities is None else linear_velocities, (len(idx), nb, 3))
+        w = _finite_array("angular_velocities", 0.0 if angular_velocities is None else angular_velocities, (len(idx), nb, 3))
+        q = np.concatenate([p, R.reshape(len(idx), nb, 9)], axis=-1)
+        qd = np.concatenate([v, (_skew(w) @ R).reshape(len(idx), nb, 9)], axis=-1)
+        fixed = np.array([b.fixed for b in self.scene.bodies])
+        q[:, fixed] = self.model.q0[fixed]
+        qd[:, fixed] = 0.0
+        self._set_q(idx, q, qd)
+
+    def _set_q(self, idx, q, qd, unwrapped=None):
+        st = self.state
+        for arr, val in ((st.q, q), (st.qd, qd), (st.q_prev, q)):
+            self._write_rows(arr, idx, val)
+        status = st.status.numpy()
+        status[idx] = 0
+        st.status.assign(status)
+        st.time[idx] = 0.0
+        mask = self._mask(idx)
+        self.solver.begin(st, mask)
+        self.solver.update_coordinates(st, accumulate=False, rate_from_qd=True, mask=mask)
+        if self.model.num_joints:
+            u = st.unwrapped.numpy()
+            u[idx, : self.model.num_joints] = st.coord.numpy()[idx, : self.model.num_joints]
+            if unwrapped is not None:
+                u[idx, : self.model.num_joints] = unwrapped
+            st.unwrapped.assign(u)
+
+    def set_joint_state(self, coordinates, velocities=None, worlds=None):
+        """Forward kinematics for tree mechanisms: joint coordinates (N, num_joints) [rad, m] and
+        rates, from the scene's zero pose.  Joints that close a loop are left to the solver."""
+        idx = self._worlds(worlds)
+        m, scene = self.model, self.scene
+        nj, N = m.num_joints, len(idx)
+        x = _finite_array("coordinates", coordinates, (N, nj))
+        xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj))
+        bodies = scene.bodies
+        R = np.broadcast_to(np.stack([b.rotation for b in bodies]), (N, len(bodies), 3, 3)).copy()
+        p = np.broadcast_to(np.stack([b.position for b in bodies]), (N, len(bodies), 3)).copy()
+        v = np.zeros((N, len(bodies), 3))
+        w = np.zeros((N, len(bodies), 3))
+        placed = np.array([b.fixed for b in bodies])
+        # roots: fixed bodies, then free bodies that no joint drives from a placed parent
+        pending = list(range(nj))
+        while pending:
+            progress = False
+            for k in list(pending):
+                j = scene.joints[k]
+                a, b = j.body_a, j.body_b
+                if placed[a] and placed[b]:
+                    pending.remove(k)  # closes a loop: the solver pulls it together
+                    continue
+                if not (placed[a] or placed[b]):
+                    continue
+                sign = 1.0 if placed[a] else -1.0
+                par, ch = (a, b) if placed[a] else (b, a)
+                Bp, Bc = bodies[par], bodies[ch]
+                R_rel0 = Bp.rotation.T @ Bc.rotation
+                p_rel0 = Bp.rotation.T @ (Bc.position - Bp.position)
+                t_loc = Bp.to_local_dir(j.frame[0])
+                c_loc = Bp.to_local_point(j.anchor)
+                xs, vs = sign * x[:, k], sign * xd[:, k]
+                if j.kind == REVOLUTE:
+                    G = _rot(t_loc, xs)
+                    R_rel = G @ R_rel0
+                    p_rel = c_loc + np.einsum("nij,j->ni", G, p_rel0 - c_loc)
+                elif j.kind == PRISMATIC:
+                    R_rel = np.broadcast_to(R_rel0, (N, 3, 3))
+                    p_rel = p_rel0 + xs[:, None] * t_loc
+                else:
+                    R_rel = np.broadcast_to(R_rel0, (N, 3, 3))
+                    p_rel = np.broadcast_to(p_rel0, (N, 3))
+                Rp = R[:, par]
+                R[:, ch] = Rp @ R_rel
+                p[:, ch] = p[:, par] + np.einsum("nij,nj->ni", Rp, p_rel)
+                t_world = np.einsum("nij,j->ni", Rp, t_loc)
+                v[:, ch] = v[:, par] + np.cross(w[:, par], p[:, ch] - p[:, par])
+                w[:, ch] = w[:, par]
+                if j.kind == REVOLUTE:
+                    anchor = p[:, par] + np.einsum("nij,j->ni", Rp, c_loc)
+                    w[:, ch] += vs[:, None] * t_world
+                    v[:, ch] += np.cross(vs[:, None] * t_world, p[:, ch] - anchor)
+                elif j.kind == PRISMATIC:
+                    v[:, ch] += vs[:, None] * t_world
+                placed[ch] = True
+                pending.remove(k)
+                progress = True
+            if not progress and pending:
+                # a free body with no placed neighbour: it is a root at its scene pose
+                k = pending[0]
+                placed[scene.joints[k].body_a] = True
+        q = np.concatenate([p, R.reshape(N, len(bodies), 9)], axis=-1)
+        qd = np.concatenate([v, (_skew(w) @ R).reshape(N, len(bodies), 9)], axis=-1)
+        unwrapped = np.where(m.joint_kind_np[None, :] == 2, 0.0, x)
+        self._set_q(idx, q, qd, unwrapped=unwrapped)
+
+    def reset(self, worlds=None):
+        """Back to the scene's initial state (all worlds, or those listed); clears failure flags
+        and controls."""
+        idx = self._worlds(worlds)
+        N = len(idx)
+        q = np.broadcast_to(self.model.q0, (N,) + self.model.q0.shape)
+        qd = np.broadcast_to(self.model.qd0, (N,) + self.model.qd0.shape)
+        if self.model.num_drives:
+            self._write_rows(self.state.control, idx, 0.0)
+        self._set_q(idx, q, qd)
+
+    # ------------------------------------------------------------------ per-world parameters
+    def _update_K(self):
+        m = self.model
+        if not m.num_joints:
+            return
+        ia, ib = m.body_a.numpy()[: m.num_joints], m.body_b.numpy()[: m.num_joints]
+        K = self._ratio * (self._mass[:, ia] + self._mass[:, ib])
+        m.K.assign(K.astype(m.np_dtype))
+
+    def set_body_mass(self, mass, bodies=None, worlds=None):
+        """Per-world body masses [kg] (N, len(bodies)); every mass moment scales with it, and joint
+        strengths K = strength_ratio·(m_i + m_j) follow."""
+        m = self.model
+        idx = self._worlds(worlds)
+        bi = np.arange(m.num_bodies) if bodies is None else np.array([self.scene.body_index(b) for b in np.atleast_1d(bodies)])
+        vals = _finite_array("mass", mass, (len(idx), len(bi)))
+        if (vals <= 0).any():
+            raise ValueError(f"mass must be positive, got {vals[vals <= 0][0]}")
+        self._mass[np.ix_(idx, bi)] = vals
+        scale = self._mass / m.base_mass
+        m.mass.assign((m.base_mass * scale).astype(m.np_dtype))
+        m.mc.assign((m.base_mc[None] * scale[..., None]).astype(m.np_dtype))
+        m.S.assign((m.base_S[None] * scale[..., None, None]).astype(m.np_dtype))
+        self._update_K()
+
+    def set_joint_strength(self, strength_ratio, joints=None, worlds=None):
+        """Per-world joint strength ratios (N, len(joints)): K = strength_ratio·(m_i + m_j)."""
+        idx = self._worlds(worlds)
+        ji = np.arange(self.model.num_joints) if joints is None else np.array([self.scene.joint_index(j) for j in np.atleast_1d(joints)])
+        vals = _finite_array("strength_ratio", strength_ratio, (len(idx), len(ji)))
+        if (vals <= 0).any():
+            raise ValueError(f"strength_ratio must be positive, got {vals[vals <= 0][0]}")
+        self._ratio[np.ix_(idx, ji)] = vals
+        self._update_K()
+
+    def set_limit(self, joint, lower=None, upper=None, strength=None, worlds=None):
+        """Per-world bounds [rad or m] and strength [J] of a joint's limit (each (N,) or scalar)."""
+        m = self.model
+        j = self.scene.joint_index(joint)
+        kind = self.scene.joints[j].kind
+        if kind not in m.limit_joints or j not in m.limit_joints[kind]:
+            raise ValueError(f"joint {joint!r} has no limit")
+        col = m.limit_joints[kind].index(j)
+        idx = self._worlds(worlds)
+        arrays = [a.numpy() for a in m.limit_params[kind]]
+        for a, val, name in zip(arrays, (lower, upper, strength), ("lower", "upper", "strength")):
+            if val is not None:
+                a[idx, col] = _finite_array(name, val, (len(idx),))
+        lo, up, st = (a[idx, col] for a in arrays)
+        if (lo > up).any():
+            k = int(np.argmax(lo > up))
+            raise ValueError(f"limit lower ({lo[k]}) must not exceed upper ({up[k]})")
+        if (st <= 0).any():
+            raise ValueError(f"limit strength must be positive, got {st[st <= 0][0]}")
+        if kind == REVOLUTE and (lo < -math.pi).any() | (up > math.pi).any():
+            raise ValueError("revolute limits must lie in [-pi, pi]")
+        for dev_a, a in zip(m.limit_params[kind], arrays):
+            dev_a.assign(a)

@@ -1,0 +1,140 @@
+"""Implicit Euler as a Newton solve of the incremental potential (DESIGN.md §2).
+
+    E(q) = ½(q − q̃)ᵀM(q − q̃) + h²(Σ V_orth + Σ E_drive) + Σ E_joint + Σ E_limit
+
+Each Newton iteration assembles every world's gradient and dense Hessian (only the
+constitutions the scene has), solves it by Cholesky (one thread per world), backtracks on E
+(Armijo), and stops a world once its Newton step ``‖Δq‖∞/h`` is under ``tol`` [m/s].  Worlds
+that have converged or failed drop out of the remaining iterations.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from . import coordinates
+from .constitutions import REGISTRY
+from .solver_kernels import kernels as solver_kernels
+
+
+@dataclass
+class SolverSettings:
+    tol: float = 1e-5  # Newton step scaled to a velocity, ‖Δq‖∞/h [m/s]
+    max_iterations: int = 50
+    max_line_search: int = 12
+
+
+class Solver:
+    def __init__(self, model, dt: float, settings: SolverSettings):
+        self.model, self.settings = model, settings
+        self.h = float(dt)
+        W, n, dev, dt_ = model.num_worlds, model.num_dofs, model.device, model.dtype
+        # only the constitutions this scene has get a term (and so a kernel launch)
+        self.parts = [c for c in REGISTRY if c.terms(model)]
+        self.cols = self._columns(physical=False)
+        self.report_cols = self._columns(physical=True)
+        self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
+        self.q_trial = wp.zeros_like(self.q_tilde)
+        self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
+        self.E_trial = wp.zeros_like(self.E)
+        self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=dt_, device=dev)
+        self.g = wp.zeros((W, n), dtype=dt_, device=dev)
+        self.H = wp.zeros((W, n, n), dtype=dt_, device=dev)
+        self.dq = wp.zeros((W, n), dtype=dt_, device=dev)
+        self.gdq, self.dq_max, self.alpha = (wp.zeros(W, dtype=dt_, device=dev) for _ in range(3))
+        self.active, self.searching, self.take = (wp.zeros(W, dtype=wp.int32, device=dev) for _ in range(3))
+        self.all_active = wp.ones(W, dtype=wp.int32, device=dev)
+        self.remaining = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.k = solver_kernels(dt_)
+        self.begin_step, self.coordinates = coordinates.kernels(dt_)
+
+    def _columns(self, physical):
+        names = [t for c in self.parts for t in c.terms(self.model, physical)]
+        cols = {t: i for i, t in enumerate(names)}
+        if physical:
+            cols["scratch"] = len(names)
+        return cols
+
+    # ------------------------------------------------------------------ energy
+    def assemble(self, state, q, E, active, derivs: int, physical=False):
+        """Add every term's energy (and, if derivs, gradient and Hessian) at q for active worlds."""
+        cols = self.report_cols if physical else self.cols
+        for c in self.parts:
+            c.launch(self.model, state, self, q, E, self.g, self.H, active, derivs, cols, physical)
+
+    def energies(self, state) -> dict:
+        """Each term's own physical energy [J] per world (see Simulator.energies)."""
+        self.E_report.zero_()
+        self.assemble(state, state.q, self.E_report, self.all_active, 0, physical=True)
+        e = self.E_report.numpy()
+        return {t: e[:, i].astype(np.float64) for t, i in self.report_cols.items() if t != "scratch"}
+
+    # ------------------------------------------------------------------ step
+    def step(self, state):
+        m, k, dev, s = self.model, self.k, self.model.device, self.settings
+        W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
+        h = dt(self.h)
+        threshold = dt(s.tol * self.h)
+        wp.launch(k["check_finite"], dim=(W, nb), inputs=[state.q, state.qd, state.status], device=dev)
+        if m.num_joints:
+            wp.launch(self.begin_step, dim=(W, m.num_joints),
+                      inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
+                              state.theta0, state.c_prev, state.s_prev, self.all_active], device=dev)  # fmt: skip
+        wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, self.q_tilde, m.dof, m.gravity,
+                                                     h, state.status], device=dev)  # fmt: skip
+        # a world takes part while healthy; iterations and convergence are per world
+        status = state.status.numpy()
+        self.active.assign((status == 0).astype(np.int32))
+        state.iterations.zero_()
+        state.converged.zero_()
+        for _ in range(s.max_iterations):
+            self.E.zero_()
+            self.g.zero_()
+            self.H.zero_()
+            self.assemble(state, state.q, self.E, self.active, 1)
+            wp.launch(k["newton_direction"], dim=W, inputs=[self.H, self.g, m.num_dofs, self.active, self.dq, self.gdq,
+                                                            self.dq_max, state.status], device=dev)  # fmt: skip
+            self.alpha.fill_(1.0)
+            wp.copy(self.searching, self.active)
+            for ls in range(s.max_line_search):
+                wp.launch(k["trial"], dim=(W, nb), inputs=[state.q, self.dq, m.dof, self.alpha, self.searching,
+                                                           self.q_trial], device=dev)  # fmt: skip
+                self.E_trial.zero_()
+                self.assemble(state, self.q_trial, self.E_trial, self.searching, 0)
+                self.remaining.zero_()
+                wp.launch(k["accept"], dim=W, inputs=[self.E, self.E_trial, len(self.cols), self.gdq, self.dq_max,
+                                                      threshold, int(ls == s.max_line_search - 1), self.alpha,
+                                                      self.searching, self.take, self.active, state.converged,
+                                                      self.remaining], device=dev)  # fmt: skip
+                if self.remaining.numpy()[0] == 0:
+                    break
+            wp.launch(k["commit"], dim=(W, nb), inputs=[state.q, self.q_trial, self.take], device=dev)
+            self.remaining.zero_()
+            wp.launch(k["converge"], dim=W, inputs=[self.take, self.dq_max, threshold, self.active, state.converged,
+                                                    state.iterations, self.remaining], device=dev)  # fmt: skip
+            if self.remaining.numpy()[0] == 0:
+                break
+        wp.launch(k["finalize"], dim=(W, nb), inputs=[state.q, state.q_prev, state.qd, m.dof, dt(1.0 / self.h),
+                                                      state.status], device=dev)  # fmt: skip
+        self.update_coordinates(state, accumulate=True)
+
+    def begin(self, state, mask):
+        """Take the current q as q^{t−1} of the joint-angle history (after a state is set)."""
+        m = self.model
+        if m.num_joints:
+            wp.launch(self.begin_step, dim=(m.num_worlds, m.num_joints),
+                      inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
+                              state.theta0, state.c_prev, state.s_prev, mask], device=m.device)  # fmt: skip
+
+    def update_coordinates(self, state, accumulate, rate_from_qd=False, mask=None):
+        m = self.model
+        if not m.num_joints:
+            return
+        healthy = wp.array((state.status.numpy() == 0).astype(np.int32), device=m.device) if mask is None else mask
+        wp.launch(self.coordinates, dim=(m.num_worlds, m.num_joints),
+                  inputs=[state.q, state.q_prev, state.qd, m.body_a, m.body_b, m.joint_kind, m.c_a, m.c_b, m.t_a,
+                          m.n_a, m.b_a, m.n_b, m.b_b, state.theta0, state.c_prev, state.s_prev, m.dtype(self.h),
+                          healthy, int(accumulate), int(rate_from_qd), state.coord, state.coord_vel,
+                          state.unwrapped], device=m.device)  # fmt: skip

@@ -1,0 +1,196 @@
+"""Per-world Newton kernels: prediction, dense Cholesky solve, line search, step finalisation.
+
+One thread per world owns that world's small dense system (12 × free bodies unknowns), so no
+world waits on another and a failing world touches only its own rows.
+"""
+
+import functools
+
+import numpy as np
+import warp as wp
+
+from .warp_ops import ops
+
+# world status codes
+OK, FAILED = 0, 1
+
+
+@functools.lru_cache(maxsize=None)
+def kernels(dtype):
+    o = ops(dtype)
+    vec3, vec12 = o.vec3, o.vec12
+    zero, one = dtype(0.0), dtype(1.0)
+    EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
+
+    @wp.kernel(module="unique")
+    def predict(
+        q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
+        q_tilde: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), gravity: vec3, h: dtype,
+        status: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """q̃ = qᵗ + h q̇ᵗ + h² M⁻¹f_g; M⁻¹f_g = (g, 0) exactly (gravity accelerates p only)."""
+        w, b = wp.tid()
+        qb = q[w, b]
+        q_prev[w, b] = qb
+        if dof[b] < 0:
+            q_tilde[w, b] = qb
+            return
+        if status[w] != OK:
+            q_tilde[w, b] = qb
+            return
+        qt = qb + h * qd[w, b]
+        for r in range(3):
+            qt[r] = qt[r] + h * h * gravity[r]
+        q_tilde[w, b] = qt
+        q[w, b] = qt  # initial guess: the inertia term's minimiser
+
+    @wp.kernel(module="unique")
+    def newton_direction(
+        H: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), n: int, active: wp.array(dtype=wp.int32),
+        dq: wp.array2d(dtype=dtype), gdq: wp.array(dtype=dtype), dq_max: wp.array(dtype=dtype),
+        status: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """Solve H dq = −g by Cholesky in place (lower triangle); flag a world whose system is bad."""
+        w = wp.tid()
+        if active[w] == 0:
+            return
+        for j in range(n):
+            s = H[w, j, j]
+            for k in range(j):
+                s -= H[w, j, k] * H[w, j, k]
+            if not (s > zero) or not wp.isfinite(s):
+                status[w] = FAILED
+                active[w] = 0
+                return
+            d = wp.sqrt(s)
+            H[w, j, j] = d
+            for i in range(j + 1, n):
+                t = H[w, i, j]
+                for k in range(j):
+                    t -= H[w, i, k] * H[w, j, k]
+                H[w, i, j] = t / d
+        for i in range(n):  # L y = −g
+            t = -g[w, i]
+            for k in range(i):
+                t -= H[w, i, k] * dq[w, k]
+            dq[w, i] = t / H[w, i, i]
+        for ii in range(n):  # Lᵀ x = y
+            i = n - 1 - ii
+            t = dq[w, i]
+            for k in range(i + 1, n):
+                t -= H[w, k, i] * dq[w, k]
+            dq[w, i] = t / H[w, i, i]
+        s = zero
+        m = zero
+        for i in range(n):
+            s += g[w, i] * dq[w, i]
+            m = wp.max(m, wp.abs(dq[w, i]))
+        if not wp.isfinite(s):
+            status[w] = FAILED
+            active[w] = 0
+            return
+        gdq[w] = s
+        dq_max[w] = m
+
+    @wp.kernel(module="unique")
+    def trial(
+        q: wp.array2d(dtype=vec12), dq: wp.array2d(dtype=dtype), dof: wp.array(dtype=wp.int32),
+        alpha: wp.array(dtype=dtype), searching: wp.array(dtype=wp.int32), q_trial: wp.array2d(dtype=vec12),
+    ):  # fmt: skip
+        w, b = wp.tid()
+        o = dof[b]
+        qb = q[w, b]
+        if o >= 0 and searching[w] != 0:
+            a = alpha[w]
+            for r in range(12):
+                qb[r] = qb[r] + a * dq[w, o + r]
+        q_trial[w, b] = qb
+
+    @wp.kernel(module="unique")
+    def accept(
+        E0: wp.array2d(dtype=dtype), E1: wp.array2d(dtype=dtype), nterms: int, gdq: wp.array(dtype=dtype),
+        dq_max: wp.array(dtype=dtype), threshold: dtype, last: int,
+        alpha: wp.array(dtype=dtype), searching: wp.array(dtype=wp.int32), take: wp.array(dtype=wp.int32),
+        active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), remaining: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """Armijo test on the world's own energy; halve α on failure.
+
+        Energies equal to within rounding count as no increase (the float32 noise floor); a world
+        whose search runs out takes no step and stops: converged if its Newton step was already
+        within 1000× the tolerance, else reported as not converged.
+        """
+        w = wp.tid()
+        if searching[w] == 0:
+            return
+        e0 = zero
+        e1 = zero
+        mag = zero
+        for t in range(nterms):
+            e0 += E0[w, t]
+            e1 += E1[w, t]
+            mag += wp.abs(E0[w, t]) + wp.abs(E1[w, t])
+        a = alpha[w]
+        noise = dtype(16.0) * EPS * mag
+        if e1 <= e0 + dtype(1.0e-4) * a * gdq[w] + noise and wp.isfinite(e1):
+            searching[w] = 0
+            take[w] = 1
+        elif last != 0:
+            searching[w] = 0
+            take[w] = 0
+            active[w] = 0
+            if dq_max[w] < dtype(1000.0) * threshold:
+                converged[w] = 1
+        else:
+            alpha[w] = a * dtype(0.5)
+            wp.atomic_add(remaining, 0, 1)
+
+    @wp.kernel(module="unique")
+    def commit(
+        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), take: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        w, b = wp.tid()
+        if take[w] != 0:
+            q[w, b] = q_trial[w, b]
+
+    @wp.kernel(module="unique")
+    def converge(
+        take: wp.array(dtype=wp.int32), dq_max: wp.array(dtype=dtype), threshold: dtype,
+        active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
+        remaining: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """‖Δq‖∞ below h·tol: the step just taken was the last one needed."""
+        w = wp.tid()
+        if active[w] == 0:
+            return
+        iterations[w] = iterations[w] + 1
+        take[w] = 0
+        if dq_max[w] < threshold:
+            converged[w] = 1
+            active[w] = 0
+        else:
+            wp.atomic_add(remaining, 0, 1)
+
+    @wp.kernel(module="unique")
+    def finalize(
+        q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
+        dof: wp.array(dtype=wp.int32), inv_h: dtype, status: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """q̇ = (q − qᵗ)/h; a failed world keeps its last good state."""
+        w, b = wp.tid()
+        if status[w] != OK:
+            q[w, b] = q_prev[w, b]
+            return
+        if dof[b] >= 0:
+            qd[w, b] = (q[w, b] - q_prev[w, b]) * inv_h
+
+    @wp.kernel(module="unique")
+    def check_finite(q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32)):
+        w, b = wp.tid()
+        for r in range(12):
+            if not (wp.isfinite(q[w, b][r]) and wp.isfinite(qd[w, b][r])):
+                status[w] = FAILED
+
+    return dict(
+        predict=predict, newton_direction=newton_direction, trial=trial, accept=accept, commit=commit,
+        converge=converge, finalize=finalize, check_finite=check_finite,
+    )  # fmt: skip

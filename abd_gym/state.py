@@ -1,0 +1,28 @@
+"""State: the per-step arrays of every world.
+
+``q``/``qd``/``q_prev`` (W, bodies) vec12; per joint (W, joints): the seed's ``θ0`` and
+cos/sin θ of ``q^{t−1}``, the coordinate x, its rate, and the multi-turn angle (displacement
+for sliders); per drive (W, drives) the control; per world a status (0 ok, 1 failed), Newton
+iterations used in the last step, and whether it converged.
+"""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+
+class State:
+    def __init__(self, model):
+        W, dev, dt = model.num_worlds, model.device, model.dtype
+        nb, nj, nd = model.num_bodies, max(model.num_joints, 1), max(model.num_drives, 1)
+        self.q = wp.zeros((W, nb), dtype=model.vec12, device=dev)
+        self.qd = wp.zeros_like(self.q)
+        self.q_prev = wp.zeros_like(self.q)
+        self.theta0, self.c_prev, self.s_prev, self.coord, self.coord_vel, self.unwrapped = (
+            wp.zeros((W, nj), dtype=dt, device=dev) for _ in range(6)
+        )
+        self.control = wp.zeros((W, nd), dtype=dt, device=dev)
+        self.status = wp.zeros(W, dtype=wp.int32, device=dev)
+        self.iterations = wp.zeros(W, dtype=wp.int32, device=dev)
+        self.converged = wp.ones(W, dtype=wp.int32, device=dev)
+        self.time = np.zeros(W)  # seconds since the world's last reset (host bookkeeping)

@@ -1,0 +1,101 @@
+"""Warp building blocks shared by the constitutions, made once per scalar type.
+
+Every kernel is built by a cached factory for float32 or float64 (MuJoCo Warp's pattern), so the
+same source serves both precisions.  Per-world arrays: ``q`` (W, bodies) of vec12, gradient
+``g`` (W, n), Hessian ``H`` (W, n, n), energy terms ``E`` (W, terms); ``dof[b]`` is body b's
+first unknown or -1 for a fixed body, whose rows are simply skipped.
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+wp.config.quiet = True
+# no adjoints: the solver differentiates by hand, and skipping them halves compile time
+wp.config.enable_backward = False
+
+
+@functools.lru_cache(maxsize=None)
+def ops(dtype):
+    vec3 = wp.types.vector(3, dtype)
+    vec12 = wp.types.vector(12, dtype)
+    mat33 = wp.types.matrix((3, 3), dtype)
+    mat12 = wp.types.matrix((12, 12), dtype)
+
+    @wp.func
+    def point(q: vec12, x: vec3):
+        """p + A x."""
+        return vec3(
+            q[0] + q[3] * x[0] + q[4] * x[1] + q[5] * x[2],
+            q[1] + q[6] * x[0] + q[7] * x[1] + q[8] * x[2],
+            q[2] + q[9] * x[0] + q[10] * x[1] + q[11] * x[2],
+        )
+
+    @wp.func
+    def direction(q: vec12, v: vec3):
+        """A v."""
+        return vec3(
+            q[3] * v[0] + q[4] * v[1] + q[5] * v[2],
+            q[6] * v[0] + q[7] * v[1] + q[8] * v[2],
+            q[9] * v[0] + q[10] * v[1] + q[11] * v[2],
+        )
+
+    @wp.func
+    def JT(x: vec3, u: vec3, tr: dtype):
+        """J(x)ᵀ u (tr = 1) or J̊(x)ᵀ u (tr = 0): the gradient of u·(p·tr + A x)."""
+        return vec12(
+            tr * u[0], tr * u[1], tr * u[2],
+            u[0] * x[0], u[0] * x[1], u[0] * x[2],
+            u[1] * x[0], u[1] * x[1], u[1] * x[2],
+            u[2] * x[0], u[2] * x[1], u[2] * x[2],
+        )  # fmt: skip
+
+    @wp.func
+    def add_energy(E: wp.array2d(dtype=dtype), w: int, col: int, e: dtype):
+        wp.atomic_add(E, w, col, e)
+
+    @wp.func
+    def add_grad(g: wp.array2d(dtype=dtype), w: int, o: int, v: vec12):
+        if o >= 0:
+            for r in range(12):
+                wp.atomic_add(g, w, o + r, v[r])
+
+    @wp.func
+    def add_block(H: wp.array3d(dtype=dtype), w: int, oa: int, ob: int, m: mat12):
+        """H[oa:, ob:] += m and, off the diagonal, the transpose into H[ob:, oa:]."""
+        if oa >= 0 and ob >= 0:
+            for r in range(12):
+                for c in range(12):
+                    wp.atomic_add(H, w, oa + r, ob + c, m[r, c])
+                    if oa != ob:
+                        wp.atomic_add(H, w, ob + c, oa + r, m[r, c])
+
+    @wp.func
+    def scatter_pair(
+        g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype), w: int, oi: int, oj: int,
+        gi: vec12, gj: vec12, hii: mat12, hij: mat12, hjj: mat12,
+    ):  # fmt: skip
+        add_grad(g, w, oi, gi)
+        add_grad(g, w, oj, gj)
+        add_block(H, w, oi, oi, hii)
+        add_block(H, w, oi, oj, hij)
+        add_block(H, w, oj, oj, hjj)
+
+    @wp.func
+    def skew_row(t: vec3, m: int):
+        """Row m of [t]×, the matrix with [t]× v = t × v."""
+        r = vec3(dtype(0.0), -t[2], t[1])
+        if m == 1:
+            r = vec3(t[2], dtype(0.0), -t[0])
+        elif m == 2:
+            r = vec3(-t[1], t[0], dtype(0.0))
+        return r
+
+    @wp.func
+    def unit(m: int):
+        r = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
+        r[m] = dtype(1.0)
+        return r
+
+    return SimpleNamespace(**{k: v for k, v in locals().items() if k != "dtype"}, dtype=dtype)
