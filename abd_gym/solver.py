@@ -104,7 +104,7 @@ class Solver:
                 self.E_trial.zero_()
                 self.assemble(state, self.q_trial, self.E_trial, self.searching, 0)
                 self.remaining.zero_()
-                wp.launch(k["accept"], dim=W, inputs=[self.E, self.E_trial, len(self.cols), self.gdq, self.dq_max,
+                wp.launch(k["accept"], dim=W, inputs=[state.q, self.E, self.E_trial, len(self.cols), self.gdq, self.dq_max,
                                                       threshold, int(ls == s.max_line_search - 1), self.alpha,
                                                       self.searching, self.take, self.active, state.converged,
                                                       self.remaining], device=dev)  # fmt: skip
@@ -112,7 +112,7 @@ class Solver:
                     break
             wp.launch(k["commit"], dim=(W, nb), inputs=[state.q, self.q_trial, self.take], device=dev)
             self.remaining.zero_()
-            wp.launch(k["converge"], dim=W, inputs=[self.take, self.dq_max, threshold, self.active, state.converged,
+            wp.launch(k["converge"], dim=W, inputs=[state.q, self.take, self.dq_max, threshold, self.active, state.converged,
                                                     state.iterations, self.remaining], device=dev)  # fmt: skip
             if self.remaining.numpy()[0] == 0:
                 break

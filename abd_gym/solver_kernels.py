@@ -22,6 +22,15 @@ def kernels(dtype):
     zero, one = dtype(0.0), dtype(1.0)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
 
+    @wp.func
+    def noise_floor(q: wp.array2d(dtype=vec12), w: int, threshold: dtype):
+        """max(h·tol, 4·eps·(1 + ‖q‖∞)): a step below the rounding of q itself cannot shrink further."""
+        m = zero
+        for b in range(q.shape[1]):
+            for r in range(12):
+                m = wp.max(m, wp.abs(q[w, b][r]))
+        return wp.max(threshold, dtype(4.0) * EPS * (one + m))
+
     @wp.kernel(module="unique")
     def predict(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
@@ -98,9 +107,11 @@ def kernels(dtype):
         alpha: wp.array(dtype=dtype), searching: wp.array(dtype=wp.int32), q_trial: wp.array2d(dtype=vec12),
     ):  # fmt: skip
         w, b = wp.tid()
+        if searching[w] == 0:
+            return  # keeps an accepted trial point until it is committed
         o = dof[b]
         qb = q[w, b]
-        if o >= 0 and searching[w] != 0:
+        if o >= 0:
             a = alpha[w]
             for r in range(12):
                 qb[r] = qb[r] + a * dq[w, o + r]
@@ -108,7 +119,8 @@ def kernels(dtype):
 
     @wp.kernel(module="unique")
     def accept(
-        E0: wp.array2d(dtype=dtype), E1: wp.array2d(dtype=dtype), nterms: int, gdq: wp.array(dtype=dtype),
+        q: wp.array2d(dtype=vec12), E0: wp.array2d(dtype=dtype), E1: wp.array2d(dtype=dtype), nterms: int,
+        gdq: wp.array(dtype=dtype),
         dq_max: wp.array(dtype=dtype), threshold: dtype, last: int,
         alpha: wp.array(dtype=dtype), searching: wp.array(dtype=wp.int32), take: wp.array(dtype=wp.int32),
         active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), remaining: wp.array(dtype=wp.int32),
@@ -138,7 +150,7 @@ def kernels(dtype):
             searching[w] = 0
             take[w] = 0
             active[w] = 0
-            if dq_max[w] < dtype(1000.0) * threshold:
+            if dq_max[w] < dtype(1000.0) * noise_floor(q, w, threshold):
                 converged[w] = 1
         else:
             alpha[w] = a * dtype(0.5)
@@ -154,17 +166,17 @@ def kernels(dtype):
 
     @wp.kernel(module="unique")
     def converge(
-        take: wp.array(dtype=wp.int32), dq_max: wp.array(dtype=dtype), threshold: dtype,
+        q: wp.array2d(dtype=vec12), take: wp.array(dtype=wp.int32), dq_max: wp.array(dtype=dtype), threshold: dtype,
         active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
         remaining: wp.array(dtype=wp.int32),
     ):  # fmt: skip
-        """‖Δq‖∞ below h·tol: the step just taken was the last one needed."""
+        """‖Δq‖∞ below h·tol (or q's rounding): the step just taken was the last one needed."""
         w = wp.tid()
         if active[w] == 0:
             return
         iterations[w] = iterations[w] + 1
         take[w] = 0
-        if dq_max[w] < threshold:
+        if dq_max[w] < noise_floor(q, w, threshold):
             converged[w] = 1
             active[w] = 0
         else:
