@@ -76,8 +76,8 @@ class Simulator:
 
     # ------------------------------------------------------------------ output
     def _out(self, array, backend):
-        if backend == "numpy":
-            return array.numpy().astype(np.float64, copy=False) if array.dtype != wp.int32 else array.numpy()
+        if backend == "numpy":  # a copy: on the CPU .numpy() is a view of memory the next step overwrites
+            return np.array(array.numpy(), dtype=np.float64 if array.dtype != wp.int32 else np.int32)
         if backend == "warp":
             return array
         if backend == "torch":
@@ -159,7 +159,7 @@ class Simulator:
 
     def newton_iterations(self) -> np.ndarray:
         """(num_worlds,) Newton iterations used in the last step."""
-        return self.state.iterations.numpy()
+        return self.state.iterations.numpy().copy()
 
     # ------------------------------------------------------------------ input
     def _worlds(self, worlds):

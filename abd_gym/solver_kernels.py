@@ -146,6 +146,8 @@ def kernels(dtype):
         if e1 <= e0 + dtype(1.0e-4) * a * gdq[w] + noise and wp.isfinite(e1):
             searching[w] = 0
             take[w] = 1
+            if e0 - e1 <= noise:
+                take[w] = 2  # no decrease the precision can resolve: this is as converged as it gets
         elif last != 0:
             searching[w] = 0
             take[w] = 0
@@ -170,13 +172,15 @@ def kernels(dtype):
         active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
         remaining: wp.array(dtype=wp.int32),
     ):  # fmt: skip
-        """‖Δq‖∞ below h·tol (or q's rounding): the step just taken was the last one needed."""
+        """‖Δq‖∞ below h·tol (or q's rounding), or a step whose energy change is below rounding:
+        the step just taken was the last one needed."""
         w = wp.tid()
         if active[w] == 0:
             return
         iterations[w] = iterations[w] + 1
+        stalled = take[w] == 2
         take[w] = 0
-        if dq_max[w] < noise_floor(q, w, threshold):
+        if dq_max[w] < noise_floor(q, w, threshold) or stalled:
             converged[w] = 1
             active[w] = 0
         else:
