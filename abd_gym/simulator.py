@@ -7,6 +7,7 @@ Getters return NumPy by default; ``backend="warp"`` gives the device array itsel
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import warp as wp
@@ -46,16 +47,18 @@ def _finite_array(name, values, shape):
 class Simulator:
     """Step ``num_worlds`` copies of ``scene`` with implicit Euler (Newton on the incremental potential).
 
-    ``dt`` [s]; ``dtype`` float32 (default) or float64; ``tol`` the Newton stop on ``‖Δq‖∞/h`` [m/s].
+    ``dt`` [s]; ``dtype`` float32 (default) or float64; ``tol`` the Newton stop on ``‖Δq‖∞/h`` [m/s];
+    ``device`` "cpu" or "cuda:N" (default: $ABD_GYM_DEVICE, else "cpu").
     """
 
-    def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device="cpu", dtype="float32",
+    def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
                  tol: float = 1e-5, max_iterations: int = 50, max_line_search: int = 12):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
             raise ValueError(f"tol must be positive, got {tol!r}")
         self.scene = scene
+        device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
         self.model = Model(scene, num_worlds, dtype=dtype, device=device)
         self.state = State(self.model)
         self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search)))

@@ -1,0 +1,167 @@
+"""Benchmark: steps per second against number of worlds, with the accuracy of each run.
+
+    python -m abd_gym.bench [--device cpu|cuda:0] [--worlds 1,16,256] [--steps 50] [--out DIR]
+
+For a double pendulum and a cart-pole it times ``Simulator.step`` (after warm-up, synchronised)
+and reports world-steps per second, steps per second, mean Newton iterations, the largest joint
+residual [m] seen in the timed window, and the relative error of the mechanism's small-oscillation
+period against the closed form of its linearisation (lowest mode; the cart-pole's pole hangs
+down on a free cart).  Prints a table and writes ``bench.json`` to ``--out``.
+"""
+import argparse
+import json
+import math
+import os
+import platform
+import time
+
+import numpy as np
+import warp as wp
+
+from . import mechanisms
+from .simulator import Simulator
+
+G = 9.81
+
+
+def _box_inertia_y(m, length, width=0.04):
+    """Moment of inertia [kg·m²] of a link about its centre, for rotation about y."""
+    return m / 3.0 * ((width / 2) ** 2 + (length / 2) ** 2)
+
+
+def _double_pendulum_mode(L=0.5, m=1.0):
+    """Lowest linearised mode of two uniform links (absolute angles φ1, φ2): period and shape."""
+    ic, d = _box_inertia_y(m, L), L / 2
+    M = np.array([[ic + m * d * d + m * L * L, m * L * d], [m * L * d, ic + m * d * d]])
+    K = np.diag([(m * d + m * L) * G, m * d * G])
+    w2, v = np.linalg.eig(np.linalg.solve(M, K))
+    k = int(np.argmin(w2.real))
+    phi = v[:, k].real / np.abs(v[:, k].real).max()
+    return 2 * math.pi / math.sqrt(w2[k].real), np.array([phi[0], phi[1] - phi[0]])  # joint coordinates
+
+
+def _cartpole_mode(pole_length=1.0, pole_mass=0.1, cart_mass=1.0):
+    """Pole hanging on a free cart: ω² = m g d (M + m) / ((M + m) I_c + M m d²)."""
+    ic, d, m, M = _box_inertia_y(pole_mass, pole_length, 0.02), pole_length / 2, pole_mass, cart_mass
+    w2 = m * G * d * (M + m) / ((M + m) * ic + M * m * d * d)
+    return 2 * math.pi / math.sqrt(w2)
+
+
+CASES = {
+    "double_pendulum": dict(scene=mechanisms.double_pendulum, mode=lambda: _double_pendulum_mode(), pole=0, rest=(0.0, 0.0)),
+    "cartpole": dict(scene=mechanisms.cartpole, mode=lambda: (_cartpole_mode(), np.array([0.0, 1.0])), pole=1,
+                     rest=(0.0, math.pi)),
+}  # fmt: skip
+
+
+def period_error(case, dt, dtype, device, amplitude=0.02):
+    """Relative error of the measured small-oscillation period against the closed form."""
+    c = CASES[case]
+    period, shape = c["mode"]()
+    sim = Simulator(c["scene"](), num_worlds=1, dt=dt, device=device, dtype=dtype)
+    rest = np.array(c["rest"])
+    sim.set_joint_state([rest + amplitude * shape])
+    steps = int(math.ceil(2.6 * period / dt))
+    xs = np.empty(steps)
+    for i in range(steps):
+        sim.step()
+        xs[i] = sim.joint_angles_unwrapped()[0, c["pole"]] - rest[c["pole"]]
+    k = np.flatnonzero((xs[:-1] > 0) & (xs[1:] <= 0))
+    if len(k) < 2:
+        return float("nan")
+    t = (k + 1 + xs[k] / (xs[k] - xs[k + 1])) * dt
+    return float((np.diff(t).mean() - period) / period)
+
+
+def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0):
+    c = CASES[case]
+    sim = Simulator(c["scene"](), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype)
+    rng = np.random.default_rng(seed)
+    x0 = np.array(c["rest"]) + rng.uniform(-0.3, 0.3, size=(num_worlds, len(c["rest"])))
+    if case == "cartpole":
+        x0 = np.stack([rng.uniform(-0.5, 0.5, num_worlds), rng.uniform(-0.3, 0.3, num_worlds)], 1)
+    sim.set_joint_state(x0)
+    sim.step(3)  # compile and warm up
+    wp.synchronize_device(sim.device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        sim.step()
+    wp.synchronize_device(sim.device)
+    elapsed = time.perf_counter() - t0
+    residual = float(sim.joint_violation().max())
+    return dict(
+        case=case, num_worlds=num_worlds, steps=steps, dt=dt, dtype=dtype, device=str(sim.device),
+        seconds=elapsed, steps_per_second=steps / elapsed, world_steps_per_second=num_worlds * steps / elapsed,
+        newton_iterations=float(sim.newton_iterations().mean()),  # of the last step joint_residual=residual,
+        converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
+    )  # fmt: skip
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--worlds", default=None, help="comma-separated world counts (default: 1..64 on CPU, 1..65536 on GPU)")
+    ap.add_argument("--steps", type=int, default=None)
+    ap.add_argument("--dt", type=float, default=0.01)
+    ap.add_argument("--dtype", default="float32")
+    ap.add_argument("--cases", default="double_pendulum,cartpole")
+    ap.add_argument("--out", default="bench_out")
+    ap.add_argument("--envs", action="store_true", help="also time each task's vector env")
+    args = ap.parse_args(argv)
+    gpu = args.device.startswith("cuda")
+    worlds = [int(w) for w in args.worlds.split(",")] if args.worlds else (
+        [1, 16, 256, 1024, 4096, 16384, 65536] if gpu else [1, 4, 16, 64])  # fmt: skip
+    steps = args.steps or (50 if gpu else 20)
+    rows, accuracy = [], []
+    for case in args.cases.split(","):
+        for dt in (1e-3, args.dt):
+            accuracy.append(dict(case=case, dt=dt, dtype=args.dtype,
+                                 period_error=period_error(case, dt, args.dtype, args.device)))  # fmt: skip
+        for w in worlds:
+            rows.append(time_steps(case, w, steps, args.dt, args.dtype, args.device))
+            r = rows[-1]
+            print(f"{case:16s} worlds {w:6d}  {r['world_steps_per_second']:12.0f} world-steps/s  "
+                  f"{r['steps_per_second']:8.1f} steps/s  iters {r['newton_iterations']:.2f}  "
+                  f"residual {r['joint_residual']:.2e}", flush=True)  # fmt: skip
+    env_rows = []
+    if args.envs:
+        from envs.bench_envs import env_steps_per_second
+
+        import abd_gym.registration as reg
+
+        for task in reg.TASKS:
+            for w in worlds:
+                env_rows.append(dict(task=task, num_envs=w, env_steps_per_second=env_steps_per_second(
+                    task, w, steps, args.device)))  # fmt: skip
+                print(f"{task:28s} envs {w:6d}  {env_rows[-1]['env_steps_per_second']:12.0f} env-steps/s", flush=True)
+    device_name = wp.get_device(args.device).name if gpu else platform.processor() or platform.machine()
+    result = dict(device=args.device, device_name=device_name, warp=wp.config.version, simulator=rows,
+                  accuracy=accuracy, envs=env_rows)  # fmt: skip
+    print()
+    print(table(result))
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "bench.json"), "w") as f:
+        json.dump(result, f, indent=1)
+    return result
+
+
+def table(result) -> str:
+    """Markdown tables of a bench result."""
+    lines = [f"Device: {result['device_name']} ({result['device']}), warp {result['warp']}", "",
+             "| mechanism | worlds | world-steps/s | steps/s | Newton iters | joint residual [m] |",
+             "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for r in result["simulator"]:
+        lines.append(f"| {r['case']} | {r['num_worlds']} | {r['world_steps_per_second']:,.0f} | "
+                     f"{r['steps_per_second']:,.1f} | {r['newton_iterations']:.2f} | {r['joint_residual']:.1e} |")  # fmt: skip
+    lines += ["", "| mechanism | dt [s] | dtype | period error (lowest mode) |", "|---|---:|---|---:|"]
+    for a in result["accuracy"]:
+        lines.append(f"| {a['case']} | {a['dt']} | {a['dtype']} | {a['period_error']:+.3%} |")
+    if result.get("envs"):
+        lines += ["", "| task | envs | env-steps/s |", "|---|---:|---:|"]
+        for e in result["envs"]:
+            lines.append(f"| {e['task']} | {e['num_envs']} | {e['env_steps_per_second']:,.0f} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()
