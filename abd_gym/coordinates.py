@@ -47,7 +47,7 @@ def kernels(dtype):
         c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
         n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
         theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
-        h: dtype, healthy: wp.array(dtype=wp.int32), accumulate: int, rate_from_qd: int,
+        h: dtype, status: wp.array(dtype=wp.int32), mask: wp.array(dtype=wp.int32), accumulate: int, rate_from_qd: int,
         coord: wp.array2d(dtype=dtype), velocity: wp.array2d(dtype=dtype), unwrapped: wp.array2d(dtype=dtype),
     ):  # fmt: skip
         """x = θ0 + ΔΘ(q, q^{t−1}) (seed), its rate δ/h, and the multi-turn angle; displacement.
@@ -56,7 +56,7 @@ def kernels(dtype):
         the instantaneous ∇x·q̇.
         """
         w, j = wp.tid()
-        if healthy[w] == 0:
+        if status[w] != 0 or mask[w] == 0:
             return
         qi = q[w, body_a[j]]
         qj = q[w, body_b[j]]

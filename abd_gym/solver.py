@@ -40,13 +40,15 @@ class Solver:
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)
         self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=dt_, device=dev)
-        self.g = wp.zeros((W, n), dtype=dt_, device=dev)
-        self.H = wp.zeros((W, n, n), dtype=dt_, device=dev)
-        self.dq = wp.zeros((W, n), dtype=dt_, device=dev)
+        # world-minor: thread w of the per-world solve reads H[i, j, w] coalesced with its neighbours
+        self.g = wp.zeros((n, W), dtype=dt_, device=dev)
+        self.H = wp.zeros((n, n, W), dtype=dt_, device=dev)
+        self.dq = wp.zeros((n, W), dtype=dt_, device=dev)
         self.gdq, self.dq_max, self.alpha = (wp.zeros(W, dtype=dt_, device=dev) for _ in range(3))
         self.active, self.searching, self.take = (wp.zeros(W, dtype=wp.int32, device=dev) for _ in range(3))
         self.all_active = wp.ones(W, dtype=wp.int32, device=dev)
-        self.remaining = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.remaining = wp.zeros(1, dtype=wp.int32, device=dev)  # loop flags for wp.capture_while
+        self.ls_remaining = wp.zeros(1, dtype=wp.int32, device=dev)
         self.k = solver_kernels(dt_)
         self.begin_step, self.coordinates = coordinates.kernels(dt_)
 
@@ -64,6 +66,14 @@ class Solver:
         for c in self.parts:
             c.launch(self.model, state, self, q, E, self.g, self.H, active, derivs, cols, physical)
 
+    def gradient(self) -> np.ndarray:
+        """(W, n) copy of the last assembled gradient."""
+        return self.g.numpy().T.copy()
+
+    def hessian(self) -> np.ndarray:
+        """(W, n, n) copy of the last assembled Hessian (before factorisation)."""
+        return np.moveaxis(self.H.numpy(), -1, 0).copy()
+
     def energies(self, state) -> dict:
         """Each term's own physical energy [J] per world (see Simulator.energies)."""
         self.E_report.zero_()
@@ -73,52 +83,57 @@ class Solver:
 
     # ------------------------------------------------------------------ step
     def step(self, state):
-        m, k, dev, s = self.model, self.k, self.model.device, self.settings
+        """One implicit Euler step of every world.  No host synchronisation: the loops run as
+        ``wp.capture_while`` on device flags, so the whole step can be captured in a CUDA graph."""
+        m, k, dev = self.model, self.k, self.model.device
         W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
-        h = dt(self.h)
-        threshold = dt(s.tol * self.h)
         wp.launch(k["check_finite"], dim=(W, nb), inputs=[state.q, state.qd, state.status], device=dev)
         if m.num_joints:
             wp.launch(self.begin_step, dim=(W, m.num_joints),
                       inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
                               state.theta0, state.c_prev, state.s_prev, self.all_active], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, self.q_tilde, m.dof, m.gravity,
-                                                     h, state.status], device=dev)  # fmt: skip
-        # a world takes part while healthy; iterations and convergence are per world
-        status = state.status.numpy()
-        self.active.assign((status == 0).astype(np.int32))
-        state.iterations.zero_()
-        state.converged.zero_()
-        for _ in range(s.max_iterations):
-            self.E.zero_()
-            self.g.zero_()
-            self.H.zero_()
-            self.assemble(state, state.q, self.E, self.active, 1)
-            wp.launch(k["newton_direction"], dim=W, inputs=[self.H, self.g, m.num_dofs, self.active, self.dq, self.gdq,
-                                                            self.dq_max, state.status], device=dev)  # fmt: skip
-            self.alpha.fill_(1.0)
-            wp.copy(self.searching, self.active)
-            for ls in range(s.max_line_search):
-                wp.launch(k["trial"], dim=(W, nb), inputs=[state.q, self.dq, m.dof, self.alpha, self.searching,
-                                                           self.q_trial], device=dev)  # fmt: skip
-                self.E_trial.zero_()
-                self.assemble(state, self.q_trial, self.E_trial, self.searching, 0)
-                self.remaining.zero_()
-                wp.launch(k["accept"], dim=W, inputs=[state.q, self.E, self.E_trial, len(self.cols), self.gdq, self.dq_max,
-                                                      threshold, int(ls == s.max_line_search - 1), self.alpha,
-                                                      self.searching, self.take, self.active, state.converged,
-                                                      self.remaining], device=dev)  # fmt: skip
-                if self.remaining.numpy()[0] == 0:
-                    break
-            wp.launch(k["commit"], dim=(W, nb), inputs=[state.q, self.q_trial, self.take], device=dev)
-            self.remaining.zero_()
-            wp.launch(k["converge"], dim=W, inputs=[state.q, self.take, self.dq_max, threshold, self.active, state.converged,
-                                                    state.iterations, self.remaining], device=dev)  # fmt: skip
-            if self.remaining.numpy()[0] == 0:
-                break
+                                                     dt(self.h), state.status], device=dev)  # fmt: skip
+        wp.launch(k["start"], dim=W, inputs=[state.status, self.active, state.iterations, state.converged, self.take],
+                  device=dev)  # fmt: skip
+        self.remaining.fill_(1)
+        wp.capture_while(self.remaining, self._newton_iteration, state=state)
         wp.launch(k["finalize"], dim=(W, nb), inputs=[state.q, state.q_prev, state.qd, m.dof, dt(1.0 / self.h),
                                                       state.status], device=dev)  # fmt: skip
         self.update_coordinates(state, accumulate=True)
+
+    def _newton_iteration(self, state):
+        m, k, dev, s = self.model, self.k, self.model.device, self.settings
+        W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
+        self.E.zero_()
+        self.g.zero_()
+        self.H.zero_()
+        self.assemble(state, state.q, self.E, self.active, 1)
+        wp.launch(k["newton_direction"], dim=W, inputs=[self.H, self.g, m.num_dofs, self.active, self.dq, self.gdq,
+                                                        self.dq_max, state.status], device=dev)  # fmt: skip
+        self.alpha.fill_(1.0)
+        wp.copy(self.searching, self.active)
+        self.ls_remaining.fill_(1)
+        wp.capture_while(self.ls_remaining, self._line_search_round, state=state)
+        wp.launch(k["commit"], dim=(W, nb), inputs=[state.q, self.q_trial, self.take], device=dev)
+        self.remaining.zero_()
+        wp.launch(k["converge"], dim=W, inputs=[state.q, self.take, self.dq_max, dt(s.tol * self.h), self.active,
+                                                state.converged, state.iterations, s.max_iterations,
+                                                self.remaining], device=dev)  # fmt: skip
+
+    def _line_search_round(self, state):
+        """Try α on every searching world; Armijo accepts or halves it (down to 2^-(max_line_search-1))."""
+        m, k, dev, s = self.model, self.k, self.model.device, self.settings
+        W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
+        wp.launch(k["trial"], dim=(W, nb), inputs=[state.q, self.dq, m.dof, self.alpha, self.searching, self.q_trial],
+                  device=dev)  # fmt: skip
+        self.E_trial.zero_()
+        self.assemble(state, self.q_trial, self.E_trial, self.searching, 0)
+        self.ls_remaining.zero_()
+        wp.launch(k["accept"], dim=W, inputs=[state.q, self.E, self.E_trial, len(self.cols), self.gdq, self.dq_max,
+                                              dt(s.tol * self.h), dt(0.5 ** (s.max_line_search - 1)), self.alpha,
+                                              self.searching, self.take, self.active, state.converged,
+                                              self.ls_remaining], device=dev)  # fmt: skip
 
     def begin(self, state, mask):
         """Take the current q as q^{t−1} of the joint-angle history (after a state is set)."""
@@ -132,9 +147,9 @@ class Solver:
         m = self.model
         if not m.num_joints:
             return
-        healthy = wp.array((state.status.numpy() == 0).astype(np.int32), device=m.device) if mask is None else mask
+        mask = self.all_active if mask is None else mask
         wp.launch(self.coordinates, dim=(m.num_worlds, m.num_joints),
                   inputs=[state.q, state.q_prev, state.qd, m.body_a, m.body_b, m.joint_kind, m.c_a, m.c_b, m.t_a,
                           m.n_a, m.b_a, m.n_b, m.b_b, state.theta0, state.c_prev, state.s_prev, m.dtype(self.h),
-                          healthy, int(accumulate), int(rate_from_qd), state.coord, state.coord_vel,
+                          state.status, mask, int(accumulate), int(rate_from_qd), state.coord, state.coord_vel,
                           state.unwrapped], device=m.device)  # fmt: skip

@@ -64,36 +64,36 @@ def kernels(dtype):
         if active[w] == 0:
             return
         for j in range(n):
-            s = H[w, j, j]
+            s = H[j, j, w]
             for k in range(j):
-                s -= H[w, j, k] * H[w, j, k]
+                s -= H[j, k, w] * H[j, k, w]
             if not (s > zero) or not wp.isfinite(s):
                 status[w] = FAILED
                 active[w] = 0
                 return
             d = wp.sqrt(s)
-            H[w, j, j] = d
+            H[j, j, w] = d
             for i in range(j + 1, n):
-                t = H[w, i, j]
+                t = H[i, j, w]
                 for k in range(j):
-                    t -= H[w, i, k] * H[w, j, k]
-                H[w, i, j] = t / d
+                    t -= H[i, k, w] * H[j, k, w]
+                H[i, j, w] = t / d
         for i in range(n):  # L y = −g
-            t = -g[w, i]
+            t = -g[i, w]
             for k in range(i):
-                t -= H[w, i, k] * dq[w, k]
-            dq[w, i] = t / H[w, i, i]
+                t -= H[i, k, w] * dq[k, w]
+            dq[i, w] = t / H[i, i, w]
         for ii in range(n):  # Lᵀ x = y
             i = n - 1 - ii
-            t = dq[w, i]
+            t = dq[i, w]
             for k in range(i + 1, n):
-                t -= H[w, k, i] * dq[w, k]
-            dq[w, i] = t / H[w, i, i]
+                t -= H[k, i, w] * dq[k, w]
+            dq[i, w] = t / H[i, i, w]
         s = zero
         m = zero
         for i in range(n):
-            s += g[w, i] * dq[w, i]
-            m = wp.max(m, wp.abs(dq[w, i]))
+            s += g[i, w] * dq[i, w]
+            m = wp.max(m, wp.abs(dq[i, w]))
         if not wp.isfinite(s):
             status[w] = FAILED
             active[w] = 0
@@ -114,14 +114,14 @@ def kernels(dtype):
         if o >= 0:
             a = alpha[w]
             for r in range(12):
-                qb[r] = qb[r] + a * dq[w, o + r]
+                qb[r] = qb[r] + a * dq[o + r, w]
         q_trial[w, b] = qb
 
     @wp.kernel(module="unique")
     def accept(
         q: wp.array2d(dtype=vec12), E0: wp.array2d(dtype=dtype), E1: wp.array2d(dtype=dtype), nterms: int,
         gdq: wp.array(dtype=dtype),
-        dq_max: wp.array(dtype=dtype), threshold: dtype, last: int,
+        dq_max: wp.array(dtype=dtype), threshold: dtype, min_alpha: dtype,
         alpha: wp.array(dtype=dtype), searching: wp.array(dtype=wp.int32), take: wp.array(dtype=wp.int32),
         active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), remaining: wp.array(dtype=wp.int32),
     ):  # fmt: skip
@@ -148,7 +148,7 @@ def kernels(dtype):
             take[w] = 1
             if e0 - e1 <= noise:
                 take[w] = 2  # no decrease the precision can resolve: this is as converged as it gets
-        elif last != 0:
+        elif a <= min_alpha:
             searching[w] = 0
             take[w] = 0
             active[w] = 0
@@ -170,10 +170,10 @@ def kernels(dtype):
     def converge(
         q: wp.array2d(dtype=vec12), take: wp.array(dtype=wp.int32), dq_max: wp.array(dtype=dtype), threshold: dtype,
         active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-        remaining: wp.array(dtype=wp.int32),
+        max_iterations: int, remaining: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """‖Δq‖∞ below h·tol (or q's rounding), or a step whose energy change is below rounding:
-        the step just taken was the last one needed."""
+        the step just taken was the last one needed.  At the iteration cap a world stops unconverged."""
         w = wp.tid()
         if active[w] == 0:
             return
@@ -183,8 +183,22 @@ def kernels(dtype):
         if dq_max[w] < noise_floor(q, w, threshold) or stalled:
             converged[w] = 1
             active[w] = 0
+        elif iterations[w] >= max_iterations:
+            active[w] = 0
         else:
             wp.atomic_add(remaining, 0, 1)
+
+    @wp.kernel(module="unique")
+    def start(
+        status: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
+        converged: wp.array(dtype=wp.int32), take: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """A world takes part in the solve while healthy."""
+        w = wp.tid()
+        active[w] = wp.where(status[w] == OK, 1, 0)
+        iterations[w] = 0
+        converged[w] = 0
+        take[w] = 0
 
     @wp.kernel(module="unique")
     def finalize(
@@ -207,6 +221,6 @@ def kernels(dtype):
                 status[w] = FAILED
 
     return dict(
-        predict=predict, newton_direction=newton_direction, trial=trial, accept=accept, commit=commit,
+        predict=predict, start=start, newton_direction=newton_direction, trial=trial, accept=accept, commit=commit,
         converge=converge, finalize=finalize, check_finite=check_finite,
     )  # fmt: skip

@@ -1,8 +1,9 @@
 """Warp building blocks shared by the constitutions, made once per scalar type.
 
 Every kernel is built by a cached factory for float32 or float64 (MuJoCo Warp's pattern), so the
-same source serves both precisions.  Per-world arrays: ``q`` (W, bodies) of vec12, gradient
-``g`` (W, n), Hessian ``H`` (W, n, n), energy terms ``E`` (W, terms); ``dof[b]`` is body b's
+same source serves both precisions.  Per-world arrays: ``q`` (W, bodies) of vec12, energy terms
+``E`` (W, terms); the gradient ``g`` (n, W) and Hessian ``H`` (n, n, W) are stored world-minor so
+that the per-world solve (one thread per world) reads them coalesced.  ``dof[b]`` is body b's
 first unknown or -1 for a fixed body, whose rows are simply skipped.
 """
 
@@ -59,7 +60,7 @@ def ops(dtype):
     def add_grad(g: wp.array2d(dtype=dtype), w: int, o: int, v: vec12):
         if o >= 0:
             for r in range(12):
-                wp.atomic_add(g, w, o + r, v[r])
+                wp.atomic_add(g, o + r, w, v[r])
 
     @wp.func
     def add_block(H: wp.array3d(dtype=dtype), w: int, oa: int, ob: int, m: mat12):
@@ -67,9 +68,9 @@ def ops(dtype):
         if oa >= 0 and ob >= 0:
             for r in range(12):
                 for c in range(12):
-                    wp.atomic_add(H, w, oa + r, ob + c, m[r, c])
+                    wp.atomic_add(H, oa + r, ob + c, w, m[r, c])
                     if oa != ob:
-                        wp.atomic_add(H, w, ob + c, oa + r, m[r, c])
+                        wp.atomic_add(H, ob + c, oa + r, w, m[r, c])
 
     @wp.func
     def scatter_pair(
