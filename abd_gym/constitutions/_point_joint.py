@@ -5,6 +5,7 @@
 """
 
 import functools
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -32,23 +33,11 @@ def kernel(dtype):
     point, JT, unit, add_energy, scatter_pair = o.point, o.JT, o.unit, o.add_energy, o.scatter_pair
     one, half = dtype(1.0), dtype(0.5)
 
-    @wp.kernel(module="unique")
-    def point_joint(
-        q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32),
-        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
-        pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3), npts: int, K: wp.array2d(dtype=dtype),
-        active: wp.array(dtype=wp.int32), derivs: int, col: int,
-        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    @wp.func
+    def point_eval(
+        qi: vec12, qj: vec12, pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3), w: int, j: int,
+        npts: int, kk: dtype, derivs: int,
     ):  # fmt: skip
-        w, k = wp.tid()
-        if active[w] == 0:
-            return
-        j = ids[k]
-        bi = body_a[j]
-        bj = body_b[j]
-        qi = q[w, bi]
-        qj = q[w, bj]
-        kk = K[w, j]
         e = dtype(0.0)
         gi = vec12()
         gj = vec12()
@@ -69,14 +58,31 @@ def kernel(dtype):
                     hii += kk * wp.outer(ri, ri)
                     hij -= kk * wp.outer(ri, rj)
                     hjj += kk * wp.outer(rj, rj)
+        return e, gi, gj, hii, hij, hjj
+
+    @wp.kernel(module="unique")
+    def point_joint(
+        q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32),
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+        pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3), npts: int, K: wp.array2d(dtype=dtype),
+        active: wp.array(dtype=wp.int32), derivs: int, col: int,
+        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        bi = body_a[j]
+        bj = body_b[j]
+        e, gi, gj, hii, hij, hjj = point_eval(q[w, bi], q[w, bj], pts_a, pts_b, w, j, npts, K[w, j], derivs)
         add_energy(E, w, col, e)
         if derivs != 0:
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
 
-    return point_joint
+    return SimpleNamespace(kernel=point_joint, eval=point_eval)
 
 
 def launch_points(model, kind, npts, q, E, g, H, active, derivs, col):
-    wp.launch(kernel(model.dtype), dim=(model.num_worlds, model.joint_count[kind]),
+    wp.launch(kernel(model.dtype).kernel, dim=(model.num_worlds, model.joint_count[kind]),
               inputs=[q, model.joint_ids[kind], model.body_a, model.body_b, model.dof, model.pts_a, model.pts_b,
                       npts, model.K, active, derivs, col, E, g, H], device=model.device)  # fmt: skip

@@ -10,6 +10,7 @@ which keeps the Hessian PSD and is exact whenever R ⪰ 0.
 """
 
 import functools
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -60,25 +61,10 @@ def kernels(dtype):
     def row(q: vec12, k: int):
         return vec3(q[3 + 3 * k], q[4 + 3 * k], q[5 + 3 * k])
 
-    @wp.kernel(module="unique")
-    def body_terms(
-        q: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
-        free: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
-        mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33),
-        kv: wp.array2d(dtype=dtype), ortho_scale: dtype, active: wp.array(dtype=wp.int32),
-        derivs: int, col: int, col_ortho: int,
-        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
-    ):  # fmt: skip
-        w, k = wp.tid()
-        if active[w] == 0:
-            return
-        b = free[k]
-        o = dof[b]
-        qb = q[w, b]
-        d = qb - q_tilde[w, b]
-        m = mass[w, b]
-        c = mc[w, b]
-        s = S[w, b]
+    @wp.func
+    def body_eval(qb: vec12, qt: vec12, m: dtype, c: vec3, s: mat33, ks: dtype, derivs: int):
+        """Inertia and (scaled) orthogonality of one body: energies, gradient, PSD Hessian."""
+        d = qb - qt
         # M d: translation m dp + A_d c; row k of A: c dp_k + S da_k
         dp = vec3(d[0], d[1], d[2])
         f = vec12()
@@ -90,28 +76,23 @@ def kernels(dtype):
             f[3 + 3 * r] = fr[0]
             f[4 + 3 * r] = fr[1]
             f[5 + 3 * r] = fr[2]
-        add_energy(E, w, col, half * wp.dot(d, f))
+        e_inertia = half * wp.dot(d, f)
         # orthogonality: R = A Aᵀ − I
-        a0 = row(qb, 0)
-        a1 = row(qb, 1)
-        a2 = row(qb, 2)
-        A = wp.matrix_from_rows(a0, a1, a2)
+        A = wp.matrix_from_rows(row(qb, 0), row(qb, 1), row(qb, 2))
         R = A * wp.transpose(A) - wp.identity(3, dtype)
-        ks = kv[w, b] * ortho_scale
-        add_energy(E, w, col_ortho, ks * wp.ddot(R, R))
+        e_ortho = ks * wp.ddot(R, R)
+        h = mat12()
         if derivs == 0:
-            return
+            return e_inertia, e_ortho, f, h
         G = (four * ks) * (R * A)
         for r in range(3):
             f[3 + 3 * r] += G[r, 0]
             f[4 + 3 * r] += G[r, 1]
             f[5 + 3 * r] += G[r, 2]
-        add_grad(g, w, o, f)
         # Hessian: mass matrix plus the PSD orthogonality blocks
         Q, lam = wp.eig3(R)
         Rp = Q * wp.diag(wp.max(lam, vec3())) * wp.transpose(Q)
         ata = wp.transpose(A) * A
-        h = mat12()
         for r in range(3):
             h[r, r] = m
             for a in range(3):
@@ -130,7 +111,28 @@ def kernels(dtype):
                 for a in range(3):
                     for bb in range(3):
                         h[3 + 3 * kk + a, 3 + 3 * ll + bb] = blk[a, bb]
-        add_block(H, w, o, o, h)
+        return e_inertia, e_ortho, f, h
+
+    @wp.kernel(module="unique")
+    def body_terms(
+        q: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
+        free: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+        mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33),
+        kv: wp.array2d(dtype=dtype), ortho_scale: dtype, active: wp.array(dtype=wp.int32),
+        derivs: int, col: int, col_ortho: int,
+        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        b = free[k]
+        o = dof[b]
+        e_in, e_or, f, h = body_eval(q[w, b], q_tilde[w, b], mass[w, b], mc[w, b], S[w, b], kv[w, b] * ortho_scale, derivs)
+        add_energy(E, w, col, e_in)
+        add_energy(E, w, col_ortho, e_or)
+        if derivs != 0:
+            add_grad(g, w, o, f)
+            add_block(H, w, o, o, h)
 
     @wp.kernel(module="unique")
     def body_report(
@@ -155,7 +157,7 @@ def kernels(dtype):
         com = m * vec3(qb[0], qb[1], qb[2]) + vec3(wp.dot(row(qb, 0), c), wp.dot(row(qb, 1), c), wp.dot(row(qb, 2), c))
         wp.atomic_add(E, w, col_gravity, -wp.dot(gravity, com))
 
-    return body_terms, body_report
+    return SimpleNamespace(body_terms=body_terms, body_report=body_report, body_eval=body_eval)
 
 
 # ----------------------------------------------------------------------------- wiring
@@ -164,7 +166,8 @@ def terms(model, physical=False):
 
 
 def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
-    body_terms, body_report = kernels(model.dtype)
+    kk = kernels(model.dtype)
+    body_terms, body_report = kk.body_terms, kk.body_report
     dim = (model.num_worlds, model.num_free)
     common = [model.free, model.mass, model.mc, model.S]
     if physical:

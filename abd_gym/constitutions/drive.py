@@ -14,6 +14,7 @@ displacement [m].  Drives are physical potentials, so they sit inside h² in the
 """
 
 import functools
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -52,27 +53,19 @@ def kernel(dtype):
     displacement, displacement_grad = a.displacement, a.displacement_grad
     half = dtype(0.5)
     zero = dtype(0.0)
+    dde_zero = dtype(0.0)
 
-    @wp.kernel(module="unique")
-    def drive(
-        q: wp.array2d(dtype=vec12), joint: wp.array(dtype=wp.int32), joint_kind: wp.array(dtype=wp.int32),
-        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+    @wp.func
+    def drive_eval(
+        qi: vec12, qj: vec12, w: int, k: int, joint: wp.array(dtype=wp.int32), joint_kind: wp.array(dtype=wp.int32),
         c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
         n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
         c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
         mode: wp.array(dtype=wp.int32), stiffness: wp.array2d(dtype=dtype), damping: wp.array2d(dtype=dtype),
         max_effort: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype), x_prev_joint: wp.array2d(dtype=dtype),
-        h: dtype, scale: dtype, physical: int, active: wp.array(dtype=wp.int32), derivs: int, col: int,
-        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+        h: dtype, scale: dtype, physical: int, derivs: int,
     ):  # fmt: skip
-        w, k = wp.tid()
-        if active[w] == 0:
-            return
         j = joint[k]
-        bi = body_a[j]
-        bj = body_b[j]
-        qi = q[w, bi]
-        qj = q[w, bj]
         rev = joint_kind[j] == 0
         xp = x_prev_joint[w, j]  # multi-turn angle / displacement at the start of the step
         c = zero
@@ -87,10 +80,13 @@ def kernel(dtype):
         u = control[w, k]
         fmax = max_effort[w, k]
         kp = stiffness[w, k]
+        gi = vec12()
+        gj = vec12()
         if physical != 0:
+            e_phys = zero
             if md == 1:
-                add_energy(E, w, col, half * kp * (x - u) * (x - u))
-            return
+                e_phys = half * kp * (x - u) * (x - u)
+            return e_phys, gi, gj, dde_zero * wp.outer(gi, gi), dde_zero * wp.outer(gi, gj), dde_zero * wp.outer(gj, gj)
         e = zero
         de = zero
         dde = zero
@@ -116,21 +112,40 @@ def kernel(dtype):
             else:
                 e = fmax * (wp.abs(r) - half * cap)
                 de = fmax * wp.sign(r)
-        add_energy(E, w, col, scale * e)
-        if derivs == 0:
-            return
-        gi = vec12()
-        gj = vec12()
-        if rev:
+        if derivs != 0 and rev:
             gi, gj = theta_grad(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], c, s)
-        else:
+        elif derivs != 0:
             gi, gj = displacement_grad(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
         de = scale * de
         dde = scale * dde
-        scatter_pair(g, H, w, dof[bi], dof[bj], de * gi, de * gj,
-                     dde * wp.outer(gi, gi), dde * wp.outer(gi, gj), dde * wp.outer(gj, gj))  # fmt: skip
+        return scale * e, de * gi, de * gj, dde * wp.outer(gi, gi), dde * wp.outer(gi, gj), dde * wp.outer(gj, gj)
 
-    return drive
+    @wp.kernel(module="unique")
+    def drive(
+        q: wp.array2d(dtype=vec12), joint: wp.array(dtype=wp.int32), joint_kind: wp.array(dtype=wp.int32),
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
+        n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+        mode: wp.array(dtype=wp.int32), stiffness: wp.array2d(dtype=dtype), damping: wp.array2d(dtype=dtype),
+        max_effort: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype), x_prev_joint: wp.array2d(dtype=dtype),
+        h: dtype, scale: dtype, physical: int, active: wp.array(dtype=wp.int32), derivs: int, col: int,
+        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = joint[k]
+        bi = body_a[j]
+        bj = body_b[j]
+        e, gi, gj, hii, hij, hjj = drive_eval(
+            q[w, bi], q[w, bj], w, k, joint, joint_kind, c_a, c_b, t_a, n_a, b_a, n_b, b_b, c_prev, s_prev, mode,
+            stiffness, damping, max_effort, control, x_prev_joint, h, scale, physical, derivs)  # fmt: skip
+        add_energy(E, w, col, e)
+        if derivs != 0 and physical == 0:
+            scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
+
+    return SimpleNamespace(kernel=drive, eval=drive_eval)
 
 
 def terms(model, physical=False):
@@ -140,7 +155,7 @@ def terms(model, physical=False):
 def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     m = model
     scale = 1.0 if physical else ctx.h * ctx.h
-    wp.launch(kernel(m.dtype), dim=(m.num_worlds, m.num_drives),
+    wp.launch(kernel(m.dtype).kernel, dim=(m.num_worlds, m.num_drives),
               inputs=[q, m.drive_joint, m.joint_kind, m.body_a, m.body_b, m.dof, m.c_a, m.c_b, m.t_a,
                       m.n_a, m.b_a, m.n_b, m.b_b, state.c_prev, state.s_prev, m.drive_mode, m.drive_stiffness,
                       m.drive_damping, m.drive_max_effort, state.control, state.unwrapped, m.dtype(ctx.h),

@@ -11,6 +11,7 @@ bilinear, and the dropped ``K Σ C_m ∇²C_m`` vanishes as the constraint is me
 """
 
 import functools
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -50,43 +51,26 @@ def kernel(dtype):
     add_energy, scatter_pair = o.add_energy, o.scatter_pair
     one, zero, half = dtype(1.0), dtype(0.0), dtype(0.5)
 
-    @wp.kernel(module="unique")
-    def prismatic_joint(
-        q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32),
-        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
-        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3), t_b: wp.array2d(dtype=vec3),
-        n_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
-        K: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), derivs: int, col: int,
-        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    @wp.func
+    def prismatic_eval(
+        qi: vec12, qj: vec12, ci: vec3, cj: vec3, ti: vec3, tj: vec3, ni: vec3, nj: vec3, bi: vec3, bj: vec3,
+        kk: dtype, derivs: int,
     ):  # fmt: skip
-        w, k = wp.tid()
-        if active[w] == 0:
-            return
-        j = ids[k]
-        bi = body_a[j]
-        bj = body_b[j]
-        qi = q[w, bi]
-        qj = q[w, bj]
-        kk = K[w, j]
-        ci = c_a[w, j]
-        cj = c_b[w, j]
-        ti = t_a[w, j]
-        tj = t_b[w, j]
         d = point(qj, cj) - point(qi, ci)
         Ti = direction(qi, ti)
         Tj = direction(qj, tj)
         C0 = wp.cross(d, Ti)
         C1 = wp.cross(-d, Tj)
-        C2 = direction(qi, n_a[w, j]) - direction(qj, n_b[w, j])
-        C3 = direction(qi, b_a[w, j]) - direction(qj, b_b[w, j])
-        add_energy(E, w, col, half * kk * (wp.dot(C0, C0) + wp.dot(C1, C1) + wp.dot(C2, C2) + wp.dot(C3, C3)))
-        if derivs == 0:
-            return
+        C2 = direction(qi, ni) - direction(qj, nj)
+        C3 = direction(qi, bi) - direction(qj, bj)
+        e = half * kk * (wp.dot(C0, C0) + wp.dot(C1, C1) + wp.dot(C2, C2) + wp.dot(C3, C3))
         gi = vec12()
         gj = vec12()
         hii = mat12()
         hij = mat12()
         hjj = mat12()
+        if derivs == 0:
+            return e, gi, gj, hii, hij, hjj
         for c in range(4):
             for m in range(3):
                 # scalar constraint component C_c[m] and its gradients (rows of the Jacobian)
@@ -103,20 +87,41 @@ def kernel(dtype):
                     rj = JT(cj, skew_row(Tj, m), one) + JT(tj, skew_row(-d, m), zero)
                 elif c == 2:
                     v = C2[m]
-                    ri = JT(n_a[w, j], unit(m), zero)
-                    rj = -JT(n_b[w, j], unit(m), zero)
+                    ri = JT(ni, unit(m), zero)
+                    rj = -JT(nj, unit(m), zero)
                 else:
                     v = C3[m]
-                    ri = JT(b_a[w, j], unit(m), zero)
-                    rj = -JT(b_b[w, j], unit(m), zero)
+                    ri = JT(bi, unit(m), zero)
+                    rj = -JT(bj, unit(m), zero)
                 gi += (kk * v) * ri
                 gj += (kk * v) * rj
                 hii += kk * wp.outer(ri, ri)
                 hij += kk * wp.outer(ri, rj)
                 hjj += kk * wp.outer(rj, rj)
-        scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
+        return e, gi, gj, hii, hij, hjj
 
-    return prismatic_joint
+    @wp.kernel(module="unique")
+    def prismatic_joint(
+        q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32),
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3), t_b: wp.array2d(dtype=vec3),
+        n_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        K: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), derivs: int, col: int,
+        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        bi = body_a[j]
+        bj = body_b[j]
+        e, gi, gj, hii, hij, hjj = prismatic_eval(q[w, bi], q[w, bj], c_a[w, j], c_b[w, j], t_a[w, j], t_b[w, j],
+                                                  n_a[w, j], n_b[w, j], b_a[w, j], b_b[w, j], K[w, j], derivs)  # fmt: skip
+        add_energy(E, w, col, e)
+        if derivs != 0:
+            scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
+
+    return SimpleNamespace(kernel=prismatic_joint, eval=prismatic_eval)
 
 
 def terms(model, physical=False):
@@ -125,6 +130,6 @@ def terms(model, physical=False):
 
 def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     m = model
-    wp.launch(kernel(m.dtype), dim=(m.num_worlds, m.joint_count[KIND]),
+    wp.launch(kernel(m.dtype).kernel, dim=(m.num_worlds, m.joint_count[KIND]),
               inputs=[q, m.joint_ids[KIND], m.body_a, m.body_b, m.dof, m.c_a, m.c_b, m.t_a, m.t_b, m.n_a, m.n_b,
                       m.b_a, m.b_b, m.K, active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip

@@ -10,6 +10,7 @@ falling back to ``s|x − l|³`` when ``u = l``.  Gradient ``E'(x)∇x`` exact; 
 """
 
 import functools
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -50,27 +51,11 @@ def kernel(dtype):
     displacement, displacement_grad = a.displacement, a.displacement_grad
     one, three, six = dtype(1.0), dtype(3.0), dtype(6.0)
 
-    @wp.kernel(module="unique")
-    def prismatic_limit(
-        q: wp.array2d(dtype=vec12), joint: wp.array(dtype=wp.int32),
-        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
-        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
-        lower: wp.array2d(dtype=dtype), upper: wp.array2d(dtype=dtype), strength: wp.array2d(dtype=dtype),
-        active: wp.array(dtype=wp.int32), derivs: int, col: int,
-        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    @wp.func
+    def prismatic_limit_eval(
+        qi: vec12, qj: vec12, ca: vec3, cb: vec3, ta: vec3, lo: dtype, up: dtype, st: dtype, derivs: int,
     ):  # fmt: skip
-        w, k = wp.tid()
-        if active[w] == 0:
-            return
-        j = joint[k]
-        bi = body_a[j]
-        bj = body_b[j]
-        qi = q[w, bi]
-        qj = q[w, bj]
-        x = displacement(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
-        lo = lower[w, k]
-        up = upper[w, k]
-        st = strength[w, k]
+        x = displacement(qi, qj, ca, cb, ta)
         inv = one
         if up > lo:
             inv = one / (up - lo)
@@ -87,14 +72,34 @@ def kernel(dtype):
             e = st * r * r * r
             de = -three * st * r * r * inv
             dde = six * st * r * inv * inv
-        add_energy(E, w, col, e)
-        if derivs == 0 or de == dtype(0.0):
-            return
-        gi, gj = displacement_grad(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
-        scatter_pair(g, H, w, dof[bi], dof[bj], de * gi, de * gj,
-                     dde * wp.outer(gi, gi), dde * wp.outer(gi, gj), dde * wp.outer(gj, gj))  # fmt: skip
+        gi = vec12()
+        gj = vec12()
+        if derivs != 0 and de != dtype(0.0):
+            gi, gj = displacement_grad(qi, qj, ca, cb, ta)
+        return e, de * gi, de * gj, dde * wp.outer(gi, gi), dde * wp.outer(gi, gj), dde * wp.outer(gj, gj)
 
-    return prismatic_limit
+    @wp.kernel(module="unique")
+    def prismatic_limit(
+        q: wp.array2d(dtype=vec12), joint: wp.array(dtype=wp.int32),
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
+        lower: wp.array2d(dtype=dtype), upper: wp.array2d(dtype=dtype), strength: wp.array2d(dtype=dtype),
+        active: wp.array(dtype=wp.int32), derivs: int, col: int,
+        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = joint[k]
+        bi = body_a[j]
+        bj = body_b[j]
+        e, gi, gj, hii, hij, hjj = prismatic_limit_eval(q[w, bi], q[w, bj], c_a[w, j], c_b[w, j], t_a[w, j],
+                                                        lower[w, k], upper[w, k], strength[w, k], derivs)  # fmt: skip
+        add_energy(E, w, col, e)
+        if derivs != 0 and e != dtype(0.0):
+            scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
+
+    return SimpleNamespace(kernel=prismatic_limit, eval=prismatic_limit_eval)
 
 
 def terms(model, physical=False):
@@ -103,6 +108,6 @@ def terms(model, physical=False):
 
 def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     m = model
-    wp.launch(kernel(m.dtype), dim=(m.num_worlds, len(m.limit_joints[KIND])),
+    wp.launch(kernel(m.dtype).kernel, dim=(m.num_worlds, len(m.limit_joints[KIND])),
               inputs=[q, m.limit_joint_ids[KIND], m.body_a, m.body_b, m.dof, m.c_a, m.c_b, m.t_a,
                       *m.limit_params[KIND], active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip

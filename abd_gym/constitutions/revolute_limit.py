@@ -11,6 +11,7 @@ converges in a few iterations against the limit).
 """
 
 import functools
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -50,6 +51,37 @@ def kernel(dtype):
     cos_sin, delta_theta, theta_grad = a.cos_sin, a.delta_theta, a.theta_grad
     three, six = dtype(3.0), dtype(6.0)
 
+    @wp.func
+    def cubic(x: dtype, lo: dtype, up: dtype, st: dtype):
+        e = dtype(0.0)
+        de = dtype(0.0)
+        dde = dtype(0.0)
+        if x > up:
+            r = x - up
+            e = st * r * r * r
+            de = three * st * r * r
+            dde = six * st * r
+        elif x < lo:
+            r = lo - x
+            e = st * r * r * r
+            de = -three * st * r * r
+            dde = six * st * r
+        return e, de, dde
+
+    @wp.func
+    def revolute_limit_eval(
+        qi: vec12, qj: vec12, na: vec3, ba: vec3, nb: vec3, bb: vec3, theta0: dtype, cp: dtype, sp: dtype,
+        lo: dtype, up: dtype, st: dtype, derivs: int,
+    ):  # fmt: skip
+        c, s = cos_sin(qi, qj, na, ba, nb, bb)
+        x = theta0 + delta_theta(c, s, cp, sp)
+        e, de, dde = cubic(x, lo, up, st)
+        gi = vec12()
+        gj = vec12()
+        if derivs != 0 and de != dtype(0.0):
+            gi, gj = theta_grad(qi, qj, na, ba, nb, bb, c, s)
+        return e, de * gi, de * gj, dde * wp.outer(gi, gi), dde * wp.outer(gi, gj), dde * wp.outer(gj, gj)
+
     @wp.kernel(module="unique")
     def revolute_limit(
         q: wp.array2d(dtype=vec12), joint: wp.array(dtype=wp.int32),
@@ -66,34 +98,14 @@ def kernel(dtype):
         j = joint[k]
         bi = body_a[j]
         bj = body_b[j]
-        qi = q[w, bi]
-        qj = q[w, bj]
-        c, s = cos_sin(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j])
-        x = theta0[w, j] + delta_theta(c, s, c_prev[w, j], s_prev[w, j])
-        lo = lower[w, k]
-        up = upper[w, k]
-        st = strength[w, k]
-        e = dtype(0.0)
-        de = dtype(0.0)
-        dde = dtype(0.0)
-        if x > up:
-            r = x - up
-            e = st * r * r * r
-            de = three * st * r * r
-            dde = six * st * r
-        elif x < lo:
-            r = lo - x
-            e = st * r * r * r
-            de = -three * st * r * r
-            dde = six * st * r
+        e, gi, gj, hii, hij, hjj = revolute_limit_eval(
+            q[w, bi], q[w, bj], n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], theta0[w, j], c_prev[w, j], s_prev[w, j],
+            lower[w, k], upper[w, k], strength[w, k], derivs)  # fmt: skip
         add_energy(E, w, col, e)
-        if derivs == 0 or de == dtype(0.0):
-            return
-        gi, gj = theta_grad(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], c, s)
-        scatter_pair(g, H, w, dof[bi], dof[bj], de * gi, de * gj,
-                     dde * wp.outer(gi, gi), dde * wp.outer(gi, gj), dde * wp.outer(gj, gj))  # fmt: skip
+        if derivs != 0 and e != dtype(0.0):
+            scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
 
-    return revolute_limit
+    return SimpleNamespace(kernel=revolute_limit, eval=revolute_limit_eval)
 
 
 def terms(model, physical=False):
@@ -102,7 +114,7 @@ def terms(model, physical=False):
 
 def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     m = model
-    wp.launch(kernel(m.dtype), dim=(m.num_worlds, len(m.limit_joints[KIND])),
+    wp.launch(kernel(m.dtype).kernel, dim=(m.num_worlds, len(m.limit_joints[KIND])),
               inputs=[q, m.limit_joint_ids[KIND], m.body_a, m.body_b, m.dof, m.n_a, m.b_a, m.n_b, m.b_b,
                       state.theta0, state.c_prev, state.s_prev, *m.limit_params[KIND], active, derivs, cols[NAME],
                       E, g, H], device=m.device)  # fmt: skip
