@@ -56,7 +56,7 @@ class Simulator:
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
                  tol: float = 1e-5, max_iterations: int = 50, max_line_search: int = 12,
-                 use_graph: bool | None = None):  # fmt: skip
+                 use_graph: bool | None = None, fused: bool = True):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
@@ -65,7 +65,7 @@ class Simulator:
         device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
         self.model = Model(scene, num_worlds, dtype=dtype, device=device)
         self.state = State(self.model)
-        self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search)))
+        self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search), bool(fused)))
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device

@@ -24,6 +24,7 @@ class SolverSettings:
     tol: float = 1e-5  # Newton step scaled to a velocity, ‖Δq‖∞/h [m/s]
     max_iterations: int = 50
     max_line_search: int = 12
+    fused: bool = True  # one kernel per step runs every world's whole Newton solve (fused.py)
 
 
 class Solver:
@@ -94,13 +95,35 @@ class Solver:
                               state.theta0, state.c_prev, state.s_prev, self.all_active], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, self.q_tilde, m.dof, m.gravity,
                                                      dt(self.h), state.status], device=dev)  # fmt: skip
-        wp.launch(k["start"], dim=W, inputs=[state.status, self.active, state.iterations, state.converged, self.take],
-                  device=dev)  # fmt: skip
-        self.remaining.fill_(1)
-        wp.capture_while(self.remaining, self._newton_iteration, state=state)
+        if self.settings.fused:
+            self._fused_newton(state)
+        else:
+            wp.launch(k["start"], dim=W, inputs=[state.status, self.active, state.iterations, state.converged,
+                                                 self.take], device=dev)  # fmt: skip
+            self.remaining.fill_(1)
+            wp.capture_while(self.remaining, self._newton_iteration, state=state)
         wp.launch(k["finalize"], dim=(W, nb), inputs=[state.q, state.q_prev, state.qd, m.dof, dt(1.0 / self.h),
                                                       state.status], device=dev)  # fmt: skip
         self.update_coordinates(state, accumulate=True)
+
+    def _fused_newton(self, state):
+        m, s = self.model, self.settings
+        from .fused import fused_kernel
+        from .scene import FIXED, PRISMATIC, REVOLUTE
+
+        has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
+               len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
+        kernel = fused_kernel(m.dtype, *has)
+        dt = m.dtype
+        wp.launch(kernel, dim=m.num_worlds, inputs=[
+            state.q, self.q_trial, self.q_tilde, m.free, m.dof, m.mass, m.mc, m.S, m.kv, dt(self.h * self.h),
+            m.body_a, m.body_b, m.joint_kind, m.pts_a, m.pts_b, m.K, m.c_a, m.c_b, m.t_a, m.t_b, m.n_a, m.n_b,
+            m.b_a, m.b_b, m.joint_ids[REVOLUTE], m.joint_ids[FIXED], m.joint_ids[PRISMATIC],
+            m.limit_joint_ids[REVOLUTE], *m.limit_params[REVOLUTE], m.limit_joint_ids[PRISMATIC],
+            *m.limit_params[PRISMATIC], state.theta0, state.c_prev, state.s_prev, m.drive_joint, m.drive_mode,
+            m.drive_stiffness, m.drive_damping, m.drive_max_effort, state.control, state.unwrapped, dt(self.h),
+            self.g, self.H, self.dq, m.num_dofs, dt(s.tol * self.h), s.max_iterations, s.max_line_search,
+            state.status, state.iterations, state.converged], device=m.device)  # fmt: skip
 
     def _newton_iteration(self, state):
         m, k, dev, s = self.model, self.k, self.model.device, self.settings

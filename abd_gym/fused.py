@@ -1,0 +1,247 @@
+"""The fused Newton step: one thread per world runs every iteration, line search and stop test
+of its own solve in a single kernel launch.
+
+Same arithmetic as the staged kernels of ``solver.py`` (each constitution's per-instance
+evaluator), without atomics (a world's thread owns its rows of the world-minor ``g``/``H``),
+without per-iteration launches, and with the code of absent constitutions compiled out
+(``wp.static`` on what the scene has).  ``Solver(fused=True)`` uses it.
+"""
+import functools
+
+import numpy as np
+import warp as wp
+
+from .angles import angle_ops
+from .constitutions import _point_joint, affine_body, drive, prismatic_joint, prismatic_limit, revolute_limit
+from .warp_ops import ops
+
+OK, FAILED = 0, 1
+
+
+@functools.lru_cache(maxsize=None)
+def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive):
+    o = ops(dtype)
+    vec3, vec12, mat33, mat12 = o.vec3, o.vec12, o.mat33, o.mat12
+    body_eval = affine_body.kernels(dtype).body_eval
+    point_eval = _point_joint.kernel(dtype).eval
+    prismatic_eval = prismatic_joint.kernel(dtype).eval
+    rlim_eval = revolute_limit.kernel(dtype).eval
+    plim_eval = prismatic_limit.kernel(dtype).eval
+    drive_eval = drive.kernel(dtype).eval
+    zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
+    EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
+
+    @wp.func
+    def put_grad(g: wp.array2d(dtype=dtype), w: int, o: int, v: vec12):
+        if o >= 0:
+            for r in range(12):
+                g[o + r, w] = g[o + r, w] + v[r]
+
+    @wp.func
+    def put_block(H: wp.array3d(dtype=dtype), w: int, oa: int, ob: int, m: mat12):
+        if oa >= 0 and ob >= 0:
+            for r in range(12):
+                for c in range(12):
+                    H[oa + r, ob + c, w] = H[oa + r, ob + c, w] + m[r, c]
+                    if oa != ob:
+                        H[ob + c, oa + r, w] = H[ob + c, oa + r, w] + m[r, c]
+
+    @wp.func
+    def put_pair(g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype), w: int, oi: int, oj: int, gi: vec12,
+                 gj: vec12, hii: mat12, hij: mat12, hjj: mat12):  # fmt: skip
+        put_grad(g, w, oi, gi)
+        put_grad(g, w, oj, gj)
+        put_block(H, w, oi, oi, hii)
+        put_block(H, w, oi, oj, hij)
+        put_block(H, w, oj, oj, hjj)
+
+    @wp.func
+    def assemble(
+        q: wp.array2d(dtype=vec12), w: int, derivs: int, q_tilde: wp.array2d(dtype=vec12),
+        free: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
+        mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33), kv: wp.array2d(dtype=dtype), h2: dtype,
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), joint_kind: wp.array(dtype=wp.int32),
+        pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3), K: wp.array2d(dtype=dtype),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3), t_b: wp.array2d(dtype=vec3),
+        n_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        rev_ids: wp.array(dtype=wp.int32), fix_ids: wp.array(dtype=wp.int32), pri_ids: wp.array(dtype=wp.int32),
+        rlim_ids: wp.array(dtype=wp.int32), rlim_lo: wp.array2d(dtype=dtype), rlim_up: wp.array2d(dtype=dtype),
+        rlim_s: wp.array2d(dtype=dtype),
+        plim_ids: wp.array(dtype=wp.int32), plim_lo: wp.array2d(dtype=dtype), plim_up: wp.array2d(dtype=dtype),
+        plim_s: wp.array2d(dtype=dtype),
+        theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+        drive_joint: wp.array(dtype=wp.int32), drive_mode: wp.array(dtype=wp.int32), kp: wp.array2d(dtype=dtype),
+        kd: wp.array2d(dtype=dtype), fmax: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype),
+        unwrapped: wp.array2d(dtype=dtype), h: dtype,
+        g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+    ):  # fmt: skip
+        """Total incremental potential of world w at q; with derivs, also its g and H (added)."""
+        e = zero
+        for k in range(free.shape[0]):
+            b = free[k]
+            e_in, e_or, f, hb = body_eval(q[w, b], q_tilde[w, b], mass[w, b], mc[w, b], S[w, b], kv[w, b] * h2, derivs)
+            e += e_in + e_or
+            if derivs != 0:
+                put_grad(g, w, dof[b], f)
+                put_block(H, w, dof[b], dof[b], hb)
+        if wp.static(has_rev):
+            for k in range(rev_ids.shape[0]):
+                j = rev_ids[k]
+                ej, gi, gj, hii, hij, hjj = point_eval(q[w, body_a[j]], q[w, body_b[j]], pts_a, pts_b, w, j, 2, K[w, j], derivs)
+                e += ej
+                if derivs != 0:
+                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+        if wp.static(has_fix):
+            for k in range(fix_ids.shape[0]):
+                j = fix_ids[k]
+                ej, gi, gj, hii, hij, hjj = point_eval(q[w, body_a[j]], q[w, body_b[j]], pts_a, pts_b, w, j, 4, K[w, j], derivs)
+                e += ej
+                if derivs != 0:
+                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+        if wp.static(has_pri):
+            for k in range(pri_ids.shape[0]):
+                j = pri_ids[k]
+                ej, gi, gj, hii, hij, hjj = prismatic_eval(q[w, body_a[j]], q[w, body_b[j]], c_a[w, j], c_b[w, j],
+                                                           t_a[w, j], t_b[w, j], n_a[w, j], n_b[w, j], b_a[w, j],
+                                                           b_b[w, j], K[w, j], derivs)  # fmt: skip
+                e += ej
+                if derivs != 0:
+                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+        if wp.static(has_rlim):
+            for k in range(rlim_ids.shape[0]):
+                j = rlim_ids[k]
+                ej, gi, gj, hii, hij, hjj = rlim_eval(q[w, body_a[j]], q[w, body_b[j]], n_a[w, j], b_a[w, j], n_b[w, j],
+                                                      b_b[w, j], theta0[w, j], c_prev[w, j], s_prev[w, j], rlim_lo[w, k],
+                                                      rlim_up[w, k], rlim_s[w, k], derivs)  # fmt: skip
+                e += ej
+                if derivs != 0 and ej != zero:
+                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+        if wp.static(has_plim):
+            for k in range(plim_ids.shape[0]):
+                j = plim_ids[k]
+                ej, gi, gj, hii, hij, hjj = plim_eval(q[w, body_a[j]], q[w, body_b[j]], c_a[w, j], c_b[w, j], t_a[w, j],
+                                                      plim_lo[w, k], plim_up[w, k], plim_s[w, k], derivs)  # fmt: skip
+                e += ej
+                if derivs != 0 and ej != zero:
+                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+        if wp.static(has_drive):
+            for k in range(drive_joint.shape[0]):
+                j = drive_joint[k]
+                ej, gi, gj, hii, hij, hjj = drive_eval(q[w, body_a[j]], q[w, body_b[j]], w, k, drive_joint, joint_kind,
+                                                       c_a, c_b, t_a, n_a, b_a, n_b, b_b, c_prev, s_prev, drive_mode, kp,
+                                                       kd, fmax, control, unwrapped, h, h2, 0, derivs)  # fmt: skip
+                e += ej
+                if derivs != 0:
+                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+        return e
+
+    @wp.kernel(module="unique")
+    def newton(
+        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
+        free: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
+        mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33), kv: wp.array2d(dtype=dtype), h2: dtype,
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), joint_kind: wp.array(dtype=wp.int32),
+        pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3), K: wp.array2d(dtype=dtype),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3), t_b: wp.array2d(dtype=vec3),
+        n_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        rev_ids: wp.array(dtype=wp.int32), fix_ids: wp.array(dtype=wp.int32), pri_ids: wp.array(dtype=wp.int32),
+        rlim_ids: wp.array(dtype=wp.int32), rlim_lo: wp.array2d(dtype=dtype), rlim_up: wp.array2d(dtype=dtype),
+        rlim_s: wp.array2d(dtype=dtype),
+        plim_ids: wp.array(dtype=wp.int32), plim_lo: wp.array2d(dtype=dtype), plim_up: wp.array2d(dtype=dtype),
+        plim_s: wp.array2d(dtype=dtype),
+        theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+        drive_joint: wp.array(dtype=wp.int32), drive_mode: wp.array(dtype=wp.int32), kp: wp.array2d(dtype=dtype),
+        kd: wp.array2d(dtype=dtype), fmax: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype),
+        unwrapped: wp.array2d(dtype=dtype), h: dtype,
+        g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype),
+        n: int, threshold: dtype, max_iterations: int, max_line_search: int,
+        status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        w = wp.tid()
+        iterations[w] = 0
+        converged[w] = 0
+        if status[w] != OK:
+            return
+        nb = q.shape[1]
+        for it in range(max_iterations):
+            for i in range(n):
+                g[i, w] = zero
+                for j in range(n):
+                    H[i, j, w] = zero
+            e0 = assemble(q, w, 1, q_tilde, free, dof, mass, mc, S, kv, h2, body_a, body_b, joint_kind, pts_a, pts_b,
+                          K, c_a, c_b, t_a, t_b, n_a, n_b, b_a, b_b, rev_ids, fix_ids, pri_ids, rlim_ids, rlim_lo,
+                          rlim_up, rlim_s, plim_ids, plim_lo, plim_up, plim_s, theta0, c_prev, s_prev, drive_joint,
+                          drive_mode, kp, kd, fmax, control, unwrapped, h, g, H)  # fmt: skip
+            # Cholesky H = L Lᵀ in place, then dq = −H⁻¹ g
+            for j in range(n):
+                s = H[j, j, w]
+                for k in range(j):
+                    s -= H[j, k, w] * H[j, k, w]
+                if not (s > zero) or not wp.isfinite(s):
+                    status[w] = FAILED
+                    return
+                d = wp.sqrt(s)
+                H[j, j, w] = d
+                for i in range(j + 1, n):
+                    t = H[i, j, w]
+                    for k in range(j):
+                        t -= H[i, k, w] * H[j, k, w]
+                    H[i, j, w] = t / d
+            for i in range(n):
+                t = -g[i, w]
+                for k in range(i):
+                    t -= H[i, k, w] * dq[k, w]
+                dq[i, w] = t / H[i, i, w]
+            gdq = zero
+            dmax = zero
+            for ii in range(n):
+                i = n - 1 - ii
+                t = dq[i, w]
+                for k in range(i + 1, n):
+                    t -= H[k, i, w] * dq[k, w]
+                dq[i, w] = t / H[i, i, w]
+                gdq += g[i, w] * dq[i, w]
+                dmax = wp.max(dmax, wp.abs(dq[i, w]))
+            if not wp.isfinite(gdq):
+                status[w] = FAILED
+                return
+            qmax = zero
+            for b in range(nb):
+                for r in range(12):
+                    qmax = wp.max(qmax, wp.abs(q[w, b][r]))
+            floor = wp.max(threshold, dtype(4.0) * EPS * (one + qmax))
+            # backtracking line search (Armijo) on the world's own energy
+            alpha = one
+            accepted = int(0)
+            stalled = int(0)
+            for ls in range(max_line_search):
+                for b in range(nb):
+                    qb = q[w, b]
+                    ob = dof[b]
+                    if ob >= 0:
+                        for r in range(12):
+                            qb[r] = qb[r] + alpha * dq[ob + r, w]
+                    q_trial[w, b] = qb
+                e1 = assemble(q_trial, w, 0, q_tilde, free, dof, mass, mc, S, kv, h2, body_a, body_b, joint_kind,
+                              pts_a, pts_b, K, c_a, c_b, t_a, t_b, n_a, n_b, b_a, b_b, rev_ids, fix_ids, pri_ids,
+                              rlim_ids, rlim_lo, rlim_up, rlim_s, plim_ids, plim_lo, plim_up, plim_s, theta0, c_prev,
+                              s_prev, drive_joint, drive_mode, kp, kd, fmax, control, unwrapped, h, g, H)  # fmt: skip
+                noise = dtype(16.0) * EPS * (wp.abs(e0) + wp.abs(e1))
+                if e1 <= e0 + dtype(1.0e-4) * alpha * gdq + noise and wp.isfinite(e1):
+                    accepted = 1
+                    if e0 - e1 <= noise:
+                        stalled = 1
+                    break
+                alpha = alpha * half
+            iterations[w] = it + 1
+            if accepted == 0:
+                if dmax < dtype(1000.0) * floor:
+                    converged[w] = 1
+                return
+            for b in range(nb):
+                q[w, b] = q_trial[w, b]
+            if dmax < floor or stalled != 0:
+                converged[w] = 1
+                return
+
+    return newton
