@@ -39,11 +39,13 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def put_block(H: wp.array3d(dtype=dtype), w: int, oa: int, ob: int, m: mat12):
+        """Add block (oa, ob) and its transpose, lower triangle only (all the Cholesky reads)."""
         if oa >= 0 and ob >= 0:
             for r in range(12):
                 for c in range(12):
-                    H[oa + r, ob + c, w] = H[oa + r, ob + c, w] + m[r, c]
-                    if oa != ob:
+                    if oa + r >= ob + c:
+                        H[oa + r, ob + c, w] = H[oa + r, ob + c, w] + m[r, c]
+                    elif oa != ob:
                         H[ob + c, oa + r, w] = H[ob + c, oa + r, w] + m[r, c]
 
     @wp.func
@@ -166,7 +168,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         for it in range(max_iterations):
             for i in range(n):
                 g[i, w] = zero
-                for j in range(n):
+                for j in range(i + 1):
                     H[i, j, w] = zero
             e0 = assemble(q, w, 1, q_tilde, free, dof, mass, mc, S, kv, h2, body_a, body_b, joint_kind, pts_a, pts_b,
                           K, c_a, c_b, t_a, t_b, n_a, n_b, b_a, b_b, rev_ids, fix_ids, pri_ids, rlim_ids, rlim_lo,

@@ -1,0 +1,559 @@
+"""Native batched Gymnasium environments: ``num_envs`` worlds of one task in one ``Simulator``.
+
+:class:`ABDVectorEnv` is a ``gymnasium.vector.VectorEnv`` (not N single envs behind a loop): one
+scene stepped in ``num_envs`` worlds, batched observation / reward / termination arrays computed
+from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
+
+* spaces: ``single_observation_space`` / ``single_action_space`` (``Box``, float32) and their
+  batched versions ``observation_space`` / ``action_space`` (leading ``num_envs`` axis).  Actions
+  are normalised to ``[-1, 1]`` per drive and scaled by the drive's ``max_effort``.
+* ``reset(seed=None, options=None)`` -> ``(obs, info)``; ``step(actions)`` ->
+  ``(obs, reward, terminated, truncated, info)``, all batched (reward float32, flags bool).
+* autoreset (``metadata["autoreset_mode"]``, set by the ``autoreset_mode`` argument):
+
+  - ``AutoresetMode.NEXT_STEP`` (default): a world that ends in step t is reset in step t+1;
+    that step ignores its action and returns its first observation with reward 0 and both flags
+    False.
+  - ``AutoresetMode.SAME_STEP``: a world that ends is reset within the step; ``obs`` holds its
+    first observation of the next episode, ``info["final_obs"]`` the last one of the finished
+    episode and ``info["final_info"]`` that step's info.  ``info["final_obs"]`` is a batch of the
+    same type and shape as ``obs`` whose rows are valid where the bool mask
+    ``info["_final_obs"]`` is True (other rows equal ``obs``); ``final_info`` holds per-world
+    arrays with their own ``"_key"`` masks, as Gymnasium's ``SyncVectorEnv`` reports them.
+  - ``AutoresetMode.DISABLED``: nothing is reset automatically; call
+    ``reset(options={"reset_mask": mask})`` with a NumPy bool mask of shape ``(num_envs,)``.
+    Worlds outside the mask are left untouched (their state, step count and parameters).
+
+  ``reset_mask`` works in every mode.
+* time limit: ``max_episode_steps`` (set by ``gym.make_vec`` from the registration) truncates a
+  world after that many steps of its episode; ``None`` disables truncation.
+* seeding: ``reset(seed=s)`` seeds one NumPy generator from which every initial state, target and
+  randomised parameter is drawn (in world order), so the same seed and the same actions give the
+  same trajectories.  The physics itself is deterministic.
+* backends: ``backend="numpy"`` (default) returns NumPy arrays; ``backend="torch"`` returns Torch
+  tensors on the simulator's device, computed from zero-copy views of the simulator's arrays, and
+  takes actions as tensors (or arrays).  Only the done mask (and, if any world is done, the reset
+  states) crosses to the host.
+* bad actions: actions are clipped to the action space (so out-of-range values and ±inf act as
+  ±1).  An action batch containing NaN raises ``ValueError`` before anything is stepped: no world
+  (and no other world) changes state.  A world whose solve fails (``Simulator.failed_worlds``) is
+  terminated, reported in ``info["sim_failed"]`` and gets a zero observation and reward.
+* per-world physical parameters: ``randomize={...}`` (constructor or ``reset`` option, sticky:
+  it applies to every later reset of a world, autoresets included, until a reset passes a new
+  ``"randomize"``; ``None`` restores the nominal values)::
+
+      {"mass_scale": (lo, hi),              # every free body's mass × U(lo, hi) (per body)
+       "strength_ratio": (lo, hi),          # every joint's strength ratio ~ U(lo, hi)
+       "limit_scale": (lo, hi),             # every limit's lower and upper × U(lo, hi)
+       "limit_strength_scale": (lo, hi)}    # every limit's strength × U(lo, hi)
+
+  Each value may also be a dict ``{body or joint name: (lo, hi)}`` to randomise only some of them.
+  The values in force are in ``body_mass``, ``strength_ratio`` and ``limits`` (host arrays).
+* rendering: ``render_mode="rgb_array"``; ``render()`` returns a tuple of uint8 ``(H, W, 3)``
+  frames, one per world in ``render_worlds`` (default: every world when ``num_envs <= 16``,
+  else the first 16), drawn headless by :mod:`abd_gym.render`.
+
+A task subclasses :class:`ABDVectorEnv` and defines the class attributes ``dt``, ``frame_skip``
+and the methods ``build_scene``, ``observation_high`` (bounds), ``_observe``, ``_reward`` and
+optionally ``_terminated``, ``_initial_state``, ``_reset_task``, ``_info``, ``_controls`` and
+``_render_extras``.  :class:`ABDEnv` turns a task into a single-world ``gymnasium.Env``.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from .scene import PRISMATIC, REVOLUTE, Scene
+from .simulator import Simulator
+
+__all__ = ["ABDVectorEnv", "ABDEnv", "AutoresetMode"]
+
+BACKENDS = ("numpy", "torch")
+RANDOMIZE_KEYS = ("mass_scale", "strength_ratio", "limit_scale", "limit_strength_scale")
+MAX_DEFAULT_RENDER_WORLDS = 16
+
+
+def _is_torch(x) -> bool:
+    return type(x).__module__.startswith("torch")
+
+
+def _to_numpy(x) -> np.ndarray:
+    if _is_torch(x):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _range(name, value):
+    lo, hi = (float(v) for v in value)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        raise ValueError(f"randomize[{name!r}] must be a (low, high) pair with low <= high, got {value!r}")
+    return lo, hi
+
+
+class ABDVectorEnv(VectorEnv):
+    """Batched task base (see the module docstring for the API)."""
+
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 50,
+                                "autoreset_mode": AutoresetMode.NEXT_STEP}  # fmt: skip
+
+    # ---- what a task sets
+    dt: float = 0.02  # simulator time step [s]
+    frame_skip: int = 1  # simulator steps per env step
+    reset_option_keys: tuple = ()  # task-specific reset options (besides reset_mask and randomize)
+    # rendering: plane of the view ("xz": x right, z up; "xy": x right, y up), centre [m], width [m]
+    render_plane: str = "xz"
+    render_center: tuple = (0.0, 0.0)
+    render_width: float = 2.0
+    render_size: tuple = (480, 360)  # (width, height) [px]
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        cls.metadata = dict(cls.metadata, render_fps=int(round(1.0 / (cls.dt * cls.frame_skip))))
+
+    def __init__(self, num_envs: int = 1, *, device=None, backend: str = "numpy",
+                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, max_episode_steps: int | None = None,
+                 render_mode: str | None = None, render_worlds=None, randomize: dict | None = None,
+                 dtype: str = "float32"):  # fmt: skip
+        if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        if max_episode_steps is not None and int(max_episode_steps) < 1:
+            raise ValueError(f"max_episode_steps must be a positive integer or None, got {max_episode_steps!r}")
+        self.autoreset_mode = autoreset_mode if isinstance(autoreset_mode, AutoresetMode) else AutoresetMode(autoreset_mode)
+        self.metadata = dict(type(self).metadata, autoreset_mode=self.autoreset_mode)
+        self.num_envs = N = int(num_envs)
+        self.backend = backend
+        self.render_mode = render_mode
+        self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
+
+        self.scene: Scene = self.build_scene()
+        self.sim = Simulator(self.scene, num_worlds=N, dt=self.dt, device=device, dtype=dtype)
+        self.device = self.sim.device
+        self.step_dt = self.dt * self.frame_skip  # env step [s]
+        if backend == "torch":
+            import torch
+
+            import warp as wp
+
+            self.xp = torch
+            self._torch_device = wp.device_to_torch(self.device)
+        else:
+            self.xp = np
+            self._torch_device = None
+
+        # ---- spaces
+        nd = len(self.scene.drives)
+        self.single_action_space = spaces.Box(-1.0, 1.0, shape=(self.action_dim,), dtype=np.float32)
+        high = np.asarray(self.observation_high(), dtype=np.float32)
+        self.single_observation_space = spaces.Box(-high, high, dtype=np.float32)
+        self.action_space = batch_space(self.single_action_space, N)
+        self.observation_space = batch_space(self.single_observation_space, N)
+        self._max_effort = np.array([d.max_effort for d in self.scene.drives], dtype=np.float32)
+        if nd and not np.all(np.isfinite(self._max_effort)):
+            raise ValueError("every drive of a task needs a finite max_effort (actions are scaled by it)")
+        self._effort = self._asarray(self._max_effort) if nd else None
+
+        # ---- per-world bookkeeping
+        self._elapsed = self._zeros(N, dtype="int")  # env steps in the current episode
+        self._pending = np.zeros(N, dtype=bool)  # NEXT_STEP: worlds to reset at the next step
+        self._has_reset = False
+
+        # ---- per-world physical parameters (host copies of what the simulator holds)
+        scene = self.scene
+        self._free_bodies = [k for k, b in enumerate(scene.bodies) if not b.fixed]
+        self._nominal_mass = np.array([b.mass for b in scene.bodies])
+        self._nominal_ratio = np.array([j.strength_ratio for j in scene.joints])
+        self._limited = [k for k, j in enumerate(scene.joints) if j.has_limit]
+        self.body_mass = np.broadcast_to(self._nominal_mass, (N, scene.num_bodies)).copy()
+        self.strength_ratio = np.broadcast_to(self._nominal_ratio, (N, scene.num_joints)).copy()
+        self.limits = {k: np.broadcast_to([scene.joints[k].attributes[f"limit/{a}"] for a in ("lower", "upper", "strength")],
+                                          (N, 3)).copy() for k in self._limited}  # fmt: skip
+        self._randomize = None
+        self._randomized = False
+        self._set_randomize(randomize)
+
+        # ---- rendering
+        if render_worlds is None:
+            render_worlds = range(min(N, MAX_DEFAULT_RENDER_WORLDS))
+        elif isinstance(render_worlds, (int, np.integer)):
+            render_worlds = range(min(N, int(render_worlds)))
+        self.render_worlds = [int(w) for w in render_worlds]
+        if any(not 0 <= w < N for w in self.render_worlds):
+            raise ValueError(f"render_worlds must index worlds in [0, {N}), got {self.render_worlds}")
+        self._renderer = None
+
+    # ================================================================== task interface
+    def build_scene(self) -> Scene:
+        """The task's mechanism in its zero pose."""
+        raise NotImplementedError
+
+    def observation_high(self) -> np.ndarray:
+        """Upper bounds of one observation (the space is symmetric: low = -high)."""
+        raise NotImplementedError
+
+    @property
+    def action_dim(self) -> int:
+        return len(self.scene.drives)
+
+    def _controls(self, actions):
+        """Drive inputs (N, num_drives) from clipped actions (N, action_dim): a × max_effort."""
+        return actions * self._effort
+
+    def _observe(self):
+        raise NotImplementedError
+
+    def _reward(self, obs, actions):
+        raise NotImplementedError
+
+    def _terminated(self, obs):
+        return self._zeros(self.num_envs, dtype="bool")
+
+    def _initial_state(self, n: int, rng: np.random.Generator, options: dict):
+        """Joint coordinates and velocities (n, num_joints) of n fresh episodes (host NumPy)."""
+        nj = self.scene.num_joints
+        return np.zeros((n, nj)), np.zeros((n, nj))
+
+    def _reset_task(self, idx: np.ndarray, rng: np.random.Generator, options: dict):
+        """Task state (targets, ...) of the worlds ``idx`` for a new episode."""
+
+    def _info(self, obs) -> dict:
+        """Per-step info: a dict of batched arrays (each gets an all-True ``"_key"`` mask)."""
+        return {}
+
+    def _render_extras(self, canvas, world: int):
+        """Draw task-specific marks (targets, track) on a render canvas."""
+
+    # ================================================================== array helpers
+    def _asarray(self, values, dtype="float"):
+        """Host values as a backend array (on the simulator's device for torch)."""
+        if self.xp is np:
+            return np.asarray(values, dtype={"float": np.float32, "int": np.int64, "bool": bool}[dtype])
+        import torch
+
+        dt = {"float": torch.float32, "int": torch.int64, "bool": torch.bool}[dtype]
+        return torch.as_tensor(np.asarray(values), dtype=dt, device=self._torch_device)
+
+    def _zeros(self, *shape, dtype="float"):
+        return self._asarray(np.zeros(shape), dtype)
+
+    def _index(self, idx: np.ndarray):
+        return idx if self.xp is np else self.xp.as_tensor(idx, device=self._torch_device)
+
+    def _put(self, array, idx: np.ndarray, values):
+        """array[idx] = values (host values into a backend array of the same dtype)."""
+        if self.xp is np:
+            array[idx] = values
+        else:
+            array[self._index(idx)] = self.xp.as_tensor(np.asarray(values), dtype=array.dtype, device=array.device)
+
+    def _f32(self, x):
+        return x.astype(np.float32, copy=False) if self.xp is np else x.to(self.xp.float32)
+
+    def coords(self):
+        """(N, num_joints) joint coordinates [rad, m] as a backend array."""
+        return self.sim.joint_coordinates(backend=self.backend)
+
+    def velocities(self):
+        """(N, num_joints) joint rates [rad/s, m/s]."""
+        return self.sim.joint_velocities(backend=self.backend)
+
+    def unwrapped_coords(self):
+        """(N, num_joints) multi-turn revolute angles [rad] (displacement for sliders)."""
+        return self.sim.joint_angles_unwrapped(backend=self.backend)
+
+    def body_positions(self):
+        """(N, num_bodies, 3) body origins [m]."""
+        return self.sim.body_positions(backend=self.backend)
+
+    def body_rotations(self):
+        """(N, num_bodies, 3, 3) body rotations A."""
+        return self.sim.body_rotations(backend=self.backend)
+
+    def episode_time(self):
+        """(N,) time since each world's reset [s]."""
+        return self._f32(self._elapsed) * self.step_dt
+
+    def _failed(self):
+        if self.xp is np:
+            mask = np.zeros(self.num_envs, dtype=bool)
+            mask[self.sim.failed_worlds()] = True
+            return mask
+        import warp as wp
+
+        return wp.to_torch(self.sim.state.status) != 0
+
+    # ================================================================== actions
+    def _prepare_actions(self, actions):
+        N, d = self.num_envs, self.action_dim
+        xp = self.xp
+        if xp is np:
+            a = np.array(_to_numpy(actions), dtype=np.float32)
+        else:
+            a = actions if _is_torch(actions) else xp.as_tensor(np.asarray(actions, dtype=np.float32))
+            a = a.to(device=self._torch_device, dtype=xp.float32)
+        if tuple(a.shape) != (N, d):
+            if a.ndim == 1 and d == 1 and a.shape[0] == N:
+                a = a.reshape(N, 1)
+            else:
+                raise ValueError(f"actions must have shape ({N}, {d}), got {tuple(a.shape)}")
+        nan = xp.isnan(a)
+        if bool(nan.any()):
+            worlds = np.flatnonzero(_to_numpy(nan).any(axis=1))
+            raise ValueError(f"actions contain NaN in worlds {worlds.tolist()[:10]}; nothing was stepped "
+                             "(replace or mask NaN actions before calling step)")  # fmt: skip
+        return xp.clip(a, -1.0, 1.0)
+
+    # ================================================================== reset
+    def _set_randomize(self, spec):
+        if spec is None or spec == {}:
+            self._randomize = None
+            return
+        if not isinstance(spec, dict):
+            raise ValueError(f"randomize must be a dict or None, got {spec!r}")
+        unknown = set(spec) - set(RANDOMIZE_KEYS)
+        if unknown:
+            raise ValueError(f"unknown randomize keys {sorted(unknown)}; known: {list(RANDOMIZE_KEYS)}")
+        scene, out = self.scene, {}
+        for key, value in spec.items():
+            if key == "mass_scale":
+                names = self._free_bodies
+                to_index = scene.body_index
+            elif key == "strength_ratio":
+                names = list(range(scene.num_joints))
+                to_index = scene.joint_index
+            else:
+                names = self._limited
+                to_index = scene.joint_index
+            if isinstance(value, dict):
+                ranges = {}
+                for name, r in value.items():
+                    k = to_index(name)
+                    if k not in names:
+                        raise ValueError(f"randomize[{key!r}]: {name!r} cannot be randomised (fixed body or no limit)")
+                    ranges[k] = _range(key, r)
+            else:
+                r = _range(key, value)
+                ranges = {k: r for k in names}
+            if key != "limit_scale" and any(lo <= 0 for lo, _ in ranges.values()):
+                raise ValueError(f"randomize[{key!r}] ranges must be positive, got {value!r}")
+            out[key] = ranges
+        self._randomize = out
+
+    def _apply_parameters(self, idx: np.ndarray, rng: np.random.Generator):
+        """Draw (or restore) the physical parameters of the worlds ``idx``."""
+        spec = self._randomize
+        if spec is None and not self._randomized:
+            return
+        self._randomized = True
+        spec = spec or {}
+        n, sim, scene = len(idx), self.sim, self.scene
+
+        def draw(key, k, nominal):
+            r = spec.get(key, {}).get(k)
+            return np.full(n, nominal) if r is None else rng.uniform(r[0], r[1], size=n)
+
+        free = self._free_bodies
+        mass = np.stack([self._nominal_mass[k] * draw("mass_scale", k, 1.0) for k in free], axis=1)
+        self.body_mass[np.ix_(idx, free)] = mass
+        sim.set_body_mass(mass, bodies=free, worlds=idx)
+        if scene.num_joints:
+            ratio = np.stack([draw("strength_ratio", k, self._nominal_ratio[k]) for k in range(scene.num_joints)], axis=1)
+            self.strength_ratio[idx] = ratio
+            sim.set_joint_strength(ratio, worlds=idx)
+        for k in self._limited:
+            j = scene.joints[k]
+            lo, up, st = (j.attributes[f"limit/{a}"] for a in ("lower", "upper", "strength"))
+            f = draw("limit_scale", k, 1.0)
+            lo_k, up_k = np.minimum(lo * f, up * f), np.maximum(lo * f, up * f)
+            if j.kind == REVOLUTE:
+                lo_k, up_k = np.clip(lo_k, -math.pi, math.pi), np.clip(up_k, -math.pi, math.pi)
+            st_k = st * draw("limit_strength_scale", k, 1.0)
+            self.limits[k][idx] = np.stack([lo_k, up_k, st_k], axis=1)
+            sim.set_limit(k, lower=lo_k, upper=up_k, strength=st_k, worlds=idx)
+
+    def _reset_worlds(self, idx: np.ndarray, options: dict | None = None):
+        options = options or {}
+        rng = self.np_random
+        self._apply_parameters(idx, rng)
+        coords, vels = self._initial_state(len(idx), rng, options)
+        self.sim.set_joint_state(coords, vels, worlds=idx)
+        self._put(self._elapsed, idx, np.zeros(len(idx)))
+        self._reset_task(idx, rng, options)
+        self._pending[idx] = False
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Reset every world, or those in ``options["reset_mask"]``; returns ``(obs, info)``.
+
+        ``options``: ``reset_mask`` (bool array (num_envs,)), ``randomize`` (see the module
+        docstring) and the task's own keys (``reset_option_keys``).
+        """
+        super().reset(seed=seed)
+        options = dict(options or {})
+        mask = options.pop("reset_mask", None)
+        if "randomize" in options:
+            self._set_randomize(options.pop("randomize"))
+        unknown = set(options) - set(self.reset_option_keys)
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; this task takes "
+                             f"{['reset_mask', 'randomize', *self.reset_option_keys]}")  # fmt: skip
+        if mask is None:
+            idx = np.arange(self.num_envs)
+        else:
+            mask = _to_numpy(mask)
+            if mask.dtype != np.bool_ or mask.shape != (self.num_envs,):
+                raise ValueError(f"options['reset_mask'] must be a bool array of shape ({self.num_envs},), "
+                                 f"got {mask.dtype} {mask.shape}")  # fmt: skip
+            idx = np.flatnonzero(mask)
+        if len(idx):
+            self._reset_worlds(idx, options)
+        self._has_reset = True
+        return self._observe_safe(), {}
+
+    # ================================================================== step
+    def _observe_safe(self):
+        obs = self._f32(self._observe())
+        return obs
+
+    def _batch_info(self, values: dict) -> dict:
+        info = {}
+        for key, v in values.items():
+            info[key] = v
+            info["_" + key] = np.ones(self.num_envs, dtype=bool)
+        return info
+
+    def step(self, actions):
+        if not self._has_reset:
+            raise RuntimeError("call reset() before step()")
+        xp, N = self.xp, self.num_envs
+        a = self._prepare_actions(actions)
+        pending = np.flatnonzero(self._pending) if self.autoreset_mode == AutoresetMode.NEXT_STEP else np.zeros(0, int)
+
+        self.sim.set_controls(self._controls(a))
+        self.sim.step(self.frame_skip)
+        self._elapsed += 1
+        if len(pending):  # NEXT_STEP: these worlds ended last step; this step only resets them
+            self._reset_worlds(pending)
+
+        failed = self._failed()
+        obs = self._f32(self._observe())
+        reward = self._f32(self._reward(obs, a))
+        terminated = self._terminated(obs) | failed
+        if self.max_episode_steps is not None:
+            truncated = self._elapsed >= self.max_episode_steps
+        else:
+            truncated = self._zeros(N, dtype="bool")
+        info_values = self._info(obs)
+        any_failed = bool(failed.any())
+        if any_failed:  # a broken world: zero observation and reward, terminated, reported
+            obs = xp.where(failed[:, None], 0.0, obs)
+            reward = xp.where(failed, 0.0, reward)
+            info_values = dict(info_values, sim_failed=failed)
+        if len(pending):
+            p = self._index(pending)
+            reward[p] = 0.0
+            terminated[p] = False
+            truncated[p] = False
+        info = self._batch_info(info_values)
+
+        done = _to_numpy(terminated | truncated)
+        if done.any():
+            if self.autoreset_mode == AutoresetMode.SAME_STEP:
+                final_info = info
+                final_info_masked = {k: (v & done if k.startswith("_") else v) for k, v in final_info.items()}
+                final_obs = obs
+                self._reset_worlds(np.flatnonzero(done))
+                obs = self._observe_safe()
+                info = {"final_obs": final_obs, "_final_obs": done.copy(),
+                        "final_info": final_info_masked, "_final_info": done.copy()}  # fmt: skip
+            elif self.autoreset_mode == AutoresetMode.NEXT_STEP:
+                self._pending = done.copy()
+        return obs, reward, terminated, truncated, info
+
+    # ================================================================== render / close
+    def render(self):
+        """One uint8 (H, W, 3) frame per world in ``render_worlds`` (a tuple), or None without a render mode."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; create the env with render_mode='rgb_array'")
+            return None
+        from .render import Renderer
+
+        if self._renderer is None:
+            self._renderer = Renderer(self.scene, plane=self.render_plane, center=self.render_center,
+                                      width=self.render_width, size=self.render_size)  # fmt: skip
+        pos, rot = self.sim.body_positions(), self.sim.body_rotations()
+        frames = []
+        for w in self.render_worlds:
+            canvas = self._renderer.canvas()
+            self._render_extras(canvas, w)
+            self._renderer.draw_bodies(canvas, pos[w], rot[w])
+            frames.append(canvas.image)
+        return tuple(frames)
+
+    def close_extras(self, **kwargs):
+        self._renderer = None
+
+
+class ABDEnv(gym.Env):
+    """A task as a single-world ``gymnasium.Env`` (CPU by default): its vector env with one world,
+    autoreset disabled and no internal time limit (``gym.make`` adds ``TimeLimit``)."""
+
+    vector_class: type[ABDVectorEnv] = ABDVectorEnv
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        cls.metadata = {"render_modes": ["rgb_array"], "render_fps": cls.vector_class.metadata["render_fps"]}
+
+    def __init__(self, render_mode: str | None = None, device="cpu", **kwargs):
+        self.vector_env = self.vector_class(num_envs=1, device=device, backend="numpy",
+                                            autoreset_mode=AutoresetMode.DISABLED, max_episode_steps=None,
+                                            render_mode=render_mode, **kwargs)  # fmt: skip
+        self.observation_space = self.vector_env.single_observation_space
+        self.action_space = self.vector_env.single_action_space
+        self.render_mode = render_mode
+
+    @property
+    def sim(self) -> Simulator:
+        return self.vector_env.sim
+
+    @staticmethod
+    def _unbatch(info: dict) -> dict:
+        out = {}
+        for key, value in info.items():
+            if key.startswith("_"):
+                continue
+            if isinstance(value, dict):
+                out[key] = ABDEnv._unbatch(value)
+            else:
+                v = np.asarray(value)[0]
+                out[key] = v.item() if v.ndim == 0 else v
+        return out
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self.vector_env._np_random = self.np_random  # one generator: seeding this env seeds its world
+        obs, info = self.vector_env.reset(options=options)
+        return obs[0], self._unbatch(info)
+
+    def step(self, action):
+        a = np.asarray(action, dtype=np.float32).reshape(1, -1)
+        obs, reward, terminated, truncated, info = self.vector_env.step(a)
+        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), self._unbatch(info)
+
+    def render(self):
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; create the env with render_mode='rgb_array'")
+            return None
+        return self.vector_env.render()[0]
+
+    def close(self):
+        self.vector_env.close()
