@@ -1,6 +1,8 @@
 """Benchmark: steps per second against number of worlds, with the accuracy of each run.
 
     python -m abd_gym.bench [--device cpu|cuda:0] [--worlds 1,16,256] [--steps 50] [--out DIR]
+    python -m abd_gym.bench compare ...    (against MuJoCo Warp: bench_compare.py)
+    python -m abd_gym.bench accuracy ...   (speed against error: bench_accuracy.py)
 
 For a double pendulum and a cart-pole it times ``Simulator.step`` (after warm-up, synchronised)
 and reports world-steps per second, steps per second, mean Newton iterations, the largest joint
@@ -98,6 +100,17 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0):
 
 
 def main(argv=None):
+    import sys
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "compare":
+        from .bench_compare import main as compare
+
+        return compare(argv[1:])
+    if argv and argv[0] == "accuracy":
+        from .bench_accuracy import main as accuracy
+
+        return accuracy(argv[1:])
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--worlds", default=None, help="comma-separated world counts (default: 1..64 on CPU, 1..65536 on GPU)")

@@ -1,0 +1,182 @@
+"""``python -m abd_gym.bench accuracy``: speed against error.
+
+For dt in {0.02, 0.01, 0.005, 0.002, 0.001}, float32 and float64, and two Newton tolerances, a
+batch of double pendulums and cart-poles (random initial angles, the same in every run) is
+stepped for 1 s.  Reported per run: the joint-angle error against a reference (MuJoCo's RK4 at
+dt = 1e-4 when ``mujoco`` is installed, else our own float64 run at dt = 1e-4 and tol 1e-10),
+at t = 1 s and the largest over the second (sampled every 0.02 s); the largest joint residual;
+the energy drift E(1 s) − E(0) [J] (implicit Euler only loses energy); and world-steps per
+second.  With ``mujoco_warp`` installed its semi-implicit Euler is measured the same way.
+Writes ``accuracy.json`` and, with matplotlib, ``accuracy.png`` (error against speed) to --out.
+"""
+import argparse
+import json
+import os
+import time
+
+import numpy as np
+import warp as wp
+
+from .bench_compare import CASES, random_states
+from .simulator import Simulator
+
+DTS = (0.02, 0.01, 0.005, 0.002, 0.001)
+T_END, SAMPLE = 1.0, 0.02
+
+
+def _samples(dt):
+    every = int(round(SAMPLE / dt))
+    return every, int(round(T_END / dt))
+
+
+def mujoco_reference(case, x0, v0=None, dt=1e-4, integrator="RK4"):
+    """Joint angles (samples, worlds, joints) of MuJoCo's RK4 from x0 (worlds, joints)."""
+    import mujoco
+
+    xml = CASES[case][0].format(dt=dt).replace("<option ", f'<option integrator="{integrator}" ')
+    mjm = mujoco.MjModel.from_xml_string(xml)
+    mjd = mujoco.MjData(mjm)
+    every, n = _samples(dt)
+    out = np.zeros((n // every + 1, len(x0), mjm.nq))
+    for w, x in enumerate(x0):
+        mujoco.mj_resetData(mjm, mjd)
+        mjd.qpos[:] = x
+        out[0, w] = mjd.qpos
+        for i in range(1, n + 1):
+            mujoco.mj_step(mjm, mjd)
+            if i % every == 0:
+                out[i // every, w] = mjd.qpos
+    return out
+
+
+def run_ours(case, x0, dt, dtype, tol, device):
+    sim = Simulator(CASES[case][1](), num_worlds=len(x0), dt=dt, device=device, dtype=dtype, tol=tol)
+    sim.set_joint_state(x0)
+    e0 = sum(sim.energies().values())
+    every, n = _samples(dt)
+    out = np.zeros((n // every + 1,) + x0.shape)
+    out[0] = sim.joint_angles_unwrapped()
+    residual, elapsed = 0.0, 0.0
+    sim.step()  # compile and capture outside the timing
+    sim.set_joint_state(x0)
+    for i in range(1, n + 1):
+        t0 = time.perf_counter()
+        sim.step()
+        wp.synchronize_device(sim.device)
+        elapsed += time.perf_counter() - t0
+        if i % every == 0:
+            out[i // every] = sim.joint_angles_unwrapped()
+            residual = max(residual, float(sim.joint_violation().max()))
+    drift = float(np.max(sum(sim.energies().values()) - e0))
+    return out, residual, drift, len(x0) * n / elapsed
+
+
+def run_mjw(case, x0, dt, device):
+    import mujoco
+    import mujoco_warp as mjw
+
+    mjm = mujoco.MjModel.from_xml_string(CASES[case][0].format(dt=dt))
+    every, n = _samples(dt)
+    out = np.zeros((n // every + 1,) + x0.shape)
+    with wp.ScopedDevice(device):
+        m = mjw.put_model(mjm)
+        d = mjw.put_data(mjm, mujoco.MjData(mjm), nworld=len(x0))
+        d.qpos.assign(x0.astype(np.float32))
+        out[0] = x0
+        elapsed = 0.0
+        for i in range(1, n + 1):
+            t0 = time.perf_counter()
+            mjw.step(m, d)
+            wp.synchronize()
+            elapsed += time.perf_counter() - t0
+            if i % every == 0:
+                out[i // every] = d.qpos.numpy()
+    return out, len(x0) * n / elapsed
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m abd_gym.bench accuracy", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--worlds", type=int, default=None, help="worlds per run (default 8 on CPU, 4096 on GPU)")
+    ap.add_argument("--dts", default=",".join(str(d) for d in DTS))
+    ap.add_argument("--dtypes", default="float32,float64")
+    ap.add_argument("--tols", default="1e-5,1e-3")
+    ap.add_argument("--cases", default="double_pendulum,cartpole")
+    ap.add_argument("--reference-worlds", type=int, default=8, help="worlds the error is measured on")
+    ap.add_argument("--out", default="bench_out")
+    args = ap.parse_args(argv)
+    W = args.worlds or (4096 if args.device.startswith("cuda") else 8)
+    dts = [float(d) for d in args.dts.split(",")]
+    rows = []
+    for case in args.cases.split(","):
+        x0 = random_states(case, W, seed=1)
+        nref = min(args.reference_worlds, W)
+        try:
+            ref, ref_name = mujoco_reference(case, x0[:nref]), "mujoco_rk4_dt1e-4"
+        except ImportError:
+            ref = run_ours(case, x0[:nref], 1e-4, "float64", 1e-10, "cpu")[0]
+            ref_name = "abd_gym_float64_dt1e-4"
+        for dt in dts:
+            for dtype in args.dtypes.split(","):
+                for tol in (float(t) for t in args.tols.split(",")):
+                    traj, residual, drift, sps = run_ours(case, x0, dt, dtype, tol, args.device)
+                    err = np.abs(traj[:, :nref] - ref)
+                    rows.append(dict(engine="abd_gym", integrator="implicit_euler", case=case, dt=dt, dtype=dtype,
+                                     tol=tol, error_final=float(err[-1].max()), error_max=float(err.max()),
+                                     joint_residual=residual, energy_drift=drift, world_steps_per_second=sps))  # fmt: skip
+                    print(_fmt(rows[-1]), flush=True)
+            try:
+                traj, sps = run_mjw(case, x0, dt, args.device)
+                err = np.abs(traj[:, :nref] - ref)
+                rows.append(dict(engine="mujoco_warp", integrator="semi_implicit_euler", case=case, dt=dt,
+                                 dtype="float32", tol=None, error_final=float(err[-1].max()), error_max=float(err.max()),
+                                 joint_residual=0.0, energy_drift=None, world_steps_per_second=sps))  # fmt: skip
+                print(_fmt(rows[-1]), flush=True)
+            except ImportError:
+                pass
+    result = dict(device=args.device, device_name=wp.get_device(args.device).name, worlds=W, reference=ref_name,
+                  rows=rows)  # fmt: skip
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "accuracy.json"), "w") as f:
+        json.dump(result, f, indent=1)
+    _plot(result, os.path.join(args.out, "accuracy.png"))
+    return result
+
+
+def _fmt(r):
+    drift = "" if r["energy_drift"] is None else f"  drift {r['energy_drift']:+.2e} J"
+    return (f"{r['engine']:11s} {r['case']:16s} dt {r['dt']:<6} {r['dtype']:8s} tol {str(r['tol']):6s} "
+            f"err(1s) {r['error_final']:.2e}  err(max) {r['error_max']:.2e}  residual {r['joint_residual']:.1e}"
+            f"{drift}  {r['world_steps_per_second']:,.0f} world-steps/s")  # fmt: skip
+
+
+def _plot(result, path):
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    cases = sorted({r["case"] for r in result["rows"]})
+    fig, axes = plt.subplots(1, len(cases), figsize=(6 * len(cases), 4.5), squeeze=False)
+    for ax, case in zip(axes[0], cases):
+        series = {}
+        for r in result["rows"]:
+            if r["case"] == case:
+                key = (r["engine"], r["dtype"], r["tol"])
+                series.setdefault(key, []).append(r)
+        for (engine, dtype, tol), rs in series.items():
+            rs = sorted(rs, key=lambda r: r["dt"])
+            label = f"{engine} {dtype}" + (f" tol {tol}" if tol is not None else "")
+            ax.loglog([r["world_steps_per_second"] for r in rs], [r["error_max"] for r in rs], "o-", label=label)
+            for r in rs:
+                ax.annotate(f"{r['dt']}", (r["world_steps_per_second"], r["error_max"]), fontsize=6)
+        ax.set_xlabel("world-steps per second")
+        ax.set_ylabel("max joint-angle error over 1 s [rad]")
+        ax.set_title(f"{case} ({result['device_name']}, {result['worlds']} worlds)")
+        ax.legend(fontsize=7)
+        ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)

@@ -1,0 +1,137 @@
+"""``python -m abd_gym.bench compare``: the same cart-pole and double pendulum in abd_gym and in
+MuJoCo Warp (optional: ``pip install mujoco mujoco-warp``), same device, same worlds, one process.
+
+Both step with dt = 0.01 from random states; MuJoCo Warp runs its default (semi-implicit Euler)
+integrator, replayed as a CUDA graph of 10 steps (on the CPU it steps plainly); abd_gym replays its
+own captured step.  Reports world-steps per second and the ratio ours / MuJoCo Warp.
+"""
+import argparse
+import json
+import math
+import os
+import time
+
+import numpy as np
+import warp as wp
+
+from . import mechanisms
+from .simulator import Simulator
+
+CARTPOLE_XML = """
+<mujoco>
+  <option timestep="{dt}" gravity="0 0 -9.81"/>
+  <worldbody>
+    <body name="cart">
+      <joint name="slide" type="slide" axis="1 0 0" limited="true" range="-2.4 2.4"/>
+      <geom type="box" size="0.2 0.1 0.05" mass="1.0" contype="0" conaffinity="0"/>
+      <body name="pole">
+        <joint name="hinge" type="hinge" axis="0 1 0"/>
+        <geom type="box" size="0.01 0.01 0.5" pos="0 0 0.5" mass="0.1" contype="0" conaffinity="0"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="slide" ctrlrange="-10 10" ctrllimited="true"/></actuator>
+</mujoco>
+"""
+
+DOUBLE_PENDULUM_XML = """
+<mujoco>
+  <option timestep="{dt}" gravity="0 0 -9.81"/>
+  <worldbody>
+    <body name="link0">
+      <joint name="j0" type="hinge" axis="0 1 0"/>
+      <geom type="box" size="0.02 0.02 0.25" pos="0 0 -0.25" mass="1.0" contype="0" conaffinity="0"/>
+      <body name="link1" pos="0 0 -0.5">
+        <joint name="j1" type="hinge" axis="0 1 0"/>
+        <geom type="box" size="0.02 0.02 0.25" pos="0 0 -0.25" mass="1.0" contype="0" conaffinity="0"/>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+CASES = {"cartpole": (CARTPOLE_XML, mechanisms.cartpole), "double_pendulum": (DOUBLE_PENDULUM_XML, mechanisms.double_pendulum)}
+
+
+def random_states(case, n, seed=0):
+    rng = np.random.default_rng(seed)
+    if case == "cartpole":
+        return np.stack([rng.uniform(-0.5, 0.5, n), rng.uniform(-0.3, 0.3, n)], 1)
+    return rng.uniform(-0.3, 0.3, (n, 2))
+
+
+def mjw_steps_per_second(case, num_worlds, steps, dt, device):
+    import mujoco
+    import mujoco_warp as mjw
+
+    mjm = mujoco.MjModel.from_xml_string(CASES[case][0].format(dt=dt))
+    mjd = mujoco.MjData(mjm)
+    with wp.ScopedDevice(device):
+        m = mjw.put_model(mjm)
+        d = mjw.put_data(mjm, mjd, nworld=num_worlds)
+        d.qpos.assign(random_states(case, num_worlds).astype(np.float32))
+        mjw.step(m, d)  # compile
+        wp.synchronize()
+        graph = None
+        if wp.get_device(device).is_cuda:
+            with wp.ScopedCapture() as capture:
+                for _ in range(10):
+                    mjw.step(m, d)
+            graph = capture.graph
+        reps = max(1, steps // 10)
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            if graph is not None:
+                wp.capture_launch(graph)
+            else:
+                for _ in range(10):
+                    mjw.step(m, d)
+        wp.synchronize()
+        return num_worlds * reps * 10 / (time.perf_counter() - t0)
+
+
+def ours_steps_per_second(case, num_worlds, steps, dt, device, dtype="float32"):
+    sim = Simulator(CASES[case][1](), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype)
+    sim.set_joint_state(random_states(case, num_worlds))
+    sim.step(3)
+    wp.synchronize_device(sim.device)
+    t0 = time.perf_counter()
+    sim.step(steps)
+    wp.synchronize_device(sim.device)
+    return num_worlds * steps / (time.perf_counter() - t0), float(sim.joint_violation().max())
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m abd_gym.bench compare", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--worlds", default=None)
+    ap.add_argument("--steps", type=int, default=None)
+    ap.add_argument("--dt", type=float, default=0.01)
+    ap.add_argument("--out", default="bench_out")
+    args = ap.parse_args(argv)
+    gpu = args.device.startswith("cuda")
+    worlds = [int(w) for w in args.worlds.split(",")] if args.worlds else ([1024, 16384, 131072] if gpu else [1, 8])
+    steps = args.steps or (100 if gpu else 10)
+    rows = []
+    for case in CASES:
+        for w in worlds:
+            ours, residual = ours_steps_per_second(case, w, steps, args.dt, args.device)
+            try:
+                theirs = mjw_steps_per_second(case, w, steps, args.dt, args.device)
+            except ImportError:
+                theirs = float("nan")
+            rows.append(dict(case=case, num_worlds=w, abd_gym=ours, mujoco_warp=theirs, ratio=ours / theirs,
+                             joint_residual=residual))  # fmt: skip
+            print(f"{case:16s} {w:8d} worlds  abd_gym {ours:14,.0f}  mujoco_warp {theirs:14,.0f} world-steps/s  "
+                  f"ratio {ours / theirs:.3f}", flush=True)  # fmt: skip
+    result = dict(device=args.device, device_name=wp.get_device(args.device).name, dt=args.dt, rows=rows)
+    lines = [f"Device: {result['device_name']}, dt = {args.dt}", "",
+             "| mechanism | worlds | abd_gym world-steps/s | MuJoCo Warp world-steps/s | ratio |", "|---|---:|---:|---:|---:|"]  # fmt: skip
+    for r in rows:
+        lines.append(f"| {r['case']} | {r['num_worlds']} | {r['abd_gym']:,.0f} | {r['mujoco_warp']:,.0f} | {r['ratio']:.3f} |")
+    print("\n".join(lines))
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "compare.json"), "w") as f:
+        json.dump(result, f, indent=1)
+    return result
