@@ -29,11 +29,18 @@ def kernels(dtype):
         n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
         c_ref: wp.array2d(dtype=dtype), s_ref: wp.array2d(dtype=dtype),
         theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
-        mask: wp.array(dtype=wp.int32),
+        mask: wp.array(dtype=wp.int32), unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype),
+        bdf2: int, x_anchor: wp.array2d(dtype=dtype),
     ):  # fmt: skip
-        """θ0 and cos/sin θ of q^{t−1} (the state at the start of the step)."""
+        """θ0 and cos/sin θ of q^{t−1} (the state at the start of the step), and the drives' anchor
+        coordinate: xⁿ, or x̂ = (4xⁿ − xⁿ⁻¹)/3 for BDF2."""
         w, j = wp.tid()
-        if kind[j] != REVOLUTE_CODE or mask[w] == 0:
+        if mask[w] == 0:
+            return
+        x_anchor[w, j] = unwrapped[w, j]
+        if bdf2 != 0:
+            x_anchor[w, j] = (dtype(4.0) * unwrapped[w, j] - x_hist[w, j]) / dtype(3.0)
+        if kind[j] != REVOLUTE_CODE:
             return
         c, s = cos_sin(q[w, body_a[j]], q[w, body_b[j]], n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j])
         c_prev[w, j] = c
@@ -49,6 +56,7 @@ def kernels(dtype):
         theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
         h: dtype, status: wp.array(dtype=wp.int32), mask: wp.array(dtype=wp.int32), accumulate: int, rate_from_qd: int,
         coord: wp.array2d(dtype=dtype), velocity: wp.array2d(dtype=dtype), unwrapped: wp.array2d(dtype=dtype),
+        x_hist: wp.array2d(dtype=dtype),
     ):  # fmt: skip
         """x = θ0 + ΔΘ(q, q^{t−1}) (seed), its rate δ/h, and the multi-turn angle; displacement.
 
@@ -69,6 +77,7 @@ def kernels(dtype):
                 gi, gj = theta_grad(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], c, s)
                 velocity[w, j] = wp.dot(gi, qd[w, body_a[j]]) + wp.dot(gj, qd[w, body_b[j]])
             if accumulate != 0:
+                x_hist[w, j] = unwrapped[w, j]
                 unwrapped[w, j] = unwrapped[w, j] + d
         elif kind[j] == PRISMATIC_CODE:
             x = displacement(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
@@ -79,6 +88,7 @@ def kernels(dtype):
                 gi, gj = displacement_grad(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
                 velocity[w, j] = wp.dot(gi, qd[w, body_a[j]]) + wp.dot(gj, qd[w, body_b[j]])
             if accumulate != 0:
+                x_hist[w, j] = unwrapped[w, j]
                 unwrapped[w, j] = x
 
     return begin_step, coordinates

@@ -74,7 +74,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
         drive_joint: wp.array(dtype=wp.int32), drive_mode: wp.array(dtype=wp.int32), kp: wp.array2d(dtype=dtype),
         kd: wp.array2d(dtype=dtype), fmax: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype),
-        unwrapped: wp.array2d(dtype=dtype), h: dtype,
+        unwrapped: wp.array2d(dtype=dtype), x_anchor: wp.array2d(dtype=dtype), h: dtype,
         g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
     ):  # fmt: skip
         """Total incremental potential of world w at q; with derivs, also its g and H (added)."""
@@ -131,7 +131,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 j = drive_joint[k]
                 ej, gi, gj, hii, hij, hjj = drive_eval(q[w, body_a[j]], q[w, body_b[j]], w, k, drive_joint, joint_kind,
                                                        c_a, c_b, t_a, n_a, b_a, n_b, b_b, c_prev, s_prev, drive_mode, kp,
-                                                       kd, fmax, control, unwrapped, h, h2, 0, derivs)  # fmt: skip
+                                                       kd, fmax, control, unwrapped, x_anchor, h, h2, 0, derivs)  # fmt: skip
                 e += ej
                 if derivs != 0:
                     put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
@@ -154,7 +154,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
         drive_joint: wp.array(dtype=wp.int32), drive_mode: wp.array(dtype=wp.int32), kp: wp.array2d(dtype=dtype),
         kd: wp.array2d(dtype=dtype), fmax: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype),
-        unwrapped: wp.array2d(dtype=dtype), h: dtype,
+        unwrapped: wp.array2d(dtype=dtype), x_anchor: wp.array2d(dtype=dtype), h: dtype,
         g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype),
         n: int, threshold: dtype, max_iterations: int, max_line_search: int,
         status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
@@ -173,7 +173,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             e0 = assemble(q, w, 1, q_tilde, free, dof, mass, mc, S, kv, h2, body_a, body_b, joint_kind, pts_a, pts_b,
                           K, c_a, c_b, t_a, t_b, n_a, n_b, b_a, b_b, rev_ids, fix_ids, pri_ids, rlim_ids, rlim_lo,
                           rlim_up, rlim_s, plim_ids, plim_lo, plim_up, plim_s, theta0, c_prev, s_prev, drive_joint,
-                          drive_mode, kp, kd, fmax, control, unwrapped, h, g, H)  # fmt: skip
+                          drive_mode, kp, kd, fmax, control, unwrapped, x_anchor, h, g, H)  # fmt: skip
             # Cholesky H = L Lᵀ in place, then dq = −H⁻¹ g
             for j in range(n):
                 s = H[j, j, w]
@@ -227,7 +227,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 e1 = assemble(q_trial, w, 0, q_tilde, free, dof, mass, mc, S, kv, h2, body_a, body_b, joint_kind,
                               pts_a, pts_b, K, c_a, c_b, t_a, t_b, n_a, n_b, b_a, b_b, rev_ids, fix_ids, pri_ids,
                               rlim_ids, rlim_lo, rlim_up, rlim_s, plim_ids, plim_lo, plim_up, plim_s, theta0, c_prev,
-                              s_prev, drive_joint, drive_mode, kp, kd, fmax, control, unwrapped, h, g, H)  # fmt: skip
+                              s_prev, drive_joint, drive_mode, kp, kd, fmax, control, unwrapped, x_anchor, h, g, H)  # fmt: skip
                 noise = dtype(16.0) * EPS * (wp.abs(e0) + wp.abs(e1))
                 if e1 <= e0 + dtype(1.0e-4) * alpha * gdq + noise and wp.isfinite(e1):
                     accepted = 1

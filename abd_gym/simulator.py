@@ -47,7 +47,8 @@ def _finite_array(name, values, shape):
 class Simulator:
     """Step ``num_worlds`` copies of ``scene`` with implicit Euler (Newton on the incremental potential).
 
-    ``dt`` [s]; ``dtype`` float32 (default) or float64; ``tol`` the Newton stop on ``‖Δq‖∞/h`` [m/s];
+    ``dt`` [s]; ``integrator`` "implicit_euler" (default; first order, dissipative, the robust choice)
+    or "bdf2" (second order, far less numerical damping); ``dtype`` float32 (default) or float64; ``tol`` the Newton stop on ``‖Δq‖∞/h`` [m/s];
     ``device`` "cpu" or "cuda:N" (default: $ABD_GYM_DEVICE, else "cpu"); ``use_graph`` (default on) replays
     the step as one captured graph (a CUDA graph, or Warp's CPU command replay), its Newton and
     line-search loops running as conditional loops on device flags: same arithmetic, far fewer
@@ -56,7 +57,7 @@ class Simulator:
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
                  tol: float = 1e-5, max_iterations: int = 50, max_line_search: int = 12,
-                 use_graph: bool | None = None, fused: bool = True):  # fmt: skip
+                 use_graph: bool | None = None, fused: bool = True, integrator: str = "implicit_euler"):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
@@ -65,7 +66,7 @@ class Simulator:
         device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
         self.model = Model(scene, num_worlds, dtype=dtype, device=device)
         self.state = State(self.model)
-        self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search), bool(fused)))
+        self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search), bool(fused), integrator))
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device
@@ -246,7 +247,8 @@ class Simulator:
 
     def _set_q(self, idx, q, qd, unwrapped=None):
         st = self.state
-        for arr, val in ((st.q, q), (st.qd, qd), (st.q_prev, q)):
+        # a set state has no past: the BDF2 history starts as if the velocity had been constant
+        for arr, val in ((st.q, q), (st.qd, qd), (st.q_prev, q), (st.q_hist, q - self.dt * qd), (st.qd_hist, qd)):
             self._write_rows(arr, idx, val)
         status = st.status.numpy()
         status[idx] = 0
@@ -261,6 +263,9 @@ class Simulator:
             if unwrapped is not None:
                 u[idx, : self.model.num_joints] = unwrapped
             st.unwrapped.assign(u)
+            xh = st.x_hist.numpy()
+            xh[idx] = u[idx] - self.dt * st.coord_vel.numpy()[idx]
+            st.x_hist.assign(xh)
 
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
         """Forward kinematics for tree mechanisms: joint coordinates (N, num_joints) [rad, m] and

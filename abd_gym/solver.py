@@ -25,12 +25,18 @@ class SolverSettings:
     max_iterations: int = 50
     max_line_search: int = 12
     fused: bool = True  # one kernel per step runs every world's whole Newton solve (fused.py)
+    integrator: str = "implicit_euler"  # or "bdf2"
 
 
 class Solver:
     def __init__(self, model, dt: float, settings: SolverSettings):
         self.model, self.settings = model, settings
         self.h = float(dt)
+        if settings.integrator not in ("implicit_euler", "bdf2"):
+            raise ValueError(f"integrator must be 'implicit_euler' or 'bdf2', got {settings.integrator!r}")
+        self.bdf2 = int(settings.integrator == "bdf2")
+        # the step's effective h: physical potentials sit inside h_eff², velocities are Δq/h_eff
+        self.h_eff = self.h * (2.0 / 3.0 if self.bdf2 else 1.0)
         W, n, dev, dt_ = model.num_worlds, model.num_dofs, model.device, model.dtype
         # only the constitutions this scene has get a term (and so a kernel launch)
         self.parts = [c for c in REGISTRY if c.terms(model)]
@@ -92,9 +98,11 @@ class Solver:
         if m.num_joints:
             wp.launch(self.begin_step, dim=(W, m.num_joints),
                       inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
-                              state.theta0, state.c_prev, state.s_prev, self.all_active], device=dev)  # fmt: skip
-        wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, self.q_tilde, m.dof, m.gravity,
-                                                     dt(self.h), state.status], device=dev)  # fmt: skip
+                              state.theta0, state.c_prev, state.s_prev, self.all_active, state.unwrapped,
+                              state.x_hist, self.bdf2, state.x_anchor], device=dev)  # fmt: skip
+        wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
+                                                     self.q_tilde, m.dof, m.gravity, dt(self.h), self.bdf2,
+                                                     state.status], device=dev)  # fmt: skip
         if self.settings.fused:
             self._fused_newton(state)
         else:
@@ -102,8 +110,8 @@ class Solver:
                                                  self.take], device=dev)  # fmt: skip
             self.remaining.fill_(1)
             wp.capture_while(self.remaining, self._newton_iteration, state=state)
-        wp.launch(k["finalize"], dim=(W, nb), inputs=[state.q, state.q_prev, state.qd, m.dof, dt(1.0 / self.h),
-                                                      state.status], device=dev)  # fmt: skip
+        wp.launch(k["finalize"], dim=(W, nb), inputs=[state.q, state.q_prev, state.qd, state.q_hist, state.qd_hist,
+                                                      m.dof, dt(self.h), self.bdf2, state.status], device=dev)  # fmt: skip
         self.update_coordinates(state, accumulate=True)
 
     def _fused_newton(self, state):
@@ -116,12 +124,13 @@ class Solver:
         kernel = fused_kernel(m.dtype, *has)
         dt = m.dtype
         wp.launch(kernel, dim=m.num_worlds, inputs=[
-            state.q, self.q_trial, self.q_tilde, m.free, m.dof, m.mass, m.mc, m.S, m.kv, dt(self.h * self.h),
+            state.q, self.q_trial, self.q_tilde, m.free, m.dof, m.mass, m.mc, m.S, m.kv, dt(self.h_eff * self.h_eff),
             m.body_a, m.body_b, m.joint_kind, m.pts_a, m.pts_b, m.K, m.c_a, m.c_b, m.t_a, m.t_b, m.n_a, m.n_b,
             m.b_a, m.b_b, m.joint_ids[REVOLUTE], m.joint_ids[FIXED], m.joint_ids[PRISMATIC],
             m.limit_joint_ids[REVOLUTE], *m.limit_params[REVOLUTE], m.limit_joint_ids[PRISMATIC],
             *m.limit_params[PRISMATIC], state.theta0, state.c_prev, state.s_prev, m.drive_joint, m.drive_mode,
-            m.drive_stiffness, m.drive_damping, m.drive_max_effort, state.control, state.unwrapped, dt(self.h),
+            m.drive_stiffness, m.drive_damping, m.drive_max_effort, state.control, state.unwrapped, state.x_anchor,
+            dt(self.h_eff),
             self.g, self.H, self.dq, m.num_dofs, dt(s.tol * self.h), s.max_iterations, s.max_line_search,
             state.status, state.iterations, state.converged], device=m.device)  # fmt: skip
 
@@ -164,7 +173,8 @@ class Solver:
         if m.num_joints:
             wp.launch(self.begin_step, dim=(m.num_worlds, m.num_joints),
                       inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
-                              state.theta0, state.c_prev, state.s_prev, mask], device=m.device)  # fmt: skip
+                              state.theta0, state.c_prev, state.s_prev, mask, state.unwrapped, state.x_hist,
+                              self.bdf2, state.x_anchor], device=m.device)  # fmt: skip
 
     def update_coordinates(self, state, accumulate, rate_from_qd=False, mask=None):
         m = self.model
@@ -175,4 +185,4 @@ class Solver:
                   inputs=[state.q, state.q_prev, state.qd, m.body_a, m.body_b, m.joint_kind, m.c_a, m.c_b, m.t_a,
                           m.n_a, m.b_a, m.n_b, m.b_b, state.theta0, state.c_prev, state.s_prev, m.dtype(self.h),
                           state.status, mask, int(accumulate), int(rate_from_qd), state.coord, state.coord_vel,
-                          state.unwrapped], device=m.device)  # fmt: skip
+                          state.unwrapped, state.x_hist], device=m.device)  # fmt: skip

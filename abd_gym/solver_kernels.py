@@ -34,22 +34,26 @@ def kernels(dtype):
     @wp.kernel(module="unique")
     def predict(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
-        q_tilde: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), gravity: vec3, h: dtype,
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
+        q_tilde: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), gravity: vec3, h: dtype, bdf2: int,
         status: wp.array(dtype=wp.int32),
     ):  # fmt: skip
-        """q̃ = qᵗ + h q̇ᵗ + h² M⁻¹f_g; M⁻¹f_g = (g, 0) exactly (gravity accelerates p only)."""
+        """Implicit Euler: q̃ = qⁿ + h q̇ⁿ + h² (g, 0)  (M⁻¹f_g = (g, 0) exactly: gravity moves p only).
+        BDF2 (ĥ = 2h/3): q̃ = q̂ + ĥ v̂ + ĥ² (g, 0), q̂ = (4qⁿ − qⁿ⁻¹)/3, v̂ = (4q̇ⁿ − q̇ⁿ⁻¹)/3."""
         w, b = wp.tid()
         qb = q[w, b]
         q_prev[w, b] = qb
-        if dof[b] < 0:
+        if dof[b] < 0 or status[w] != OK:
             q_tilde[w, b] = qb
             return
-        if status[w] != OK:
-            q_tilde[w, b] = qb
-            return
+        he = h
         qt = qb + h * qd[w, b]
+        if bdf2 != 0:
+            he = dtype(2.0 / 3.0) * h
+            third = dtype(1.0 / 3.0)
+            qt = third * (dtype(4.0) * qb - q_hist[w, b]) + he * third * (dtype(4.0) * qd[w, b] - qd_hist[w, b])
         for r in range(3):
-            qt[r] = qt[r] + h * h * gravity[r]
+            qt[r] = qt[r] + he * he * gravity[r]
         q_tilde[w, b] = qt
         q[w, b] = qt  # initial guess: the inertia term's minimiser
 
@@ -203,15 +207,22 @@ def kernels(dtype):
     @wp.kernel(module="unique")
     def finalize(
         q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
-        dof: wp.array(dtype=wp.int32), inv_h: dtype, status: wp.array(dtype=wp.int32),
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
+        dof: wp.array(dtype=wp.int32), h: dtype, bdf2: int, status: wp.array(dtype=wp.int32),
     ):  # fmt: skip
-        """q̇ = (q − qᵗ)/h; a failed world keeps its last good state."""
+        """q̇ⁿ⁺¹ = (qⁿ⁺¹ − qⁿ)/h, or (3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹)/(2h) for BDF2; the history shifts.
+        A failed world keeps its last good state."""
         w, b = wp.tid()
         if status[w] != OK:
             q[w, b] = q_prev[w, b]
             return
         if dof[b] >= 0:
-            qd[w, b] = (q[w, b] - q_prev[w, b]) * inv_h
+            v = (q[w, b] - q_prev[w, b]) / h
+            if bdf2 != 0:
+                v = (dtype(3.0) * q[w, b] - dtype(4.0) * q_prev[w, b] + q_hist[w, b]) / (dtype(2.0) * h)
+            qd_hist[w, b] = qd[w, b]
+            qd[w, b] = v
+        q_hist[w, b] = q_prev[w, b]
 
     @wp.kernel(module="unique")
     def check_finite(q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32)):

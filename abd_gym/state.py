@@ -18,8 +18,11 @@ class State:
         self.q = wp.zeros((W, nb), dtype=model.vec12, device=dev)
         self.qd = wp.zeros_like(self.q)
         self.q_prev = wp.zeros_like(self.q)
-        self.theta0, self.c_prev, self.s_prev, self.coord, self.coord_vel, self.unwrapped = (
-            wp.zeros((W, nj), dtype=dt, device=dev) for _ in range(6)
+        # BDF2 history: qⁿ⁻¹, q̇ⁿ⁻¹ and the multi-turn coordinate xⁿ⁻¹; x_anchor is the drives' x̂
+        self.q_hist = wp.zeros_like(self.q)
+        self.qd_hist = wp.zeros_like(self.q)
+        self.theta0, self.c_prev, self.s_prev, self.coord, self.coord_vel, self.unwrapped, self.x_hist, self.x_anchor = (
+            wp.zeros((W, nj), dtype=dt, device=dev) for _ in range(8)
         )
         self.control = wp.zeros((W, nd), dtype=dt, device=dev)
         self.status = wp.zeros(W, dtype=wp.int32, device=dev)

@@ -175,7 +175,7 @@ def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
                                                 cols["kinetic"], cols["gravity"]], device=model.device)  # fmt: skip
         col_inertia, scale = cols["scratch"], 1.0
     else:
-        col_inertia, scale = cols["inertia"], ctx.h * ctx.h
+        col_inertia, scale = cols["inertia"], ctx.h_eff * ctx.h_eff
     wp.launch(body_terms, dim=dim, inputs=[q, ctx.q_tilde, model.free, model.dof, model.mass, model.mc, model.S,
                                            model.kv, model.dtype(scale), active, derivs, col_inertia,
                                            cols["orthogonality"], E, g, H], device=model.device)  # fmt: skip

@@ -6,7 +6,8 @@ displacement [m].  Drives are physical potentials, so they sit inside h² in the
 - effort (motor): ``E = −τ (x − x_prev)`` with ``τ = clip(u, ±max_effort)`` [N·m or N]; the
   Hessian of x is dropped (a force held over the step).
 - position / velocity (implicit PD): force ``f(x) = k(x − x*) + (d/h)(x − x_prev − h v*)``
-  (position: x* = u, v* = 0; velocity: k = 0, v* = u).  The energy is the integral of
+  (position: x* = u, v* = 0; velocity: k = 0, v* = u).  Under BDF2, h → ĥ = 2h/3 and
+  x_prev → x̂ = (4xⁿ − xⁿ⁻¹)/3, its velocity being (x − x̂)/ĥ.  The energy is the integral of
   ``clip(f, ±max_effort)``: a Huber function of x, convex, so large gains stay stable and the
   effort limit holds inside the solve.  ``E = a·huber(x − x0, max_effort/a)``, ``a = k + d/h``.
 
@@ -63,6 +64,7 @@ def kernel(dtype):
         c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
         mode: wp.array(dtype=wp.int32), stiffness: wp.array2d(dtype=dtype), damping: wp.array2d(dtype=dtype),
         max_effort: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype), x_prev_joint: wp.array2d(dtype=dtype),
+        x_anchor: wp.array2d(dtype=dtype),
         h: dtype, scale: dtype, physical: int, derivs: int,
     ):  # fmt: skip
         j = joint[k]
@@ -102,7 +104,7 @@ def kernel(dtype):
                 xs = zero
                 vs = u
             aa = kp + kd
-            x0 = (kp * xs + kd * (xp + h * vs)) / aa
+            x0 = (kp * xs + kd * (x_anchor[w, j] + h * vs)) / aa
             r = x - x0
             cap = fmax / aa
             if wp.abs(r) <= cap:
@@ -129,6 +131,7 @@ def kernel(dtype):
         c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
         mode: wp.array(dtype=wp.int32), stiffness: wp.array2d(dtype=dtype), damping: wp.array2d(dtype=dtype),
         max_effort: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype), x_prev_joint: wp.array2d(dtype=dtype),
+        x_anchor: wp.array2d(dtype=dtype),
         h: dtype, scale: dtype, physical: int, active: wp.array(dtype=wp.int32), derivs: int, col: int,
         E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
     ):  # fmt: skip
@@ -140,7 +143,7 @@ def kernel(dtype):
         bj = body_b[j]
         e, gi, gj, hii, hij, hjj = drive_eval(
             q[w, bi], q[w, bj], w, k, joint, joint_kind, c_a, c_b, t_a, n_a, b_a, n_b, b_b, c_prev, s_prev, mode,
-            stiffness, damping, max_effort, control, x_prev_joint, h, scale, physical, derivs)  # fmt: skip
+            stiffness, damping, max_effort, control, x_prev_joint, x_anchor, h, scale, physical, derivs)  # fmt: skip
         add_energy(E, w, col, e)
         if derivs != 0 and physical == 0:
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
@@ -154,9 +157,9 @@ def terms(model, physical=False):
 
 def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     m = model
-    scale = 1.0 if physical else ctx.h * ctx.h
+    scale = 1.0 if physical else ctx.h_eff * ctx.h_eff
     wp.launch(kernel(m.dtype).kernel, dim=(m.num_worlds, m.num_drives),
               inputs=[q, m.drive_joint, m.joint_kind, m.body_a, m.body_b, m.dof, m.c_a, m.c_b, m.t_a,
                       m.n_a, m.b_a, m.n_b, m.b_b, state.c_prev, state.s_prev, m.drive_mode, m.drive_stiffness,
-                      m.drive_damping, m.drive_max_effort, state.control, state.unwrapped, m.dtype(ctx.h),
-                      m.dtype(scale), int(physical), active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip
+                      m.drive_damping, m.drive_max_effort, state.control, state.unwrapped, state.x_anchor,
+                      m.dtype(ctx.h_eff), m.dtype(scale), int(physical), active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip
