@@ -1,6 +1,7 @@
 """``python -m abd_gym.bench accuracy``: speed against error.
 
-For dt in {0.02, 0.01, 0.005, 0.002, 0.001}, float32 and float64, and two Newton tolerances, a
+For dt in {0.02, 0.01, 0.005, 0.002, 0.001}, each integrator (implicit Euler, BDF2), float32 and
+float64, and two Newton tolerances, a
 batch of double pendulums and cart-poles (random initial angles, the same in every run) is
 stepped for 1 s.  Reported per run: the joint-angle error against a reference (MuJoCo's RK4 at
 dt = 1e-4 when ``mujoco`` is installed, else our own float64 run at dt = 1e-4 and tol 1e-10),
@@ -49,8 +50,9 @@ def mujoco_reference(case, x0, v0=None, dt=1e-4, integrator="RK4"):
     return out
 
 
-def run_ours(case, x0, dt, dtype, tol, device):
-    sim = Simulator(CASES[case][1](), num_worlds=len(x0), dt=dt, device=device, dtype=dtype, tol=tol)
+def run_ours(case, x0, dt, dtype, tol, device, integrator="implicit_euler"):
+    sim = Simulator(CASES[case][1](), num_worlds=len(x0), dt=dt, device=device, dtype=dtype, tol=tol,
+                    integrator=integrator)  # fmt: skip
     sim.set_joint_state(x0)
     e0 = sum(sim.energies().values())
     every, n = _samples(dt)
@@ -102,6 +104,7 @@ def main(argv=None):
     ap.add_argument("--dts", default=",".join(str(d) for d in DTS))
     ap.add_argument("--dtypes", default="float32,float64")
     ap.add_argument("--tols", default="1e-5,1e-3")
+    ap.add_argument("--integrators", default="implicit_euler,bdf2")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--reference-worlds", type=int, default=8, help="worlds the error is measured on")
     ap.add_argument("--out", default="bench_out")
@@ -118,14 +121,14 @@ def main(argv=None):
             ref = run_ours(case, x0[:nref], 1e-4, "float64", 1e-10, "cpu")[0]
             ref_name = "abd_gym_float64_dt1e-4"
         for dt in dts:
-            for dtype in args.dtypes.split(","):
-                for tol in (float(t) for t in args.tols.split(",")):
-                    traj, residual, drift, sps = run_ours(case, x0, dt, dtype, tol, args.device)
-                    err = np.abs(traj[:, :nref] - ref)
-                    rows.append(dict(engine="abd_gym", integrator="implicit_euler", case=case, dt=dt, dtype=dtype,
-                                     tol=tol, error_final=float(err[-1].max()), error_max=float(err.max()),
-                                     joint_residual=residual, energy_drift=drift, world_steps_per_second=sps))  # fmt: skip
-                    print(_fmt(rows[-1]), flush=True)
+            for integrator, dtype, tol in ((i, d, float(t)) for i in args.integrators.split(",")
+                                           for d in args.dtypes.split(",") for t in args.tols.split(",")):  # fmt: skip
+                traj, residual, drift, sps = run_ours(case, x0, dt, dtype, tol, args.device, integrator)
+                err = np.abs(traj[:, :nref] - ref)
+                rows.append(dict(engine="abd_gym", integrator=integrator, case=case, dt=dt, dtype=dtype,
+                                 tol=tol, error_final=float(err[-1].max()), error_max=float(err.max()),
+                                 joint_residual=residual, energy_drift=drift, world_steps_per_second=sps))  # fmt: skip
+                print(_fmt(rows[-1]), flush=True)
             try:
                 traj, sps = run_mjw(case, x0, dt, args.device)
                 err = np.abs(traj[:, :nref] - ref)
@@ -146,7 +149,7 @@ def main(argv=None):
 
 def _fmt(r):
     drift = "" if r["energy_drift"] is None else f"  drift {r['energy_drift']:+.2e} J"
-    return (f"{r['engine']:11s} {r['case']:16s} dt {r['dt']:<6} {r['dtype']:8s} tol {str(r['tol']):6s} "
+    return (f"{r['engine']:11s} {r['integrator']:19s} {r['case']:16s} dt {r['dt']:<6} {r['dtype']:8s} tol {str(r['tol']):6s} "
             f"err(1s) {r['error_final']:.2e}  err(max) {r['error_max']:.2e}  residual {r['joint_residual']:.1e}"
             f"{drift}  {r['world_steps_per_second']:,.0f} world-steps/s")  # fmt: skip
 
@@ -165,11 +168,11 @@ def _plot(result, path):
         series = {}
         for r in result["rows"]:
             if r["case"] == case:
-                key = (r["engine"], r["dtype"], r["tol"])
+                key = (r["engine"], r["integrator"], r["dtype"], r["tol"])
                 series.setdefault(key, []).append(r)
-        for (engine, dtype, tol), rs in series.items():
+        for (engine, integrator, dtype, tol), rs in series.items():
             rs = sorted(rs, key=lambda r: r["dt"])
-            label = f"{engine} {dtype}" + (f" tol {tol}" if tol is not None else "")
+            label = f"{engine} {integrator} {dtype}" + (f" tol {tol}" if tol is not None else "")
             ax.loglog([r["world_steps_per_second"] for r in rs], [r["error_max"] for r in rs], "o-", label=label)
             for r in rs:
                 ax.annotate(f"{r['dt']}", (r["world_steps_per_second"], r["error_max"]), fontsize=6)
