@@ -11,7 +11,7 @@ import functools
 import numpy as np
 import warp as wp
 
-from .angles import angle_ops
+from . import solver_kernels
 from .constitutions import _point_joint, affine_body, drive, prismatic_joint, prismatic_limit, revolute_limit
 from .warp_ops import ops
 
@@ -28,6 +28,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     rlim_eval = revolute_limit.kernel(dtype).eval
     plim_eval = prismatic_limit.kernel(dtype).eval
     drive_eval = drive.kernel(dtype).eval
+    staged = solver_kernels.kernels(dtype)
+    cholesky_solve, noise_floor = staged["cholesky_solve"], staged["noise_floor"]
     zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
 
@@ -174,44 +176,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                           K, c_a, c_b, t_a, t_b, n_a, n_b, b_a, b_b, rev_ids, fix_ids, pri_ids, rlim_ids, rlim_lo,
                           rlim_up, rlim_s, plim_ids, plim_lo, plim_up, plim_s, theta0, c_prev, s_prev, drive_joint,
                           drive_mode, kp, kd, fmax, control, unwrapped, x_anchor, h, g, H)  # fmt: skip
-            # Cholesky H = L Lᵀ in place, then dq = −H⁻¹ g
-            for j in range(n):
-                s = H[j, j, w]
-                for k in range(j):
-                    s -= H[j, k, w] * H[j, k, w]
-                if not (s > zero) or not wp.isfinite(s):
-                    status[w] = FAILED
-                    return
-                d = wp.sqrt(s)
-                H[j, j, w] = d
-                for i in range(j + 1, n):
-                    t = H[i, j, w]
-                    for k in range(j):
-                        t -= H[i, k, w] * H[j, k, w]
-                    H[i, j, w] = t / d
-            for i in range(n):
-                t = -g[i, w]
-                for k in range(i):
-                    t -= H[i, k, w] * dq[k, w]
-                dq[i, w] = t / H[i, i, w]
-            gdq = zero
-            dmax = zero
-            for ii in range(n):
-                i = n - 1 - ii
-                t = dq[i, w]
-                for k in range(i + 1, n):
-                    t -= H[k, i, w] * dq[k, w]
-                dq[i, w] = t / H[i, i, w]
-                gdq += g[i, w] * dq[i, w]
-                dmax = wp.max(dmax, wp.abs(dq[i, w]))
-            if not wp.isfinite(gdq):
+            ok, gdq, dmax = cholesky_solve(H, g, dq, w, n)
+            if ok == 0:
                 status[w] = FAILED
                 return
-            qmax = zero
-            for b in range(nb):
-                for r in range(12):
-                    qmax = wp.max(qmax, wp.abs(q[w, b][r]))
-            floor = wp.max(threshold, dtype(4.0) * EPS * (one + qmax))
+            floor = noise_floor(q, w, threshold)
             # backtracking line search (Armijo) on the world's own energy
             alpha = one
             accepted = int(0)

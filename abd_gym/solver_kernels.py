@@ -57,24 +57,19 @@ def kernels(dtype):
         q_tilde[w, b] = qt
         q[w, b] = qt  # initial guess: the inertia term's minimiser
 
-    @wp.kernel(module="unique")
-    def newton_direction(
-        H: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), n: int, active: wp.array(dtype=wp.int32),
-        dq: wp.array2d(dtype=dtype), gdq: wp.array(dtype=dtype), dq_max: wp.array(dtype=dtype),
-        status: wp.array(dtype=wp.int32),
-    ):  # fmt: skip
-        """Solve H dq = −g by Cholesky in place (lower triangle); flag a world whose system is bad."""
-        w = wp.tid()
-        if active[w] == 0:
-            return
+    @wp.func
+    def cholesky_solve(H: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int,
+                       n: int):  # fmt: skip
+        """dq = −H⁻¹g for world w by Cholesky, in place on H's lower triangle (world-minor arrays).
+
+        Returns (ok, gᵀdq, ‖dq‖∞); ok = 0 when H is not positive definite or the result not finite.
+        """
         for j in range(n):
             s = H[j, j, w]
             for k in range(j):
                 s -= H[j, k, w] * H[j, k, w]
             if not (s > zero) or not wp.isfinite(s):
-                status[w] = FAILED
-                active[w] = 0
-                return
+                return 0, zero, zero
             d = wp.sqrt(s)
             H[j, j, w] = d
             for i in range(j + 1, n):
@@ -87,18 +82,32 @@ def kernels(dtype):
             for k in range(i):
                 t -= H[i, k, w] * dq[k, w]
             dq[i, w] = t / H[i, i, w]
+        gdq = zero
+        dmax = zero
         for ii in range(n):  # Lᵀ x = y
             i = n - 1 - ii
             t = dq[i, w]
             for k in range(i + 1, n):
                 t -= H[k, i, w] * dq[k, w]
             dq[i, w] = t / H[i, i, w]
-        s = zero
-        m = zero
-        for i in range(n):
-            s += g[i, w] * dq[i, w]
-            m = wp.max(m, wp.abs(dq[i, w]))
-        if not wp.isfinite(s):
+            gdq += g[i, w] * dq[i, w]
+            dmax = wp.max(dmax, wp.abs(dq[i, w]))
+        if not wp.isfinite(gdq):
+            return 0, zero, zero
+        return 1, gdq, dmax
+
+    @wp.kernel(module="unique")
+    def newton_direction(
+        H: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), n: int, active: wp.array(dtype=wp.int32),
+        dq: wp.array2d(dtype=dtype), gdq: wp.array(dtype=dtype), dq_max: wp.array(dtype=dtype),
+        status: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """Newton direction of every active world; a world whose system is bad is flagged."""
+        w = wp.tid()
+        if active[w] == 0:
+            return
+        ok, s, m = cholesky_solve(H, g, dq, w, n)
+        if ok == 0:
             status[w] = FAILED
             active[w] = 0
             return
@@ -232,6 +241,7 @@ def kernels(dtype):
                 status[w] = FAILED
 
     return dict(
-        predict=predict, start=start, newton_direction=newton_direction, trial=trial, accept=accept, commit=commit,
+        predict=predict, start=start, newton_direction=newton_direction, cholesky_solve=cholesky_solve,
+        noise_floor=noise_floor, trial=trial, accept=accept, commit=commit,
         converge=converge, finalize=finalize, check_finite=check_finite,
     )  # fmt: skip
