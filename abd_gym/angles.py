@@ -47,7 +47,7 @@ def revolute_angle_np(q, q_prev, q_ref, frames):
     r = c * c + s * s
     u = c * ds - s * dc
     grad = u / r
-    du = np.outer(dc, ds) + c * hs - np.outer(ds, dc) - s * hc
+    du = np.outer(ds, dc) + c * hs - np.outer(dc, ds) - s * hc  # ∂(c∇s − s∇c)/∂q, rows index ∂
     hess = du / r - np.outer(u, 2.0 * (c * dc + s * ds)) / r**2
     return x, grad, hess
 
