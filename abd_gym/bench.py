@@ -120,6 +120,8 @@ def main(argv=None):
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--out", default="bench_out")
     ap.add_argument("--envs", action="store_true", help="also time each task's vector env")
+    ap.add_argument("--tasks", default=None, help="comma-separated task names for --envs (default: all)")
+    ap.add_argument("--env-worlds", default=None, help="world counts for --envs (default: --worlds)")
     args = ap.parse_args(argv)
     gpu = args.device.startswith("cuda")
     worlds = [int(w) for w in args.worlds.split(",")] if args.worlds else (
@@ -142,10 +144,13 @@ def main(argv=None):
 
         import abd_gym.registration as reg
 
-        for task in reg.TASKS:
-            for w in worlds:
-                env_rows.append(dict(task=task, num_envs=w, env_steps_per_second=env_steps_per_second(
-                    task, w, steps, args.device)))  # fmt: skip
+        backend = "torch" if gpu else "numpy"  # on the GPU the batch never leaves the device
+        tasks = args.tasks.split(",") if args.tasks else list(reg.TASKS)
+        env_worlds = [int(w) for w in args.env_worlds.split(",")] if args.env_worlds else worlds
+        for task in tasks:
+            for w in env_worlds:
+                env_rows.append(dict(task=task, num_envs=w, backend=backend, env_steps_per_second=env_steps_per_second(
+                    task, w, steps, args.device, backend=backend)))  # fmt: skip
                 print(f"{task:28s} envs {w:6d}  {env_rows[-1]['env_steps_per_second']:12.0f} env-steps/s", flush=True)
     device_name = wp.get_device(args.device).name if gpu else platform.processor() or platform.machine()
     result = dict(device=args.device, device_name=device_name, warp=wp.config.version, simulator=rows,

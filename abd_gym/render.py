@@ -3,7 +3,7 @@
 Each body is projected orthographically onto a plane of the world ("xz": x right, z up; "xy":
 x right, y up; "yz": y right, z up) as the convex hull of its silhouette points (a box's eight
 corners, a cylinder's rims, circles around a sphere's centre or a capsule's two end centres) and
-filled with a flat colour; joint anchors are drawn as small dots.  Convex fills over each shape's
+filled with a flat colour; hinge anchors are drawn as small dots.  Convex fills over each shape's
 bounding box are a few NumPy operations, so a frame of a small mechanism costs well under a
 millisecond or two: fast enough for ``gymnasium.wrappers.RecordVideo``.
 
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scene import Scene
+from .scene import REVOLUTE, Scene
 from .shapes import Box, Capsule, Cylinder, Sphere
 
 PLANES = {"xz": (0, 2), "xy": (0, 1), "yz": (1, 2)}
@@ -56,8 +56,11 @@ class Canvas:
         self.axes = PLANES[plane]
         self.center = np.asarray(center, dtype=np.float64)
         self.scale = self.w / float(width)  # px per metre
-        self.image = np.empty((self.h, self.w, 3), dtype=np.uint8)
-        self.image[:] = background
+        if len(set(background)) == 1:  # grey: one memset
+            self.image = np.full((self.h, self.w, 3), background[0], dtype=np.uint8)
+        else:
+            self.image = np.empty((self.h, self.w, 3), dtype=np.uint8)
+            self.image[:] = background
 
     # ---- coordinates
     def project(self, points) -> np.ndarray:
@@ -152,8 +155,9 @@ class Renderer:
                 self.colors.append(PALETTE[free % len(PALETTE)])
             if not body.fixed:
                 free += 1
-        # joint anchors in the first body's frame
-        self.anchors = [(j.body_a, scene.bodies[j.body_a].to_local_point(j.anchor)) for j in scene.joints]
+        # hinge anchors in the first body's frame (a slider's anchor is no fixed point of either body)
+        self.anchors = [(j.body_a, scene.bodies[j.body_a].to_local_point(j.anchor)) for j in scene.joints
+                        if j.kind == REVOLUTE]  # fmt: skip
         self._unit = _circle_points(20)
 
     def canvas(self) -> Canvas:

@@ -19,7 +19,8 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
     episode and ``info["final_info"]`` that step's info.  ``info["final_obs"]`` is a batch of the
     same type and shape as ``obs`` whose rows are valid where the bool mask
     ``info["_final_obs"]`` is True (other rows equal ``obs``); ``final_info`` holds per-world
-    arrays with their own ``"_key"`` masks, as Gymnasium's ``SyncVectorEnv`` reports them.
+    arrays with their own ``"_key"`` masks, as Gymnasium's ``SyncVectorEnv`` reports them, and the
+    top-level entries of the reset worlds are masked out (their reset info is empty).
   - ``AutoresetMode.DISABLED``: nothing is reset automatically; call
     ``reset(options={"reset_mask": mask})`` with a NumPy bool mask of shape ``(num_envs,)``.
     Worlds outside the mask are left untouched (their state, step count and parameters).
@@ -32,12 +33,15 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   same trajectories.  The physics itself is deterministic.
 * backends: ``backend="numpy"`` (default) returns NumPy arrays; ``backend="torch"`` returns Torch
   tensors on the simulator's device, computed from zero-copy views of the simulator's arrays, and
-  takes actions as tensors (or arrays).  Only the done mask (and, if any world is done, the reset
-  states) crosses to the host.
+  takes actions as tensors (or arrays).  Only the NaN check (one bool), the done mask and, when
+  worlds are done, their reset states cross between host and device.
 * bad actions: actions are clipped to the action space (so out-of-range values and ±inf act as
   ±1).  An action batch containing NaN raises ``ValueError`` before anything is stepped: no world
-  (and no other world) changes state.  A world whose solve fails (``Simulator.failed_worlds``) is
-  terminated, reported in ``info["sim_failed"]`` and gets a zero observation and reward.
+  (and no other world) changes state.  A world whose solve fails (``Simulator.failed_worlds``, or a
+  non-finite observation) is terminated, reported in ``info["sim_failed"]`` and gets a zero
+  observation and reward; the autoreset (or your masked reset) brings it back.
+* observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
+  and chosen above what the task reaches (rates: ``velocity_bound`` = 100 rad/s or m/s).
 * per-world physical parameters: ``randomize={...}`` (constructor or ``reset`` option, sticky:
   it applies to every later reset of a world, autoresets included, until a reset passes a new
   ``"randomize"``; ``None`` restores the nominal values)::
@@ -53,6 +57,10 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   frames, one per world in ``render_worlds`` (default: every world when ``num_envs <= 16``,
   else the first 16), drawn headless by :mod:`abd_gym.render`.
 
+Simulator options: ``device`` ("cpu", "cuda:0"; default ``$ABD_GYM_DEVICE`` or "cpu"), ``dtype``
+("float32" or "float64") and ``integrator`` (the simulator's default, implicit Euler, unless given);
+the tasks' rewards and thresholds are calibrated with the defaults.
+
 A task subclasses :class:`ABDVectorEnv` and defines the class attributes ``dt``, ``frame_skip``
 and the methods ``build_scene``, ``observation_high`` (bounds), ``_observe``, ``_reward`` and
 optionally ``_terminated``, ``_initial_state``, ``_reset_task``, ``_info``, ``_controls`` and
@@ -65,11 +73,12 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import warp as wp
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .scene import PRISMATIC, REVOLUTE, Scene
+from .scene import REVOLUTE, Scene
 from .simulator import Simulator
 
 __all__ = ["ABDVectorEnv", "ABDEnv", "AutoresetMode"]
@@ -87,6 +96,15 @@ def _to_numpy(x) -> np.ndarray:
     if _is_torch(x):
         return x.detach().cpu().numpy()
     return np.asarray(x)
+
+
+def _autoreset_mode(mode) -> AutoresetMode:
+    if isinstance(mode, AutoresetMode):
+        return mode
+    for m in AutoresetMode:
+        if str(mode) in (m.value, m.name):
+            return m
+    raise ValueError(f"autoreset_mode must be one of {[m.name for m in AutoresetMode]}, got {mode!r}")
 
 
 def _range(name, value):
@@ -111,6 +129,7 @@ class ABDVectorEnv(VectorEnv):
     render_center: tuple = (0.0, 0.0)
     render_width: float = 2.0
     render_size: tuple = (480, 360)  # (width, height) [px]
+    velocity_bound: float = 100.0  # bound of velocity entries of observations [rad/s or m/s]
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -119,7 +138,7 @@ class ABDVectorEnv(VectorEnv):
     def __init__(self, num_envs: int = 1, *, device=None, backend: str = "numpy",
                  autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, max_episode_steps: int | None = None,
                  render_mode: str | None = None, render_worlds=None, randomize: dict | None = None,
-                 dtype: str = "float32"):  # fmt: skip
+                 dtype: str = "float32", integrator: str | None = None):  # fmt: skip
         if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if backend not in BACKENDS:
@@ -128,7 +147,7 @@ class ABDVectorEnv(VectorEnv):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         if max_episode_steps is not None and int(max_episode_steps) < 1:
             raise ValueError(f"max_episode_steps must be a positive integer or None, got {max_episode_steps!r}")
-        self.autoreset_mode = autoreset_mode if isinstance(autoreset_mode, AutoresetMode) else AutoresetMode(autoreset_mode)
+        self.autoreset_mode = _autoreset_mode(autoreset_mode)
         self.metadata = dict(type(self).metadata, autoreset_mode=self.autoreset_mode)
         self.num_envs = N = int(num_envs)
         self.backend = backend
@@ -136,16 +155,15 @@ class ABDVectorEnv(VectorEnv):
         self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
 
         self.scene: Scene = self.build_scene()
-        self.sim = Simulator(self.scene, num_worlds=N, dt=self.dt, device=device, dtype=dtype)
+        extra = {} if integrator is None else {"integrator": integrator}  # None: the simulator's default
+        self.sim = Simulator(self.scene, num_worlds=N, dt=self.dt, device=device, dtype=dtype, **extra)
         self.device = self.sim.device
         self.step_dt = self.dt * self.frame_skip  # env step [s]
         if backend == "torch":
             import torch
 
-            import warp as wp
-
             self.xp = torch
-            self._torch_device = wp.device_to_torch(self.device)
+            self._torch_device = torch.device(wp.device_to_torch(self.device))
         else:
             self.xp = np
             self._torch_device = None
@@ -154,7 +172,10 @@ class ABDVectorEnv(VectorEnv):
         nd = len(self.scene.drives)
         self.single_action_space = spaces.Box(-1.0, 1.0, shape=(self.action_dim,), dtype=np.float32)
         high = np.asarray(self.observation_high(), dtype=np.float32)
+        if not np.all(np.isfinite(high)) or np.any(high <= 0):
+            raise ValueError(f"observation bounds must be positive and finite, got {high}")
         self.single_observation_space = spaces.Box(-high, high, dtype=np.float32)
+        self._obs_high = self._asarray(high)
         self.action_space = batch_space(self.single_action_space, N)
         self.observation_space = batch_space(self.single_observation_space, N)
         self._max_effort = np.array([d.max_effort for d in self.scene.drives], dtype=np.float32)
@@ -175,8 +196,10 @@ class ABDVectorEnv(VectorEnv):
         self._limited = [k for k, j in enumerate(scene.joints) if j.has_limit]
         self.body_mass = np.broadcast_to(self._nominal_mass, (N, scene.num_bodies)).copy()
         self.strength_ratio = np.broadcast_to(self._nominal_ratio, (N, scene.num_joints)).copy()
-        self.limits = {k: np.broadcast_to([scene.joints[k].attributes[f"limit/{a}"] for a in ("lower", "upper", "strength")],
-                                          (N, 3)).copy() for k in self._limited}  # fmt: skip
+        # limits[joint index]: (N, 3) lower, upper, strength of each limited joint
+        attrs = ("limit/lower", "limit/upper", "limit/strength")
+        self.limits = {k: np.broadcast_to([scene.joints[k].attributes[a] for a in attrs], (N, 3)).copy()
+                       for k in self._limited}  # fmt: skip
         self._randomize = None
         self._randomized = False
         self._set_randomize(randomize)
@@ -197,7 +220,8 @@ class ABDVectorEnv(VectorEnv):
         raise NotImplementedError
 
     def observation_high(self) -> np.ndarray:
-        """Upper bounds of one observation (the space is symmetric: low = -high)."""
+        """Upper bounds of one observation (the space is symmetric: low = -high; finite: observations
+        are clipped to them, so choose bounds the task does not reach, ``velocity_bound`` for rates)."""
         raise NotImplementedError
 
     @property
@@ -230,7 +254,7 @@ class ABDVectorEnv(VectorEnv):
         return {}
 
     def _render_extras(self, canvas, world: int):
-        """Draw task-specific marks (targets, track) on a render canvas."""
+        """Draw task-specific marks (targets, end stops) on a render canvas, over the bodies."""
 
     # ================================================================== array helpers
     def _asarray(self, values, dtype="float"):
@@ -287,8 +311,6 @@ class ABDVectorEnv(VectorEnv):
             mask = np.zeros(self.num_envs, dtype=bool)
             mask[self.sim.failed_worlds()] = True
             return mask
-        import warp as wp
-
         return wp.to_torch(self.sim.state.status) != 0
 
     # ================================================================== actions
@@ -366,7 +388,7 @@ class ABDVectorEnv(VectorEnv):
         self.body_mass[np.ix_(idx, free)] = mass
         sim.set_body_mass(mass, bodies=free, worlds=idx)
         if scene.num_joints:
-            ratio = np.stack([draw("strength_ratio", k, self._nominal_ratio[k]) for k in range(scene.num_joints)], axis=1)
+            ratio = np.stack([draw("strength_ratio", k, r) for k, r in enumerate(self._nominal_ratio)], axis=1)
             self.strength_ratio[idx] = ratio
             sim.set_joint_strength(ratio, worlds=idx)
         for k in self._limited:
@@ -420,14 +442,17 @@ class ABDVectorEnv(VectorEnv):
 
     # ================================================================== step
     def _observe_safe(self):
+        """The task's observation as float32, clipped to the observation space."""
         obs = self._f32(self._observe())
-        return obs
+        return self.xp.clip(obs, -self._obs_high, self._obs_high)
 
-    def _batch_info(self, values: dict) -> dict:
+    @staticmethod
+    def _batch_info(values: dict, mask: np.ndarray) -> dict:
+        """Gymnasium's vector info layout: each per-world array ``key`` with a bool mask ``_key``."""
         info = {}
         for key, v in values.items():
             info[key] = v
-            info["_" + key] = np.ones(self.num_envs, dtype=bool)
+            info["_" + key] = mask.copy()
         return info
 
     def step(self, actions):
@@ -443,8 +468,8 @@ class ABDVectorEnv(VectorEnv):
         if len(pending):  # NEXT_STEP: these worlds ended last step; this step only resets them
             self._reset_worlds(pending)
 
-        failed = self._failed()
-        obs = self._f32(self._observe())
+        obs = self._observe_safe()
+        failed = self._failed() | ~self.xp.isfinite(obs).all(axis=1)
         reward = self._f32(self._reward(obs, a))
         terminated = self._terminated(obs) | failed
         if self.max_episode_steps is not None:
@@ -452,29 +477,31 @@ class ABDVectorEnv(VectorEnv):
         else:
             truncated = self._zeros(N, dtype="bool")
         info_values = self._info(obs)
-        any_failed = bool(failed.any())
-        if any_failed:  # a broken world: zero observation and reward, terminated, reported
+        if bool(failed.any()):  # a broken world: zero observation and reward, terminated, reported
             obs = xp.where(failed[:, None], 0.0, obs)
             reward = xp.where(failed, 0.0, reward)
             info_values = dict(info_values, sim_failed=failed)
+        has_info = np.ones(N, dtype=bool)  # worlds whose info entries are this step's (not a reset's)
         if len(pending):
             p = self._index(pending)
             reward[p] = 0.0
             terminated[p] = False
             truncated[p] = False
-        info = self._batch_info(info_values)
+            has_info[pending] = False
 
         done = _to_numpy(terminated | truncated)
-        if done.any():
-            if self.autoreset_mode == AutoresetMode.SAME_STEP:
-                final_info = info
-                final_info_masked = {k: (v & done if k.startswith("_") else v) for k, v in final_info.items()}
-                final_obs = obs
-                self._reset_worlds(np.flatnonzero(done))
-                obs = self._observe_safe()
-                info = {"final_obs": final_obs, "_final_obs": done.copy(),
-                        "final_info": final_info_masked, "_final_info": done.copy()}  # fmt: skip
-            elif self.autoreset_mode == AutoresetMode.NEXT_STEP:
+        if done.any() and self.autoreset_mode == AutoresetMode.SAME_STEP:
+            # as SyncVectorEnv: the finished episode's last obs and info under final_obs / final_info,
+            # the new episode's first obs in obs (and its reset info, empty here, at the top level)
+            final_info = self._batch_info(info_values, done)
+            final_obs = obs
+            self._reset_worlds(np.flatnonzero(done))
+            obs = self._observe_safe()
+            info = self._batch_info(info_values, has_info & ~done)
+            info.update(final_obs=final_obs, _final_obs=done.copy(), final_info=final_info, _final_info=done.copy())
+        else:
+            info = self._batch_info(info_values, has_info)
+            if self.autoreset_mode == AutoresetMode.NEXT_STEP:
                 self._pending = done.copy()
         return obs, reward, terminated, truncated, info
 
@@ -493,8 +520,8 @@ class ABDVectorEnv(VectorEnv):
         frames = []
         for w in self.render_worlds:
             canvas = self._renderer.canvas()
-            self._render_extras(canvas, w)
             self._renderer.draw_bodies(canvas, pos[w], rot[w])
+            self._render_extras(canvas, w)
             frames.append(canvas.image)
         return tuple(frames)
 
@@ -504,7 +531,13 @@ class ABDVectorEnv(VectorEnv):
 
 class ABDEnv(gym.Env):
     """A task as a single-world ``gymnasium.Env`` (CPU by default): its vector env with one world,
-    autoreset disabled and no internal time limit (``gym.make`` adds ``TimeLimit``)."""
+    autoreset disabled and no internal time limit (``gym.make`` adds ``TimeLimit``).
+
+    Same conventions as the vector env: actions clipped to the action space, a NaN action raises
+    ``ValueError`` without stepping, ``reset(seed=...)`` seeds the initial-state draws,
+    ``reset(options={"randomize": ...})`` randomises the physical parameters; ``env.sim`` is the
+    simulator and ``env.vector_env`` the one-world batched env.
+    """
 
     vector_class: type[ABDVectorEnv] = ABDVectorEnv
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}

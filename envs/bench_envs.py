@@ -1,0 +1,69 @@
+"""Throughput of the batched task environments.
+
+    python -m envs.bench_envs [--tasks CartPole-v0,Acrobot-v0] [--worlds 1,64] [--steps 100] [--device cpu]
+
+:func:`env_steps_per_second` times ``VectorEnv.step`` with random actions (drawn beforehand, on the
+env's device for the torch backend), after a reset and one warm-up step, autoresets included.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import gymnasium as gym
+import numpy as np
+import warp as wp
+
+import abd_gym  # noqa: F401 -- registers the abd_gym/ ids
+
+
+def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | None = "cpu", backend: str = "numpy",
+                         seed: int = 0) -> float:  # fmt: skip
+    """World-steps per second (``num_envs × steps / seconds``) of ``steps`` calls of ``step``.
+
+    ``task_id``: a registered id, with or without the ``abd_gym/`` namespace.
+    """
+    if "/" not in task_id:
+        task_id = f"abd_gym/{task_id}"
+    env = gym.make_vec(task_id, num_envs=num_envs, vectorization_mode="vector_entry_point", device=device,
+                       backend=backend)  # fmt: skip
+    try:
+        env.reset(seed=seed)
+        rng = np.random.default_rng(seed)
+        shape = env.action_space.shape
+        actions = [rng.uniform(-1.0, 1.0, size=shape).astype(np.float32) for _ in range(min(steps, 64))]
+        if backend == "torch":
+            import torch
+
+            actions = [torch.as_tensor(a, device=env.unwrapped._torch_device) for a in actions]
+        env.step(actions[0])  # warm-up: kernel loads, graph capture
+        wp.synchronize_device(env.unwrapped.device)
+        t0 = time.perf_counter()
+        for k in range(steps):
+            env.step(actions[k % len(actions)])
+        wp.synchronize_device(env.unwrapped.device)
+        elapsed = time.perf_counter() - t0
+    finally:
+        env.close()
+    return num_envs * steps / elapsed
+
+
+def main(argv=None):
+    from abd_gym.registration import TASKS
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--tasks", default=",".join(TASKS))
+    p.add_argument("--worlds", default="1,16,64")
+    p.add_argument("--steps", type=int, default=100)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--backend", default="numpy", choices=("numpy", "torch"))
+    args = p.parse_args(argv)
+    print(f"{'task':<24}{'worlds':>8}{'world-steps/s':>16}")
+    for task in args.tasks.split(","):
+        for n in (int(w) for w in args.worlds.split(",")):
+            sps = env_steps_per_second(task, n, args.steps, args.device, args.backend)
+            print(f"{task:<24}{n:>8}{sps:>16.0f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

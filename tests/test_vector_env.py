@@ -1,0 +1,413 @@
+"""The native batched VectorEnv contract (abd_gym.vector_env), on CartPole-v0 and Pendulum-v0.
+
+Few worlds and short rollouts: every scene here shares its compiled kernels with test_envs.py.
+"""
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.vector import AutoresetMode
+
+import abd_gym  # noqa: F401 -- registers the ids
+from abd_gym.registration import TASKS, env_ids
+from abd_gym.vector_env import ABDVectorEnv
+from envs.cartpole import CartPoleVectorEnv
+from envs.pendulum import PendulumVectorEnv
+
+N = 4
+
+
+def make(mode=AutoresetMode.NEXT_STEP, cls=CartPoleVectorEnv, **kw):
+    return cls(N, autoreset_mode=mode, max_episode_steps=kw.pop("max_episode_steps", 500), **kw)
+
+
+@pytest.fixture(scope="module")
+def envs():
+    """One CartPole vector env per autoreset mode (each test resets the one it uses)."""
+    out = {mode: make(mode) for mode in AutoresetMode}
+    yield out
+    for e in out.values():
+        e.close()
+
+
+def rollout(env, actions, seed):
+    obs, _ = env.reset(seed=seed)
+    out = [obs.copy()]
+    for a in actions:
+        obs, r, te, tr, _ = env.step(a)
+        out.append(np.concatenate([obs, r[:, None], te[:, None], tr[:, None]], axis=1))
+    return out
+
+
+def push(value=1.0):
+    return np.full((N, 1), value, dtype=np.float32)
+
+
+# ----------------------------------------------------------------------------- API surface
+def test_spaces_and_metadata(envs):
+    env = envs[AutoresetMode.NEXT_STEP]
+    assert isinstance(env, gym.vector.VectorEnv) and isinstance(env, ABDVectorEnv)
+    assert env.num_envs == N
+    assert env.single_observation_space.shape == (4,) and env.single_observation_space.dtype == np.float32
+    assert env.observation_space.shape == (N, 4) and env.observation_space.dtype == np.float32
+    assert env.single_action_space.shape == (1,) and env.action_space.shape == (N, 1)
+    np.testing.assert_array_equal(env.single_action_space.low, -1.0)
+    np.testing.assert_array_equal(env.single_action_space.high, 1.0)
+    assert np.all(np.isfinite(env.single_observation_space.high))
+    for mode, e in envs.items():
+        assert e.metadata["autoreset_mode"] is mode
+    assert env.metadata["render_modes"] == ["rgb_array"] and env.metadata["render_fps"] == 50
+    with pytest.raises(RuntimeError):
+        make().step(push())  # step before reset
+
+
+def test_reset_and_step_match_the_spaces(envs):
+    env = envs[AutoresetMode.NEXT_STEP]
+    obs, info = env.reset(seed=3)
+    assert isinstance(info, dict)
+    assert obs.shape == (N, 4) and obs.dtype == np.float32 and env.observation_space.contains(obs)
+    env.action_space.seed(0)
+    for _ in range(40):
+        obs, r, te, tr, info = env.step(env.action_space.sample())
+        assert obs.dtype == np.float32 and env.observation_space.contains(obs)
+        assert r.shape == (N,) and r.dtype == np.float32
+        assert te.shape == (N,) and te.dtype == np.bool_ and tr.shape == (N,) and tr.dtype == np.bool_
+        assert isinstance(info, dict)
+
+
+# ----------------------------------------------------------------------------- seeding
+def test_same_seed_same_trajectories_autoresets_included(envs):
+    env = envs[AutoresetMode.NEXT_STEP]
+    rng = np.random.default_rng(1)
+    actions = rng.uniform(-1, 1, size=(60, N, 1)).astype(np.float32)  # ~60 steps: several autoresets
+    a, b = rollout(env, actions, seed=11), rollout(env, actions, seed=11)
+    assert sum(int(x[:, 5].sum()) for x in a[1:]) >= N  # episodes did end and restart
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+    c = rollout(env, actions, seed=12)
+    assert not np.array_equal(a[0], c[0])
+    other = make(AutoresetMode.NEXT_STEP)  # a fresh env: the same seed reproduces the trajectories too
+    for x, y in zip(a, rollout(other, actions, seed=11)):
+        np.testing.assert_array_equal(x, y)
+
+
+# ----------------------------------------------------------------------------- autoreset modes
+def first_done(env, action=1.0, limit=100):
+    for t in range(limit):
+        obs, r, te, tr, info = env.step(push(action))
+        if (te | tr).any():
+            return t, obs, r, te, tr, info
+    raise AssertionError("no episode ended")
+
+
+def test_next_step_autoreset(envs):
+    env = envs[AutoresetMode.NEXT_STEP]
+    env.reset(seed=0)
+    _, obs, r, te, tr, info = first_done(env)
+    done = te | tr
+    assert np.all(r == 1.0) and "final_obs" not in info
+    assert np.all((np.abs(obs[done, 2]) > 0.2) | (np.abs(obs[done, 0]) > 2.4))  # the terminal observation
+    obs2, r2, te2, tr2, _ = env.step(push())
+    # the finished worlds were reset (their action ignored): reward 0, flags False, a fresh state
+    np.testing.assert_array_equal(r2[done], 0.0)
+    assert not te2[done].any() and not tr2[done].any()
+    assert np.all(np.abs(obs2[done]) <= 0.05 + 1e-5)
+    assert np.all(r2[~done] == 1.0)
+    np.testing.assert_array_equal(env._elapsed[done], 0)
+
+
+def test_same_step_autoreset(envs):
+    env = envs[AutoresetMode.SAME_STEP]
+    env.reset(seed=0)
+    _, obs, r, te, tr, info = first_done(env)
+    done = te | tr
+    assert np.all(r == 1.0)  # a real transition, not a reset step
+    np.testing.assert_array_equal(info["_final_obs"], done)
+    np.testing.assert_array_equal(info["_final_info"], done)
+    final = info["final_obs"]
+    assert final.shape == obs.shape and final.dtype == np.float32
+    assert np.all((np.abs(final[done, 2]) > 0.2) | (np.abs(final[done, 0]) > 2.4))  # last obs of the episode
+    assert np.all(np.abs(obs[done]) <= 0.05 + 1e-5)  # first obs of the next one
+    np.testing.assert_array_equal(final[~done], obs[~done])
+    np.testing.assert_array_equal(env._elapsed[done], 0)
+    _, r2, te2, _, _ = env.step(push(0.0))
+    assert np.all(r2 == 1.0) and not te2[done].any()
+
+
+def test_same_step_final_info_layout():
+    from envs.reacher import ReacherVectorEnv
+
+    env = ReacherVectorEnv(N, autoreset_mode=AutoresetMode.SAME_STEP, max_episode_steps=3)
+    env.reset(seed=0)
+    for t in range(3):
+        obs, r, te, tr, info = env.step(np.zeros((N, 2)))
+        assert tr.all() == (t == 2)
+        if t < 2:
+            assert info["_distance"].all() and "final_info" not in info
+            np.testing.assert_allclose(info["distance"], np.hypot(obs[:, 8], obs[:, 9]), atol=1e-6)
+    final, final_info = info["final_obs"], info["final_info"]
+    assert info["_final_info"].all() and final_info["_distance"].all() and not info["_distance"].any()
+    np.testing.assert_allclose(final_info["distance"], np.hypot(final[:, 8], final[:, 9]), atol=1e-6)
+    np.testing.assert_array_equal(env._elapsed, 0)
+    assert not np.allclose(obs[:, 4:6], final[:, 4:6])  # new targets for the new episodes
+
+
+def test_disabled_autoreset_and_reset_mask(envs):
+    env = envs[AutoresetMode.DISABLED]
+    env.reset(seed=0)
+    _, obs, r, te, tr, info = first_done(env)
+    done = te | tr
+    assert "final_obs" not in info
+    obs2, r2, te2, _, _ = env.step(push())  # nothing resets by itself: the pole keeps falling
+    assert te2[done].all() and np.all(np.abs(obs2[done, 2]) >= np.abs(obs[done, 2]))
+    q_before = env.sim.body_q()
+    obs3, _ = env.reset(options={"reset_mask": done})
+    np.testing.assert_array_equal(obs3[~done], obs2[~done])
+    np.testing.assert_array_equal(env.sim.body_q()[~done], q_before[~done])
+    assert np.all(np.abs(obs3[done]) <= 0.05 + 1e-5)
+    _, r4, te4, _, _ = env.step(push(0.0))
+    assert not te4[done].any()
+
+
+@pytest.mark.parametrize("mask", [np.ones(N, dtype=int), np.ones(N + 1, dtype=bool), np.ones((N, 1), dtype=bool)])
+def test_reset_mask_is_validated(envs, mask):
+    env = envs[AutoresetMode.DISABLED]
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="reset_mask"):
+        env.reset(options={"reset_mask": mask})
+
+
+def test_unknown_reset_option_raises(envs):
+    with pytest.raises(ValueError, match="unknown reset options"):
+        envs[AutoresetMode.DISABLED].reset(options={"lowww": 0.1})
+
+
+def test_per_world_reset_leaves_other_worlds_untouched():
+    """Worlds outside the mask continue exactly as in an env where nothing was reset."""
+    a, b = make(AutoresetMode.DISABLED, PendulumVectorEnv), make(AutoresetMode.DISABLED, PendulumVectorEnv)
+    actions = np.random.default_rng(2).uniform(-1, 1, size=(20, N, 1)).astype(np.float32)
+    a.reset(seed=5)
+    b.reset(seed=5)
+    mask = np.array([False, True, False, True])
+    for t in range(20):
+        if t == 8:
+            q_before, steps_before = b.sim.body_q(), b._elapsed.copy()
+            b.reset(options={"reset_mask": mask})
+            np.testing.assert_array_equal(b.sim.body_q()[~mask], q_before[~mask])
+            np.testing.assert_array_equal(b._elapsed[~mask], steps_before[~mask])
+            np.testing.assert_array_equal(b._elapsed[mask], 0)
+            assert not np.allclose(b.sim.body_q()[mask], q_before[mask])
+        oa, ra, *_ = a.step(actions[t])
+        ob, rb, *_ = b.step(actions[t])
+        np.testing.assert_array_equal(ob[~mask], oa[~mask])
+        np.testing.assert_array_equal(rb[~mask], ra[~mask])
+    assert not np.allclose(ob[mask], oa[mask])
+
+
+def test_time_limit_truncates_inside_the_vector_env():
+    env = make(AutoresetMode.NEXT_STEP, PendulumVectorEnv, max_episode_steps=5)
+    env.reset(seed=0)
+    for t in range(1, 6):
+        _, r, te, tr, _ = env.step(np.zeros((N, 1)))
+        assert not te.any()
+        assert tr.all() == (t == 5) and tr.any() == (t == 5)
+    _, r, te, tr, _ = env.step(np.zeros((N, 1)))  # the autoreset step
+    assert not tr.any() and np.all(r == 0.0)
+    _, r, te, tr, _ = env.step(np.zeros((N, 1)))
+    assert not tr.any() and np.all(r < 0.0)
+
+
+# ----------------------------------------------------------------------------- bad actions
+def test_nan_actions_raise_and_change_nothing(envs):
+    env, ref = envs[AutoresetMode.DISABLED], make(AutoresetMode.DISABLED)
+    env.reset(seed=4)
+    ref.reset(seed=4)
+    for _ in range(3):
+        env.step(push(0.3))
+        ref.step(push(0.3))
+    q = env.sim.body_q()
+    bad = push(0.3)
+    bad[2, 0] = np.nan
+    with pytest.raises(ValueError, match=r"NaN in worlds \[2\]"):
+        env.step(bad)
+    np.testing.assert_array_equal(env.sim.body_q(), q)
+    np.testing.assert_array_equal(env.sim.body_q(), ref.sim.body_q())
+    o1, *_ = env.step(push(-0.2))
+    o2, *_ = ref.step(push(-0.2))
+    np.testing.assert_array_equal(o1, o2)
+
+
+def test_out_of_range_actions_are_clipped(envs):
+    env, ref = envs[AutoresetMode.DISABLED], make(AutoresetMode.DISABLED)
+    big = np.array([[50.0], [-7.0], [np.inf], [-np.inf]], dtype=np.float32)
+    env.reset(seed=9)
+    ref.reset(seed=9)
+    for _ in range(3):
+        o1, *_ = env.step(big)
+        o2, *_ = ref.step(np.clip(big, -1.0, 1.0))
+        np.testing.assert_array_equal(o1, o2)
+        np.testing.assert_array_equal(env.sim.state.control.numpy()[:, 0], [10.0, -10.0, 10.0, -10.0])
+
+
+def test_action_shape_is_validated(envs):
+    env = envs[AutoresetMode.DISABLED]
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="shape"):
+        env.step(np.zeros((N, 2)))
+    obs, *_ = env.step(np.zeros(N))  # (N,) is accepted for a 1-D action
+    assert obs.shape == (N, 4)
+
+
+# ----------------------------------------------------------------------------- torch backend
+def test_torch_backend_matches_numpy_and_stays_on_device():
+    torch = pytest.importorskip("torch")
+    import warp as wp
+
+    tenv = make(AutoresetMode.SAME_STEP, backend="torch")
+    nenv = make(AutoresetMode.SAME_STEP)
+    to, _ = tenv.reset(seed=6)
+    no, _ = nenv.reset(seed=6)
+    assert isinstance(to, torch.Tensor) and to.dtype == torch.float32
+    assert to.device == torch.device(wp.device_to_torch(tenv.device))
+    np.testing.assert_allclose(to.numpy(), no, atol=1e-6)
+    # observations come from zero-copy views of the simulator state
+    assert tenv.coords().data_ptr() == wp.to_torch(tenv.sim.state.coord).data_ptr()
+    actions = np.random.default_rng(3).uniform(-1, 1, size=(40, N, 1)).astype(np.float32)
+    ended = False
+    for a in actions:
+        to, tr_, tt, ttr, tinfo = tenv.step(torch.as_tensor(a))
+        no, nr, nt, ntr, ninfo = nenv.step(a)
+        assert isinstance(tr_, torch.Tensor) and tr_.dtype == torch.float32 and tt.dtype == torch.bool
+        np.testing.assert_allclose(to.numpy(), no, atol=1e-5)
+        np.testing.assert_array_equal(tt.numpy(), nt)
+        if "final_obs" in tinfo:
+            ended = True
+            assert isinstance(tinfo["final_obs"], torch.Tensor)
+            np.testing.assert_allclose(tinfo["final_obs"].numpy(), ninfo["final_obs"], atol=1e-5)
+    assert ended
+    bad = torch.zeros(N, 1)
+    bad[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        tenv.step(bad)
+
+
+# ----------------------------------------------------------------------------- registration
+def test_every_task_is_registered():
+    ids = env_ids()
+    assert len(ids) == len(TASKS) == 8
+    for env_id in ids:
+        spec = gym.spec(env_id)
+        assert spec.namespace == "abd_gym" and spec.vector_entry_point is not None and spec.entry_point is not None
+        assert spec.max_episode_steps and spec.reward_threshold is not None
+    assert gym.spec("abd_gym/CartPole-v0").max_episode_steps == 500
+    assert gym.spec("abd_gym/CartPole-v0").reward_threshold == 475.0
+
+
+def test_make_and_make_vec():
+    env = gym.make("abd_gym/CartPole-v0")
+    assert env.spec.max_episode_steps == 500 and env.unwrapped.sim.num_worlds == 1
+    assert str(env.unwrapped.sim.device) == "cpu"
+    obs, _ = env.reset(seed=0)
+    obs, r, te, tr, info = env.step(env.action_space.sample())
+    assert obs.shape == (4,) and isinstance(r, float) and isinstance(te, bool) and isinstance(tr, bool)
+    venv = gym.make_vec("abd_gym/CartPole-v0", num_envs=3, vectorization_mode="vector_entry_point",
+                        autoreset_mode=AutoresetMode.SAME_STEP)  # fmt: skip
+    assert isinstance(venv.unwrapped, CartPoleVectorEnv) and venv.num_envs == 3
+    assert venv.unwrapped.max_episode_steps == 500 and venv.metadata["autoreset_mode"] is AutoresetMode.SAME_STEP
+    obs, _ = venv.reset(seed=0)
+    assert obs.shape == (3, 4)
+    venv.close()
+    env.close()
+
+
+def test_single_env_seeding_is_reproducible():
+    env = gym.make("abd_gym/Pendulum-v0")
+    runs = []
+    for _ in range(2):
+        obs, _ = env.reset(seed=21)
+        traj = [obs]
+        for k in range(5):
+            traj.append(env.step(np.array([0.5], dtype=np.float32))[0])
+        runs.append(np.array(traj))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert not np.array_equal(env.reset(seed=22)[0], runs[0][0])
+
+
+# ----------------------------------------------------------------------------- parameters, render
+def test_randomized_parameters_per_world():
+    env = make(AutoresetMode.DISABLED)
+    spec = {"mass_scale": (0.5, 2.0), "strength_ratio": (50.0, 200.0), "limit_scale": (0.8, 0.9),
+            "limit_strength_scale": {"slider": (2.0, 3.0)}}  # fmt: skip
+    env.reset(seed=0, options={"randomize": spec})
+    free = [1, 2]  # cart, pole
+    scale = env.body_mass[:, free] / env._nominal_mass[free]
+    assert np.all((scale >= 0.5) & (scale <= 2.0)) and np.ptp(scale[:, 0]) > 0.05
+    np.testing.assert_array_equal(env.body_mass[:, 0], env._nominal_mass[0])  # fixed rail untouched
+    assert np.all((env.strength_ratio >= 50) & (env.strength_ratio <= 200))
+    lo, up, st = env.limits[0].T
+    assert np.all((up >= 2.4 * 0.8) & (up <= 2.4 * 0.9)) and np.allclose(lo, -up) and np.all((st >= 2e4) & (st <= 3e4))
+    m = env.sim.model  # the simulator holds the same values
+    np.testing.assert_allclose(m.mass.numpy()[:, free], env.body_mass[:, free], rtol=1e-6)
+    K = env.strength_ratio * (env.body_mass[:, m.body_a.numpy()[:2]] + env.body_mass[:, m.body_b.numpy()[:2]])
+    np.testing.assert_allclose(m.K.numpy()[:, :2], K, rtol=1e-5)
+    np.testing.assert_allclose(m.limit_params["prismatic"][1].numpy()[:, 0], up, rtol=1e-6)
+    # a masked reset draws new parameters for its worlds only (the spec is sticky)
+    before = env.body_mass.copy()
+    mask = np.array([True, False, False, False])
+    env.reset(options={"reset_mask": mask})
+    np.testing.assert_array_equal(env.body_mass[1:], before[1:])
+    assert not np.array_equal(env.body_mass[0], before[0])
+    # randomize=None restores the nominal values
+    env.reset(options={"randomize": None})
+    np.testing.assert_allclose(m.mass.numpy(), np.broadcast_to(env._nominal_mass, (N, 3)), rtol=1e-6)
+    np.testing.assert_allclose(m.limit_params["prismatic"][1].numpy()[:, 0], 2.4, rtol=1e-6)
+    with pytest.raises(ValueError, match="unknown randomize"):
+        env.reset(options={"randomize": {"masses": (1, 2)}})
+
+
+def test_heavier_pole_changes_the_dynamics():
+    env = make(AutoresetMode.DISABLED)
+    env.reset(seed=1)
+    light = [env.step(push(0.5))[0] for _ in range(10)][-1]
+    env.reset(seed=1, options={"randomize": {"mass_scale": {"pole0": (3.0, 3.0)}}})
+    heavy = [env.step(push(0.5))[0] for _ in range(10)][-1]
+    assert np.all(np.abs(heavy[:, 0] - light[:, 0]) > 1e-3)  # the cart accelerates less / differently
+
+
+def test_vector_render_frames():
+    env = make(AutoresetMode.NEXT_STEP, render_mode="rgb_array")
+    env.reset(seed=0)
+    for _ in range(5):
+        env.step(np.array([[1.0], [-1.0], [0.0], [0.5]], dtype=np.float32))
+    frames = env.render()
+    assert isinstance(frames, tuple) and len(frames) == N
+    for f in frames:
+        assert f.dtype == np.uint8 and f.shape == (400, 600, 3)
+        assert (f != 255).any(axis=2).mean() > 0.005  # something was drawn
+    assert not np.array_equal(frames[0], frames[1])
+    few = make(AutoresetMode.NEXT_STEP, render_mode="rgb_array", render_worlds=[2])
+    few.reset(seed=0)
+    assert len(few.render()) == 1
+    with pytest.warns(UserWarning, match="render_mode"):
+        assert make().render() is None  # no render mode
+
+
+def test_render_is_fast_enough_for_video():
+    import time
+
+    env = gym.make("abd_gym/CartPoleSwingUp-v0", render_mode="rgb_array")
+    env.reset(seed=0)
+    env.render()
+    t0 = time.perf_counter()
+    for _ in range(10):
+        frame = env.render()
+    assert (time.perf_counter() - t0) / 10 < 0.05  # well under a 50 Hz frame budget on a slow CPU
+    assert frame.shape == (400, 600, 3)
+
+
+def test_reset_option_angles_are_respected():
+    env = make(AutoresetMode.DISABLED)
+    obs, _ = env.reset(seed=0, options={"low": 0.1, "high": 0.15})
+    assert np.all((obs >= 0.1 - 1e-5) & (obs <= 0.15 + 1e-5))
+    assert math.isclose(float(env.sim.joint_coordinates()[0, 1]), float(obs[0, 2]), abs_tol=1e-6)
