@@ -139,7 +139,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
         return e
 
-    @wp.kernel(module="unique")
+    # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
+    # code size, and with it NVRTC's compile time, for no measured speed-up
+    @wp.kernel(module="unique", module_options={"max_unroll": 1})
     def newton(
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
         free: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
