@@ -1,0 +1,193 @@
+"""Pieces shared by ``agents.train`` and ``agents.evaluate``: envs, models, evaluation, summaries."""
+from __future__ import annotations
+
+import json
+import os
+import platform
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import algorithm_class, algorithm_kwargs, normalize_kwargs, policy_kwargs
+from .sb3_vec_env import make_vec_env
+
+MODEL_FILE = "model.zip"
+VECNORM_FILE = "vecnormalize.pkl"
+CONFIG_FILE = "config.yaml"
+SUMMARY_FILE = "summary.json"
+EVAL_SEED_OFFSET = 10_000  # evaluation worlds are seeded apart from the training worlds
+
+
+def build_train_env(cfg: dict[str, Any], *, device: str | None = None):
+    """VecMonitor(adapter) wrapped in VecNormalize when the config asks for it."""
+    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+
+    venv = make_vec_env(
+        cfg["env_id"], cfg["n_envs"], device=device or cfg["device"], seed=cfg["seed"], env_kwargs=cfg["env_kwargs"]
+    )
+    venv = VecMonitor(venv)
+    norm = normalize_kwargs(cfg)
+    if norm is not None:
+        norm = dict(norm)
+        norm.setdefault("gamma", (cfg.get("hyperparams") or {}).get("gamma", 0.99))
+        venv = VecNormalize(venv, **norm)
+    return venv
+
+
+def build_eval_env(
+    cfg: dict[str, Any],
+    *,
+    num_envs: int,
+    seed: int,
+    vecnormalize: Any = None,
+    device: str | None = None,
+    render_mode: str | None = None,
+):
+    """Evaluation env: raw returns (VecMonitor inside), observations normalised with frozen stats.
+
+    ``vecnormalize`` is a path to saved statistics, a training ``VecNormalize`` to copy them
+    from, or None.
+    """
+    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+
+    venv = make_vec_env(
+        cfg["env_id"],
+        num_envs,
+        device=device or cfg["device"],
+        seed=seed,
+        render_mode=render_mode,
+        env_kwargs=cfg["env_kwargs"],
+    )
+    venv = VecMonitor(venv)
+    if vecnormalize is None:
+        return venv
+    if isinstance(vecnormalize, (str, os.PathLike)):
+        venv = VecNormalize.load(str(vecnormalize), venv)
+    else:
+        stats = vecnormalize
+        venv = VecNormalize(
+            venv,
+            norm_obs=stats.norm_obs,
+            norm_reward=stats.norm_reward,
+            clip_obs=stats.clip_obs,
+            clip_reward=stats.clip_reward,
+            gamma=stats.gamma,
+            epsilon=stats.epsilon,
+            norm_obs_keys=stats.norm_obs_keys,
+        )
+        venv.obs_rms = stats.obs_rms.copy() if hasattr(stats.obs_rms, "copy") else stats.obs_rms
+        venv.ret_rms = stats.ret_rms.copy() if hasattr(stats.ret_rms, "copy") else stats.ret_rms
+    venv.training = False
+    venv.norm_reward = False
+    return venv
+
+
+def _action_noise(spec: dict[str, Any], action_space) -> Any:
+    from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
+
+    n = int(np.prod(action_space.shape))
+    mean, sigma = np.zeros(n), spec["noise_std"] * np.ones(n)
+    if spec["noise_type"] == "normal":
+        return NormalActionNoise(mean, sigma)
+    return OrnsteinUhlenbeckActionNoise(mean, sigma)
+
+
+def build_model(cfg: dict[str, Any], env, *, tensorboard_log: str | None = None, verbose: int = 0):
+    algo_cls = algorithm_class(cfg["algo"])
+    kwargs = algorithm_kwargs(cfg)
+    if isinstance(kwargs.get("action_noise"), dict):
+        kwargs["action_noise"] = _action_noise(kwargs["action_noise"], env.action_space)
+    kwargs.setdefault("device", model_device(cfg["device"]))
+    kwargs.setdefault("verbose", verbose)
+    return algo_cls(
+        cfg["policy"],
+        env,
+        seed=cfg["seed"],
+        tensorboard_log=tensorboard_log,
+        policy_kwargs=policy_kwargs(cfg) or None,
+        **kwargs,
+    )
+
+
+def model_device(device: str) -> str:
+    """Torch device for the policy: the env's device ("cpu", "cuda:0"; "cuda" means cuda:0)."""
+    return "cuda:0" if device == "cuda" else device
+
+
+def eval_env_count(cfg: dict[str, Any], episodes: int) -> int:
+    return int(cfg.get("n_eval_envs") or min(episodes, cfg["n_envs"]))
+
+
+def evaluate(model, env, episodes: int, *, deterministic: bool = True) -> dict[str, Any]:
+    """Mean and std of the (raw) return over ``episodes`` episodes (SB3's evaluate_policy)."""
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    returns, lengths = evaluate_policy(
+        model, env, n_eval_episodes=episodes, deterministic=deterministic, return_episode_rewards=True, warn=False
+    )
+    returns = np.asarray(returns, dtype=float)
+    lengths = np.asarray(lengths, dtype=float)
+    return {
+        "eval_episodes": int(len(returns)),
+        "mean_return": float(returns.mean()),
+        "std_return": float(returns.std()),
+        "mean_episode_length": float(lengths.mean()),
+        "episode_returns": [float(r) for r in returns],
+        "deterministic": bool(deterministic),
+    }
+
+
+def reward_threshold(env_id: str) -> float | None:
+    import gymnasium as gym
+
+    import abd_gym  # noqa: F401
+
+    threshold = gym.spec(env_id).reward_threshold
+    return None if threshold is None else float(threshold)
+
+
+def device_description(device: str) -> str:
+    """The device in words: "cpu (AMD EPYC ..., 2 cores)" or "cuda:0 (NVIDIA H100 ...)"."""
+    if device.startswith("cuda"):
+        try:
+            import torch
+
+            index = int(device.split(":")[1]) if ":" in device else 0
+            return f"{device} ({torch.cuda.get_device_name(index)})"
+        except Exception:  # noqa: BLE001
+            return device
+    name = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    name = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return f"{device} ({name}, {os.cpu_count()} cores)"
+
+
+def versions() -> dict[str, str]:
+    import gymnasium
+    import stable_baselines3
+    import torch
+
+    out = {
+        "python": platform.python_version(),
+        "gymnasium": gymnasium.__version__,
+        "stable_baselines3": stable_baselines3.__version__,
+        "torch": torch.__version__,
+    }
+    try:
+        import warp
+
+        out["warp"] = warp.config.version
+    except Exception:  # noqa: BLE001
+        pass
+    return out
+
+
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    path.write_text(json.dumps(data, indent=2, sort_keys=False, default=str) + "\n")

@@ -1,0 +1,243 @@
+"""Evaluate a saved run, and optionally record a video of it.
+
+    python -m agents.evaluate RUN_DIR [--episodes N] [--device cpu|cuda:0] [--seed S]
+        [--stochastic] [--model PATH] [--json PATH] [--video out.gif|out.mp4] [--video-episodes K]
+
+(also ``abd-gym-evaluate``).  Loads ``RUN_DIR/config.yaml``, ``model.zip`` (or ``--model``, e.g.
+a checkpoint) and ``vecnormalize.pkl`` (if the run normalised observations), prints the mean and
+std return of the deterministic policy, and with ``--video`` records ``--video-episodes``
+episodes of one world through the env's ``rgb_array`` renderer: a GIF (Pillow) or, for
+``.mp4``, an MP4 (needs ``imageio[ffmpeg]``).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .common import (
+    CONFIG_FILE,
+    EVAL_SEED_OFFSET,
+    MODEL_FILE,
+    VECNORM_FILE,
+    build_eval_env,
+    eval_env_count,
+    evaluate,
+    reward_threshold,
+    write_json,
+)
+from .config import algorithm_class, validate_config, yaml_load
+
+__all__ = ["load_run", "evaluate_run", "record_video", "main"]
+
+
+def load_run(run_dir: str | Path, *, device: str | None = None, model_path: str | Path | None = None):
+    """(config, model, vecnormalize path or None) of a saved run."""
+    run_dir = Path(run_dir)
+    cfg = validate_config(yaml_load((run_dir / CONFIG_FILE).read_text()))
+    if device is not None:
+        cfg["device"] = device
+    algo_cls = algorithm_class(cfg["algo"])
+    from .common import model_device
+
+    model = algo_cls.load(str(model_path or run_dir / MODEL_FILE), device=model_device(cfg["device"]))
+    vecnorm = run_dir / VECNORM_FILE
+    return cfg, model, (vecnorm if vecnorm.is_file() else None)
+
+
+def evaluate_run(
+    run_dir: str | Path,
+    *,
+    episodes: int | None = None,
+    device: str | None = None,
+    seed: int | None = None,
+    deterministic: bool = True,
+    model_path: str | Path | None = None,
+) -> dict[str, Any]:
+    cfg, model, vecnorm = load_run(run_dir, device=device, model_path=model_path)
+    episodes = episodes or cfg["eval_episodes"]
+    env = build_eval_env(
+        cfg,
+        num_envs=eval_env_count(cfg, episodes),
+        seed=cfg["seed"] + EVAL_SEED_OFFSET if seed is None else seed,
+        vecnormalize=vecnorm,
+    )
+    try:
+        result = evaluate(model, env, episodes, deterministic=deterministic)
+    finally:
+        env.close()
+    threshold = reward_threshold(cfg["env_id"])
+    result.update(
+        env_id=cfg["env_id"],
+        algo=cfg["algo"],
+        device=cfg["device"],
+        reward_threshold=threshold,
+        solved=bool(threshold is not None and result["mean_return"] >= threshold),
+        run_dir=str(run_dir),
+    )
+    return result
+
+
+def record_video(
+    run_dir: str | Path,
+    path: str | Path,
+    *,
+    episodes: int = 3,
+    device: str | None = None,
+    seed: int | None = None,
+    deterministic: bool = True,
+    max_steps_per_episode: int = 2000,
+    fps: float | None = None,
+    model_path: str | Path | None = None,
+) -> dict[str, Any]:
+    """Roll out ``episodes`` episodes of one world and write the rgb_array frames to ``path``."""
+    cfg, model, vecnorm = load_run(run_dir, device=device, model_path=model_path)
+    env = build_eval_env(
+        cfg,
+        num_envs=1,
+        seed=cfg["seed"] + EVAL_SEED_OFFSET if seed is None else seed,
+        vecnormalize=vecnorm,
+        render_mode="rgb_array",
+    )
+    frames: list[np.ndarray] = []
+    returns: list[float | None] = []  # None: an episode cut at max_steps_per_episode
+    try:
+        obs = env.reset()
+        for _ in range(episodes):
+            frames.append(_frame(env))  # the episode's first state
+            ret = None
+            for _step in range(max_steps_per_episode):
+                action, _ = model.predict(obs, deterministic=deterministic)
+                obs, _, dones, infos = env.step(action)
+                if dones[0]:  # the env has already reset: the frame would show the next episode
+                    ret = float(infos[0]["episode"]["r"])
+                    break
+                frames.append(_frame(env))
+            else:
+                obs = env.reset()
+            returns.append(ret)
+        if fps is None:
+            fps = float(_render_fps(env) or 30)
+    finally:
+        env.close()
+    write_frames(path, frames, fps)
+    return {"video": str(path), "frames": len(frames), "fps": fps, "episode_returns": returns}
+
+
+def _frame(env) -> np.ndarray:
+    images = env.get_images()
+    frame = images[0] if images else None
+    if frame is None:
+        raise RuntimeError("the env returned no rgb_array frame (does it support render_mode='rgb_array'?)")
+    frame = np.asarray(frame)
+    if frame.dtype != np.uint8:
+        frame = np.clip(frame * (255.0 if frame.max() <= 1.0 else 1.0), 0, 255).astype(np.uint8)
+    return frame[..., :3]
+
+
+def _render_fps(env) -> float | None:
+    try:
+        return env.unwrapped.env.metadata.get("render_fps")
+    except AttributeError:
+        return None
+
+
+def write_frames(path: str | Path, frames: list[np.ndarray], fps: float) -> None:
+    """GIF through Pillow, MP4 through imageio (if installed)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not frames:
+        raise ValueError("no frames to write")
+    suffix = path.suffix.lower()
+    if suffix == ".gif":
+        from PIL import Image
+
+        images = [Image.fromarray(f) for f in frames]
+        images[0].save(
+            path, save_all=True, append_images=images[1:], duration=max(int(round(1000 / fps)), 20), loop=0
+        )
+    elif suffix == ".mp4":
+        try:
+            import imageio.v2 as imageio
+        except ImportError:
+            raise RuntimeError("writing MP4 needs imageio with ffmpeg (pip install 'imageio[ffmpeg]'); use .gif") from None
+        imageio.mimwrite(path, frames, fps=fps)
+    else:
+        raise ValueError(f"unsupported video format {suffix!r}: use .gif or .mp4")
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="abd-gym-evaluate", description=__doc__.split("\n\n")[0])
+    p.add_argument("run_dir")
+    p.add_argument("--episodes", type=int, help="evaluation episodes (default: the config's eval_episodes)")
+    p.add_argument("--device")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--stochastic", action="store_true", help="sample actions instead of the deterministic policy")
+    p.add_argument("--model", help="model file to load instead of RUN_DIR/model.zip (e.g. a checkpoint)")
+    p.add_argument("--json", help="write the evaluation result to this JSON file")
+    p.add_argument("--video", help="record a video (.gif or .mp4)")
+    p.add_argument("--video-episodes", type=int, default=3)
+    p.add_argument("--video-max-steps", type=int, default=2000, help="cut a recorded episode after this many steps")
+    p.add_argument("--fps", type=float)
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    _quiet_warp()
+    import torch
+
+    torch.set_num_threads(1)  # small MLPs: one thread is fastest (see agents.train)
+    if not (Path(args.run_dir) / CONFIG_FILE).is_file():
+        print(f"abd-gym-evaluate: error: {args.run_dir} has no {CONFIG_FILE} (not a run directory)", file=sys.stderr)
+        return 2
+    result = evaluate_run(
+        args.run_dir,
+        episodes=args.episodes,
+        device=args.device,
+        seed=args.seed,
+        deterministic=not args.stochastic,
+        model_path=args.model,
+    )
+    thr = result["reward_threshold"]
+    print(
+        f"{result['env_id']} ({result['algo']}): return {result['mean_return']:.2f} ± {result['std_return']:.2f} "
+        f"over {result['eval_episodes']} episodes"
+        + (f" (threshold {thr:g}: {'solved' if result['solved'] else 'not solved'})" if thr is not None else "")
+    )
+    if args.video:
+        video = record_video(
+            args.run_dir,
+            args.video,
+            episodes=args.video_episodes,
+            device=args.device,
+            seed=args.seed,
+            deterministic=not args.stochastic,
+            fps=args.fps,
+            model_path=args.model,
+            max_steps_per_episode=args.video_max_steps,
+        )
+        result["video"] = video
+        print(f"video: {video['video']} ({video['frames']} frames at {video['fps']:g} fps)")
+    if args.json:
+        write_json(Path(args.json), result)
+    return 0
+
+
+def _quiet_warp() -> None:
+    """No per-module "load took ... ms" lines from Warp between the progress bar's updates."""
+    try:
+        import warp
+
+        warp.config.quiet = True
+        if hasattr(warp, "LOG_WARNING"):  # Warp 1.19 logs module loads at INFO level
+            warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
+    except ImportError:
+        pass
+
+
+if __name__ == "__main__":
+    sys.exit(main())
