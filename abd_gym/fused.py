@@ -59,106 +59,124 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         put_block(H, w, oi, oj, hij)
         put_block(H, w, oj, oj, hjj)
 
+    @wp.struct
+    class Terms:
+        """Everything the incremental potential reads besides q: model, joint history, controls."""
+
+        q_tilde: wp.array2d(dtype=vec12)
+        free: wp.array(dtype=wp.int32)
+        dof: wp.array(dtype=wp.int32)
+        mass: wp.array2d(dtype=dtype)
+        mc: wp.array2d(dtype=vec3)
+        S: wp.array2d(dtype=mat33)
+        kv: wp.array2d(dtype=dtype)
+        h2: dtype
+        body_a: wp.array(dtype=wp.int32)
+        body_b: wp.array(dtype=wp.int32)
+        joint_kind: wp.array(dtype=wp.int32)
+        pts_a: wp.array3d(dtype=vec3)
+        pts_b: wp.array3d(dtype=vec3)
+        K: wp.array2d(dtype=dtype)
+        c_a: wp.array2d(dtype=vec3)
+        c_b: wp.array2d(dtype=vec3)
+        t_a: wp.array2d(dtype=vec3)
+        t_b: wp.array2d(dtype=vec3)
+        n_a: wp.array2d(dtype=vec3)
+        n_b: wp.array2d(dtype=vec3)
+        b_a: wp.array2d(dtype=vec3)
+        b_b: wp.array2d(dtype=vec3)
+        rev_ids: wp.array(dtype=wp.int32)
+        fix_ids: wp.array(dtype=wp.int32)
+        pri_ids: wp.array(dtype=wp.int32)
+        rlim_ids: wp.array(dtype=wp.int32)
+        rlim_lo: wp.array2d(dtype=dtype)
+        rlim_up: wp.array2d(dtype=dtype)
+        rlim_s: wp.array2d(dtype=dtype)
+        plim_ids: wp.array(dtype=wp.int32)
+        plim_lo: wp.array2d(dtype=dtype)
+        plim_up: wp.array2d(dtype=dtype)
+        plim_s: wp.array2d(dtype=dtype)
+        theta0: wp.array2d(dtype=dtype)
+        c_prev: wp.array2d(dtype=dtype)
+        s_prev: wp.array2d(dtype=dtype)
+        drive_joint: wp.array(dtype=wp.int32)
+        drive_mode: wp.array(dtype=wp.int32)
+        kp: wp.array2d(dtype=dtype)
+        kd: wp.array2d(dtype=dtype)
+        fmax: wp.array2d(dtype=dtype)
+        control: wp.array2d(dtype=dtype)
+        unwrapped: wp.array2d(dtype=dtype)
+        x_anchor: wp.array2d(dtype=dtype)
+        h: dtype
+
     @wp.func
-    def assemble(
-        q: wp.array2d(dtype=vec12), w: int, derivs: int, q_tilde: wp.array2d(dtype=vec12),
-        free: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
-        mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33), kv: wp.array2d(dtype=dtype), h2: dtype,
-        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), joint_kind: wp.array(dtype=wp.int32),
-        pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3), K: wp.array2d(dtype=dtype),
-        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3), t_b: wp.array2d(dtype=vec3),
-        n_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
-        rev_ids: wp.array(dtype=wp.int32), fix_ids: wp.array(dtype=wp.int32), pri_ids: wp.array(dtype=wp.int32),
-        rlim_ids: wp.array(dtype=wp.int32), rlim_lo: wp.array2d(dtype=dtype), rlim_up: wp.array2d(dtype=dtype),
-        rlim_s: wp.array2d(dtype=dtype),
-        plim_ids: wp.array(dtype=wp.int32), plim_lo: wp.array2d(dtype=dtype), plim_up: wp.array2d(dtype=dtype),
-        plim_s: wp.array2d(dtype=dtype),
-        theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
-        drive_joint: wp.array(dtype=wp.int32), drive_mode: wp.array(dtype=wp.int32), kp: wp.array2d(dtype=dtype),
-        kd: wp.array2d(dtype=dtype), fmax: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype),
-        unwrapped: wp.array2d(dtype=dtype), x_anchor: wp.array2d(dtype=dtype), h: dtype,
-        g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
-    ):  # fmt: skip
+    def assemble(q: wp.array2d(dtype=vec12), w: int, derivs: int, t: Terms, g: wp.array2d(dtype=dtype),
+                 H: wp.array3d(dtype=dtype)):  # fmt: skip
         """Total incremental potential of world w at q; with derivs, also its g and H (added)."""
         e = zero
-        for k in range(free.shape[0]):
-            b = free[k]
-            e_in, e_or, f, hb = body_eval(q[w, b], q_tilde[w, b], mass[w, b], mc[w, b], S[w, b], kv[w, b] * h2, derivs)
+        for k in range(t.free.shape[0]):
+            b = t.free[k]
+            e_in, e_or, f, hb = body_eval(q[w, b], t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], t.kv[w, b] * t.h2, derivs)
             e += e_in + e_or
             if derivs != 0:
-                put_grad(g, w, dof[b], f)
-                put_block(H, w, dof[b], dof[b], hb)
+                put_grad(g, w, t.dof[b], f)
+                put_block(H, w, t.dof[b], t.dof[b], hb)
         if wp.static(has_rev):
-            for k in range(rev_ids.shape[0]):
-                j = rev_ids[k]
-                ej, gi, gj, hii, hij, hjj = point_eval(q[w, body_a[j]], q[w, body_b[j]], pts_a, pts_b, w, j, 2, K[w, j], derivs)
+            for k in range(t.rev_ids.shape[0]):
+                j = t.rev_ids[k]
+                ej, gi, gj, hii, hij, hjj = point_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.pts_a, t.pts_b, w, j, 2, t.K[w, j], derivs)
                 e += ej
                 if derivs != 0:
-                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_fix):
-            for k in range(fix_ids.shape[0]):
-                j = fix_ids[k]
-                ej, gi, gj, hii, hij, hjj = point_eval(q[w, body_a[j]], q[w, body_b[j]], pts_a, pts_b, w, j, 4, K[w, j], derivs)
+            for k in range(t.fix_ids.shape[0]):
+                j = t.fix_ids[k]
+                ej, gi, gj, hii, hij, hjj = point_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.pts_a, t.pts_b, w, j, 4, t.K[w, j], derivs)
                 e += ej
                 if derivs != 0:
-                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_pri):
-            for k in range(pri_ids.shape[0]):
-                j = pri_ids[k]
-                ej, gi, gj, hii, hij, hjj = prismatic_eval(q[w, body_a[j]], q[w, body_b[j]], c_a[w, j], c_b[w, j],
-                                                           t_a[w, j], t_b[w, j], n_a[w, j], n_b[w, j], b_a[w, j],
-                                                           b_b[w, j], K[w, j], derivs)  # fmt: skip
+            for k in range(t.pri_ids.shape[0]):
+                j = t.pri_ids[k]
+                ej, gi, gj, hii, hij, hjj = prismatic_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.c_a[w, j], t.c_b[w, j],
+                                                           t.t_a[w, j], t.t_b[w, j], t.n_a[w, j], t.n_b[w, j], t.b_a[w, j],
+                                                           t.b_b[w, j], t.K[w, j], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0:
-                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_rlim):
-            for k in range(rlim_ids.shape[0]):
-                j = rlim_ids[k]
-                ej, gi, gj, hii, hij, hjj = rlim_eval(q[w, body_a[j]], q[w, body_b[j]], n_a[w, j], b_a[w, j], n_b[w, j],
-                                                      b_b[w, j], theta0[w, j], c_prev[w, j], s_prev[w, j], rlim_lo[w, k],
-                                                      rlim_up[w, k], rlim_s[w, k], derivs)  # fmt: skip
+            for k in range(t.rlim_ids.shape[0]):
+                j = t.rlim_ids[k]
+                ej, gi, gj, hii, hij, hjj = rlim_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.n_a[w, j], t.b_a[w, j], t.n_b[w, j],
+                                                      t.b_b[w, j], t.theta0[w, j], t.c_prev[w, j], t.s_prev[w, j], t.rlim_lo[w, k],
+                                                      t.rlim_up[w, k], t.rlim_s[w, k], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0 and ej != zero:
-                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_plim):
-            for k in range(plim_ids.shape[0]):
-                j = plim_ids[k]
-                ej, gi, gj, hii, hij, hjj = plim_eval(q[w, body_a[j]], q[w, body_b[j]], c_a[w, j], c_b[w, j], t_a[w, j],
-                                                      plim_lo[w, k], plim_up[w, k], plim_s[w, k], derivs)  # fmt: skip
+            for k in range(t.plim_ids.shape[0]):
+                j = t.plim_ids[k]
+                ej, gi, gj, hii, hij, hjj = plim_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.c_a[w, j], t.c_b[w, j], t.t_a[w, j],
+                                                      t.plim_lo[w, k], t.plim_up[w, k], t.plim_s[w, k], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0 and ej != zero:
-                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_drive):
-            for k in range(drive_joint.shape[0]):
-                j = drive_joint[k]
-                ej, gi, gj, hii, hij, hjj = drive_eval(q[w, body_a[j]], q[w, body_b[j]], w, k, drive_joint, joint_kind,
-                                                       c_a, c_b, t_a, n_a, b_a, n_b, b_b, c_prev, s_prev, drive_mode, kp,
-                                                       kd, fmax, control, unwrapped, x_anchor, h, h2, 0, derivs)  # fmt: skip
+            for k in range(t.drive_joint.shape[0]):
+                j = t.drive_joint[k]
+                ej, gi, gj, hii, hij, hjj = drive_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], w, k, t.drive_joint, t.joint_kind,
+                                                       t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b, t.b_b, t.c_prev, t.s_prev, t.drive_mode, t.kp,
+                                                       t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, t.h, t.h2, 0, derivs)  # fmt: skip
                 e += ej
                 if derivs != 0:
-                    put_pair(g, H, w, dof[body_a[j]], dof[body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         return e
 
     # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
     # code size, and with it NVRTC's compile time, for no measured speed-up
     @wp.kernel(module="unique", module_options={"max_unroll": 1})
     def newton(
-        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
-        free: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
-        mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33), kv: wp.array2d(dtype=dtype), h2: dtype,
-        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), joint_kind: wp.array(dtype=wp.int32),
-        pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3), K: wp.array2d(dtype=dtype),
-        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3), t_b: wp.array2d(dtype=vec3),
-        n_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
-        rev_ids: wp.array(dtype=wp.int32), fix_ids: wp.array(dtype=wp.int32), pri_ids: wp.array(dtype=wp.int32),
-        rlim_ids: wp.array(dtype=wp.int32), rlim_lo: wp.array2d(dtype=dtype), rlim_up: wp.array2d(dtype=dtype),
-        rlim_s: wp.array2d(dtype=dtype),
-        plim_ids: wp.array(dtype=wp.int32), plim_lo: wp.array2d(dtype=dtype), plim_up: wp.array2d(dtype=dtype),
-        plim_s: wp.array2d(dtype=dtype),
-        theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
-        drive_joint: wp.array(dtype=wp.int32), drive_mode: wp.array(dtype=wp.int32), kp: wp.array2d(dtype=dtype),
-        kd: wp.array2d(dtype=dtype), fmax: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype),
-        unwrapped: wp.array2d(dtype=dtype), x_anchor: wp.array2d(dtype=dtype), h: dtype,
+        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
         g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype),
         n: int, threshold: dtype, max_iterations: int, max_line_search: int,
         status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
@@ -174,10 +192,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 g[i, w] = zero
                 for j in range(i + 1):
                     H[i, j, w] = zero
-            e0 = assemble(q, w, 1, q_tilde, free, dof, mass, mc, S, kv, h2, body_a, body_b, joint_kind, pts_a, pts_b,
-                          K, c_a, c_b, t_a, t_b, n_a, n_b, b_a, b_b, rev_ids, fix_ids, pri_ids, rlim_ids, rlim_lo,
-                          rlim_up, rlim_s, plim_ids, plim_lo, plim_up, plim_s, theta0, c_prev, s_prev, drive_joint,
-                          drive_mode, kp, kd, fmax, control, unwrapped, x_anchor, h, g, H)  # fmt: skip
+            e0 = assemble(q, w, 1, t, g, H)
             ok, gdq, dmax = cholesky_solve(H, g, dq, w, n)
             if ok == 0:
                 status[w] = FAILED
@@ -190,15 +205,12 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             for ls in range(max_line_search):
                 for b in range(nb):
                     qb = q[w, b]
-                    ob = dof[b]
+                    ob = t.dof[b]
                     if ob >= 0:
                         for r in range(12):
                             qb[r] = qb[r] + alpha * dq[ob + r, w]
                     q_trial[w, b] = qb
-                e1 = assemble(q_trial, w, 0, q_tilde, free, dof, mass, mc, S, kv, h2, body_a, body_b, joint_kind,
-                              pts_a, pts_b, K, c_a, c_b, t_a, t_b, n_a, n_b, b_a, b_b, rev_ids, fix_ids, pri_ids,
-                              rlim_ids, rlim_lo, rlim_up, rlim_s, plim_ids, plim_lo, plim_up, plim_s, theta0, c_prev,
-                              s_prev, drive_joint, drive_mode, kp, kd, fmax, control, unwrapped, x_anchor, h, g, H)  # fmt: skip
+                e1 = assemble(q_trial, w, 0, t, g, H)
                 noise = dtype(16.0) * EPS * (wp.abs(e0) + wp.abs(e1))
                 if e1 <= e0 + dtype(1.0e-4) * alpha * gdq + noise and wp.isfinite(e1):
                     accepted = 1
@@ -217,4 +229,4 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 converged[w] = 1
                 return
 
-    return newton
+    return newton, Terms

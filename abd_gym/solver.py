@@ -57,6 +57,7 @@ class Solver:
         self.remaining = wp.zeros(1, dtype=wp.int32, device=dev)  # loop flags for wp.capture_while
         self.ls_remaining = wp.zeros(1, dtype=wp.int32, device=dev)
         self.k = solver_kernels(dt_)
+        self._fused = None  # (kernel, struct of arrays), built on the first fused step
         self.begin_step, self.coordinates = coordinates.kernels(dt_)
 
     def _columns(self, physical):
@@ -116,23 +117,37 @@ class Solver:
 
     def _fused_newton(self, state):
         m, s = self.model, self.settings
+        if self._fused is None:
+            self._fused = self._build_fused(state)
+        kernel, terms = self._fused
+        wp.launch(kernel, dim=m.num_worlds, inputs=[
+            state.q, self.q_trial, terms, self.g, self.H, self.dq, m.num_dofs, m.dtype(s.tol * self.h),
+            s.max_iterations, s.max_line_search, state.status, state.iterations, state.converged], device=m.device)  # fmt: skip
+
+    def _build_fused(self, state):
+        """The fused kernel for what this scene has, and the struct of arrays it reads (built once:
+        the arrays are never reallocated, so a captured graph stays valid)."""
         from .fused import fused_kernel
         from .scene import FIXED, PRISMATIC, REVOLUTE
 
+        m = self.model
         has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
                len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
-        kernel = fused_kernel(m.dtype, *has)
-        dt = m.dtype
-        wp.launch(kernel, dim=m.num_worlds, inputs=[
-            state.q, self.q_trial, self.q_tilde, m.free, m.dof, m.mass, m.mc, m.S, m.kv, dt(self.h_eff * self.h_eff),
-            m.body_a, m.body_b, m.joint_kind, m.pts_a, m.pts_b, m.K, m.c_a, m.c_b, m.t_a, m.t_b, m.n_a, m.n_b,
-            m.b_a, m.b_b, m.joint_ids[REVOLUTE], m.joint_ids[FIXED], m.joint_ids[PRISMATIC],
-            m.limit_joint_ids[REVOLUTE], *m.limit_params[REVOLUTE], m.limit_joint_ids[PRISMATIC],
-            *m.limit_params[PRISMATIC], state.theta0, state.c_prev, state.s_prev, m.drive_joint, m.drive_mode,
-            m.drive_stiffness, m.drive_damping, m.drive_max_effort, state.control, state.unwrapped, state.x_anchor,
-            dt(self.h_eff),
-            self.g, self.H, self.dq, m.num_dofs, dt(s.tol * self.h), s.max_iterations, s.max_line_search,
-            state.status, state.iterations, state.converged], device=m.device)  # fmt: skip
+        kernel, Terms = fused_kernel(m.dtype, *has)
+        t = Terms()
+        for name in ("free", "dof", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
+                     "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
+            setattr(t, name, getattr(m, name))
+        for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor"):
+            setattr(t, name, getattr(state, name))
+        t.q_tilde = self.q_tilde
+        t.h2, t.h = m.dtype(self.h_eff * self.h_eff), m.dtype(self.h_eff)
+        t.rev_ids, t.fix_ids, t.pri_ids = m.joint_ids[REVOLUTE], m.joint_ids[FIXED], m.joint_ids[PRISMATIC]
+        t.rlim_ids, t.plim_ids = m.limit_joint_ids[REVOLUTE], m.limit_joint_ids[PRISMATIC]
+        t.rlim_lo, t.rlim_up, t.rlim_s = m.limit_params[REVOLUTE]
+        t.plim_lo, t.plim_up, t.plim_s = m.limit_params[PRISMATIC]
+        t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
+        return kernel, t
 
     def _newton_iteration(self, state):
         m, k, dev, s = self.model, self.k, self.model.device, self.settings
