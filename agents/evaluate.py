@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from .common import (
+    quiet_warp,
     CONFIG_FILE,
     EVAL_SEED_OFFSET,
     MODEL_FILE,
@@ -187,7 +188,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    _quiet_warp()
+    quiet_warp()
     import torch
 
     torch.set_num_threads(1)  # small MLPs: one thread is fastest (see agents.train)
@@ -225,18 +226,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         write_json(Path(args.json), result)
     return 0
-
-
-def _quiet_warp() -> None:
-    """No per-module "load took ... ms" lines from Warp between the progress bar's updates."""
-    try:
-        import warp
-
-        warp.config.quiet = True
-        if hasattr(warp, "LOG_WARNING"):  # Warp 1.19 logs module loads at INFO level
-            warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
-    except ImportError:
-        pass
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from typing import Any
 import yaml
 
 from .common import (
+    quiet_warp,
     CONFIG_FILE,
     EVAL_SEED_OFFSET,
     MODEL_FILE,
@@ -186,7 +187,7 @@ def config_from_args(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    _quiet_warp()
+    quiet_warp()
     try:
         cfg, name = config_from_args(args)
     except (ValueError, FileNotFoundError) as exc:
@@ -210,18 +211,6 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(f"run directory: {summary['run_dir']}")
     return 0
-
-
-def _quiet_warp() -> None:
-    """No per-module "load took ... ms" lines from Warp between the progress bar's updates."""
-    try:
-        import warp
-
-        warp.config.quiet = True
-        if hasattr(warp, "LOG_WARNING"):  # Warp 1.19 logs module loads at INFO level
-            warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
-    except ImportError:
-        pass
 
 
 if __name__ == "__main__":
