@@ -3,6 +3,7 @@
     python -m abd_gym.bench [--device cpu|cuda:0] [--worlds 1,16,256] [--steps 50] [--out DIR]
     python -m abd_gym.bench compare ...    (against MuJoCo Warp: bench_compare.py)
     python -m abd_gym.bench accuracy ...   (speed against error: bench_accuracy.py)
+    python -m abd_gym.bench threads ...    (fused step's thread count and block size: sweep_threads)
 
 For a double pendulum and a cart-pole it times ``Simulator.step`` (after warm-up, synchronised)
 and reports world-steps per second, steps per second, mean Newton iterations, the largest joint
@@ -75,9 +76,10 @@ def period_error(case, dt, dtype, device, amplitude=0.02):
     return float((np.diff(t).mean() - period) / period)
 
 
-def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0):
+def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs):
+    """Time ``steps`` steps of ``num_worlds`` worlds (``sim_kwargs``: more Simulator options)."""
     c = CASES[case]
-    sim = Simulator(c["scene"](), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype)
+    sim = Simulator(c["scene"](), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
     rng = np.random.default_rng(seed)
     x0 = np.array(c["rest"]) + rng.uniform(-0.3, 0.3, size=(num_worlds, len(c["rest"])))
     if case == "cartpole":
@@ -96,6 +98,8 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0):
         seconds=elapsed, steps_per_second=steps / elapsed, world_steps_per_second=num_worlds * steps / elapsed,
         newton_iterations=float(sim.newton_iterations().mean()), joint_residual=residual,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
+        threads=sim.solver.threads, block_dim=sim.solver.block_dim,
+        memory_bytes_per_world=sim.memory_bytes()["total"] / num_worlds,
     )  # fmt: skip
 
 
@@ -107,6 +111,8 @@ def main(argv=None):
         from .bench_compare import main as compare
 
         return compare(argv[1:])
+    if argv and argv[0] == "threads":
+        return sweep_threads(argv[1:])
     if argv and argv[0] == "accuracy":
         from .bench_accuracy import main as accuracy
 
@@ -149,9 +155,11 @@ def main(argv=None):
         env_worlds = [int(w) for w in args.env_worlds.split(",")] if args.env_worlds else worlds
         for task in tasks:
             for w in env_worlds:
-                env_rows.append(dict(task=task, num_envs=w, backend=backend, env_steps_per_second=env_steps_per_second(
-                    task, w, steps, args.device, backend=backend)))  # fmt: skip
-                print(f"{task:28s} envs {w:6d}  {env_rows[-1]['env_steps_per_second']:12.0f} env-steps/s", flush=True)
+                env_sps, raw_sps = env_steps_per_second(task, w, steps, args.device, backend=backend, raw=True)
+                env_rows.append(dict(task=task, num_envs=w, backend=backend, env_steps_per_second=env_sps,
+                                     raw_steps_per_second=raw_sps, env_over_raw=env_sps / raw_sps))  # fmt: skip
+                print(f"{task:28s} envs {w:6d}  {env_sps:12.0f} env-steps/s  raw simulator {raw_sps:12.0f}  "
+                      f"ratio {env_sps / raw_sps:.2f}", flush=True)  # fmt: skip
     device_name = wp.get_device(args.device).name if gpu else platform.processor() or platform.machine()
     result = dict(device=args.device, device_name=device_name, warp=wp.config.version, simulator=rows,
                   accuracy=accuracy, envs=env_rows)  # fmt: skip
@@ -159,6 +167,51 @@ def main(argv=None):
     print(table(result))
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "bench.json"), "w") as f:
+        json.dump(result, f, indent=1)
+    return result
+
+
+def sweep_threads(argv=None):
+    """World-steps per second of the fused step against its thread count and CUDA block size.
+
+    ``--threads`` are thread counts, or ``Nsm`` for N per streaming multiprocessor, or ``all``
+    (one thread per world, the scratch then as large as the batch).  Writes ``threads.json``.
+    """
+    ap = argparse.ArgumentParser(prog="abd_gym.bench threads", description=sweep_threads.__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--cases", default="cartpole,double_pendulum")
+    ap.add_argument("--worlds", default="1024,131072")
+    ap.add_argument("--threads", default="all,64sm,128sm,256sm")
+    ap.add_argument("--block-dims", default="32,64,128,256")
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--dt", type=float, default=0.01)
+    ap.add_argument("--dtype", default="float32")
+    ap.add_argument("--out", default="bench_out")
+    args = ap.parse_args(argv)
+    dev = wp.get_device(args.device)
+    sms = dev.sm_count if dev.is_cuda else 1
+
+    def count(spec, worlds):
+        if spec == "all":
+            return worlds
+        return int(spec[:-2]) * sms if spec.endswith("sm") else int(spec)
+
+    rows = []
+    for case in args.cases.split(","):
+        for w in (int(x) for x in args.worlds.split(",")):
+            for spec in args.threads.split(","):
+                T = min(count(spec, w), w)
+                if any(r["case"] == case and r["num_worlds"] == w and r["threads"] == T and spec != "all" for r in rows):
+                    continue
+                for bd in (int(b) for b in args.block_dims.split(",")):
+                    r = time_steps(case, w, args.steps, args.dt, args.dtype, args.device, threads=T, block_dim=bd)
+                    rows.append(r)
+                    print(f"{case:16s} worlds {w:8d} threads {T:8d} block {bd:4d}  "
+                          f"{r['world_steps_per_second']:14,.0f} world-steps/s  iters {r['newton_iterations']:.2f}  "
+                          f"{r['memory_bytes_per_world']:.0f} B/world", flush=True)  # fmt: skip
+    result = dict(device=args.device, device_name=dev.name, sm_count=sms, warp=wp.config.version, rows=rows)
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "threads.json"), "w") as f:
         json.dump(result, f, indent=1)
     return result
 
@@ -175,9 +228,10 @@ def table(result) -> str:
     for a in result["accuracy"]:
         lines.append(f"| {a['case']} | {a['dt']} | {a['dtype']} | {a['period_error']:+.3%} |")
     if result.get("envs"):
-        lines += ["", "| task | envs | env-steps/s |", "|---|---:|---:|"]
+        lines += ["", "| task | envs | env-steps/s | raw simulator, same steps/s | env / raw |", "|---|---:|---:|---:|---:|"]
         for e in result["envs"]:
-            lines.append(f"| {e['task']} | {e['num_envs']} | {e['env_steps_per_second']:,.0f} |")
+            lines.append(f"| {e['task']} | {e['num_envs']} | {e['env_steps_per_second']:,.0f} | "
+                         f"{e['raw_steps_per_second']:,.0f} | {e['env_over_raw']:.2f} |")  # fmt: skip
     return "\n".join(lines)
 
 

@@ -107,6 +107,7 @@ def main(argv=None):
     ap.add_argument("--integrators", default="implicit_euler,bdf2")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--reference-worlds", type=int, default=8, help="worlds the error is measured on")
+    ap.add_argument("--reference-dt", type=float, default=1e-4, help="step of the reference run [s]")
     ap.add_argument("--out", default="bench_out")
     args = ap.parse_args(argv)
     W = args.worlds or (4096 if args.device.startswith("cuda") else 8)
@@ -116,10 +117,10 @@ def main(argv=None):
         x0 = random_states(case, W, seed=1)
         nref = min(args.reference_worlds, W)
         try:
-            ref, ref_name = mujoco_reference(case, x0[:nref]), "mujoco_rk4_dt1e-4"
+            ref, ref_name = mujoco_reference(case, x0[:nref], dt=args.reference_dt), f"mujoco_rk4_dt{args.reference_dt:g}"
         except ImportError:
-            ref = run_ours(case, x0[:nref], 1e-4, "float64", 1e-10, "cpu")[0]
-            ref_name = "abd_gym_float64_dt1e-4"
+            ref = run_ours(case, x0[:nref], args.reference_dt, "float64", 1e-10, "cpu")[0]
+            ref_name = f"abd_gym_float64_dt{args.reference_dt:g}"
         for dt in dts:
             for integrator, dtype, tol in ((i, d, float(t)) for i in args.integrators.split(",")
                                            for d in args.dtypes.split(",") for t in args.tols.split(",")):  # fmt: skip

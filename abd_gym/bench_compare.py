@@ -98,7 +98,8 @@ def ours_steps_per_second(case, num_worlds, steps, dt, device, dtype="float32"):
     t0 = time.perf_counter()
     sim.step(steps)
     wp.synchronize_device(sim.device)
-    return num_worlds * steps / (time.perf_counter() - t0), float(sim.joint_violation().max())
+    sps = num_worlds * steps / (time.perf_counter() - t0)
+    return sps, float(sim.joint_violation().max()), sim.memory_bytes()["total"] / num_worlds
 
 
 def main(argv=None):
@@ -108,28 +109,36 @@ def main(argv=None):
     ap.add_argument("--worlds", default=None)
     ap.add_argument("--steps", type=int, default=None)
     ap.add_argument("--dt", type=float, default=0.01)
+    ap.add_argument("--ours-only", default=None, help="world counts run in abd_gym alone (default 1048576 on GPU)")
+    ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--out", default="bench_out")
     args = ap.parse_args(argv)
     gpu = args.device.startswith("cuda")
     worlds = [int(w) for w in args.worlds.split(",")] if args.worlds else ([1024, 16384, 131072] if gpu else [1, 8])
+    alone = args.ours_only if args.ours_only is not None else ("1048576" if gpu else "")
+    alone = [int(w) for w in alone.split(",") if w]
     steps = args.steps or (100 if gpu else 10)
     rows = []
-    for case in CASES:
-        for w in worlds:
-            ours, residual = ours_steps_per_second(case, w, steps, args.dt, args.device)
-            try:
-                theirs = mjw_steps_per_second(case, w, steps, args.dt, args.device)
-            except ImportError:
-                theirs = float("nan")
+    for case in args.cases.split(","):
+        for w in worlds + alone:
+            ours, residual, mem = ours_steps_per_second(case, w, steps, args.dt, args.device)
+            theirs = float("nan")
+            if w not in alone:
+                try:
+                    theirs = mjw_steps_per_second(case, w, steps, args.dt, args.device)
+                except ImportError:
+                    pass
             rows.append(dict(case=case, num_worlds=w, abd_gym=ours, mujoco_warp=theirs, ratio=ours / theirs,
-                             joint_residual=residual))  # fmt: skip
+                             joint_residual=residual, memory_bytes_per_world=mem))  # fmt: skip
             print(f"{case:16s} {w:8d} worlds  abd_gym {ours:14,.0f}  mujoco_warp {theirs:14,.0f} world-steps/s  "
-                  f"ratio {ours / theirs:.3f}", flush=True)  # fmt: skip
+                  f"ratio {ours / theirs:.3f}  residual {residual:.1e} m  {mem:,.0f} B/world", flush=True)  # fmt: skip
     result = dict(device=args.device, device_name=wp.get_device(args.device).name, dt=args.dt, rows=rows)
     lines = [f"Device: {result['device_name']}, dt = {args.dt}", "",
-             "| mechanism | worlds | abd_gym world-steps/s | MuJoCo Warp world-steps/s | ratio |", "|---|---:|---:|---:|---:|"]  # fmt: skip
+             "| mechanism | worlds | abd_gym world-steps/s | MuJoCo Warp world-steps/s | ratio | joint residual [m] "
+             "| abd_gym memory [B/world] |", "|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     for r in rows:
-        lines.append(f"| {r['case']} | {r['num_worlds']} | {r['abd_gym']:,.0f} | {r['mujoco_warp']:,.0f} | {r['ratio']:.3f} |")
+        lines.append(f"| {r['case']} | {r['num_worlds']} | {r['abd_gym']:,.0f} | {r['mujoco_warp']:,.0f} | {r['ratio']:.3f} "
+                     f"| {r['joint_residual']:.1e} | {r['memory_bytes_per_world']:,.0f} |")  # fmt: skip
     print("\n".join(lines))
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "compare.json"), "w") as f:

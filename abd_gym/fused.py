@@ -1,8 +1,8 @@
-"""The fused Newton step: one thread per world runs every iteration, line search and stop test
-of its own solve in a single kernel launch.
+"""The fused Newton step: one thread runs every iteration, line search and stop test of a world's
+solve in a single kernel launch, world after world when there are more worlds than threads.
 
 Same arithmetic as the staged kernels of ``solver.py`` (each constitution's per-instance
-evaluator), without atomics (a world's thread owns its rows of the world-minor ``g``/``H``),
+evaluator), without atomics (a thread owns its scratch column of ``g``/``H``/``dq``),
 without per-iteration launches, and with the code of absent constitutions compiled out
 (``wp.static`` on what the scene has).  ``Solver(fused=True)`` uses it.
 """
@@ -110,93 +110,90 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         h: dtype
 
     @wp.func
-    def assemble(q: wp.array2d(dtype=vec12), w: int, derivs: int, t: Terms, g: wp.array2d(dtype=dtype),
-                 H: wp.array3d(dtype=dtype)):  # fmt: skip
-        """Total incremental potential of world w at q; with derivs, also its g and H (added)."""
+    def assemble(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, derivs: int, t: Terms,
+                 g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype)):  # fmt: skip
+        """Total incremental potential of world w at q[qr]; with derivs, also its g and H (added to
+        scratch column s)."""
         e = zero
         for k in range(t.free.shape[0]):
             b = t.free[k]
-            e_in, e_or, f, hb = body_eval(q[w, b], t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], t.kv[w, b] * t.h2, derivs)
+            e_in, e_or, f, hb = body_eval(q[qr, b], t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], t.kv[w, b] * t.h2, derivs)
             e += e_in + e_or
             if derivs != 0:
-                put_grad(g, w, t.dof[b], f)
-                put_block(H, w, t.dof[b], t.dof[b], hb)
+                put_grad(g, s, t.dof[b], f)
+                put_block(H, s, t.dof[b], t.dof[b], hb)
         if wp.static(has_rev):
             for k in range(t.rev_ids.shape[0]):
                 j = t.rev_ids[k]
-                ej, gi, gj, hii, hij, hjj = point_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.pts_a, t.pts_b, w, j, 2, t.K[w, j], derivs)
+                ej, gi, gj, hii, hij, hjj = point_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j, 2, t.K[w, j], derivs)
                 e += ej
                 if derivs != 0:
-                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, s, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_fix):
             for k in range(t.fix_ids.shape[0]):
                 j = t.fix_ids[k]
-                ej, gi, gj, hii, hij, hjj = point_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.pts_a, t.pts_b, w, j, 4, t.K[w, j], derivs)
+                ej, gi, gj, hii, hij, hjj = point_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j, 4, t.K[w, j], derivs)
                 e += ej
                 if derivs != 0:
-                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, s, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_pri):
             for k in range(t.pri_ids.shape[0]):
                 j = t.pri_ids[k]
-                ej, gi, gj, hii, hij, hjj = prismatic_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.c_a[w, j], t.c_b[w, j],
+                ej, gi, gj, hii, hij, hjj = prismatic_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.c_a[w, j], t.c_b[w, j],
                                                            t.t_a[w, j], t.t_b[w, j], t.n_a[w, j], t.n_b[w, j], t.b_a[w, j],
                                                            t.b_b[w, j], t.K[w, j], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0:
-                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, s, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_rlim):
             for k in range(t.rlim_ids.shape[0]):
                 j = t.rlim_ids[k]
-                ej, gi, gj, hii, hij, hjj = rlim_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.n_a[w, j], t.b_a[w, j], t.n_b[w, j],
+                ej, gi, gj, hii, hij, hjj = rlim_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.n_a[w, j], t.b_a[w, j], t.n_b[w, j],
                                                       t.b_b[w, j], t.theta0[w, j], t.c_prev[w, j], t.s_prev[w, j], t.rlim_lo[w, k],
                                                       t.rlim_up[w, k], t.rlim_s[w, k], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0 and ej != zero:
-                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, s, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_plim):
             for k in range(t.plim_ids.shape[0]):
                 j = t.plim_ids[k]
-                ej, gi, gj, hii, hij, hjj = plim_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.c_a[w, j], t.c_b[w, j], t.t_a[w, j],
+                ej, gi, gj, hii, hij, hjj = plim_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.c_a[w, j], t.c_b[w, j], t.t_a[w, j],
                                                       t.plim_lo[w, k], t.plim_up[w, k], t.plim_s[w, k], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0 and ej != zero:
-                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, s, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_drive):
             for k in range(t.drive_joint.shape[0]):
                 j = t.drive_joint[k]
-                ej, gi, gj, hii, hij, hjj = drive_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], w, k, t.drive_joint, t.joint_kind,
+                ej, gi, gj, hii, hij, hjj = drive_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], w, k, t.drive_joint, t.joint_kind,
                                                        t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b, t.b_b, t.c_prev, t.s_prev, t.drive_mode, t.kp,
                                                        t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, t.h, t.h2, 0, derivs)  # fmt: skip
                 e += ej
                 if derivs != 0:
-                    put_pair(g, H, w, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, s, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         return e
 
-    # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
-    # code size, and with it NVRTC's compile time, for no measured speed-up
-    @wp.kernel(module="unique", module_options={"max_unroll": 1})
-    def newton(
-        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
-        g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype),
-        n: int, threshold: dtype, max_iterations: int, max_line_search: int,
-        status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
-    ):  # fmt: skip
-        w = wp.tid()
+    @wp.func
+    def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array2d(dtype=dtype),
+                    H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int, s: int, n: int, threshold: dtype,
+                    max_iterations: int, max_line_search: int, status: wp.array(dtype=wp.int32),
+                    iterations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32)):  # fmt: skip
+        """World w's whole Newton solve, in scratch column s of g, H, dq and row s of q_trial."""
         iterations[w] = 0
         converged[w] = 0
         if status[w] != OK:
-            return
+            return 0
         nb = q.shape[1]
         for it in range(max_iterations):
             for i in range(n):
-                g[i, w] = zero
+                g[i, s] = zero
                 for j in range(i + 1):
-                    H[i, j, w] = zero
-            e0 = assemble(q, w, 1, t, g, H)
-            ok, gdq, dmax = cholesky_solve(H, g, dq, w, n)
+                    H[i, j, s] = zero
+            e0 = assemble(q, w, w, s, 1, t, g, H)
+            ok, gdq, dmax = cholesky_solve(H, g, dq, s, n)
             if ok == 0:
                 status[w] = FAILED
-                return
+                return 0
             floor = noise_floor(q, w, threshold)
             # backtracking line search (Armijo) on the world's own energy
             alpha = one
@@ -208,9 +205,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     ob = t.dof[b]
                     if ob >= 0:
                         for r in range(12):
-                            qb[r] = qb[r] + alpha * dq[ob + r, w]
-                    q_trial[w, b] = qb
-                e1 = assemble(q_trial, w, 0, t, g, H)
+                            qb[r] = qb[r] + alpha * dq[ob + r, s]
+                    q_trial[s, b] = qb
+                e1 = assemble(q_trial, s, w, s, 0, t, g, H)
                 noise = dtype(16.0) * EPS * (wp.abs(e0) + wp.abs(e1))
                 if e1 <= e0 + dtype(1.0e-4) * alpha * gdq + noise and wp.isfinite(e1):
                     accepted = 1
@@ -222,11 +219,30 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             if accepted == 0:
                 if dmax < dtype(1000.0) * floor:
                     converged[w] = 1
-                return
+                return 0
             for b in range(nb):
-                q[w, b] = q_trial[w, b]
+                q[w, b] = q_trial[s, b]
             if dmax < floor or stalled != 0:
                 converged[w] = 1
-                return
+                return 0
+        return 0
+
+    # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
+    # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
+    # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
+    @wp.kernel(module="unique", module_options={"max_unroll": 1})
+    def newton(
+        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
+        g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype),
+        n: int, threshold: dtype, max_iterations: int, max_line_search: int,
+        status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """Thread s solves worlds s, s + T, s + 2T, … (T threads, T = the scratch width): the scratch
+        of a thread is reused world after world, so it stays in cache however many worlds there are."""
+        s = wp.tid()
+        T = g.shape[1]
+        for w in range(s, q.shape[0], T):
+            solve_world(q, q_trial, t, g, H, dq, w, s, n, threshold, max_iterations, max_line_search, status,
+                        iterations, converged)  # fmt: skip
 
     return newton, Terms

@@ -18,10 +18,13 @@ import abd_gym  # noqa: F401 -- registers the abd_gym/ ids
 
 
 def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | None = "cpu", backend: str = "numpy",
-                         seed: int = 0) -> float:  # fmt: skip
+                         seed: int = 0, raw: bool = False):  # fmt: skip
     """World-steps per second (``num_envs × steps / seconds``) of ``steps`` calls of ``step``.
 
-    ``task_id``: a registered id, with or without the ``abd_gym/`` namespace.
+    ``task_id``: a registered id, with or without the ``abd_gym/`` namespace.  With ``raw``, returns
+    ``(env rate, raw rate)``: the raw rate times the same env's simulator alone
+    (``sim.step(frame_skip)`` per env step, controls set once), so their ratio is what the env
+    layer (actions, observations, rewards, autoresets) costs.
     """
     if "/" not in task_id:
         task_id = f"abd_gym/{task_id}"
@@ -43,8 +46,20 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
             env.step(actions[k % len(actions)])
         wp.synchronize_device(env.unwrapped.device)
         elapsed = time.perf_counter() - t0
+        if raw:
+            u = env.unwrapped
+            sim = u.sim
+            sim.step(u.frame_skip)
+            wp.synchronize_device(u.device)
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                sim.step(u.frame_skip)
+            wp.synchronize_device(u.device)
+            raw_elapsed = time.perf_counter() - t0
     finally:
         env.close()
+    if raw:
+        return num_envs * steps / elapsed, num_envs * steps / raw_elapsed
     return num_envs * steps / elapsed
 
 

@@ -7,8 +7,9 @@ import abd_gym as ag
 from abd_gym import mechanisms
 
 
-def _run(use_graph, fused=True, dtype="float32"):
-    sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, use_graph=use_graph, fused=fused, dtype=dtype)
+def _run(use_graph, fused=True, dtype="float32", threads=None):
+    sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, use_graph=use_graph, fused=fused, dtype=dtype,
+                       threads=threads)  # fmt: skip
     rng = np.random.default_rng(3)
     sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
     out = []
@@ -43,3 +44,20 @@ def test_fused_step_matches_staged_kernels():
     fused, sim = _run(True, fused=True, dtype="float64")
     np.testing.assert_allclose(np.nan_to_num(fused), np.nan_to_num(staged), atol=1e-8)
     assert sim.failed_worlds().tolist() == [3]
+
+
+def test_fewer_threads_than_worlds_is_the_same_step():
+    """Threads that solve several worlds in turn, reusing one scratch column, give the same
+    trajectories bit for bit (failures, resets and parameter changes included)."""
+    one_each, _ = _run(True)
+    shared, sim = _run(True, threads=3)  # thread 0 solves worlds 0 and 3
+    assert sim.solver.threads == 3 and sim.solver.H.shape[2] == 3
+    np.testing.assert_array_equal(np.nan_to_num(shared), np.nan_to_num(one_each))
+    assert sim.failed_worlds().tolist() == [3]
+
+
+def test_threads_must_be_positive():
+    import pytest
+
+    with pytest.raises(ValueError, match="threads"):
+        ag.Simulator(mechanisms.cartpole(), num_worlds=2, threads=0)

@@ -1,0 +1,67 @@
+"""The benchmark commands at tiny sizes on the CPU: each writes its JSON with every field (the
+numbers themselves are measured on a GPU; see README, Performance)."""
+import json
+import math
+
+import pytest
+
+from abd_gym import bench
+
+SIM_FIELDS = {"case", "num_worlds", "steps", "dt", "dtype", "device", "seconds", "steps_per_second",
+              "world_steps_per_second", "newton_iterations", "joint_residual", "converged_fraction",
+              "failed_worlds", "threads", "block_dim", "memory_bytes_per_world"}  # fmt: skip
+
+
+def _load(path):
+    with open(path) as f:
+        return json.load(f)
+
+
+def test_bench_worlds_and_envs(tmp_path):
+    bench.main(["--cases", "cartpole", "--worlds", "1,3", "--steps", "2", "--envs", "--tasks", "CartPole-v0",
+                "--env-worlds", "2", "--out", str(tmp_path)])  # fmt: skip
+    r = _load(tmp_path / "bench.json")
+    assert [row["num_worlds"] for row in r["simulator"]] == [1, 3]
+    for row in r["simulator"]:
+        assert SIM_FIELDS <= set(row) and row["world_steps_per_second"] > 0 and row["failed_worlds"] == 0
+        assert row["joint_residual"] < 1e-4 and 0 < row["memory_bytes_per_world"] < 10_000
+    assert abs(r["accuracy"][0]["period_error"]) < 0.05  # dt 0.01, implicit Euler, lowest mode
+    (env,) = r["envs"]
+    assert env["env_steps_per_second"] > 0 and env["raw_steps_per_second"] > 0
+    assert env["env_over_raw"] == pytest.approx(env["env_steps_per_second"] / env["raw_steps_per_second"])
+
+
+def test_bench_threads(tmp_path):
+    bench.main(["threads", "--cases", "cartpole", "--worlds", "3", "--threads", "all,1", "--block-dims", "32",
+                "--steps", "2", "--out", str(tmp_path)])  # fmt: skip
+    rows = _load(tmp_path / "threads.json")["rows"]
+    assert [(row["threads"], row["block_dim"]) for row in rows] == [(3, 32), (1, 32)]
+    assert all(SIM_FIELDS <= set(row) for row in rows)
+
+
+def test_bench_compare_without_mujoco_warp(tmp_path):
+    bench.main(["compare", "--cases", "cartpole", "--worlds", "2", "--ours-only", "3", "--steps", "2",
+                "--out", str(tmp_path)])  # fmt: skip
+    rows = _load(tmp_path / "compare.json")["rows"]
+    assert [row["num_worlds"] for row in rows] == [2, 3]
+    for row in rows:
+        assert {"case", "num_worlds", "abd_gym", "mujoco_warp", "ratio", "joint_residual",
+                "memory_bytes_per_world"} <= set(row)  # fmt: skip
+        assert row["abd_gym"] > 0
+    assert math.isnan(rows[1]["mujoco_warp"])  # ours alone
+
+
+def test_bench_accuracy(tmp_path):
+    bench.main(["accuracy", "--cases", "cartpole", "--dts", "0.02", "--dtypes", "float64", "--tols", "1e-5",
+                "--integrators", "implicit_euler,bdf2", "--worlds", "2", "--reference-dt", "0.002",
+                "--out", str(tmp_path)])  # fmt: skip
+    r = _load(tmp_path / "accuracy.json")
+    ours = {row["integrator"]: row for row in r["rows"] if row["engine"] == "abd_gym"}
+    assert set(ours) == {"implicit_euler", "bdf2"}
+    for row in ours.values():
+        assert {"case", "dt", "dtype", "tol", "error_final", "error_max", "joint_residual", "energy_drift",
+                "world_steps_per_second"} <= set(row)  # fmt: skip
+        assert row["joint_residual"] < 1e-4
+    # second order: at dt 0.02 BDF2 tracks the reference better than implicit Euler
+    assert ours["bdf2"]["error_max"] < ours["implicit_euler"]["error_max"]
+    assert ours["implicit_euler"]["energy_drift"] < 0  # implicit Euler only loses energy
