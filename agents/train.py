@@ -83,7 +83,14 @@ def train(
     (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(cfg, sort_keys=False))
 
     env = build_train_env(cfg)
-    model = build_model(cfg, env, tensorboard_log=str(run_dir / "tensorboard"), verbose=verbose)
+    import importlib.util
+
+    # TensorBoard event files when tensorboard is installed (the [train] extra has it); without it
+    # SB3 would refuse to start, so train on and say so
+    tb = str(run_dir / "tensorboard") if importlib.util.find_spec("tensorboard") else None
+    if tb is None:
+        print("abd-gym-train: tensorboard is not installed; no TensorBoard logs", file=sys.stderr)
+    model = build_model(cfg, env, tensorboard_log=tb, verbose=verbose)
     n_envs = cfg["n_envs"]
     checkpoint_freq = cfg["checkpoint_freq"] or max(cfg["n_timesteps"] // 4, 1)
     callback = CheckpointCallback(
