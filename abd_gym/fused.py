@@ -195,6 +195,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 status[w] = FAILED
                 return 0
             floor = noise_floor(q, w, threshold)
+            if dmax < floor:
+                # a step under the tolerance: take it whole and stop; a line search (one more energy
+                # evaluation) could not tell its energy change from rounding
+                for b in range(nb):
+                    ob = t.dof[b]
+                    if ob >= 0:
+                        qb = q[w, b]
+                        for r in range(12):
+                            qb[r] = qb[r] + dq[ob + r, s]
+                        q[w, b] = qb
+                iterations[w] = it + 1
+                converged[w] = 1
+                return 0
             # backtracking line search (Armijo) on the world's own energy
             alpha = one
             accepted = int(0)

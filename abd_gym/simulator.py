@@ -12,6 +12,7 @@ import os
 import numpy as np
 import warp as wp
 
+from . import rows
 from .model import Model
 from .scene import FIXED, PRISMATIC, REVOLUTE, Scene
 from .solver import Solver, SolverSettings
@@ -78,6 +79,8 @@ class Simulator:
         self._ratio = np.broadcast_to([j.strength_ratio for j in scene.joints], (self.num_worlds, m.num_joints)).copy()
         self._mass = np.broadcast_to(m.base_mass, (self.num_worlds, m.num_bodies)).copy()
         self.use_graph = True if use_graph is None else bool(use_graph)
+        self._set_mask = None
+        self._torch_views = {}
         self._graph = None
         self._warm = False
         self.reset()
@@ -105,8 +108,11 @@ class Simulator:
             return np.array(array.numpy(), dtype=np.float64 if array.dtype != wp.int32 else np.int32)
         if backend == "warp":
             return array
-        if backend == "torch":
-            return wp.to_torch(array)
+        if backend == "torch":  # zero-copy views, made once: the state's arrays are never reallocated
+            view = self._torch_views.get(id(array))
+            if view is None:
+                view = self._torch_views[id(array)] = wp.to_torch(array)
+            return view
         raise ValueError(f"backend must be 'numpy', 'warp' or 'torch', got {backend!r}")
 
     def joint_coordinates(self, backend="numpy"):
@@ -210,16 +216,18 @@ class Simulator:
             raise ValueError(f"world indices must lie in [0, {self.num_worlds}), got {w.tolist()}")
         return w
 
-    def _mask(self, idx):
-        mask = np.zeros(self.num_worlds, dtype=np.int32)
-        mask[idx] = 1
-        return wp.array(mask, dtype=wp.int32, device=self.device)
+    def _mask(self, idx_dev):
+        """A device int32 mask (W,) of the worlds idx_dev (reused: valid until the next call)."""
+        if self._set_mask is None:
+            self._set_mask = wp.zeros(self.num_worlds, dtype=wp.int32, device=self.device)
+        self._set_mask.zero_()
+        rows.fill(self._set_mask, idx_dev, 1)
+        return self._set_mask
 
     def _write_rows(self, array, idx, values):
-        """array[idx] = values for a (W, ...) device array (host round trip; not on the step path)."""
-        host = array.numpy()
-        host[idx] = values
-        array.assign(host)
+        """array[idx] = values for a (W, C) device array; only those rows travel (rows.py)."""
+        idx_dev = idx if isinstance(idx, wp.array) else rows.indices(idx, self.device)
+        rows.write(array, idx_dev, values, self.model.np_dtype)
 
     def set_controls(self, values, worlds=None):
         """Drive inputs (num_worlds or len(worlds), num_drives): torque/force [N·m, N] of effort drives,
@@ -228,12 +236,10 @@ class Simulator:
         if nd == 0:
             raise ValueError("the scene has no drives")
         idx = self._worlds(worlds)
-        if worlds is None and not isinstance(values, np.ndarray) and hasattr(values, "__cuda_array_interface__") \
-                or (worlds is None and type(values).__module__.startswith("torch")):  # fmt: skip
-            src = wp.from_torch(values.contiguous().to(dtype=wp.to_torch(self.state.control).dtype))
-            if tuple(src.shape) != (self.num_worlds, nd):
-                raise ValueError(f"controls must have shape ({self.num_worlds}, {nd}), got {tuple(src.shape)}")
-            wp.copy(self.state.control, src)
+        if worlds is None and type(values).__module__.startswith("torch"):
+            if tuple(values.shape) != (self.num_worlds, nd):
+                raise ValueError(f"controls must have shape ({self.num_worlds}, {nd}), got {tuple(values.shape)}")
+            self._out(self.state.control, "torch").copy_(values)  # on the device, converting dtype
             return
         vals = _finite_array("controls", values, (len(idx), nd))
         if worlds is None:
@@ -260,26 +266,25 @@ class Simulator:
         self._set_q(idx, q, qd)
 
     def _set_q(self, idx, q, qd, unwrapped=None):
-        st = self.state
+        st, m = self.state, self.model
+        st.time[idx] = 0.0
+        if len(idx) == 0:
+            return
+        idx_dev = rows.indices(idx, self.device)
         # a set state has no past: the BDF2 history starts as if the velocity had been constant
         for arr, val in ((st.q, q), (st.qd, qd), (st.q_prev, q), (st.q_hist, q - self.dt * qd), (st.qd_hist, qd)):
-            self._write_rows(arr, idx, val)
-        status = st.status.numpy()
-        status[idx] = 0
-        st.status.assign(status)
-        st.time[idx] = 0.0
-        mask = self._mask(idx)
+            self._write_rows(arr, idx_dev, val)
+        rows.fill(st.status, idx_dev, 0)
+        mask = self._mask(idx_dev)
         self.solver.begin(st, mask)
         self.solver.update_coordinates(st, accumulate=False, rate_from_qd=True, mask=mask)
-        if self.model.num_joints:
-            u = st.unwrapped.numpy()
-            u[idx, : self.model.num_joints] = st.coord.numpy()[idx, : self.model.num_joints]
-            if unwrapped is not None:
-                u[idx, : self.model.num_joints] = unwrapped
-            st.unwrapped.assign(u)
-            xh = st.x_hist.numpy()
-            xh[idx] = u[idx] - self.dt * st.coord_vel.numpy()[idx]
-            st.x_hist.assign(xh)
+        if m.num_joints:
+            nj = m.num_joints
+            given = np.zeros((1, 1)) if unwrapped is None else np.broadcast_to(unwrapped, (len(idx), nj))
+            given = wp.array(np.ascontiguousarray(given, dtype=m.np_dtype), dtype=m.dtype, device=self.device)
+            wp.launch(rows.kernels(m.dtype)["restart_unwrapped"], dim=(len(idx), nj),
+                      inputs=[idx_dev, st.coord, st.coord_vel, given, int(unwrapped is not None), m.dtype(self.dt),
+                              st.unwrapped, st.x_hist], device=self.device)  # fmt: skip
 
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
         """Forward kinematics for tree mechanisms: joint coordinates (N, num_joints) [rad, m] and

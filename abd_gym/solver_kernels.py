@@ -138,7 +138,8 @@ def kernels(dtype):
         alpha: wp.array(dtype=dtype), searching: wp.array(dtype=wp.int32), take: wp.array(dtype=wp.int32),
         active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), remaining: wp.array(dtype=wp.int32),
     ):  # fmt: skip
-        """Armijo test on the world's own energy; halve α on failure.
+        """Armijo test on the world's own energy; halve α on failure (a step under the tolerance is
+        accepted without the test).
 
         Energies equal to within rounding count as no increase (the float32 noise floor); a world
         whose search runs out takes no step and stops: converged if its Newton step was already
@@ -146,6 +147,12 @@ def kernels(dtype):
         """
         w = wp.tid()
         if searching[w] == 0:
+            return
+        if dq_max[w] < noise_floor(q, w, threshold):
+            # a step under the tolerance is taken whole (α = 1, the first trial) and ends the solve:
+            # the energy test could not tell its change from rounding (as the fused step)
+            searching[w] = 0
+            take[w] = 1
             return
         e0 = zero
         e1 = zero

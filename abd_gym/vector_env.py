@@ -311,7 +311,7 @@ class ABDVectorEnv(VectorEnv):
             mask = np.zeros(self.num_envs, dtype=bool)
             mask[self.sim.failed_worlds()] = True
             return mask
-        return wp.to_torch(self.sim.state.status) != 0
+        return self.sim._out(self.sim.state.status, "torch") != 0
 
     # ================================================================== actions
     def _prepare_actions(self, actions):

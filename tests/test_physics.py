@@ -215,6 +215,29 @@ def test_worlds_are_independent_and_a_failed_world_is_reset():
     assert np.isfinite(sim.body_q()[0]).all()
 
 
+def test_setting_some_worlds_writes_only_their_rows():
+    """set_joint_state(worlds=...) scatters on the device: the listed worlds match a simulator set in
+    full, every other world's state and history are untouched bit for bit."""
+    scene = mechanisms.double_pendulum()
+    sim = ag.Simulator(scene, num_worlds=4, dt=0.01, integrator="bdf2")
+    sim.set_joint_state([[0.3, -0.2]] * 4, [[1.0, 0.5]] * 4)
+    sim.step(5)
+    st = sim.state
+    names = ("q", "qd", "q_prev", "q_hist", "qd_hist", "unwrapped", "x_hist", "theta0", "status")
+    before = {n: getattr(st, n).numpy().copy() for n in names}
+    sim.set_joint_state([[7.0, 0.1], [-0.4, 0.2]], [[0.5, 0.0], [0.0, -1.0]], worlds=[3, 1])
+    after = {n: getattr(st, n).numpy() for n in names}
+    for n in names:
+        np.testing.assert_array_equal(after[n][[0, 2]], before[n][[0, 2]], err_msg=n)
+    full = ag.Simulator(scene, num_worlds=2, dt=0.01, integrator="bdf2")
+    full.set_joint_state([[7.0, 0.1], [-0.4, 0.2]], [[0.5, 0.0], [0.0, -1.0]])
+    for n in names:
+        np.testing.assert_allclose(after[n][[3, 1]], getattr(full.state, n).numpy(), atol=1e-6, err_msg=n)
+    # the multi-turn angle keeps the 7 rad given (not its principal value)
+    assert abs(sim.joint_angles_unwrapped()[3, 0] - 7.0) < 1e-5
+    sim.set_joint_state(np.zeros((0, 2)), worlds=[])  # nothing to write is not an error
+
+
 def test_bad_input_raises_clear_errors():
     scene = ag.Scene()
     base = scene.add_body(ag.Box((0.1, 0.1, 0.1)), fixed=True)
