@@ -232,7 +232,7 @@ def table(result) -> str:
     for a in result["accuracy"]:
         lines.append(f"| {a['case']} | {a['dt']} | {a['dtype']} | {a['period_error']:+.3%} |")
     if result.get("envs"):
-        lines += ["", "| task | envs | env-steps/s | raw simulator, same steps/s | env / raw |", "|---|---:|---:|---:|---:|"]
+        lines += ["", "| task | envs | env-steps/s | physics of those steps alone, steps/s | env / physics |", "|---|---:|---:|---:|---:|"]
         for e in result["envs"]:
             lines.append(f"| {e['task']} | {e['num_envs']} | {e['env_steps_per_second']:,.0f} | "
                          f"{e['raw_steps_per_second']:,.0f} | {e['env_over_raw']:.2f} |")  # fmt: skip
