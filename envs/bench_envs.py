@@ -22,60 +22,78 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
     """World-steps per second (``num_envs × steps / seconds``) of ``steps`` calls of ``step``.
 
     ``task_id``: a registered id, with or without the ``abd_gym/`` namespace.  With ``raw``, returns
-    ``(env rate, raw rate)``: the raw rate counts only the time the simulator's own steps took inside
-    those same env steps (CUDA events around each ``sim.step`` on a GPU, the host clock on the CPU),
-    so both rates cover exactly the same physics, resets included, and their ratio is what the env
-    layer (actions, observations, rewards, autoresets) costs.
+    ``(env rate, simulator-alone rate, physics-time rate)``:
+
+    - simulator alone: the env's simulator stepped ``frame_skip`` steps per env step by itself, after
+      the env run (wall clock; its states differ from the env's, which resets keep near rest);
+    - physics time: a second, identically seeded env run with each of its own ``sim.step`` calls
+      timed (CUDA events on a GPU, the host clock on the CPU): the same states and resets as the
+      env run, but device time only, so an upper bound on the simulator's rate.
     """
     if "/" not in task_id:
         task_id = f"abd_gym/{task_id}"
-    env = gym.make_vec(task_id, num_envs=num_envs, vectorization_mode="vector_entry_point", device=device,
-                       backend=backend)  # fmt: skip
-    u = env.unwrapped
-    sim, inner = u.sim, u.sim.step
-    cuda = wp.get_device(u.device).is_cuda
-    events = [wp.Event(u.device, enable_timing=True) for _ in range(2 * steps)] if raw and cuda else []
-    spans = []
 
-    def timed_step(num_steps=1):  # the env's own sim.step, bracketed by timers
-        k = len(spans)
-        if cuda:
-            wp.record_event(events[2 * k])
-            inner(num_steps)
-            wp.record_event(events[2 * k + 1])
-            spans.append((events[2 * k], events[2 * k + 1]))
-        else:
-            t = time.perf_counter()
-            inner(num_steps)
-            spans.append(time.perf_counter() - t)
+    def run(timed: bool):
+        env = gym.make_vec(task_id, num_envs=num_envs, vectorization_mode="vector_entry_point", device=device,
+                           backend=backend)  # fmt: skip
+        u = env.unwrapped
+        sim, inner = u.sim, u.sim.step
+        cuda = wp.get_device(u.device).is_cuda
+        events = [wp.Event(u.device, enable_timing=True) for _ in range(2 * steps)] if timed and cuda else []
+        spans = []
 
-    try:
-        env.reset(seed=seed)
-        rng = np.random.default_rng(seed)
-        shape = env.action_space.shape
-        actions = [rng.uniform(-1.0, 1.0, size=shape).astype(np.float32) for _ in range(min(steps, 64))]
-        if backend == "torch":
-            import torch
+        def timed_step(num_steps=1):  # the env's own sim.step, bracketed by timers
+            k = len(spans)
+            if cuda:
+                wp.record_event(events[2 * k])
+                inner(num_steps)
+                wp.record_event(events[2 * k + 1])
+                spans.append((events[2 * k], events[2 * k + 1]))
+            else:
+                t = time.perf_counter()
+                inner(num_steps)
+                spans.append(time.perf_counter() - t)
 
-            actions = [torch.as_tensor(a, device=u._torch_device) for a in actions]
-        env.step(actions[0])  # warm-up: kernel loads, graph capture
-        wp.synchronize_device(u.device)
-        if raw:
-            sim.step = timed_step
-        t0 = time.perf_counter()
-        for k in range(steps):
-            env.step(actions[k % len(actions)])
-        wp.synchronize_device(u.device)
-        elapsed = time.perf_counter() - t0
-    finally:
-        sim.step = inner
-        env.close()
-    if raw:
-        if len(spans) != steps:
-            raise RuntimeError(f"expected one sim.step per env step, timed {len(spans)} in {steps} steps")
-        physics = sum(wp.get_event_elapsed_time(a, b) / 1000.0 for a, b in spans) if cuda else sum(spans)
-        return num_envs * steps / elapsed, num_envs * steps / physics
-    return num_envs * steps / elapsed
+        try:
+            env.reset(seed=seed)
+            rng = np.random.default_rng(seed)
+            shape = env.action_space.shape
+            actions = [rng.uniform(-1.0, 1.0, size=shape).astype(np.float32) for _ in range(min(steps, 64))]
+            if backend == "torch":
+                import torch
+
+                actions = [torch.as_tensor(a, device=u._torch_device) for a in actions]
+            env.step(actions[0])  # warm-up: kernel loads, graph capture
+            wp.synchronize_device(u.device)
+            if timed:
+                sim.step = timed_step
+            t0 = time.perf_counter()
+            for k in range(steps):
+                env.step(actions[k % len(actions)])
+            wp.synchronize_device(u.device)
+            elapsed = time.perf_counter() - t0
+            sim.step = inner
+            alone = None
+            if timed:
+                if len(spans) != steps:
+                    raise RuntimeError(f"expected one sim.step per env step, timed {len(spans)} in {steps} steps")
+                physics = sum(wp.get_event_elapsed_time(a, b) / 1000.0 for a, b in spans) if cuda else sum(spans)
+                t0 = time.perf_counter()
+                for _ in range(steps):
+                    sim.step(u.frame_skip)
+                wp.synchronize_device(u.device)
+                alone = time.perf_counter() - t0
+                return elapsed, alone, physics
+            return elapsed, None, None
+        finally:
+            sim.step = inner
+            env.close()
+
+    elapsed = run(timed=False)[0]
+    if not raw:
+        return num_envs * steps / elapsed
+    _, alone, physics = run(timed=True)
+    return tuple(num_envs * steps / t for t in (elapsed, alone, physics))
 
 
 def main(argv=None):

@@ -29,6 +29,7 @@ def test_bench_worlds_and_envs(tmp_path):
     (env,) = r["envs"]
     assert env["env_steps_per_second"] > 0 and env["raw_steps_per_second"] > 0
     assert env["env_over_raw"] == pytest.approx(env["env_steps_per_second"] / env["raw_steps_per_second"])
+    assert env["env_over_physics"] == pytest.approx(env["env_steps_per_second"] / env["physics_steps_per_second"])
 
 
 def test_bench_threads(tmp_path):
