@@ -95,7 +95,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
     residual = float(sim.joint_violation().max())
     return dict(
         case=case, num_worlds=num_worlds, steps=steps, dt=dt, dtype=dtype, device=str(sim.device),
-        tol=sim.solver.settings.tol, integrator=sim.solver.settings.integrator,
+        tol=sim.solver.settings.tol, integrator=sim.solver.settings.integrator, tiled=sim.solver.settings.tiled,
         seconds=elapsed, steps_per_second=steps / elapsed, world_steps_per_second=num_worlds * steps / elapsed,
         newton_iterations=float(sim.newton_iterations().mean()), joint_residual=residual,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
@@ -126,6 +126,8 @@ def main(argv=None):
     ap.add_argument("--dtype", default="float32")
     ap.add_argument("--tol", default="1e-5", help="comma-separated Newton tolerances ‖Δq‖∞/h [m/s] to time")
     ap.add_argument("--integrator", default="implicit_euler")
+    ap.add_argument("--tiled", default="0", help="comma-separated: 0 = one thread per world, 1 = one block per world")
+    ap.add_argument("--block-dim", type=int, default=None, help="CUDA block size (default: per solver)")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--out", default="bench_out")
     ap.add_argument("--envs", action="store_true", help="also time each task's vector env")
@@ -141,11 +143,12 @@ def main(argv=None):
         for dt in (args.dt,):
             accuracy.append(dict(case=case, dt=dt, dtype=args.dtype,
                                  period_error=period_error(case, dt, args.dtype, args.device)))  # fmt: skip
-        for w, tol in ((w, float(t)) for t in args.tol.split(",") for w in worlds):
+        for w, tol, tiled in ((w, float(t), bool(int(k))) for k in args.tiled.split(",") for t in args.tol.split(",")
+                              for w in worlds):  # fmt: skip
             rows.append(time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol,
-                                   integrator=args.integrator))  # fmt: skip
+                                   integrator=args.integrator, tiled=tiled, block_dim=args.block_dim))  # fmt: skip
             r = rows[-1]
-            print(f"{case:16s} worlds {w:6d} tol {tol:g}  {r['world_steps_per_second']:12.0f} world-steps/s  "
+            print(f"{case:16s} worlds {w:6d} tol {tol:g} {_solver(r):9s} {r['world_steps_per_second']:12.0f} world-steps/s  "
                   f"{r['steps_per_second']:8.1f} steps/s  iters {r['newton_iterations']:.2f}  "
                   f"residual {r['joint_residual']:.2e}", flush=True)  # fmt: skip
     env_rows = []
@@ -223,13 +226,19 @@ def sweep_threads(argv=None):
     return result
 
 
+def _solver(r) -> str:
+    """'thread' (one thread per world) or 'tiled/B' (one block of B lanes per world)."""
+    return f"tiled/{r['block_dim']}" if r.get("tiled") else "thread"
+
+
 def table(result) -> str:
     """Markdown tables of a bench result."""
     lines = [f"Device: {result['device_name']} ({result['device']}), warp {result['warp']}", "",
-             "| mechanism | worlds | tol [m/s] | world-steps/s | steps/s | Newton iters | joint residual [m] |",
-             "|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+             "| mechanism | worlds | step | tol [m/s] | world-steps/s | steps/s | Newton iters | joint residual [m] |",
+             "|---|---:|---|---:|---:|---:|---:|---:|"]  # fmt: skip
     for r in result["simulator"]:
-        lines.append(f"| {r['case']} | {r['num_worlds']} | {r.get('tol', 1e-5):g} | {r['world_steps_per_second']:,.0f} | "
+        lines.append(f"| {r['case']} | {r['num_worlds']} | {_solver(r)} | {r.get('tol', 1e-5):g} | "
+                     f"{r['world_steps_per_second']:,.0f} | "
                      f"{r['steps_per_second']:,.1f} | {r['newton_iterations']:.2f} | {r['joint_residual']:.1e} |")  # fmt: skip
     lines += ["", "| mechanism | dt [s] | dtype | period error (lowest mode) |", "|---|---:|---|---:|"]
     for a in result["accuracy"]:

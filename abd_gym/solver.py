@@ -30,6 +30,9 @@ class SolverSettings:
     # size; None picks them for the device (see Solver.fused_threads)
     threads: int | None = None
     block_dim: int | None = None
+    # fused step with one CUDA block per world: its Hessian in shared memory, assembled by the
+    # block's lanes together and factored with wp.tile_cholesky (block_dim lanes, default 32)
+    tiled: bool = False
 
 
 def default_threads(device, num_worlds: int) -> int:
@@ -68,16 +71,23 @@ class Solver:
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
         # scratch columns: one per world for the staged step; one per thread for the fused step,
         # whose threads each solve several worlds in turn (memory per world stays O(bodies))
-        if settings.fused:
+        if settings.tiled and not settings.fused:
+            raise ValueError("tiled=True needs the fused step (fused=True)")
+        if settings.tiled:
+            self.threads = 1  # no per-thread scratch: each block keeps its world's system in shared memory
+        elif settings.fused:
             T = default_threads(wp.get_device(dev), W) if settings.threads is None else settings.threads
             if not (isinstance(T, (int, np.integer)) and T > 0):
                 raise ValueError(f"threads must be a positive integer, got {settings.threads!r}")
             self.threads = int(min(T, W))
         else:
             self.threads = W
-        self.block_dim = settings.block_dim or default_block_dim(wp.get_device(dev), self.threads)
+        if settings.tiled:
+            self.block_dim = settings.block_dim or 32
+        else:
+            self.block_dim = settings.block_dim or default_block_dim(wp.get_device(dev), self.threads)
         T = self.threads
-        self.q_trial = wp.zeros((T, model.num_bodies), dtype=model.vec12, device=dev)
+        self.q_trial = wp.zeros((W if settings.tiled else T, model.num_bodies), dtype=model.vec12, device=dev)
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)
         self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=dt_, device=dev)
@@ -157,6 +167,11 @@ class Solver:
         if self._fused is None:
             self._fused = self._build_fused(state)
         kernel, terms = self._fused
+        if s.tiled:
+            wp.launch_tiled(kernel, dim=[m.num_worlds], inputs=[
+                state.q, self.q_trial, terms, m.dtype(s.tol * self.h), s.max_iterations, s.max_line_search,
+                state.status, state.iterations, state.converged], block_dim=self.block_dim, device=m.device)  # fmt: skip
+            return
         wp.launch(kernel, dim=self.threads, inputs=[
             state.q, self.q_trial, terms, self.g, self.H, self.dq, m.num_dofs, m.dtype(s.tol * self.h),
             s.max_iterations, s.max_line_search, state.status, state.iterations, state.converged], device=m.device,
@@ -171,7 +186,7 @@ class Solver:
         m = self.model
         has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
                len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
-        kernel, Terms = fused_kernel(m.dtype, *has)
+        kernel, Terms = fused_kernel(m.dtype, *has, tiled=m.num_dofs if self.settings.tiled else 0)
         t = Terms()
         for name in ("free", "dof", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip

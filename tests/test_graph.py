@@ -7,9 +7,9 @@ import abd_gym as ag
 from abd_gym import mechanisms
 
 
-def _run(use_graph, fused=True, dtype="float32", threads=None):
+def _run(use_graph, fused=True, dtype="float32", threads=None, tiled=False):
     sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, use_graph=use_graph, fused=fused, dtype=dtype,
-                       threads=threads)  # fmt: skip
+                       threads=threads, tiled=tiled)  # fmt: skip
     rng = np.random.default_rng(3)
     sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
     out = []
@@ -53,6 +53,16 @@ def test_fewer_threads_than_worlds_is_the_same_step():
     shared, sim = _run(True, threads=3)  # thread 0 solves worlds 0 and 3
     assert sim.solver.threads == 3 and sim.solver.H.shape[2] == 3
     np.testing.assert_array_equal(np.nan_to_num(shared), np.nan_to_num(one_each))
+    assert sim.failed_worlds().tolist() == [3]
+
+
+def test_tiled_step_matches_thread_step():
+    """One block per world (Hessian in shared memory, tile Cholesky) against one thread per world:
+    the same solve in another summation order (limits, drives, resets and a failure included)."""
+    thread, _ = _run(True, dtype="float64")
+    tiled, sim = _run(True, dtype="float64", tiled=True)
+    assert sim.solver.settings.tiled and sim.solver.block_dim == 32
+    np.testing.assert_allclose(np.nan_to_num(tiled), np.nan_to_num(thread), atol=1e-9)
     assert sim.failed_worlds().tolist() == [3]
 
 
