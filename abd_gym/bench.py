@@ -95,7 +95,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
     residual = float(sim.joint_violation().max())
     return dict(
         case=case, num_worlds=num_worlds, steps=steps, dt=dt, dtype=dtype, device=str(sim.device),
-        tol=sim.solver.settings.tol, integrator=sim.solver.settings.integrator, tiled=sim.solver.settings.tiled,
+        tol=sim.solver.settings.tol, integrator=sim.solver.settings.integrator, scratch=sim.solver.settings.scratch,
         seconds=elapsed, steps_per_second=steps / elapsed, world_steps_per_second=num_worlds * steps / elapsed,
         newton_iterations=float(sim.newton_iterations().mean()), joint_residual=residual,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
@@ -126,7 +126,7 @@ def main(argv=None):
     ap.add_argument("--dtype", default="float32")
     ap.add_argument("--tol", default="1e-5", help="comma-separated Newton tolerances ‖Δq‖∞/h [m/s] to time")
     ap.add_argument("--integrator", default="implicit_euler")
-    ap.add_argument("--tiled", default="0", help="comma-separated: 0 = one thread per world, 1 = one block per world")
+    ap.add_argument("--scratch", default="global", help="comma-separated fused-step scratch: global, local, tiled")
     ap.add_argument("--block-dim", type=int, default=None, help="CUDA block size (default: per solver)")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--out", default="bench_out")
@@ -143,10 +143,10 @@ def main(argv=None):
         for dt in (args.dt,):
             accuracy.append(dict(case=case, dt=dt, dtype=args.dtype,
                                  period_error=period_error(case, dt, args.dtype, args.device)))  # fmt: skip
-        for w, tol, tiled in ((w, float(t), bool(int(k))) for k in args.tiled.split(",") for t in args.tol.split(",")
-                              for w in worlds):  # fmt: skip
+        for w, tol, scratch in ((w, float(t), k) for k in args.scratch.split(",") for t in args.tol.split(",")
+                                for w in worlds):  # fmt: skip
             rows.append(time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol,
-                                   integrator=args.integrator, tiled=tiled, block_dim=args.block_dim))  # fmt: skip
+                                   integrator=args.integrator, scratch=scratch, block_dim=args.block_dim))  # fmt: skip
             r = rows[-1]
             print(f"{case:16s} worlds {w:6d} tol {tol:g} {_solver(r):9s} {r['world_steps_per_second']:12.0f} world-steps/s  "
                   f"{r['steps_per_second']:8.1f} steps/s  iters {r['newton_iterations']:.2f}  "
@@ -193,6 +193,7 @@ def sweep_threads(argv=None):
     ap.add_argument("--worlds", default="1024,131072")
     ap.add_argument("--threads", default="all,64sm,128sm,256sm")
     ap.add_argument("--block-dims", default="32,64,128,256")
+    ap.add_argument("--scratch", default="global", help="the fused step's scratch: global or local")
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--dt", type=float, default=0.01)
     ap.add_argument("--dtype", default="float32")
@@ -214,9 +215,10 @@ def sweep_threads(argv=None):
                 if any(r["case"] == case and r["num_worlds"] == w and r["threads"] == T and spec != "all" for r in rows):
                     continue
                 for bd in (int(b) for b in args.block_dims.split(",")):
-                    r = time_steps(case, w, args.steps, args.dt, args.dtype, args.device, threads=T, block_dim=bd)
+                    r = time_steps(case, w, args.steps, args.dt, args.dtype, args.device, threads=T, block_dim=bd,
+                                   scratch=args.scratch)  # fmt: skip
                     rows.append(r)
-                    print(f"{case:16s} worlds {w:8d} threads {T:8d} block {bd:4d}  "
+                    print(f"{case:16s} {args.scratch} worlds {w:8d} threads {T:8d} block {bd:4d}  "
                           f"{r['world_steps_per_second']:14,.0f} world-steps/s  iters {r['newton_iterations']:.2f}  "
                           f"{r['memory_bytes_per_world']:.0f} B/world", flush=True)  # fmt: skip
     result = dict(device=args.device, device_name=dev.name, sm_count=sms, warp=wp.config.version, rows=rows)
@@ -227,8 +229,9 @@ def sweep_threads(argv=None):
 
 
 def _solver(r) -> str:
-    """'thread' (one thread per world) or 'tiled/B' (one block of B lanes per world)."""
-    return f"tiled/{r['block_dim']}" if r.get("tiled") else "thread"
+    """The fused step's scratch ("global", "local", "tiled") and CUDA block size."""
+    scratch = r.get("scratch") or ("tiled" if r.get("tiled") else "global")
+    return f"{scratch}/{r['block_dim']}"
 
 
 def table(result) -> str:

@@ -55,15 +55,16 @@ class Simulator:
     line-search loops running as conditional loops on device flags: same arithmetic, far fewer
     Python launches.  ``fused`` (default on) runs each world's whole Newton solve in one thread of
     one kernel; ``threads`` (that kernel's thread count; each thread solves worlds s, s+T, …) and
-    ``block_dim`` (its CUDA block size) default to values measured on an H100.  ``tiled`` gives
-    each world a CUDA block instead of a thread: its lanes assemble the Hessian in shared memory
-    and factor it together (``wp.tile_cholesky``); same arithmetic, same trajectories to rounding.
+    ``block_dim`` (its CUDA block size) default to values measured on an H100.  ``scratch``: where the
+    fused step keeps a world's gradient, Hessian and Newton step: "global" (arrays, one column per
+    thread), "local" (the thread's own local memory) or "tiled" (a CUDA block per world, the Hessian
+    in shared memory, factored by ``wp.tile_cholesky``); same arithmetic, same trajectories to rounding.
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
                  tol: float = 1e-5, max_iterations: int = 50, max_line_search: int = 12,
                  use_graph: bool | None = None, fused: bool = True, integrator: str = "implicit_euler",
-                 threads: int | None = None, block_dim: int | None = None, tiled: bool = False):  # fmt: skip
+                 threads: int | None = None, block_dim: int | None = None, scratch: str = "global"):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
@@ -73,7 +74,7 @@ class Simulator:
         self.model = Model(scene, num_worlds, dtype=dtype, device=device)
         self.state = State(self.model)
         self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search), bool(fused), integrator,
-                                                           threads, block_dim, bool(tiled)))  # fmt: skip
+                                                           threads, block_dim, scratch))  # fmt: skip
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device

@@ -30,9 +30,9 @@ class SolverSettings:
     # size; None picks them for the device (see Solver.fused_threads)
     threads: int | None = None
     block_dim: int | None = None
-    # fused step with one CUDA block per world: its Hessian in shared memory, assembled by the
-    # block's lanes together and factored with wp.tile_cholesky (block_dim lanes, default 32)
-    tiled: bool = False
+    # where the fused step keeps a world's g, H and Δq (fused.py): "global" arrays, one column per
+    # thread; the thread's "local" memory; or "tiled": a CUDA block per world, H in shared memory
+    scratch: str = "global"
 
 
 def default_threads(device, num_worlds: int) -> int:
@@ -71,9 +71,12 @@ class Solver:
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
         # scratch columns: one per world for the staged step; one per thread for the fused step,
         # whose threads each solve several worlds in turn (memory per world stays O(bodies))
-        if settings.tiled and not settings.fused:
-            raise ValueError("tiled=True needs the fused step (fused=True)")
-        if settings.tiled:
+        if settings.scratch not in ("global", "local", "tiled"):
+            raise ValueError(f"scratch must be 'global', 'local' or 'tiled', got {settings.scratch!r}")
+        if settings.scratch != "global" and not settings.fused:
+            raise ValueError(f"scratch={settings.scratch!r} needs the fused step (fused=True)")
+        self.tiled = settings.scratch == "tiled"
+        if self.tiled:
             self.threads = 1  # no per-thread scratch: each block keeps its world's system in shared memory
         elif settings.fused:
             T = default_threads(wp.get_device(dev), W) if settings.threads is None else settings.threads
@@ -82,16 +85,19 @@ class Solver:
             self.threads = int(min(T, W))
         else:
             self.threads = W
-        if settings.tiled:
+        if self.tiled:
             self.block_dim = settings.block_dim or 32
         else:
             self.block_dim = settings.block_dim or default_block_dim(wp.get_device(dev), self.threads)
         T = self.threads
-        self.q_trial = wp.zeros((W if settings.tiled else T, model.num_bodies), dtype=model.vec12, device=dev)
+        self.q_trial = wp.zeros((W if self.tiled else T, model.num_bodies), dtype=model.vec12, device=dev)
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)
         self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=dt_, device=dev)
-        # column-minor: thread s reads H[i, j, s] coalesced with its neighbours
+        # column-minor: thread s reads H[i, j, s] coalesced with its neighbours (local and tiled
+        # scratch keep their own: these are then only the staged assembly's, one column)
+        if settings.scratch != "global":
+            T = 1
         self.g = wp.zeros((n, T), dtype=dt_, device=dev)
         self.H = wp.zeros((n, n, T), dtype=dt_, device=dev)
         self.dq = wp.zeros((n, T), dtype=dt_, device=dev)
@@ -167,10 +173,16 @@ class Solver:
         if self._fused is None:
             self._fused = self._build_fused(state)
         kernel, terms = self._fused
-        if s.tiled:
+        if self.tiled:
             wp.launch_tiled(kernel, dim=[m.num_worlds], inputs=[
                 state.q, self.q_trial, terms, m.dtype(s.tol * self.h), s.max_iterations, s.max_line_search,
                 state.status, state.iterations, state.converged], block_dim=self.block_dim, device=m.device)  # fmt: skip
+            return
+        if s.scratch == "local":
+            wp.launch(kernel, dim=self.threads, inputs=[
+                state.q, self.q_trial, terms, self.g, self.H, m.dtype(s.tol * self.h), s.max_iterations,
+                s.max_line_search, state.status, state.iterations, state.converged], device=m.device,
+                block_dim=self.block_dim)  # fmt: skip
             return
         wp.launch(kernel, dim=self.threads, inputs=[
             state.q, self.q_trial, terms, self.g, self.H, self.dq, m.num_dofs, m.dtype(s.tol * self.h),
@@ -180,13 +192,13 @@ class Solver:
     def _build_fused(self, state):
         """The fused kernel for what this scene has, and the struct of arrays it reads (built once:
         the arrays are never reallocated, so a captured graph stays valid)."""
-        from .fused import fused_kernel
+        from .fused import fused_kernel, pair_list
         from .scene import FIXED, PRISMATIC, REVOLUTE
 
         m = self.model
         has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
                len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
-        kernel, Terms = fused_kernel(m.dtype, *has, tiled=m.num_dofs if self.settings.tiled else 0)
+        kernel, Terms = fused_kernel(m.dtype, *has, scratch=self.settings.scratch, n=m.num_dofs)
         t = Terms()
         for name in ("free", "dof", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -200,6 +212,9 @@ class Solver:
         t.rlim_lo, t.rlim_up, t.rlim_s = m.limit_params[REVOLUTE]
         t.plim_lo, t.plim_up, t.plim_s = m.limit_params[PRISMATIC]
         t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
+        kinds, index = pair_list(m)
+        t.pair_kind = wp.array(kinds, dtype=wp.int32, device=m.device)
+        t.pair_index = wp.array(index, dtype=wp.int32, device=m.device)
         return kernel, t
 
     def _newton_iteration(self, state):

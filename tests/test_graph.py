@@ -7,9 +7,9 @@ import abd_gym as ag
 from abd_gym import mechanisms
 
 
-def _run(use_graph, fused=True, dtype="float32", threads=None, tiled=False):
+def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global"):
     sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, use_graph=use_graph, fused=fused, dtype=dtype,
-                       threads=threads, tiled=tiled)  # fmt: skip
+                       threads=threads, scratch=scratch)  # fmt: skip
     rng = np.random.default_rng(3)
     sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
     out = []
@@ -56,14 +56,16 @@ def test_fewer_threads_than_worlds_is_the_same_step():
     assert sim.failed_worlds().tolist() == [3]
 
 
-def test_tiled_step_matches_thread_step():
-    """One block per world (Hessian in shared memory, tile Cholesky) against one thread per world:
-    the same solve in another summation order (limits, drives, resets and a failure included)."""
-    thread, _ = _run(True, dtype="float64")
-    tiled, sim = _run(True, dtype="float64", tiled=True)
-    assert sim.solver.settings.tiled and sim.solver.block_dim == 32
-    np.testing.assert_allclose(np.nan_to_num(tiled), np.nan_to_num(thread), atol=1e-9)
-    assert sim.failed_worlds().tolist() == [3]
+def test_local_and_tiled_scratch_match_global_scratch():
+    """g, H and Δq in each thread's local memory, or one block per world (H in shared memory, tile
+    Cholesky), against global scratch columns: the same solve in another summation order (limits,
+    drives, resets and a failure included)."""
+    ref, _ = _run(True, dtype="float64")
+    for scratch in ("local", "tiled"):
+        out, sim = _run(True, dtype="float64", scratch=scratch, threads=3)
+        assert sim.solver.settings.scratch == scratch
+        np.testing.assert_allclose(np.nan_to_num(out), np.nan_to_num(ref), atol=1e-9, err_msg=scratch)
+        assert sim.failed_worlds().tolist() == [3]
 
 
 def test_threads_must_be_positive():
