@@ -126,7 +126,7 @@ def main(argv=None):
     ap.add_argument("--dtype", default="float32")
     ap.add_argument("--tol", default="1e-5", help="comma-separated Newton tolerances ‖Δq‖∞/h [m/s] to time")
     ap.add_argument("--integrator", default="implicit_euler")
-    ap.add_argument("--scratch", default="global", help="comma-separated fused-step scratch: global, local, tiled")
+    ap.add_argument("--scratch", default="global", help="comma-separated fused-step scratch: global, tiled")
     ap.add_argument("--block-dim", type=int, default=None, help="CUDA block size (default: per solver)")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--out", default="bench_out")
@@ -193,7 +193,7 @@ def sweep_threads(argv=None):
     ap.add_argument("--worlds", default="1024,131072")
     ap.add_argument("--threads", default="all,64sm,128sm,256sm")
     ap.add_argument("--block-dims", default="32,64,128,256")
-    ap.add_argument("--scratch", default="global", help="the fused step's scratch: global or local")
+    ap.add_argument("--scratch", default="global", help="the fused step's scratch: global or tiled")
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--dt", type=float, default=0.01)
     ap.add_argument("--dtype", default="float32")
@@ -229,7 +229,7 @@ def sweep_threads(argv=None):
 
 
 def _solver(r) -> str:
-    """The fused step's scratch ("global", "local", "tiled") and CUDA block size."""
+    """The fused step's scratch ("global", "tiled"; "local" in older results) and CUDA block size."""
     scratch = r.get("scratch") or ("tiled" if r.get("tiled") else "global")
     return f"{scratch}/{r['block_dim']}"
 

@@ -32,9 +32,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
-    "local": a thread per world, g, H (packed lower triangle) and Δq in the thread's own local memory
-    (cached in L1 and written back, where global stores go through to L2); "tiled": a CUDA block per
-    world, H and g in shared memory, assembled together and factored by ``wp.tile_cholesky``."""
+    "tiled": a CUDA block per world, H and g in shared memory, assembled together and factored by
+    ``wp.tile_cholesky``.  (A third layout, g, H and Δq in each thread's local memory, measured
+    slower than "global" at every batch size on an H100 and was removed; see results/.)"""
     tiled = n if scratch == "tiled" else 0
     o = ops(dtype)
     vec3, vec12, mat33, mat12 = o.vec3, o.vec12, o.mat33, o.mat12
@@ -155,9 +155,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         unwrapped: wp.array2d(dtype=dtype)
         x_anchor: wp.array2d(dtype=dtype)
         h: dtype
-        # every two-body term in one list (the "local" kernel's assembly loop): kind and index
-        pair_kind: wp.array(dtype=wp.int32)
-        pair_index: wp.array(dtype=wp.int32)
 
     @wp.func
     def assemble(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any):
@@ -309,9 +306,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     if scratch == "global":
         return newton, Terms
-    if scratch == "local":
-        return _local_kernel(dtype, Terms, n, (has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive), assemble,
-                             noise_floor), Terms  # fmt: skip
 
     @wp.func
     def solve_world_tiled(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, H: Any, g: Any,
@@ -400,221 +394,3 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     return newton_tiled, Terms
 
-
-REV, FIX, PRI, RLIM, PLIM, DRIVE = range(6)  # pair_kind codes
-
-
-def pair_list(model):
-    """(pair_kind, pair_index) of every two-body term of the scene, in the order the "local" kernel
-    adds them."""
-    from .scene import FIXED, PRISMATIC, REVOLUTE
-
-    kinds, index = [], []
-    for code, n in ((REV, model.joint_count[REVOLUTE]), (FIX, model.joint_count[FIXED]), (PRI, model.joint_count[PRISMATIC]),
-                    (RLIM, len(model.limit_joints[REVOLUTE])), (PLIM, len(model.limit_joints[PRISMATIC])),
-                    (DRIVE, model.num_drives)):  # fmt: skip
-        kinds += [code] * n
-        index += list(range(n))
-    return np.array(kinds, dtype=np.int32), np.array(index, dtype=np.int32)
-
-
-def _local_kernel(dtype, Terms, N, has, assemble, noise_floor):
-    """One thread per world with g, H and Δq in the thread's local memory (see fused_kernel)."""
-    has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive = has
-    o = ops(dtype)
-    vec12, mat12 = o.vec12, o.mat12
-    NP = N * (N + 1) // 2
-    vecN = wp.types.vector(N, dtype)
-    vecP = wp.types.vector(NP, dtype)
-    body_eval = affine_body.kernels(dtype).body_eval
-    point_eval = _point_joint.kernel(dtype).eval
-    prismatic_eval = prismatic_joint.kernel(dtype).eval
-    rlim_eval = revolute_limit.kernel(dtype).eval
-    plim_eval = prismatic_limit.kernel(dtype).eval
-    drive_eval = drive.kernel(dtype).eval
-    zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
-    EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
-
-    @wp.func
-    def tri(i: int, j: int):
-        """Packed index of H[i, j], i >= j (lower triangle by rows)."""
-        return i * (i + 1) // 2 + j
-
-    @wp.func
-    def pair_eval(q: wp.array2d(dtype=vec12), w: int, p: int, t: Terms):
-        """Energy, gradients and Hessian blocks of two-body term p at q[w]; the joint it acts on."""
-        kind = t.pair_kind[p]
-        k = t.pair_index[p]
-        ej = zero
-        gi = vec12()
-        gj = vec12()
-        hii = mat12()
-        hij = mat12()
-        hjj = mat12()
-        j = int(0)
-        if wp.static(has_rev):
-            if kind == 0:
-                j = t.rev_ids[k]
-                ej, gi, gj, hii, hij, hjj = point_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.pts_a, t.pts_b, w, j, 2, t.K[w, j], 1)
-        if wp.static(has_fix):
-            if kind == 1:
-                j = t.fix_ids[k]
-                ej, gi, gj, hii, hij, hjj = point_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.pts_a, t.pts_b, w, j, 4, t.K[w, j], 1)
-        if wp.static(has_pri):
-            if kind == 2:
-                j = t.pri_ids[k]
-                ej, gi, gj, hii, hij, hjj = prismatic_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.c_a[w, j], t.c_b[w, j],
-                                                           t.t_a[w, j], t.t_b[w, j], t.n_a[w, j], t.n_b[w, j], t.b_a[w, j],
-                                                           t.b_b[w, j], t.K[w, j], 1)  # fmt: skip
-        if wp.static(has_rlim):
-            if kind == 3:
-                j = t.rlim_ids[k]
-                ej, gi, gj, hii, hij, hjj = rlim_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.n_a[w, j], t.b_a[w, j], t.n_b[w, j],
-                                                      t.b_b[w, j], t.theta0[w, j], t.c_prev[w, j], t.s_prev[w, j], t.rlim_lo[w, k],
-                                                      t.rlim_up[w, k], t.rlim_s[w, k], 1)  # fmt: skip
-        if wp.static(has_plim):
-            if kind == 4:
-                j = t.plim_ids[k]
-                ej, gi, gj, hii, hij, hjj = plim_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], t.c_a[w, j], t.c_b[w, j], t.t_a[w, j],
-                                                      t.plim_lo[w, k], t.plim_up[w, k], t.plim_s[w, k], 1)  # fmt: skip
-        if wp.static(has_drive):
-            if kind == 5:
-                j = t.drive_joint[k]
-                ej, gi, gj, hii, hij, hjj = drive_eval(q[w, t.body_a[j]], q[w, t.body_b[j]], w, k, t.drive_joint, t.joint_kind,
-                                                       t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b, t.b_b, t.c_prev, t.s_prev, t.drive_mode, t.kp,
-                                                       t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, t.h, t.h2, 0, 1)  # fmt: skip
-        return ej, gi, gj, hii, hij, hjj, j
-
-    # the assembly, factorisation and solve are written in the kernel body: a local vector handed to
-    # a wp.func is a copy, so only the kernel's own code can update g and H in place
-    @wp.kernel(module="unique", module_options={"max_unroll": 1})
-    def newton_local(
-        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
-        g_unused: wp.array2d(dtype=dtype), H_unused: wp.array3d(dtype=dtype), threshold: dtype, max_iterations: int,
-        max_line_search: int, status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-        converged: wp.array(dtype=wp.int32),
-    ):  # fmt: skip
-        """Thread s solves worlds s, s + T, … (T = q_trial's rows) with its g, H, Δq in local memory."""
-        s = wp.tid()
-        nb = q.shape[1]
-        for w in range(s, q.shape[0], q_trial.shape[0]):
-            iterations[w] = 0
-            converged[w] = 0
-            finished = int(status[w] != OK)
-            for it in range(max_iterations):
-                if finished != 0:
-                    break
-                # ---- g and H (lower triangle) of E at q[w]
-                gv = vecN()
-                Hp = vecP()
-                e0 = zero
-                for k in range(t.free.shape[0]):
-                    b = t.free[k]
-                    e_in, e_or, f, hb = body_eval(q[w, b], t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b],
-                                                  t.kv[w, b] * t.h2, 1)  # fmt: skip
-                    e0 += e_in + e_or
-                    ob = t.dof[b]
-                    for r in range(12):
-                        gv[ob + r] = gv[ob + r] + f[r]
-                        for c in range(r + 1):
-                            Hp[tri(ob + r, ob + c)] = Hp[tri(ob + r, ob + c)] + hb[r, c]
-                for p in range(t.pair_kind.shape[0]):
-                    ej, gi, gj, hii, hij, hjj, j = pair_eval(q, w, p, t)
-                    e0 += ej
-                    if ej == zero and t.pair_kind[p] >= 3 and t.pair_kind[p] <= 4:
-                        continue  # an inactive limit adds nothing
-                    oi = t.dof[t.body_a[j]]
-                    oj = t.dof[t.body_b[j]]
-                    for r in range(12):
-                        if oi >= 0:
-                            gv[oi + r] = gv[oi + r] + gi[r]
-                        if oj >= 0:
-                            gv[oj + r] = gv[oj + r] + gj[r]
-                        for c in range(12):
-                            if oi >= 0 and c <= r:
-                                Hp[tri(oi + r, oi + c)] = Hp[tri(oi + r, oi + c)] + hii[r, c]
-                            if oj >= 0 and c <= r:
-                                Hp[tri(oj + r, oj + c)] = Hp[tri(oj + r, oj + c)] + hjj[r, c]
-                            if oi >= 0 and oj >= 0:
-                                if oi > oj:
-                                    Hp[tri(oi + r, oj + c)] = Hp[tri(oi + r, oj + c)] + hij[r, c]
-                                else:
-                                    Hp[tri(oj + c, oi + r)] = Hp[tri(oj + c, oi + r)] + hij[r, c]
-                # ---- Δq = −H⁻¹g by Cholesky, in place on the packed triangle
-                ok = int(1)
-                for jj in range(N):
-                    if ok != 0:
-                        d2 = Hp[tri(jj, jj)]
-                        for k in range(jj):
-                            d2 -= Hp[tri(jj, k)] * Hp[tri(jj, k)]
-                        if not (d2 > zero) or not wp.isfinite(d2):
-                            ok = 0
-                        else:
-                            d = wp.sqrt(d2)
-                            Hp[tri(jj, jj)] = d
-                            for i in range(jj + 1, N):
-                                v = Hp[tri(i, jj)]
-                                for k in range(jj):
-                                    v -= Hp[tri(i, k)] * Hp[tri(jj, k)]
-                                Hp[tri(i, jj)] = v / d
-                dq = vecN()
-                gdq = zero
-                dmax = zero
-                if ok != 0:
-                    for i in range(N):  # L y = −g
-                        v = -gv[i]
-                        for k in range(i):
-                            v -= Hp[tri(i, k)] * dq[k]
-                        dq[i] = v / Hp[tri(i, i)]
-                    for ii in range(N):  # Lᵀ x = y
-                        i = N - 1 - ii
-                        v = dq[i]
-                        for k in range(i + 1, N):
-                            v -= Hp[tri(k, i)] * dq[k]
-                        dq[i] = v / Hp[tri(i, i)]
-                        gdq += gv[i] * dq[i]
-                        dmax = wp.max(dmax, wp.abs(dq[i]))
-                    if not wp.isfinite(gdq):
-                        ok = 0
-                if ok == 0:
-                    status[w] = FAILED
-                    finished = 1
-                    continue
-                floor = noise_floor(q, w, threshold)
-                # ---- backtracking line search (a step under the tolerance is taken whole)
-                alpha = one
-                accepted = int(0)
-                stalled = int(0)
-                for ls in range(max_line_search):
-                    for b in range(nb):
-                        qb = q[w, b]
-                        ob = t.dof[b]
-                        if ob >= 0:
-                            for r in range(12):
-                                qb[r] = qb[r] + alpha * dq[ob + r]
-                        q_trial[s, b] = qb
-                    if dmax < floor:
-                        accepted = 1
-                        stalled = 1
-                        break
-                    e1 = assemble(q_trial, s, w, s, 1, 0, t, g_unused, H_unused)
-                    noise = dtype(16.0) * EPS * (wp.abs(e0) + wp.abs(e1))
-                    if e1 <= e0 + dtype(1.0e-4) * alpha * gdq + noise and wp.isfinite(e1):
-                        accepted = 1
-                        if e0 - e1 <= noise:
-                            stalled = 1
-                        break
-                    alpha = alpha * half
-                iterations[w] = it + 1
-                if accepted == 0:
-                    if dmax < dtype(1000.0) * floor:
-                        converged[w] = 1
-                    finished = 1
-                    continue
-                for b in range(nb):
-                    q[w, b] = q_trial[s, b]
-                if dmax < floor or stalled != 0:
-                    converged[w] = 1
-                    finished = 1
-
-    return newton_local

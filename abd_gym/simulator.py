@@ -57,8 +57,8 @@ class Simulator:
     one kernel; ``threads`` (that kernel's thread count; each thread solves worlds s, s+T, …) and
     ``block_dim`` (its CUDA block size) default to values measured on an H100.  ``scratch``: where the
     fused step keeps a world's gradient, Hessian and Newton step: "global" (arrays, one column per
-    thread), "local" (the thread's own local memory) or "tiled" (a CUDA block per world, the Hessian
-    in shared memory, factored by ``wp.tile_cholesky``); same arithmetic, same trajectories to rounding.
+    thread) or "tiled" (a CUDA block per world, the Hessian in shared memory, factored by
+    ``wp.tile_cholesky``); same arithmetic, same trajectories to rounding.
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",

@@ -31,7 +31,7 @@ class SolverSettings:
     threads: int | None = None
     block_dim: int | None = None
     # where the fused step keeps a world's g, H and Δq (fused.py): "global" arrays, one column per
-    # thread; the thread's "local" memory; or "tiled": a CUDA block per world, H in shared memory
+    # thread, or "tiled": a CUDA block per world, H in shared memory
     scratch: str = "global"
 
 
@@ -71,8 +71,8 @@ class Solver:
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
         # scratch columns: one per world for the staged step; one per thread for the fused step,
         # whose threads each solve several worlds in turn (memory per world stays O(bodies))
-        if settings.scratch not in ("global", "local", "tiled"):
-            raise ValueError(f"scratch must be 'global', 'local' or 'tiled', got {settings.scratch!r}")
+        if settings.scratch not in ("global", "tiled"):
+            raise ValueError(f"scratch must be 'global' or 'tiled', got {settings.scratch!r}")
         if settings.scratch != "global" and not settings.fused:
             raise ValueError(f"scratch={settings.scratch!r} needs the fused step (fused=True)")
         self.tiled = settings.scratch == "tiled"
@@ -94,8 +94,8 @@ class Solver:
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)
         self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=dt_, device=dev)
-        # column-minor: thread s reads H[i, j, s] coalesced with its neighbours (local and tiled
-        # scratch keep their own: these are then only the staged assembly's, one column)
+        # column-minor: thread s reads H[i, j, s] coalesced with its neighbours (tiled scratch keeps
+        # its own in shared memory: these are then only the staged assembly's, one column)
         if settings.scratch != "global":
             T = 1
         self.g = wp.zeros((n, T), dtype=dt_, device=dev)
@@ -178,12 +178,6 @@ class Solver:
                 state.q, self.q_trial, terms, m.dtype(s.tol * self.h), s.max_iterations, s.max_line_search,
                 state.status, state.iterations, state.converged], block_dim=self.block_dim, device=m.device)  # fmt: skip
             return
-        if s.scratch == "local":
-            wp.launch(kernel, dim=self.threads, inputs=[
-                state.q, self.q_trial, terms, self.g, self.H, m.dtype(s.tol * self.h), s.max_iterations,
-                s.max_line_search, state.status, state.iterations, state.converged], device=m.device,
-                block_dim=self.block_dim)  # fmt: skip
-            return
         wp.launch(kernel, dim=self.threads, inputs=[
             state.q, self.q_trial, terms, self.g, self.H, self.dq, m.num_dofs, m.dtype(s.tol * self.h),
             s.max_iterations, s.max_line_search, state.status, state.iterations, state.converged], device=m.device,
@@ -192,7 +186,7 @@ class Solver:
     def _build_fused(self, state):
         """The fused kernel for what this scene has, and the struct of arrays it reads (built once:
         the arrays are never reallocated, so a captured graph stays valid)."""
-        from .fused import fused_kernel, pair_list
+        from .fused import fused_kernel
         from .scene import FIXED, PRISMATIC, REVOLUTE
 
         m = self.model
@@ -212,9 +206,6 @@ class Solver:
         t.rlim_lo, t.rlim_up, t.rlim_s = m.limit_params[REVOLUTE]
         t.plim_lo, t.plim_up, t.plim_s = m.limit_params[PRISMATIC]
         t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
-        kinds, index = pair_list(m)
-        t.pair_kind = wp.array(kinds, dtype=wp.int32, device=m.device)
-        t.pair_index = wp.array(index, dtype=wp.int32, device=m.device)
         return kernel, t
 
     def _newton_iteration(self, state):
