@@ -96,6 +96,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
     return dict(
         case=case, num_worlds=num_worlds, steps=steps, dt=dt, dtype=dtype, device=str(sim.device),
         tol=sim.solver.settings.tol, integrator=sim.solver.settings.integrator, scratch=sim.solver.settings.scratch,
+        max_registers=sim.solver.settings.max_registers, smem_spilling=sim.solver.settings.smem_spilling,
         seconds=elapsed, steps_per_second=steps / elapsed, world_steps_per_second=num_worlds * steps / elapsed,
         newton_iterations=float(sim.newton_iterations().mean()), joint_residual=residual,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
@@ -128,6 +129,9 @@ def main(argv=None):
     ap.add_argument("--integrator", default="implicit_euler")
     ap.add_argument("--scratch", default="global", help="comma-separated fused-step scratch: global, tiled")
     ap.add_argument("--block-dim", type=int, default=None, help="CUDA block size (default: per solver)")
+    ap.add_argument("--threads", default=None, help="fused-step threads: all (one per world), Nsm (N per SM) or a count")
+    ap.add_argument("--max-registers", default="0", help="comma-separated CUDA register caps (0: compiler's choice)")
+    ap.add_argument("--smem-spilling", default="0", help="comma-separated 0/1: spill registers to shared memory")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--out", default="bench_out")
     ap.add_argument("--envs", action="store_true", help="also time each task's vector env")
@@ -143,10 +147,13 @@ def main(argv=None):
         for dt in (args.dt,):
             accuracy.append(dict(case=case, dt=dt, dtype=args.dtype,
                                  period_error=period_error(case, dt, args.dtype, args.device)))  # fmt: skip
-        for w, tol, scratch in ((w, float(t), k) for k in args.scratch.split(",") for t in args.tol.split(",")
-                                for w in worlds):  # fmt: skip
+        variants = [(k, float(t), int(r), bool(int(sp))) for k in args.scratch.split(",") for t in args.tol.split(",")
+                    for r in args.max_registers.split(",") for sp in args.smem_spilling.split(",")]  # fmt: skip
+        for (scratch, tol, regs, spill), w in ((v, w) for v in variants for w in worlds):
             rows.append(time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol,
-                                   integrator=args.integrator, scratch=scratch, block_dim=args.block_dim))  # fmt: skip
+                                   integrator=args.integrator, scratch=scratch, block_dim=args.block_dim,
+                                   max_registers=regs, smem_spilling=spill,
+                                   threads=_thread_count(args.threads, w, args.device)))  # fmt: skip
             r = rows[-1]
             print(f"{case:16s} worlds {w:6d} tol {tol:g} {_solver(r):9s} {r['world_steps_per_second']:12.0f} world-steps/s  "
                   f"{r['steps_per_second']:8.1f} steps/s  iters {r['newton_iterations']:.2f}  "
@@ -228,10 +235,21 @@ def sweep_threads(argv=None):
     return result
 
 
+def _thread_count(spec, worlds, device):
+    """None (the solver's default), or a count from "all", "Nsm" (N per streaming multiprocessor) or "N"."""
+    if spec is None:
+        return None
+    if spec == "all":
+        return worlds
+    dev = wp.get_device(device)
+    return min(worlds, int(spec[:-2]) * (dev.sm_count if dev.is_cuda else 1) if spec.endswith("sm") else int(spec))
+
+
 def _solver(r) -> str:
     """The fused step's scratch ("global", "tiled"; "local" in older results) and CUDA block size."""
     scratch = r.get("scratch") or ("tiled" if r.get("tiled") else "global")
-    return f"{scratch}/{r['block_dim']}"
+    extra = (f" r{r['max_registers']}" if r.get("max_registers") else "") + (" smem" if r.get("smem_spilling") else "")
+    return f"{scratch}/{r['block_dim']}{extra} T{r['threads']}"
 
 
 def table(result) -> str:

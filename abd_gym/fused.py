@@ -28,13 +28,24 @@ OK, FAILED = 0, 1
 
 
 @functools.lru_cache(maxsize=None)
-def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0):
+def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
+                 max_registers=0, smem_spilling=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
     "tiled": a CUDA block per world, H and g in shared memory, assembled together and factored by
     ``wp.tile_cholesky``.  (A third layout, g, H and Δq in each thread's local memory, measured
-    slower than "global" at every batch size on an H100 and was removed; see results/.)"""
+    slower than "global" at every batch size on an H100 and was removed; see results/.)
+    ``max_registers`` (0: the compiler's choice) caps registers per thread on CUDA, trading spills
+    for occupancy; ``smem_spilling`` lets the compiler spill registers to shared memory."""
+    # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
+    # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
+    # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
+    options = dict(module="unique", module_options={"max_unroll": 1})
+    if max_registers:
+        options["cuda_max_registers"] = int(max_registers)
+    if smem_spilling:
+        options["enable_cuda_smem_spilling"] = True
     tiled = n if scratch == "tiled" else 0
     o = ops(dtype)
     vec3, vec12, mat33, mat12 = o.vec3, o.vec12, o.mat33, o.mat12
@@ -286,10 +297,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 return 0
         return 0
 
-    # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
-    # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
-    # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
-    @wp.kernel(module="unique", module_options={"max_unroll": 1})
+    @wp.kernel(**options)
     def newton(
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
         g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype),
@@ -375,7 +383,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 return 0
         return 0
 
-    @wp.kernel(module="unique", module_options={"max_unroll": 1})
+    @wp.kernel(**options)
     def newton_tiled(
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, threshold: dtype,
         max_iterations: int, max_line_search: int, status: wp.array(dtype=wp.int32),

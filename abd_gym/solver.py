@@ -33,6 +33,10 @@ class SolverSettings:
     # where the fused step keeps a world's g, H and Δq (fused.py): "global" arrays, one column per
     # thread, or "tiled": a CUDA block per world, H in shared memory
     scratch: str = "global"
+    # CUDA register cap of the fused kernel (0: the compiler's choice) and register spills to shared
+    # memory (see bench: occupancy against spills)
+    max_registers: int = 0
+    smem_spilling: bool = False
 
 
 def default_threads(device, num_worlds: int) -> int:
@@ -192,7 +196,9 @@ class Solver:
         m = self.model
         has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
                len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
-        kernel, Terms = fused_kernel(m.dtype, *has, scratch=self.settings.scratch, n=m.num_dofs)
+        st = self.settings
+        kernel, Terms = fused_kernel(m.dtype, *has, scratch=st.scratch, n=m.num_dofs, max_registers=st.max_registers,
+                                     smem_spilling=st.smem_spilling)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
