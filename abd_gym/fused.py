@@ -231,6 +231,33 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return e
 
     @wp.func
+    def armijo(e0: dtype, e1: dtype, alpha: dtype, gdq: dtype):
+        """(accepted, stalled) for the trial energy e1 at step α: Armijo's test with rounding-level
+        slack; stalled when the decrease is below what the precision resolves."""
+        noise = dtype(16.0) * EPS * (wp.abs(e0) + wp.abs(e1))
+        if e1 <= e0 + dtype(1.0e-4) * alpha * gdq + noise and wp.isfinite(e1):
+            return 1, wp.where(e0 - e1 <= noise, 1, 0)
+        return 0, 0
+
+    @wp.func
+    def end_iteration(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), w: int, row: int, it: int,
+                      accepted: int, stalled: int, dmax: dtype, floor: dtype, iterations: wp.array(dtype=wp.int32),
+                      converged: wp.array(dtype=wp.int32)):  # fmt: skip
+        """Take the accepted trial point (row of q_trial) as world w's q; 1 when its solve is over.
+        A search that ran out takes no step: converged if the step was already near the tolerance."""
+        iterations[w] = it + 1
+        if accepted == 0:
+            if dmax < dtype(1000.0) * floor:
+                converged[w] = 1
+            return 1
+        for b in range(q.shape[1]):
+            q[w, b] = q_trial[row, b]
+        if dmax < floor or stalled != 0:
+            converged[w] = 1
+            return 1
+        return 0
+
+    @wp.func
     def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array2d(dtype=dtype),
                     H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int, s: int, n: int, threshold: dtype,
                     max_iterations: int, max_line_search: int, status: wp.array(dtype=wp.int32),
@@ -278,22 +305,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                             qb[r] = qb[r] + alpha * dq[ob + r, s]
                     q_trial[s, b] = qb
                 e1 = assemble(q_trial, s, w, s, 1, 0, t, g, H)
-                noise = dtype(16.0) * EPS * (wp.abs(e0) + wp.abs(e1))
-                if e1 <= e0 + dtype(1.0e-4) * alpha * gdq + noise and wp.isfinite(e1):
-                    accepted = 1
-                    if e0 - e1 <= noise:
-                        stalled = 1
+                accepted, stalled = armijo(e0, e1, alpha, gdq)
+                if accepted != 0:
                     break
                 alpha = alpha * half
-            iterations[w] = it + 1
-            if accepted == 0:
-                if dmax < dtype(1000.0) * floor:
-                    converged[w] = 1
-                return 0
-            for b in range(nb):
-                q[w, b] = q_trial[s, b]
-            if dmax < floor or stalled != 0:
-                converged[w] = 1
+            if end_iteration(q, q_trial, w, s, it, accepted, stalled, dmax, floor, iterations, converged) != 0:
                 return 0
         return 0
 
@@ -364,22 +380,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     stalled = 1
                     break
                 e1 = assemble(q_trial, w, w, lane, B, 0, t, g, H)
-                noise = dtype(16.0) * EPS * (wp.abs(e0) + wp.abs(e1))
-                if e1 <= e0 + dtype(1.0e-4) * alpha * gdq + noise and wp.isfinite(e1):
-                    accepted = 1
-                    if e0 - e1 <= noise:
-                        stalled = 1
+                accepted, stalled = armijo(e0, e1, alpha, gdq)
+                if accepted != 0:
                     break
                 alpha = alpha * half
-            iterations[w] = it + 1
-            if accepted == 0:
-                if dmax < dtype(1000.0) * floor:
-                    converged[w] = 1
-                return 0
-            for b in range(nb):
-                q[w, b] = q_trial[w, b]
-            if dmax < floor or stalled != 0:
-                converged[w] = 1
+            if end_iteration(q, q_trial, w, w, it, accepted, stalled, dmax, floor, iterations, converged) != 0:
                 return 0
         return 0
 
