@@ -15,15 +15,8 @@ from .warp_ops import ops
 
 @functools.lru_cache(maxsize=None)
 def kernels(dtype):
-    vec12 = ops(dtype).vec12
-
     @wp.kernel
-    def scatter_vec12(dst: wp.array2d(dtype=vec12), idx: wp.array(dtype=wp.int32), src: wp.array2d(dtype=vec12)):
-        i, c = wp.tid()
-        dst[idx[i], c] = src[i, c]
-
-    @wp.kernel
-    def scatter_scalar(dst: wp.array2d(dtype=dtype), idx: wp.array(dtype=wp.int32), src: wp.array2d(dtype=dtype)):
+    def scatter(dst: wp.array2d(dtype=dtype), idx: wp.array(dtype=wp.int32), src: wp.array2d(dtype=dtype)):
         i, c = wp.tid()
         dst[idx[i], c] = src[i, c]
 
@@ -41,7 +34,7 @@ def kernels(dtype):
         unwrapped[k, j] = u
         x_hist[k, j] = u - dt * coord_vel[k, j]
 
-    return dict(scatter_vec12=scatter_vec12, scatter_scalar=scatter_scalar, restart_unwrapped=restart_unwrapped)
+    return dict(scatter=scatter, restart_unwrapped=restart_unwrapped)
 
 
 @wp.kernel
@@ -54,18 +47,30 @@ def indices(idx: np.ndarray, device) -> wp.array:
     return wp.array(np.ascontiguousarray(idx, dtype=np.int32), dtype=wp.int32, device=device)
 
 
+def _rows_view(array: wp.array, scalar):
+    """The (W, k) scalar view of a contiguous (W, ...) array of scalars, vectors or matrices."""
+    if not array.is_contiguous:
+        raise ValueError("row writes need a contiguous array")
+    k = int(np.prod(_row_shape(array), dtype=np.int64))
+    return wp.array(ptr=array.ptr, dtype=scalar, shape=(array.shape[0], k), device=array.device)
+
+
 def write(array: wp.array, idx: wp.array, values, np_dtype) -> None:
-    """array[idx] = values for a (W, C) array of scalars or vec12 (values broadcast to (N, C[, 12]))."""
+    """array[idx] = values for a (W, ...) array (values broadcast to the (N, ...) rows, in the
+    array's scalar layout: (N, C, 12) for a (W, C) array of vec12)."""
     N = idx.shape[0]
     if N == 0:
         return
-    scalar = array.dtype in (wp.float32, wp.float64)
-    k = kernels(wp.float32 if np_dtype == np.float32 else wp.float64)
-    shape = (N, array.shape[1]) if scalar else (N, array.shape[1], 12)
-    src = wp.array(np.ascontiguousarray(np.broadcast_to(values, shape), dtype=np_dtype), dtype=array.dtype,
-                   device=array.device)  # fmt: skip
-    wp.launch(k["scatter_scalar" if scalar else "scatter_vec12"], dim=(N, array.shape[1]), inputs=[array, idx, src],
-              device=array.device)  # fmt: skip
+    scalar = wp.float32 if np_dtype == np.float32 else wp.float64
+    view = _rows_view(array, scalar)
+    src = np.ascontiguousarray(np.broadcast_to(values, (N,) + _row_shape(array)), dtype=np_dtype)
+    src = wp.array(src.reshape(N, view.shape[1]), dtype=scalar, device=array.device)
+    wp.launch(kernels(scalar)["scatter"], dim=(N, view.shape[1]), inputs=[view, idx, src], device=array.device)
+
+
+def _row_shape(array: wp.array) -> tuple:
+    """One row's shape in scalars: array.shape[1:] followed by the element's own shape."""
+    return tuple(array.shape[1:]) + tuple(getattr(array.dtype, "_shape_", ()))
 
 
 def fill(array: wp.array, idx: wp.array, value: int) -> None:

@@ -84,6 +84,8 @@ class Simulator:
         m = self.model
         self._ratio = np.broadcast_to([j.strength_ratio for j in scene.joints], (self.num_worlds, m.num_joints)).copy()
         self._mass = np.broadcast_to(m.base_mass, (self.num_worlds, m.num_bodies)).copy()
+        self._joint_bodies = (m.body_a.numpy()[: m.num_joints].copy(), m.body_b.numpy()[: m.num_joints].copy())
+        self._limits = {}  # joint kind -> host copies of the limits' (lower, upper, strength), (W, limits)
         self.use_graph = True if use_graph is None else bool(use_graph)
         self._set_mask = None
         self._torch_views = {}
@@ -372,13 +374,14 @@ class Simulator:
         self._set_q(idx, q, qd)
 
     # ------------------------------------------------------------------ per-world parameters
-    def _update_K(self):
+    def _update_K(self, idx):
+        """Joint strengths K = strength_ratio·(m_i + m_j) of the worlds idx, written to their rows."""
         m = self.model
         if not m.num_joints:
             return
-        ia, ib = m.body_a.numpy()[: m.num_joints], m.body_b.numpy()[: m.num_joints]
-        K = self._ratio * (self._mass[:, ia] + self._mass[:, ib])
-        m.K.assign(K.astype(m.np_dtype))
+        ia, ib = self._joint_bodies
+        mass = self._mass[idx]
+        self._write_rows(m.K, idx, self._ratio[idx] * (mass[:, ia] + mass[:, ib]))
 
     def set_body_mass(self, mass, bodies=None, worlds=None):
         """Per-world body masses [kg] (N, len(bodies)); every mass moment scales with it, and joint
@@ -390,11 +393,12 @@ class Simulator:
         if (vals <= 0).any():
             raise ValueError(f"mass must be positive, got {vals[vals <= 0][0]}")
         self._mass[np.ix_(idx, bi)] = vals
-        scale = self._mass / m.base_mass
-        m.mass.assign((m.base_mass * scale).astype(m.np_dtype))
-        m.mc.assign((m.base_mc[None] * scale[..., None]).astype(m.np_dtype))
-        m.S.assign((m.base_S[None] * scale[..., None, None]).astype(m.np_dtype))
-        self._update_K()
+        scale = self._mass[idx] / m.base_mass  # only the listed worlds' rows travel to the device
+        idx_dev = rows.indices(idx, self.device)
+        self._write_rows(m.mass, idx_dev, m.base_mass * scale)
+        self._write_rows(m.mc, idx_dev, m.base_mc[None] * scale[..., None])
+        self._write_rows(m.S, idx_dev, m.base_S[None] * scale[..., None, None])
+        self._update_K(idx)
 
     def set_joint_strength(self, strength_ratio, joints=None, worlds=None):
         """Per-world joint strength ratios (N, len(joints)): K = strength_ratio·(m_i + m_j)."""
@@ -404,10 +408,11 @@ class Simulator:
         if (vals <= 0).any():
             raise ValueError(f"strength_ratio must be positive, got {vals[vals <= 0][0]}")
         self._ratio[np.ix_(idx, ji)] = vals
-        self._update_K()
+        self._update_K(idx)
 
     def set_limit(self, joint, lower=None, upper=None, strength=None, worlds=None):
-        """Per-world bounds [rad or m] and strength [J] of a joint's limit (each (N,) or scalar)."""
+        """Per-world bounds [rad or m] and strength [J] of a joint's limit (each (N,) or scalar).
+        Checked before anything is written: a bad value changes no world."""
         m = self.model
         j = self.scene.joint_index(joint)
         kind = self.scene.joints[j].kind
@@ -415,11 +420,14 @@ class Simulator:
             raise ValueError(f"joint {joint!r} has no limit")
         col = m.limit_joints[kind].index(j)
         idx = self._worlds(worlds)
-        arrays = [a.numpy() for a in m.limit_params[kind]]
-        for a, val, name in zip(arrays, (lower, upper, strength), ("lower", "upper", "strength")):
+        if kind not in self._limits:  # host copy of (lower, upper, strength), read from the device once
+            self._limits[kind] = [a.numpy().astype(np.float64) for a in m.limit_params[kind]]
+        host = self._limits[kind]
+        new = [h[idx, col].copy() for h in host]
+        for k, (val, name) in enumerate(zip((lower, upper, strength), ("lower", "upper", "strength"))):
             if val is not None:
-                a[idx, col] = _finite_array(name, val, (len(idx),))
-        lo, up, st = (a[idx, col] for a in arrays)
+                new[k] = _finite_array(name, val, (len(idx),)).copy()
+        lo, up, st = new
         if (lo > up).any():
             k = int(np.argmax(lo > up))
             raise ValueError(f"limit lower ({lo[k]}) must not exceed upper ({up[k]})")
@@ -427,5 +435,7 @@ class Simulator:
             raise ValueError(f"limit strength must be positive, got {st[st <= 0][0]}")
         if kind == REVOLUTE and (lo < -math.pi).any() | (up > math.pi).any():
             raise ValueError("revolute limits must lie in [-pi, pi]")
-        for dev_a, a in zip(m.limit_params[kind], arrays):
-            dev_a.assign(a)
+        idx_dev = rows.indices(idx, self.device)
+        for h, v, dev_a in zip(host, new, m.limit_params[kind]):
+            h[idx, col] = v
+            self._write_rows(dev_a, idx_dev, h[idx])

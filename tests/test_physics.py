@@ -238,6 +238,28 @@ def test_setting_some_worlds_writes_only_their_rows():
     sim.set_joint_state(np.zeros((0, 2)), worlds=[])  # nothing to write is not an error
 
 
+def test_parameter_setters_write_listed_worlds_and_reject_before_writing():
+    """set_body_mass / set_limit change only the listed worlds' rows; a bad limit changes nothing."""
+    sim = ag.Simulator(mechanisms.cartpole(), num_worlds=3, dt=0.01)
+    m = sim.model
+    before = {n: getattr(m, n).numpy().copy() for n in ("mass", "mc", "S", "K")}
+    sim.set_body_mass([[2.0, 0.3]], bodies=["cart", "pole"], worlds=[1])
+    for n, b in before.items():
+        after = getattr(m, n).numpy()
+        np.testing.assert_array_equal(after[[0, 2]], b[[0, 2]], err_msg=n)
+        assert n == "mc" or not np.array_equal(after[1], b[1]), n  # mc = m·com is 0 for these bodies
+    np.testing.assert_allclose(m.mass.numpy()[1, 1:], [2.0, 0.3], rtol=1e-6)
+    limits = [a.numpy().copy() for a in m.limit_params[ag.scene.PRISMATIC]]
+    with pytest.raises(ValueError, match="must not exceed upper"):
+        sim.set_limit(0, lower=[-0.5, 0.9], upper=[0.5, 0.1], worlds=[0, 2])
+    for a, b in zip(m.limit_params[ag.scene.PRISMATIC], limits):
+        np.testing.assert_array_equal(a.numpy(), b)  # world 0's valid half was not written either
+    sim.set_limit(0, lower=-0.4, upper=0.3, worlds=[2])
+    lo, up, _ = (a.numpy()[:, 0] for a in m.limit_params[ag.scene.PRISMATIC])
+    np.testing.assert_allclose([lo[2], up[2]], [-0.4, 0.3], rtol=1e-6)
+    np.testing.assert_array_equal(lo[:2], limits[0][:2, 0])
+
+
 def test_bad_input_raises_clear_errors():
     scene = ag.Scene()
     base = scene.add_body(ag.Box((0.1, 0.1, 0.1)), fixed=True)
