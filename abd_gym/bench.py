@@ -54,6 +54,12 @@ CASES = {
     "double_pendulum": dict(scene=mechanisms.double_pendulum, mode=lambda: _double_pendulum_mode(), pole=0, rest=(0.0, 0.0)),
     "cartpole": dict(scene=mechanisms.cartpole, mode=lambda: (_cartpole_mode(), np.array([0.0, 1.0])), pole=1,
                      rest=(0.0, math.pi)),
+    # the same cart-pole without its track limit, and without limit or drive: what the scene does
+    # not have is not compiled, so these show what each constitution costs
+    "cartpole_nolimit": dict(scene=lambda: mechanisms.cartpole(track=None), mode=lambda: (_cartpole_mode(), np.array([0.0, 1.0])),
+                             pole=1, rest=(0.0, math.pi)),
+    "cartpole_bare": dict(scene=lambda: mechanisms.cartpole(track=None, force=None),
+                          mode=lambda: (_cartpole_mode(), np.array([0.0, 1.0])), pole=1, rest=(0.0, math.pi)),
 }  # fmt: skip
 
 
@@ -82,7 +88,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
     sim = Simulator(c["scene"](), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
     rng = np.random.default_rng(seed)
     x0 = np.array(c["rest"]) + rng.uniform(-0.3, 0.3, size=(num_worlds, len(c["rest"])))
-    if case == "cartpole":
+    if case.startswith("cartpole"):
         x0 = np.stack([rng.uniform(-0.5, 0.5, num_worlds), rng.uniform(-0.3, 0.3, num_worlds)], 1)
     sim.set_joint_state(x0)
     sim.step(3)  # compile and warm up
@@ -102,6 +108,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
         threads=sim.solver.threads, block_dim=sim.solver.block_dim,
         memory_bytes_per_world=sim.memory_bytes()["total"] / num_worlds,
+        unknowns=sim.model.num_dofs, constitutions=[c.NAME for c in sim.solver.parts],
     )  # fmt: skip
 
 

@@ -43,16 +43,19 @@ def double_pendulum(length=0.5, mass=1.0, **kw) -> Scene:
 def cartpole(pole_length=1.0, pole_mass=0.1, cart_mass=1.0, track=2.4, limit_strength=1e3, force=10.0) -> Scene:
     """Cart on a slider along +x (limited to ±track), pole on a hinge about +y pointing up at zero.
 
-    Drives: an effort drive on the slider (force [N], |u| ≤ ``force``).
+    Drives: an effort drive on the slider (force [N], |u| ≤ ``force``).  ``track=None``: no limit
+    on the slider; ``force=None``: no drive (the scene then compiles neither).
     """
     scene = Scene()
     rail = scene.add_body(Box(half_extents=(0.05, 0.05, 0.05)), fixed=True, name="rail")
     cart = scene.add_body(Box(half_extents=(0.2, 0.1, 0.05)), mass=cart_mass, name="cart")
     pole = scene.add_body(link_shape(pole_length, 0.02), mass=pole_mass, position=(0, 0, pole_length / 2), name="pole")
     slide = scene.add_prismatic_joint(rail, cart, anchor=(0, 0, 0), axis=(1, 0, 0))
-    scene.add_prismatic_limit(slide, -track, track, limit_strength)
+    if track is not None:
+        scene.add_prismatic_limit(slide, -track, track, limit_strength)
     scene.add_revolute_joint(cart, pole, anchor=(0, 0, 0), axis=(0, 1, 0))
-    scene.add_drive(slide, mode="effort", max_effort=force)
+    if force is not None:
+        scene.add_drive(slide, mode="effort", max_effort=force)
     return scene
 
 
