@@ -23,6 +23,8 @@ def ops(dtype):
     vec12 = wp.types.vector(12, dtype)
     mat33 = wp.types.matrix((3, 3), dtype)
     mat12 = wp.types.matrix((12, 12), dtype)
+    vec4 = wp.types.vector(4, dtype)
+    mat44 = wp.types.matrix((4, 4), dtype)
 
     @wp.func
     def point(q: vec12, x: vec3):
@@ -51,6 +53,24 @@ def ops(dtype):
             u[1] * x[0], u[1] * x[1], u[1] * x[2],
             u[2] * x[0], u[2] * x[1], u[2] * x[2],
         )  # fmt: skip
+
+    @wp.func
+    def kron3(U: mat44):
+        """U ⊗ I₃ in the q = (p, a1, a2, a3) layout: J(x) = [I₃, x̄ᵀ ⊗ I₃] rows, so Σ_m J(x)ᵀe_m e_mᵀJ(y)
+        = (u_x u_yᵀ) ⊗ I₃ with u = (1, x̄): entry (a, b) is U[c(a), c(b)] where a and b act on the
+        same component m, else 0 (48 of 144 entries)."""
+        M = mat12()
+        for m in range(3):
+            for c in range(4):
+                a = m
+                if c > 0:
+                    a = 3 + 3 * m + c - 1
+                for d in range(4):
+                    b = m
+                    if d > 0:
+                        b = 3 + 3 * m + d - 1
+                    M[a, b] = U[c, d]
+        return M
 
     @wp.func
     def add_energy(E: wp.array2d(dtype=dtype), w: int, col: int, e: dtype):

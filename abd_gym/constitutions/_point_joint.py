@@ -29,8 +29,8 @@ def point_joint_np(q, points_i, points_j, K):
 @functools.lru_cache(maxsize=None)
 def kernel(dtype):
     o = ops(dtype)
-    vec3, vec12, mat12 = o.vec3, o.vec12, o.mat12
-    point, JT, unit, add_energy, scatter_pair = o.point, o.JT, o.unit, o.add_energy, o.scatter_pair
+    vec3, vec4, vec12, mat12, mat44 = o.vec3, o.vec4, o.vec12, o.mat12, o.mat44
+    point, JT, kron3, add_energy, scatter_pair = o.point, o.JT, o.kron3, o.add_energy, o.scatter_pair
     one, half = dtype(1.0), dtype(0.5)
 
     @wp.func
@@ -41,9 +41,10 @@ def kernel(dtype):
         e = dtype(0.0)
         gi = vec12()
         gj = vec12()
-        hii = mat12()
-        hij = mat12()
-        hjj = mat12()
+        # K Σ_p J_iᵀJ_j = K Σ_p (u_i u_jᵀ) ⊗ I₃, u = (1, x̄): 4 × 4 sums, expanded once at the end
+        uii = mat44()
+        uij = mat44()
+        ujj = mat44()
         for p in range(npts):
             xi = pts_a[w, j, p]
             xj = pts_b[w, j, p]
@@ -52,12 +53,18 @@ def kernel(dtype):
             if derivs != 0:
                 gi += kk * JT(xi, C, one)
                 gj -= kk * JT(xj, C, one)
-                for m in range(3):
-                    ri = JT(xi, unit(m), one)
-                    rj = JT(xj, unit(m), one)
-                    hii += kk * wp.outer(ri, ri)
-                    hij -= kk * wp.outer(ri, rj)
-                    hjj += kk * wp.outer(rj, rj)
+                ui = vec4(one, xi[0], xi[1], xi[2])
+                uj = vec4(one, xj[0], xj[1], xj[2])
+                uii += wp.outer(ui, ui)
+                uij += wp.outer(ui, uj)
+                ujj += wp.outer(uj, uj)
+        hii = mat12()
+        hij = mat12()
+        hjj = mat12()
+        if derivs != 0:
+            hii = kron3(kk * uii)
+            hij = kron3(-kk * uij)
+            hjj = kron3(kk * ujj)
         return e, gi, gj, hii, hij, hjj
 
     @wp.kernel(module="unique")
