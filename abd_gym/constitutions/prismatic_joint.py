@@ -46,8 +46,8 @@ def prismatic_joint_np(q, ci, cj, ti, tj, ni, nj, bi, bj, K):
 @functools.lru_cache(maxsize=None)
 def kernel(dtype):
     o = ops(dtype)
-    vec3, vec12, mat12 = o.vec3, o.vec12, o.mat12
-    point, direction, JT, unit, skew_row = o.point, o.direction, o.JT, o.unit, o.skew_row
+    vec3, vec4, vec12, mat12 = o.vec3, o.vec4, o.vec12, o.mat12
+    point, direction, JT, skew_row, kron3 = o.point, o.direction, o.JT, o.skew_row, o.kron3
     add_energy, scatter_pair = o.add_energy, o.scatter_pair
     one, zero, half = dtype(1.0), dtype(0.0), dtype(0.5)
 
@@ -71,33 +71,33 @@ def kernel(dtype):
         hjj = mat12()
         if derivs == 0:
             return e, gi, gj, hii, hij, hjj
-        for c in range(4):
+        # C0, C1 (the slide direction): rows that mix p and A through cross products, added one
+        # by one; C2, C3 (the frames' normal and binormal) are linear in A alone, so their
+        # Hessian is K Σ (ũ_i ũ_jᵀ) ⊗ I₃ with ũ = (0, n̄) or (0, b̄), expanded once
+        for c in range(2):
             for m in range(3):
-                # scalar constraint component C_c[m] and its gradients (rows of the Jacobian)
-                v = zero
-                ri = vec12()
-                rj = vec12()
-                if c == 0:
-                    v = C0[m]
-                    ri = JT(ci, skew_row(Ti, m), one) + JT(ti, skew_row(d, m), zero)
-                    rj = -JT(cj, skew_row(Ti, m), one)
-                elif c == 1:
+                v = C0[m]
+                ri = JT(ci, skew_row(Ti, m), one) + JT(ti, skew_row(d, m), zero)
+                rj = -JT(cj, skew_row(Ti, m), one)
+                if c == 1:
                     v = C1[m]
                     ri = -JT(ci, skew_row(Tj, m), one)
                     rj = JT(cj, skew_row(Tj, m), one) + JT(tj, skew_row(-d, m), zero)
-                elif c == 2:
-                    v = C2[m]
-                    ri = JT(ni, unit(m), zero)
-                    rj = -JT(nj, unit(m), zero)
-                else:
-                    v = C3[m]
-                    ri = JT(bi, unit(m), zero)
-                    rj = -JT(bj, unit(m), zero)
                 gi += (kk * v) * ri
                 gj += (kk * v) * rj
-                hii += kk * wp.outer(ri, ri)
-                hij += kk * wp.outer(ri, rj)
-                hjj += kk * wp.outer(rj, rj)
+                kri = kk * ri
+                hii += wp.outer(kri, ri)
+                hij += wp.outer(kri, rj)
+                hjj += wp.outer(kk * rj, rj)
+        gi += kk * (JT(ni, C2, zero) + JT(bi, C3, zero))
+        gj -= kk * (JT(nj, C2, zero) + JT(bj, C3, zero))
+        uni = vec4(zero, ni[0], ni[1], ni[2])
+        unj = vec4(zero, nj[0], nj[1], nj[2])
+        ubi = vec4(zero, bi[0], bi[1], bi[2])
+        ubj = vec4(zero, bj[0], bj[1], bj[2])
+        hii += kron3(kk * (wp.outer(uni, uni) + wp.outer(ubi, ubi)))
+        hij += kron3(-kk * (wp.outer(uni, unj) + wp.outer(ubi, ubj)))
+        hjj += kron3(kk * (wp.outer(unj, unj) + wp.outer(ubj, ubj)))
         return e, gi, gj, hii, hij, hjj
 
     @wp.kernel(module="unique")
