@@ -231,6 +231,16 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return e
 
     @wp.func
+    def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype):
+        """(skip, done): take the Newton step whole, without a line search, when it is under the
+        tolerance or when its predicted decrease −gᵀΔq is below what the energy's float rounding
+        can resolve (the search could only halve it on noise); done: the solve ends with it."""
+        unresolved = -gdq <= dtype(1600.0) * EPS * wp.abs(e0)
+        skip = dmax < floor or unresolved
+        done = dmax < floor or (unresolved and dmax < dtype(1000.0) * floor)
+        return wp.where(skip, 1, 0), wp.where(done, 1, 0)
+
+    @wp.func
     def armijo(e0: dtype, e1: dtype, alpha: dtype, gdq: dtype):
         """(accepted, stalled) for the trial energy e1 at step α: Armijo's test with rounding-level
         slack; stalled when the decrease is below what the precision resolves."""
@@ -279,9 +289,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 status[w] = FAILED
                 return 0
             floor = noise_floor(q, w, threshold)
-            if dmax < floor:
-                # a step under the tolerance: take it whole and stop; a line search (one more energy
-                # evaluation) could not tell its energy change from rounding
+            skip, done = whole_step(e0, gdq, dmax, floor)
+            if skip != 0:
                 for b in range(nb):
                     ob = t.dof[b]
                     if ob >= 0:
@@ -290,8 +299,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                             qb[r] = qb[r] + dq[ob + r, s]
                         q[w, b] = qb
                 iterations[w] = it + 1
-                converged[w] = 1
-                return 0
+                if done != 0:
+                    converged[w] = 1
+                    return 0
+                continue
             # backtracking line search (Armijo) on the world's own energy
             alpha = one
             accepted = int(0)
@@ -361,9 +372,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 status[w] = FAILED
                 return 0
             floor = noise_floor(q, w, threshold)
+            skip, done = whole_step(e0, gdq, dmax, floor)
             alpha = one
-            if dmax < floor:
-                alpha = zero  # a step under the tolerance: taken whole below, no line search
+            if skip != 0:
+                alpha = zero  # taken whole below, no line search
             accepted = int(0)
             stalled = int(0)
             for ls in range(max_line_search):
@@ -377,7 +389,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     q_trial[w, b] = qb
                 if alpha == zero:
                     accepted = 1
-                    stalled = 1
+                    stalled = done
                     break
                 e1 = assemble(q_trial, w, w, lane, B, 0, t, g, H)
                 accepted, stalled = armijo(e0, e1, alpha, gdq)
