@@ -226,7 +226,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                                                        t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b, t.b_b, t.c_prev, t.s_prev, t.drive_mode, t.kp,
                                                        t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, t.h, t.h2, 0, derivs)  # fmt: skip
                 e += ej
-                if derivs != 0:
+                if derivs != 0 and t.drive_mode[k] == 0:  # an effort drive is linear: gradient only
+                    put_grad(g, s, B, t.dof[t.body_a[j]], gi)
+                    put_grad(g, s, B, t.dof[t.body_b[j]], gj)
+                elif derivs != 0:
                     put_pair(g, H, s, B, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         return e
 

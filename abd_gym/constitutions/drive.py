@@ -47,7 +47,7 @@ def drive_np(x, x_prev, u, mode, k, d, max_effort, h):
 def kernel(dtype):
     o = ops(dtype)
     a = angle_ops(dtype)
-    vec12 = o.vec12
+    vec12, mat12 = o.vec12, o.mat12
     vec3 = o.vec3
     add_energy, scatter_pair = o.add_energy, o.scatter_pair
     cos_sin, delta_theta, theta_grad = a.cos_sin, a.delta_theta, a.theta_grad
@@ -120,7 +120,14 @@ def kernel(dtype):
             gi, gj = displacement_grad(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
         de = scale * de
         dde = scale * dde
-        return scale * e, de * gi, de * gj, dde * wp.outer(gi, gi), dde * wp.outer(gi, gj), dde * wp.outer(gj, gj)
+        hii = mat12()
+        hij = mat12()
+        hjj = mat12()
+        if dde != zero:  # effort drives and clipped PD drives are linear in x: no Hessian to build
+            hii = dde * wp.outer(gi, gi)
+            hij = dde * wp.outer(gi, gj)
+            hjj = dde * wp.outer(gj, gj)
+        return scale * e, de * gi, de * gj, hii, hij, hjj
 
     @wp.kernel(module="unique")
     def drive(
