@@ -48,9 +48,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         options["enable_cuda_smem_spilling"] = True
     tiled = n if scratch == "tiled" else 0
     o = ops(dtype)
-    vec3, vec12, mat33, mat12 = o.vec3, o.vec12, o.mat33, o.mat12
+    vec3, vec12, mat33, mat12, mat44 = o.vec3, o.vec12, o.mat33, o.mat12, o.mat44
     body_eval = affine_body.kernels(dtype).body_eval
-    point_eval = _point_joint.kernel(dtype).eval
+    point_eval_kron = _point_joint.kernel(dtype).eval_kron
+    kron3 = o.kron3
     prismatic_eval = prismatic_joint.kernel(dtype).eval
     rlim_eval = revolute_limit.kernel(dtype).eval
     plim_eval = prismatic_limit.kernel(dtype).eval
@@ -107,6 +108,41 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                             H[oa + r, ob + c, s] = H[oa + r, ob + c, s] + m[r, c]
                         elif oa != ob:
                             H[ob + c, oa + r, s] = H[ob + c, oa + r, s] + m[r, c]
+
+    if tiled:
+
+        @wp.func
+        def put_kron(H: Any, s: int, B: int, oa: int, ob: int, U: mat44):
+            put_block(H, s, B, oa, ob, kron3(U))
+
+    else:
+
+        @wp.func
+        def put_kron(H: Any, s: int, B: int, oa: int, ob: int, U: mat44):
+            """Block (oa, ob) = U ⊗ I₃ (see warp_ops.kron3): its 48 non-zero entries only."""
+            if oa >= 0 and ob >= 0:
+                for m in range(3):
+                    for c in range(4):
+                        a = m
+                        if c > 0:
+                            a = 3 + 3 * m + c - 1
+                        for d in range(4):
+                            b = m
+                            if d > 0:
+                                b = 3 + 3 * m + d - 1
+                            if oa > ob or (oa == ob and a >= b):
+                                H[oa + a, ob + b, s] = H[oa + a, ob + b, s] + U[c, d]
+                            elif oa < ob:
+                                H[ob + b, oa + a, s] = H[ob + b, oa + a, s] + U[c, d]
+
+    @wp.func
+    def put_kron_pair(g: Any, H: Any, s: int, B: int, oi: int, oj: int, gi: vec12, gj: vec12, uii: mat44,
+                      uij: mat44, ujj: mat44):  # fmt: skip
+        put_grad(g, s, B, oi, gi)
+        put_grad(g, s, B, oj, gj)
+        put_kron(H, s, B, oi, oi, uii)
+        put_kron(H, s, B, oi, oj, uij)
+        put_kron(H, s, B, oj, oj, ujj)
 
     @wp.func
     def put_pair(g: Any, H: Any, s: int, B: int, oi: int, oj: int, gi: vec12, gj: vec12, hii: mat12, hij: mat12,
@@ -182,17 +218,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         if wp.static(has_rev):
             for k in range(t.rev_ids.shape[0]):
                 j = t.rev_ids[k]
-                ej, gi, gj, hii, hij, hjj = point_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j, 2, t.K[w, j], derivs)
+                ej, gi, gj, uii, uij, ujj = point_eval_kron(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j, 2,
+                                                            t.K[w, j], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0:
-                    put_pair(g, H, s, B, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_kron_pair(g, H, s, B, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, uii, uij, ujj)
         if wp.static(has_fix):
             for k in range(t.fix_ids.shape[0]):
                 j = t.fix_ids[k]
-                ej, gi, gj, hii, hij, hjj = point_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j, 4, t.K[w, j], derivs)
+                ej, gi, gj, uii, uij, ujj = point_eval_kron(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j, 4,
+                                                            t.K[w, j], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0:
-                    put_pair(g, H, s, B, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_kron_pair(g, H, s, B, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, uii, uij, ujj)
         if wp.static(has_pri):
             for k in range(t.pri_ids.shape[0]):
                 j = t.pri_ids[k]

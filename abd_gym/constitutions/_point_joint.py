@@ -34,14 +34,15 @@ def kernel(dtype):
     one, half = dtype(1.0), dtype(0.5)
 
     @wp.func
-    def point_eval(
+    def point_eval_kron(
         qi: vec12, qj: vec12, pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3), w: int, j: int,
         npts: int, kk: dtype, derivs: int,
     ):  # fmt: skip
+        """Energy, gradients and the Hessian's 4 × 4 factors: H_ab = U_ab ⊗ I₃ with
+        U_ij = K Σ_p ±u_i u_jᵀ, u = (1, x̄) (J = [I₃, x̄ᵀ ⊗ I₃], so J_iᵀJ_j = (u_i u_jᵀ) ⊗ I₃)."""
         e = dtype(0.0)
         gi = vec12()
         gj = vec12()
-        # K Σ_p J_iᵀJ_j = K Σ_p (u_i u_jᵀ) ⊗ I₃, u = (1, x̄): 4 × 4 sums, expanded once at the end
         uii = mat44()
         uij = mat44()
         ujj = mat44()
@@ -58,13 +59,22 @@ def kernel(dtype):
                 uii += wp.outer(ui, ui)
                 uij += wp.outer(ui, uj)
                 ujj += wp.outer(uj, uj)
+        return e, gi, gj, kk * uii, -kk * uij, kk * ujj
+
+    @wp.func
+    def point_eval(
+        qi: vec12, qj: vec12, pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3), w: int, j: int,
+        npts: int, kk: dtype, derivs: int,
+    ):  # fmt: skip
+        """Energy, gradients and 12 × 12 Hessian blocks (the factors of point_eval_kron, expanded)."""
+        e, gi, gj, uii, uij, ujj = point_eval_kron(qi, qj, pts_a, pts_b, w, j, npts, kk, derivs)
         hii = mat12()
         hij = mat12()
         hjj = mat12()
         if derivs != 0:
-            hii = kron3(kk * uii)
-            hij = kron3(-kk * uij)
-            hjj = kron3(kk * ujj)
+            hii = kron3(uii)
+            hij = kron3(uij)
+            hjj = kron3(ujj)
         return e, gi, gj, hii, hij, hjj
 
     @wp.kernel(module="unique")
@@ -86,7 +96,7 @@ def kernel(dtype):
         if derivs != 0:
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
 
-    return SimpleNamespace(kernel=point_joint, eval=point_eval)
+    return SimpleNamespace(kernel=point_joint, eval=point_eval, eval_kron=point_eval_kron)
 
 
 def launch_points(model, kind, npts, q, E, g, H, active, derivs, col):
