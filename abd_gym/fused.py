@@ -51,7 +51,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     vec3, vec12, mat33, mat12, mat44 = o.vec3, o.vec12, o.mat33, o.mat12, o.mat44
     body_eval = affine_body.kernels(dtype).body_eval
     point_eval_kron = _point_joint.kernel(dtype).eval_kron
-    kron3 = o.kron3
+    kron3, kron_index = o.kron3, o.kron_index
     prismatic_eval = prismatic_joint.kernel(dtype).eval
     rlim_eval = revolute_limit.kernel(dtype).eval
     plim_eval = prismatic_limit.kernel(dtype).eval
@@ -123,13 +123,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             if oa >= 0 and ob >= 0:
                 for m in range(3):
                     for c in range(4):
-                        a = m
-                        if c > 0:
-                            a = 3 + 3 * m + c - 1
+                        a = kron_index(m, c)
                         for d in range(4):
-                            b = m
-                            if d > 0:
-                                b = 3 + 3 * m + d - 1
+                            b = kron_index(m, d)
                             if oa > ob or (oa == ob and a >= b):
                                 H[oa + a, ob + b, s] = H[oa + a, ob + b, s] + U[c, d]
                             elif oa < ob:

@@ -55,6 +55,11 @@ def ops(dtype):
         )  # fmt: skip
 
     @wp.func
+    def kron_index(m: int, c: int):
+        """The q index of component m (x, y, z) times factor c of u = (1, x̄): p_m, or row m of A."""
+        return wp.where(c == 0, m, 3 + 3 * m + c - 1)
+
+    @wp.func
     def kron3(U: mat44):
         """U ⊗ I₃ in the q = (p, a1, a2, a3) layout: J(x) = [I₃, x̄ᵀ ⊗ I₃] rows, so Σ_m J(x)ᵀe_m e_mᵀJ(y)
         = (u_x u_yᵀ) ⊗ I₃ with u = (1, x̄): entry (a, b) is U[c(a), c(b)] where a and b act on the
@@ -62,14 +67,8 @@ def ops(dtype):
         M = mat12()
         for m in range(3):
             for c in range(4):
-                a = m
-                if c > 0:
-                    a = 3 + 3 * m + c - 1
                 for d in range(4):
-                    b = m
-                    if d > 0:
-                        b = 3 + 3 * m + d - 1
-                    M[a, b] = U[c, d]
+                    M[kron_index(m, c), kron_index(m, d)] = U[c, d]
         return M
 
     @wp.func
