@@ -10,7 +10,6 @@ import functools
 import numpy as np
 import warp as wp
 
-from .warp_ops import ops
 
 
 @functools.lru_cache(maxsize=None)
