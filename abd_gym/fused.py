@@ -2,11 +2,12 @@
 solve in a single kernel launch, world after world when there are more worlds than threads.
 
 Same arithmetic as the staged kernels of ``solver.py`` (each constitution's per-instance
-evaluator), without atomics (a thread owns its scratch column of ``g``/``H``/``dq``),
+evaluator; point joints' Hessian blocks added from their 4 × 4 Kronecker factors, effort drives'
+gradient only, as their blocks are zero), without atomics (a thread owns its scratch column of ``g``/``H``/``dq``),
 without per-iteration launches, and with the code of absent constitutions compiled out
 (``wp.static`` on what the scene has).  ``Solver(fused=True)`` uses it.
 
-``tiled``: one CUDA block per world instead of one thread.  Every lane runs the same scalar code
+``scratch="tiled"``: one CUDA block per world instead of one thread.  Every lane runs the same scalar code
 (the evaluators compute whole 12 × 12 blocks); the Hessian and gradient live in shared memory,
 added one entry per lane per ``wp.tile_scatter_add``, and the block factors and solves with
 ``wp.tile_cholesky_inplace`` / ``wp.tile_cholesky_solve_inplace``.  Measured on an H100
