@@ -11,7 +11,6 @@ import numpy as np
 import warp as wp
 
 
-
 @functools.lru_cache(maxsize=None)
 def kernels(dtype):
     @wp.kernel
