@@ -27,7 +27,7 @@ class SolverSettings:
     fused: bool = True  # one kernel per step runs every world's whole Newton solve (fused.py)
     integrator: str = "implicit_euler"  # or "bdf2"
     # fused step: threads launched (each solves worlds s, s+T, …, reusing its scratch) and CUDA block
-    # size; None picks them for the device (see Solver.fused_threads)
+    # size; None picks them for the device (default_threads, default_block_dim)
     threads: int | None = None
     block_dim: int | None = None
     # where the fused step keeps a world's g, H and Δq (fused.py): "global" arrays, one column per
@@ -73,15 +73,16 @@ class Solver:
         self.cols = self._columns(physical=False)
         self.report_cols = self._columns(physical=True)
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
-        # scratch columns: one per world for the staged step; one per thread for the fused step,
-        # whose threads each solve several worlds in turn (memory per world stays O(bodies))
         if settings.scratch not in ("global", "tiled"):
             raise ValueError(f"scratch must be 'global' or 'tiled', got {settings.scratch!r}")
         if settings.scratch != "global" and not settings.fused:
             raise ValueError(f"scratch={settings.scratch!r} needs the fused step (fused=True)")
         self.tiled = settings.scratch == "tiled"
+        # scratch columns of g, H, Δq: one per world for the staged step; one per thread for the fused
+        # step, whose threads each solve several worlds in turn (memory per world stays O(bodies));
+        # one in all for the tiled step, whose blocks keep their world's system in shared memory
         if self.tiled:
-            self.threads = 1  # no per-thread scratch: each block keeps its world's system in shared memory
+            self.threads = 1
         elif settings.fused:
             T = default_threads(wp.get_device(dev), W) if settings.threads is None else settings.threads
             if not (isinstance(T, (int, np.integer)) and T > 0):
@@ -89,19 +90,13 @@ class Solver:
             self.threads = int(min(T, W))
         else:
             self.threads = W
-        if self.tiled:
-            self.block_dim = settings.block_dim or 32
-        else:
-            self.block_dim = settings.block_dim or default_block_dim(wp.get_device(dev), self.threads)
         T = self.threads
+        self.block_dim = settings.block_dim or (32 if self.tiled else default_block_dim(wp.get_device(dev), T))
         self.q_trial = wp.zeros((W if self.tiled else T, model.num_bodies), dtype=model.vec12, device=dev)
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)
         self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=dt_, device=dev)
-        # column-minor: thread s reads H[i, j, s] coalesced with its neighbours (tiled scratch keeps
-        # its own in shared memory: these are then only the staged assembly's, one column)
-        if settings.scratch != "global":
-            T = 1
+        # column-minor: thread s reads H[i, j, s] coalesced with its neighbours
         self.g = wp.zeros((n, T), dtype=dt_, device=dev)
         self.H = wp.zeros((n, n, T), dtype=dt_, device=dev)
         self.dq = wp.zeros((n, T), dtype=dt_, device=dev)

@@ -72,8 +72,7 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
                 env.step(actions[k % len(actions)])
             wp.synchronize_device(u.device)
             elapsed = time.perf_counter() - t0
-            sim.step = inner
-            alone = None
+            sim.step = inner  # the simulator alone, below, runs without the event timers
             if timed:
                 if len(spans) != steps:
                     raise RuntimeError(f"expected one sim.step per env step, timed {len(spans)} in {steps} steps")
