@@ -104,7 +104,9 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
         tol=sim.solver.settings.tol, integrator=sim.solver.settings.integrator, scratch=sim.solver.settings.scratch,
         max_registers=sim.solver.settings.max_registers, smem_spilling=sim.solver.settings.smem_spilling,
         seconds=elapsed, steps_per_second=steps / elapsed, world_steps_per_second=num_worlds * steps / elapsed,
-        newton_iterations=float(sim.newton_iterations().mean()), joint_residual=residual,
+        newton_iterations=float(sim.newton_iterations().mean()),
+        newton_factorizations=float(sim.newton_factorizations().mean()), joint_residual=residual,
+        reuse_factor=sim.solver.reuse_factor,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
         threads=sim.solver.threads, block_dim=sim.solver.block_dim,
         memory_bytes_per_world=sim.memory_bytes()["total"] / num_worlds,
@@ -140,6 +142,9 @@ def main(argv=None):
     ap.add_argument("--threads", default=None, help="fused-step threads: all (one per world), Nsm (N per SM) or a count")
     ap.add_argument("--max-registers", default="0", help="comma-separated CUDA register caps (0: compiler's choice)")
     ap.add_argument("--smem-spilling", default="0", help="comma-separated 0/1: spill registers to shared memory")
+    ap.add_argument("--reuse-factor", default="auto",
+                    help="comma-separated auto/0/1: reuse the Cholesky factor after a full Newton step "
+                         "(auto: in float32 only)")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--out", default="bench_out")
     ap.add_argument("--envs", action="store_true", help="also time each task's vector env")
@@ -155,17 +160,21 @@ def main(argv=None):
         for dt in (args.dt,):
             accuracy.append(dict(case=case, dt=dt, dtype=args.dtype,
                                  period_error=period_error(case, dt, args.dtype, args.device)))  # fmt: skip
-        variants = [(k, float(t), int(r), bool(int(sp))) for k in args.scratch.split(",") for t in args.tol.split(",")
-                    for r in args.max_registers.split(",") for sp in args.smem_spilling.split(",")]  # fmt: skip
-        for (scratch, tol, regs, spill), w in ((v, w) for v in variants for w in worlds):
+        reuse_choice = {"auto": None, "0": False, "1": True}
+        variants = [(k, float(t), int(r), bool(int(sp)), reuse_choice[ru]) for k in args.scratch.split(",")
+                    for t in args.tol.split(",") for r in args.max_registers.split(",")
+                    for sp in args.smem_spilling.split(",") for ru in args.reuse_factor.split(",")]  # fmt: skip
+        for (scratch, tol, regs, spill, reuse), w in ((v, w) for v in variants for w in worlds):
             runs = [time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol, integrator=args.integrator,
                                scratch=scratch, block_dim=args.block_dim, max_registers=regs, smem_spilling=spill,
-                               threads=_thread_count(args.threads, w, args.device)) for _ in range(max(args.repeat, 1))]  # fmt: skip
+                               reuse_factor=reuse, threads=_thread_count(args.threads, w, args.device))
+                    for _ in range(max(args.repeat, 1))]  # fmt: skip
             rows.append(max(runs, key=lambda r: r["world_steps_per_second"]))
             rows[-1]["repeats"] = len(runs)
             r = rows[-1]
             print(f"{case:16s} worlds {w:6d} tol {tol:g} {_solver(r):9s} {r['world_steps_per_second']:12.0f} world-steps/s  "
                   f"{r['steps_per_second']:8.1f} steps/s  iters {r['newton_iterations']:.2f}  "
+                  f"factorisations {r['newton_factorizations']:.2f}  "
                   f"residual {r['joint_residual']:.2e}", flush=True)  # fmt: skip
     env_rows = []
     if args.envs:
@@ -258,18 +267,21 @@ def _solver(r) -> str:
     """The fused step's scratch ("global", "tiled"; "local" in older results) and CUDA block size."""
     scratch = r.get("scratch") or ("tiled" if r.get("tiled") else "global")
     extra = (f" r{r['max_registers']}" if r.get("max_registers") else "") + (" smem" if r.get("smem_spilling") else "")
+    extra += "" if r.get("reuse_factor", False) else " full"  # every iteration factors (older results: all)
     return f"{scratch}/{r['block_dim']}{extra} T{r['threads']}"
 
 
 def table(result) -> str:
     """Markdown tables of a bench result."""
     lines = [f"Device: {result['device_name']} ({result['device']}), warp {result['warp']}", "",
-             "| mechanism | worlds | step | tol [m/s] | world-steps/s | steps/s | Newton iters | joint residual [m] |",
-             "|---|---:|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+             "| mechanism | worlds | step | tol [m/s] | world-steps/s | steps/s | Newton iters | factorisations | "
+             "joint residual [m] |", "|---|---:|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     for r in result["simulator"]:
         lines.append(f"| {r['case']} | {r['num_worlds']} | {_solver(r)} | {r.get('tol', 1e-5):g} | "
                      f"{r['world_steps_per_second']:,.0f} | "
-                     f"{r['steps_per_second']:,.1f} | {r['newton_iterations']:.2f} | {r['joint_residual']:.1e} |")  # fmt: skip
+                     f"{r['steps_per_second']:,.1f} | {r['newton_iterations']:.2f} | "
+                     f"{r.get('newton_factorizations', r['newton_iterations']):.2f} | "
+                     f"{r['joint_residual']:.1e} |")  # fmt: skip
     lines += ["", "| mechanism | dt [s] | dtype | period error (lowest mode) |", "|---|---:|---|---:|"]
     for a in result["accuracy"]:
         lines.append(f"| {a['case']} | {a['dt']} | {a['dtype']} | {a['period_error']:+.3%} |")

@@ -1,11 +1,13 @@
 """The fused Newton step: one thread runs every iteration, line search and stop test of a world's
 solve in a single kernel launch, world after world when there are more worlds than threads.
 
-Same arithmetic as the staged kernels of ``solver.py`` (each constitution's per-instance
-evaluator; point joints' Hessian blocks added from their 4 × 4 Kronecker factors, effort drives'
-gradient only, as their blocks are zero), without atomics (a thread owns its scratch column of ``g``/``H``/``dq``),
-without per-iteration launches, and with the code of absent constitutions compiled out
-(``wp.static`` on what the scene has).  ``Solver(fused=True)`` uses it.
+Same arithmetic and the same Newton rules as the staged kernels of ``solver.py`` (each
+constitution's per-instance evaluator; point joints' Hessian blocks added from their 4 × 4
+Kronecker factors, effort drives' gradient only, as their blocks are zero; an iteration that
+reuses the last Cholesky factor assembles the gradient only and leaves H, which holds the factor),
+without atomics (a thread owns its scratch column of ``g``/``H``/``dq``), without per-iteration
+launches, and with the code of absent constitutions compiled out (``wp.static`` on what the scene
+has).  ``Solver(fused=True)`` uses it.
 
 ``scratch="tiled"``: one CUDA block per world instead of one thread.  Every lane runs the same scalar code
 (the evaluators compute whole 12 × 12 blocks); the Hessian and gradient live in shared memory,
@@ -23,7 +25,7 @@ import warp as wp
 
 from . import solver_kernels
 from .constitutions import _point_joint, affine_body, drive, prismatic_joint, prismatic_limit, revolute_limit
-from .warp_ops import ops
+from .warp_ops import ENERGY, GRADIENT, HESSIAN, ops
 
 OK, FAILED = 0, 1
 
@@ -58,7 +60,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     plim_eval = prismatic_limit.kernel(dtype).eval
     drive_eval = drive.kernel(dtype).eval
     staged = solver_kernels.kernels(dtype)
-    cholesky_solve, noise_floor = staged["cholesky_solve"], staged["noise_floor"]
+    cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
+    noise_floor = staged["noise_floor"]
     zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
 
@@ -133,22 +136,24 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                                 H[ob + b, oa + a, s] = H[ob + b, oa + a, s] + U[c, d]
 
     @wp.func
-    def put_kron_pair(g: Any, H: Any, s: int, B: int, oi: int, oj: int, gi: vec12, gj: vec12, uii: mat44,
-                      uij: mat44, ujj: mat44):  # fmt: skip
+    def put_kron_pair(g: Any, H: Any, s: int, B: int, derivs: int, oi: int, oj: int, gi: vec12, gj: vec12,
+                      uii: mat44, uij: mat44, ujj: mat44):  # fmt: skip
         put_grad(g, s, B, oi, gi)
         put_grad(g, s, B, oj, gj)
-        put_kron(H, s, B, oi, oi, uii)
-        put_kron(H, s, B, oi, oj, uij)
-        put_kron(H, s, B, oj, oj, ujj)
+        if derivs == HESSIAN:
+            put_kron(H, s, B, oi, oi, uii)
+            put_kron(H, s, B, oi, oj, uij)
+            put_kron(H, s, B, oj, oj, ujj)
 
     @wp.func
-    def put_pair(g: Any, H: Any, s: int, B: int, oi: int, oj: int, gi: vec12, gj: vec12, hii: mat12, hij: mat12,
-                 hjj: mat12):  # fmt: skip
+    def put_pair(g: Any, H: Any, s: int, B: int, derivs: int, oi: int, oj: int, gi: vec12, gj: vec12, hii: mat12,
+                 hij: mat12, hjj: mat12):  # fmt: skip
         put_grad(g, s, B, oi, gi)
         put_grad(g, s, B, oj, gj)
-        put_block(H, s, B, oi, oi, hii)
-        put_block(H, s, B, oi, oj, hij)
-        put_block(H, s, B, oj, oj, hjj)
+        if derivs == HESSIAN:
+            put_block(H, s, B, oi, oi, hii)
+            put_block(H, s, B, oi, oj, hij)
+            put_block(H, s, B, oj, oj, hjj)
 
     @wp.struct
     class Terms:
@@ -202,8 +207,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def assemble(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any):
-        """Total incremental potential of world w at q[qr]; with derivs, also its g and H (added to
-        scratch column s; tiled: to the block's shared g and H, s the lane and B the block size)."""
+        """Total incremental potential of world w at q[qr]; derivs GRADIENT adds its g, HESSIAN its g
+        and H (to scratch column s; tiled: to the block's shared g and H, s the lane, B the block size)."""
         e = zero
         for k in range(t.free.shape[0]):
             b = t.free[k]
@@ -211,7 +216,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             e += e_in + e_or
             if derivs != 0:
                 put_grad(g, s, B, t.dof[b], f)
-                put_block(H, s, B, t.dof[b], t.dof[b], hb)
+                if derivs == HESSIAN:
+                    put_block(H, s, B, t.dof[b], t.dof[b], hb)
         if wp.static(has_rev):
             for k in range(t.rev_ids.shape[0]):
                 j = t.rev_ids[k]
@@ -219,7 +225,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                                                             t.K[w, j], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0:
-                    put_kron_pair(g, H, s, B, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, uii, uij, ujj)
+                    put_kron_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, uii, uij, ujj)
         if wp.static(has_fix):
             for k in range(t.fix_ids.shape[0]):
                 j = t.fix_ids[k]
@@ -227,7 +233,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                                                             t.K[w, j], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0:
-                    put_kron_pair(g, H, s, B, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, uii, uij, ujj)
+                    put_kron_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, uii, uij, ujj)
         if wp.static(has_pri):
             for k in range(t.pri_ids.shape[0]):
                 j = t.pri_ids[k]
@@ -236,7 +242,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                                                            t.b_b[w, j], t.K[w, j], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0:
-                    put_pair(g, H, s, B, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_rlim):
             for k in range(t.rlim_ids.shape[0]):
                 j = t.rlim_ids[k]
@@ -245,7 +251,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                                                       t.rlim_up[w, k], t.rlim_s[w, k], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0 and ej != zero:
-                    put_pair(g, H, s, B, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_plim):
             for k in range(t.plim_ids.shape[0]):
                 j = t.plim_ids[k]
@@ -253,7 +259,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                                                       t.plim_lo[w, k], t.plim_up[w, k], t.plim_s[w, k], derivs)  # fmt: skip
                 e += ej
                 if derivs != 0 and ej != zero:
-                    put_pair(g, H, s, B, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         if wp.static(has_drive):
             for k in range(t.drive_joint.shape[0]):
                 j = t.drive_joint[k]
@@ -265,17 +271,18 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     put_grad(g, s, B, t.dof[t.body_a[j]], gi)
                     put_grad(g, s, B, t.dof[t.body_b[j]], gj)
                 elif derivs != 0:
-                    put_pair(g, H, s, B, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                    put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
         return e
 
     @wp.func
-    def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype):
+    def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype, chord: int):
         """(skip, done): take the Newton step whole, without a line search, when it is under the
         tolerance or when its predicted decrease −gᵀΔq is below what the energy's float rounding
-        can resolve (the search could only halve it on noise); done: the solve ends with it."""
+        can resolve (the search could only halve it on noise); done: the solve ends with it.  A
+        step from a reused factor (chord) converges linearly: only one under the tolerance ends it."""
         unresolved = -gdq <= dtype(1600.0) * EPS * wp.abs(e0)
         skip = dmax < floor or unresolved
-        done = dmax < floor or (unresolved and dmax < dtype(1000.0) * floor)
+        done = dmax < floor or (unresolved and dmax < dtype(1000.0) * floor and chord == 0)
         return wp.where(skip, 1, 0), wp.where(done, 1, 0)
 
     @wp.func
@@ -288,12 +295,35 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return 0, 0
 
     @wp.func
-    def end_iteration(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), w: int, row: int, it: int,
-                      accepted: int, stalled: int, dmax: dtype, floor: dtype, iterations: wp.array(dtype=wp.int32),
-                      converged: wp.array(dtype=wp.int32)):  # fmt: skip
+    def trial_point(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, dq: wp.array2d(dtype=dtype),
+                    w: int, s: int, alpha: dtype):  # fmt: skip
+        """Row s of q_trial = q[w] + α Δq (Δq in scratch column s)."""
+        for b in range(q.shape[1]):
+            qb = q[w, b]
+            ob = t.dof[b]
+            if ob >= 0:
+                for r in range(12):
+                    qb[r] = qb[r] + alpha * dq[ob + r, s]
+            q_trial[s, b] = qb
+
+    @wp.func
+    def chord_step(chord: int, reuse: int, accepted: int, alpha: dtype, dmax: dtype, d_prev: dtype):
+        """(retry, chord) after an iteration.  A step from a reused factor (chord) is tried at α = 1
+        only: rejected, it is not taken and the next iteration refactors at the same q (retry 1).
+        The factor is reused after a full step taken whole, and kept while the reused steps shrink at
+        least 4× an iteration (they converge linearly, at the rate the Hessian has changed; a slow
+        rate would leave the solve's error near the tolerance, where Newton's leaves it far below)."""
+        if chord != 0:
+            if accepted == 0:
+                return 1, 0
+            return 0, wp.where(dmax <= dtype(0.25) * d_prev, 1, 0)
+        return 0, wp.where(accepted != 0 and alpha == one, reuse, 0)
+
+    @wp.func
+    def end_iteration(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), w: int, row: int, accepted: int,
+                      stalled: int, dmax: dtype, floor: dtype, converged: wp.array(dtype=wp.int32)):  # fmt: skip
         """Take the accepted trial point (row of q_trial) as world w's q; 1 when its solve is over.
         A search that ran out takes no step: converged if the step was already near the tolerance."""
-        iterations[w] = it + 1
         if accepted == 0:
             if dmax < dtype(1000.0) * floor:
                 converged[w] = 1
@@ -308,98 +338,127 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     @wp.func
     def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array2d(dtype=dtype),
                     H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int, s: int, n: int, threshold: dtype,
-                    max_iterations: int, max_line_search: int, status: wp.array(dtype=wp.int32),
-                    iterations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32)):  # fmt: skip
-        """World w's whole Newton solve, in scratch column s of g, H, dq and row s of q_trial."""
+                    max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
+                    iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
+                    converged: wp.array(dtype=wp.int32)):  # fmt: skip
+        """World w's whole Newton solve, in scratch column s of g, H, dq and row s of q_trial.
+
+        With ``reuse``, an iteration after a full step (α = 1) keeps the Cholesky factor it left in H
+        and solves only the new gradient against it (a simplified-Newton step; see ``chord_step``)."""
         iterations[w] = 0
+        factorizations[w] = 0
         converged[w] = 0
         if status[w] != OK:
             return 0
-        nb = q.shape[1]
+        chord = int(0)  # 1: H holds the factor of an earlier iteration, reused for this one
+        d_prev = zero
         for it in range(max_iterations):
             for i in range(n):
                 g[i, s] = zero
-                for j in range(i + 1):
-                    H[i, j, s] = zero
-            e0 = assemble(q, w, w, s, 1, 1, t, g, H)
-            ok, gdq, dmax = cholesky_solve(H, g, dq, s, n)
+                if chord == 0:
+                    for j in range(i + 1):
+                        H[i, j, s] = zero
+            e0 = zero
+            ok = int(0)
+            gdq = zero
+            dmax = zero
+            if chord != 0:
+                e0 = assemble(q, w, w, s, 1, GRADIENT, t, g, H)
+                ok, gdq, dmax = factored_solve(H, g, dq, s, n)
+            else:
+                e0 = assemble(q, w, w, s, 1, HESSIAN, t, g, H)
+                ok, gdq, dmax = cholesky_solve(H, g, dq, s, n)
+                factorizations[w] = factorizations[w] + 1
             if ok == 0:
                 status[w] = FAILED
                 return 0
+            iterations[w] = it + 1
             floor = noise_floor(q, w, threshold)
-            skip, done = whole_step(e0, gdq, dmax, floor)
-            if skip != 0:
-                for b in range(nb):
-                    ob = t.dof[b]
-                    if ob >= 0:
-                        qb = q[w, b]
-                        for r in range(12):
-                            qb[r] = qb[r] + dq[ob + r, s]
-                        q[w, b] = qb
-                iterations[w] = it + 1
-                if done != 0:
-                    converged[w] = 1
-                    return 0
-                continue
-            # backtracking line search (Armijo) on the world's own energy
+            skip, done = whole_step(e0, gdq, dmax, floor, chord)
+            trial_point(q, q_trial, t, dq, w, s, one)
             alpha = one
             accepted = int(0)
             stalled = int(0)
-            for ls in range(max_line_search):
-                for b in range(nb):
-                    qb = q[w, b]
-                    ob = t.dof[b]
-                    if ob >= 0:
-                        for r in range(12):
-                            qb[r] = qb[r] + alpha * dq[ob + r, s]
-                    q_trial[s, b] = qb
-                e1 = assemble(q_trial, s, w, s, 1, 0, t, g, H)
-                accepted, stalled = armijo(e0, e1, alpha, gdq)
-                if accepted != 0:
-                    break
-                alpha = alpha * half
-            if end_iteration(q, q_trial, w, s, it, accepted, stalled, dmax, floor, iterations, converged) != 0:
+            if skip != 0:
+                accepted = 1
+                stalled = done
+            elif chord != 0:
+                accepted, stalled = armijo(e0, assemble(q_trial, s, w, s, 1, ENERGY, t, g, H), one, gdq)
+            else:  # backtracking line search (Armijo) on the world's own energy
+                for ls in range(max_line_search):
+                    if ls > 0:
+                        trial_point(q, q_trial, t, dq, w, s, alpha)
+                    accepted, stalled = armijo(e0, assemble(q_trial, s, w, s, 1, ENERGY, t, g, H), alpha, gdq)
+                    if accepted != 0:
+                        break
+                    alpha = alpha * half
+            retry, chord = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
+            if retry == 0 and end_iteration(q, q_trial, w, s, accepted, stalled, dmax, floor, converged) != 0:
                 return 0
+            d_prev = dmax
         return 0
 
     @wp.kernel(**options)
     def newton(
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
         g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype),
-        n: int, threshold: dtype, max_iterations: int, max_line_search: int,
-        status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
+        n: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
+        status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
+        factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """Thread s solves worlds s, s + T, s + 2T, … (T threads, T = the scratch width): the scratch
         of a thread is reused world after world, so it stays in cache however many worlds there are."""
         s = wp.tid()
         T = g.shape[1]
         for w in range(s, q.shape[0], T):
-            solve_world(q, q_trial, t, g, H, dq, w, s, n, threshold, max_iterations, max_line_search, status,
-                        iterations, converged)  # fmt: skip
+            solve_world(q, q_trial, t, g, H, dq, w, s, n, threshold, max_iterations, max_line_search, reuse, status,
+                        iterations, factorizations, converged)  # fmt: skip
 
     if scratch == "global":
         return newton, Terms
 
     @wp.func
+    def trial_tiled(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, y: Any, w: int,
+                    alpha: dtype):  # fmt: skip
+        """q_trial[w] = q[w] − α y (y = H⁻¹g: the Newton step is −y)."""
+        for b in range(q.shape[1]):
+            qb = q[w, b]
+            ob = t.dof[b]
+            if ob >= 0:
+                for r in range(12):
+                    qb[r] = qb[r] - alpha * wp.tile_extract(y, ob + r)
+            q_trial[w, b] = qb
+
+    @wp.func
     def solve_world_tiled(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, H: Any, g: Any,
                           y: Any, Hz: Any, gz: Any, w: int, lane: int, B: int, threshold: dtype, max_iterations: int,
-                          max_line_search: int, status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
+                          max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
+                          iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
                           converged: wp.array(dtype=wp.int32)):  # fmt: skip
         """World w's Newton solve by the B lanes of one block: every lane runs the same scalar code
         (so every branch is uniform and the lanes' global writes agree), H and g live in shared
-        memory, assembled one entry per lane, and the block factors H together."""
+        memory, assembled one entry per lane, and the block factors H together (kept for the next
+        iteration as in ``solve_world``)."""
         iterations[w] = 0
+        factorizations[w] = 0
         converged[w] = 0
         if status[w] != OK:
             return 0
-        nb = q.shape[1]
+        chord = int(0)
+        d_prev = zero
         for it in range(max_iterations):
-            wp.tile_assign(H, Hz, offset=(0, 0))
             wp.tile_assign(g, gz, offset=(0,))
-            e0 = assemble(q, w, w, lane, B, 1, t, g, H)
-            wp.tile_assign(y, g, offset=(0,))
-            wp.tile_cholesky_inplace(H)
-            wp.tile_cholesky_solve_inplace(H, y)  # y = H⁻¹g, the Newton step is −y
+            e0 = zero
+            if chord != 0:
+                e0 = assemble(q, w, w, lane, B, GRADIENT, t, g, H)
+                wp.tile_assign(y, g, offset=(0,))
+            else:
+                wp.tile_assign(H, Hz, offset=(0, 0))
+                e0 = assemble(q, w, w, lane, B, HESSIAN, t, g, H)
+                wp.tile_assign(y, g, offset=(0,))
+                wp.tile_cholesky_inplace(H)
+                factorizations[w] = factorizations[w] + 1
+            wp.tile_cholesky_solve_inplace(H, y)
             gdq = zero
             dmax = zero
             for i in range(N):
@@ -409,40 +468,38 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             if not (wp.isfinite(gdq) and wp.isfinite(dmax)):  # H not positive definite
                 status[w] = FAILED
                 return 0
+            iterations[w] = it + 1
             floor = noise_floor(q, w, threshold)
-            skip, done = whole_step(e0, gdq, dmax, floor)
+            skip, done = whole_step(e0, gdq, dmax, floor, chord)
+            trial_tiled(q, q_trial, t, y, w, one)
             alpha = one
-            if skip != 0:
-                alpha = zero  # taken whole below, no line search
             accepted = int(0)
             stalled = int(0)
-            for ls in range(max_line_search):
-                a = wp.where(alpha == zero, one, alpha)
-                for b in range(nb):
-                    qb = q[w, b]
-                    ob = t.dof[b]
-                    if ob >= 0:
-                        for r in range(12):
-                            qb[r] = qb[r] - a * wp.tile_extract(y, ob + r)
-                    q_trial[w, b] = qb
-                if alpha == zero:
-                    accepted = 1
-                    stalled = done
-                    break
-                e1 = assemble(q_trial, w, w, lane, B, 0, t, g, H)
-                accepted, stalled = armijo(e0, e1, alpha, gdq)
-                if accepted != 0:
-                    break
-                alpha = alpha * half
-            if end_iteration(q, q_trial, w, w, it, accepted, stalled, dmax, floor, iterations, converged) != 0:
+            if skip != 0:
+                accepted = 1
+                stalled = done
+            elif chord != 0:
+                accepted, stalled = armijo(e0, assemble(q_trial, w, w, lane, B, ENERGY, t, g, H), one, gdq)
+            else:
+                for ls in range(max_line_search):
+                    if ls > 0:
+                        trial_tiled(q, q_trial, t, y, w, alpha)
+                    accepted, stalled = armijo(e0, assemble(q_trial, w, w, lane, B, ENERGY, t, g, H), alpha, gdq)
+                    if accepted != 0:
+                        break
+                    alpha = alpha * half
+            retry, chord = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
+            if retry == 0 and end_iteration(q, q_trial, w, w, accepted, stalled, dmax, floor, converged) != 0:
                 return 0
+            d_prev = dmax
         return 0
 
     @wp.kernel(**options)
     def newton_tiled(
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, threshold: dtype,
-        max_iterations: int, max_line_search: int, status: wp.array(dtype=wp.int32),
-        iterations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
+        max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
+        iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
+        converged: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """Block w solves world w (launched with ``wp.launch_tiled``, one block per world)."""
         w, lane = wp.tid()
@@ -453,7 +510,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         Hz = wp.tile_zeros(shape=(N, N), dtype=dtype, storage="shared")
         gz = wp.tile_zeros(shape=(N,), dtype=dtype, storage="shared")
         solve_world_tiled(q, q_trial, t, H, g, y, Hz, gz, w, lane, B, threshold, max_iterations, max_line_search,
-                          status, iterations, converged)  # fmt: skip
+                          reuse, status, iterations, factorizations, converged)  # fmt: skip
 
     return newton_tiled, Terms
 

@@ -66,7 +66,7 @@ class Simulator:
                  tol: float = 1e-5, max_iterations: int = 50, max_line_search: int = 12,
                  use_graph: bool | None = None, fused: bool = True, integrator: str = "implicit_euler",
                  threads: int | None = None, block_dim: int | None = None, scratch: str = "global",
-                 max_registers: int = 0, smem_spilling: bool = False):  # fmt: skip
+                 max_registers: int = 0, smem_spilling: bool = False, reuse_factor: bool | None = None):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
@@ -77,7 +77,7 @@ class Simulator:
         self.state = State(self.model)
         self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search), bool(fused), integrator,
                                                            threads, block_dim, scratch, int(max_registers),
-                                                           bool(smem_spilling)))  # fmt: skip
+                                                           bool(smem_spilling), reuse_factor))  # fmt: skip
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device
@@ -209,6 +209,11 @@ class Simulator:
     def newton_iterations(self) -> np.ndarray:
         """(num_worlds,) Newton iterations used in the last step."""
         return self.state.iterations.numpy().copy()
+
+    def newton_factorizations(self) -> np.ndarray:
+        """(num_worlds,) Cholesky factorisations in the last step: the iterations less those that
+        reused a factor (``reuse_factor``)."""
+        return self.state.factorizations.numpy().copy()
 
     # ------------------------------------------------------------------ input
     def _worlds(self, worlds):

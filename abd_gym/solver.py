@@ -2,10 +2,14 @@
 
     E(q) = ½(q − q̃)ᵀM(q − q̃) + h²(Σ V_orth + Σ E_drive) + Σ E_joint + Σ E_limit
 
-Each Newton iteration assembles every world's gradient and dense Hessian (only the
-constitutions the scene has), solves it by Cholesky (one thread per world), backtracks on E
-(Armijo), and stops a world once its Newton step ``‖Δq‖∞/h`` is under ``tol`` [m/s].  Worlds
-that have converged or failed drop out of the remaining iterations.
+Newton starts from the last step's motion extrapolated (``predict``).  Each iteration assembles
+every world's gradient and dense Hessian (only the constitutions the scene has), solves it by
+Cholesky (one thread per world), backtracks on E (Armijo), and stops a world once its Newton step
+``‖Δq‖∞/h`` is under ``tol`` [m/s].  With ``reuse_factor`` (float32 by default) an iteration after
+a full step taken whole assembles only the gradient and solves it against the last factor (a
+simplified-Newton step: two triangular solves instead of a factorisation; tried at α = 1, kept
+while the steps shrink 4× an iteration, else the next iteration factors again).  Worlds that
+have converged or failed drop out of the remaining iterations.
 """
 from __future__ import annotations
 
@@ -17,6 +21,7 @@ import warp as wp
 from . import coordinates
 from .constitutions import REGISTRY
 from .solver_kernels import kernels as solver_kernels
+from .warp_ops import HESSIAN
 
 
 @dataclass
@@ -37,6 +42,12 @@ class SolverSettings:
     # memory (see bench: occupancy against spills)
     max_registers: int = 0
     smem_spilling: bool = False
+    # after a full Newton step taken whole, solve the next iteration's gradient against the same
+    # Cholesky factor (a simplified-Newton step, tried at α = 1, kept while it converges 4× per
+    # iteration); False: factor at every iteration.  None: in float32 only, where rounding bounds
+    # the solve's error either way; in float64 the reused factor's linear convergence leaves ~1e-10 m
+    # per step where Newton's quadratic convergence leaves ~1e-14 (tests/test_hard_cases.py)
+    reuse_factor: bool | None = None
 
 
 def default_threads(device, num_worlds: int) -> int:
@@ -65,6 +76,8 @@ class Solver:
         if settings.integrator not in ("implicit_euler", "bdf2"):
             raise ValueError(f"integrator must be 'implicit_euler' or 'bdf2', got {settings.integrator!r}")
         self.bdf2 = int(settings.integrator == "bdf2")
+        reuse = settings.reuse_factor
+        self.reuse_factor = bool(model.dtype == wp.float32 if reuse is None else reuse)
         # the step's effective h: physical potentials sit inside h_eff², velocities are Δq/h_eff
         self.h_eff = self.h * (2.0 / 3.0 if self.bdf2 else 1.0)
         W, n, dev, dt_ = model.num_worlds, model.num_dofs, model.device, model.dtype
@@ -100,6 +113,10 @@ class Solver:
         self.g = wp.zeros((n, T), dtype=dt_, device=dev)
         self.H = wp.zeros((n, n, T), dtype=dt_, device=dev)
         self.dq = wp.zeros((n, T), dtype=dt_, device=dev)
+        # the staged step's Cholesky factors, kept for an iteration that reuses them (H is reassembled)
+        self.L = None if settings.fused else wp.zeros((n, n, T), dtype=dt_, device=dev)
+        self.chord = wp.zeros(W, dtype=wp.int32, device=dev)
+        self.d_prev = wp.zeros(W, dtype=dt_, device=dev)
         self.gdq, self.dq_max, self.alpha = (wp.zeros(W, dtype=dt_, device=dev) for _ in range(3))
         self.active, self.searching, self.take = (wp.zeros(W, dtype=wp.int32, device=dev) for _ in range(3))
         self.all_active = wp.ones(W, dtype=wp.int32, device=dev)
@@ -160,7 +177,7 @@ class Solver:
             self._fused_newton(state)
         else:
             wp.launch(k["start"], dim=W, inputs=[state.status, self.active, state.iterations, state.converged,
-                                                 self.take], device=dev)  # fmt: skip
+                                                 self.take, self.chord, state.factorizations], device=dev)  # fmt: skip
             self.remaining.fill_(1)
             wp.capture_while(self.remaining, self._newton_iteration, state=state)
         wp.launch(k["finalize"], dim=(W, nb), inputs=[state.q, state.q_prev, state.qd, state.q_hist, state.qd_hist,
@@ -175,12 +192,13 @@ class Solver:
         if self.tiled:
             wp.launch_tiled(kernel, dim=[m.num_worlds], inputs=[
                 state.q, self.q_trial, terms, m.dtype(s.tol * self.h), s.max_iterations, s.max_line_search,
-                state.status, state.iterations, state.converged], block_dim=self.block_dim, device=m.device)  # fmt: skip
+                int(self.reuse_factor), state.status, state.iterations, state.factorizations, state.converged],
+                block_dim=self.block_dim, device=m.device)  # fmt: skip
             return
         wp.launch(kernel, dim=self.threads, inputs=[
             state.q, self.q_trial, terms, self.g, self.H, self.dq, m.num_dofs, m.dtype(s.tol * self.h),
-            s.max_iterations, s.max_line_search, state.status, state.iterations, state.converged], device=m.device,
-            block_dim=self.block_dim)  # fmt: skip
+            s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
+            state.factorizations, state.converged], device=m.device, block_dim=self.block_dim)  # fmt: skip
 
     def _build_fused(self, state):
         """The fused kernel for what this scene has, and the struct of arrays it reads (built once:
@@ -215,16 +233,18 @@ class Solver:
         self.E.zero_()
         self.g.zero_()
         self.H.zero_()
-        self.assemble(state, state.q, self.E, self.active, 1)
-        wp.launch(k["newton_direction"], dim=W, inputs=[self.H, self.g, m.num_dofs, self.active, self.dq, self.gdq,
-                                                        self.dq_max, state.status], device=dev)  # fmt: skip
+        self.assemble(state, state.q, self.E, self.active, HESSIAN)
+        wp.launch(k["newton_direction"], dim=W, inputs=[self.H, self.L, self.g, m.num_dofs, self.active, self.chord,
+                                                        self.dq, self.gdq, self.dq_max, state.status,
+                                                        state.factorizations], device=dev)  # fmt: skip
         self.alpha.fill_(1.0)
         wp.copy(self.searching, self.active)
         self.ls_remaining.fill_(1)
         wp.capture_while(self.ls_remaining, self._line_search_round, state=state)
         wp.launch(k["commit"], dim=(W, nb), inputs=[state.q, self.q_trial, self.take], device=dev)
         self.remaining.zero_()
-        wp.launch(k["converge"], dim=W, inputs=[state.q, self.take, self.dq_max, dt(s.tol * self.h), self.active,
+        wp.launch(k["converge"], dim=W, inputs=[state.q, self.take, self.dq_max, dt(s.tol * self.h), self.alpha,
+                                                int(self.reuse_factor), self.chord, self.d_prev, self.active,
                                                 state.converged, state.iterations, s.max_iterations,
                                                 self.remaining], device=dev)  # fmt: skip
 
@@ -239,7 +259,7 @@ class Solver:
         self.ls_remaining.zero_()
         wp.launch(k["accept"], dim=W, inputs=[state.q, self.E, self.E_trial, len(self.cols), self.gdq, self.dq_max,
                                               dt(s.tol * self.h), dt(0.5 ** (s.max_line_search - 1)), self.alpha,
-                                              self.searching, self.take, self.active, state.converged,
+                                              self.searching, self.take, self.chord, self.active, state.converged,
                                               self.ls_remaining], device=dev)  # fmt: skip
 
     def begin(self, state, mask):

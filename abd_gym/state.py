@@ -3,7 +3,7 @@
 ``q``/``qd``/``q_prev`` (W, bodies) vec12; per joint (W, joints): the seed's ``θ0`` and
 cos/sin θ of ``q^{t−1}``, the coordinate x, its rate, and the multi-turn angle (displacement
 for sliders); per drive (W, drives) the control; per world a status (0 ok, 1 failed), Newton
-iterations used in the last step, and whether it converged.
+iterations and Cholesky factorisations used in the last step, and whether it converged.
 """
 from __future__ import annotations
 
@@ -27,5 +27,6 @@ class State:
         self.control = wp.zeros((W, nd), dtype=dt, device=dev)
         self.status = wp.zeros(W, dtype=wp.int32, device=dev)
         self.iterations = wp.zeros(W, dtype=wp.int32, device=dev)
+        self.factorizations = wp.zeros(W, dtype=wp.int32, device=dev)
         self.converged = wp.ones(W, dtype=wp.int32, device=dev)
         self.time = np.zeros(W)  # seconds since the world's last reset (host bookkeeping)

@@ -16,6 +16,9 @@ wp.config.quiet = True
 # no adjoints: the solver differentiates by hand, and skipping them halves compile time
 wp.config.enable_backward = False
 
+# what an evaluator computes, its ``derivs`` argument: the energy; also the gradient; also the Hessian
+ENERGY, GRADIENT, HESSIAN = 0, 1, 2
+
 
 @functools.lru_cache(maxsize=None)
 def ops(dtype):

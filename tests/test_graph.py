@@ -2,14 +2,15 @@
 same trajectories bit for bit, through controls, parameter changes, resets and failures; and the
 fused step (one kernel runs each world's whole Newton solve) matches the staged kernels."""
 import numpy as np
+import pytest
 
 import abd_gym as ag
 from abd_gym import mechanisms
 
 
-def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global"):
+def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global", reuse_factor=None):
     sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, use_graph=use_graph, fused=fused, dtype=dtype,
-                       threads=threads, scratch=scratch)  # fmt: skip
+                       threads=threads, scratch=scratch, reuse_factor=reuse_factor)  # fmt: skip
     rng = np.random.default_rng(3)
     sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
     out = []
@@ -38,12 +39,18 @@ def test_graph_step_matches_plain_step():
     assert np.abs(graph[-1, 1, -2]) < 0.5 + 0.05  # the narrowed limit acts in the replayed graph
 
 
-def test_fused_step_matches_staged_kernels():
-    """Same constitutions, same Newton/line-search rules; only summation order differs."""
-    staged, _ = _run(True, fused=False, dtype="float64")
-    fused, sim = _run(True, fused=True, dtype="float64")
+@pytest.mark.parametrize("reuse_factor", [False, True])
+def test_fused_step_matches_staged_kernels(reuse_factor):
+    """Same constitutions, same Newton/line-search rules (and the same reuse of a factor); only
+    summation order differs."""
+    staged, ref = _run(True, fused=False, dtype="float64", reuse_factor=reuse_factor)
+    fused, sim = _run(True, fused=True, dtype="float64", reuse_factor=reuse_factor)
     np.testing.assert_allclose(np.nan_to_num(fused), np.nan_to_num(staged), atol=1e-8)
     assert sim.failed_worlds().tolist() == [3]
+    np.testing.assert_array_equal(sim.newton_factorizations(), ref.newton_factorizations())
+    np.testing.assert_array_equal(sim.newton_iterations(), ref.newton_iterations())
+    its, facs = sim.newton_iterations()[:3], sim.newton_factorizations()[:3]
+    assert (facs >= 1).all() and ((facs < its).any() if reuse_factor else (facs == its).all())
 
 
 def test_fewer_threads_than_worlds_is_the_same_step():

@@ -11,7 +11,7 @@ import numpy as np
 import warp as wp
 
 from .. import affine
-from ..warp_ops import ops
+from ..warp_ops import HESSIAN, ops
 
 
 def point_joint_np(q, points_i, points_j, K):
@@ -54,6 +54,7 @@ def kernel(dtype):
             if derivs != 0:
                 gi += kk * JT(xi, C, one)
                 gj -= kk * JT(xj, C, one)
+            if derivs == HESSIAN:
                 ui = vec4(one, xi[0], xi[1], xi[2])
                 uj = vec4(one, xj[0], xj[1], xj[2])
                 uii += wp.outer(ui, ui)
@@ -71,7 +72,7 @@ def kernel(dtype):
         hii = mat12()
         hij = mat12()
         hjj = mat12()
-        if derivs != 0:
+        if derivs == HESSIAN:
             hii = kron3(uii)
             hij = kron3(uij)
             hjj = kron3(ujj)

@@ -18,7 +18,7 @@ import numpy as np
 import warp as wp
 
 from .. import affine
-from ..warp_ops import ops
+from ..warp_ops import GRADIENT, ops
 
 UID = 1
 NAME = "affine_body"
@@ -105,6 +105,8 @@ def kernels(dtype):
             f[3 + 3 * r] += G[r, 0]
             f[4 + 3 * r] += G[r, 1]
             f[5 + 3 * r] += G[r, 2]
+        if derivs == GRADIENT:
+            return e_inertia, e_ortho, f, h
         # Hessian: mass matrix plus the PSD orthogonality blocks
         Rp = mat33()
         if is_psd3(R):

@@ -21,7 +21,7 @@ import numpy as np
 import warp as wp
 
 from ..angles import angle_ops
-from ..warp_ops import ops
+from ..warp_ops import HESSIAN, ops
 
 NAME = "drive"
 EFFORT, POSITION, VELOCITY = 0, 1, 2
@@ -123,7 +123,8 @@ def kernel(dtype):
         hii = mat12()
         hij = mat12()
         hjj = mat12()
-        if dde != zero:  # effort drives and clipped PD drives are linear in x: no Hessian to build
+        # effort drives and clipped PD drives are linear in x: no Hessian to build
+        if derivs == HESSIAN and dde != zero:
             hii = dde * wp.outer(gi, gi)
             hij = dde * wp.outer(gi, gj)
             hjj = dde * wp.outer(gj, gj)

@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from .. import affine
-from ..warp_ops import ops
+from ..warp_ops import HESSIAN, ops
 
 UID = 20
 NAME = "prismatic_joint"
@@ -85,12 +85,15 @@ def kernel(dtype):
                     rj = JT(cj, skew_row(Tj, m), one) + JT(tj, skew_row(-d, m), zero)
                 gi += (kk * v) * ri
                 gj += (kk * v) * rj
-                kri = kk * ri
-                hii += wp.outer(kri, ri)
-                hij += wp.outer(kri, rj)
-                hjj += wp.outer(kk * rj, rj)
+                if derivs == HESSIAN:
+                    kri = kk * ri
+                    hii += wp.outer(kri, ri)
+                    hij += wp.outer(kri, rj)
+                    hjj += wp.outer(kk * rj, rj)
         gi += kk * (JT(ni, C2, zero) + JT(bi, C3, zero))
         gj -= kk * (JT(nj, C2, zero) + JT(bj, C3, zero))
+        if derivs != HESSIAN:
+            return e, gi, gj, hii, hij, hjj
         uni = vec4(zero, ni[0], ni[1], ni[2])
         unj = vec4(zero, nj[0], nj[1], nj[2])
         ubi = vec4(zero, bi[0], bi[1], bi[2])

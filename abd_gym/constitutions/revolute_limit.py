@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from ..angles import angle_ops, revolute_angle_np
-from ..warp_ops import ops
+from ..warp_ops import HESSIAN, ops
 
 UID = 670
 NAME = "revolute_limit"
@@ -46,7 +46,7 @@ def revolute_limit_np(q, q_prev, q_ref, frames, lower, upper, s):
 def kernel(dtype):
     o = ops(dtype)
     a = angle_ops(dtype)
-    vec3, vec12 = o.vec3, o.vec12
+    vec3, vec12, mat12 = o.vec3, o.vec12, o.mat12
     add_energy, scatter_pair = o.add_energy, o.scatter_pair
     cos_sin, delta_theta, theta_grad = a.cos_sin, a.delta_theta, a.theta_grad
     three, six = dtype(3.0), dtype(6.0)
@@ -80,7 +80,14 @@ def kernel(dtype):
         gj = vec12()
         if derivs != 0 and de != dtype(0.0):
             gi, gj = theta_grad(qi, qj, na, ba, nb, bb, c, s)
-        return e, de * gi, de * gj, dde * wp.outer(gi, gi), dde * wp.outer(gi, gj), dde * wp.outer(gj, gj)
+        hii = mat12()
+        hij = mat12()
+        hjj = mat12()
+        if derivs == HESSIAN and dde != dtype(0.0):
+            hii = dde * wp.outer(gi, gi)
+            hij = dde * wp.outer(gi, gj)
+            hjj = dde * wp.outer(gj, gj)
+        return e, de * gi, de * gj, hii, hij, hjj
 
     @wp.kernel(module="unique")
     def revolute_limit(
