@@ -7,18 +7,20 @@ stepped for 1 s.  Reported per run: the joint-angle error against a reference (M
 dt = 1e-4 when ``mujoco`` is installed, else our own float64 run at dt = 1e-4 and tol 1e-10),
 at t = 1 s and the largest over the second (sampled every 0.02 s); the largest joint residual;
 the energy drift E(1 s) − E(0) [J] (implicit Euler only loses energy); and world-steps per
-second.  With ``mujoco_warp`` installed its semi-implicit Euler is measured the same way.
+second, the throughput of a separate run of the same batch (1 s of steps launched back to back,
+as ``bench compare`` times them; the trajectory run reads the angles back every 0.02 s).  With
+``mujoco_warp`` installed its semi-implicit Euler is measured the same way.  ``--reuse-factors``
+adds the Newton factor-reuse setting as a dimension (default: each dtype's default).
 Writes ``accuracy.json`` and, with matplotlib, ``accuracy.png`` (error against speed) to --out.
 """
 import argparse
 import json
 import os
-import time
 
 import numpy as np
 import warp as wp
 
-from .bench_compare import CASES, random_states
+from .bench_compare import CASES, mjw_steps_per_second, ours_steps_per_second, random_states
 from .simulator import Simulator
 
 DTS = (0.02, 0.01, 0.005, 0.002, 0.001)
@@ -50,30 +52,28 @@ def mujoco_reference(case, x0, v0=None, dt=1e-4, integrator="RK4"):
     return out
 
 
-def run_ours(case, x0, dt, dtype, tol, device, integrator="implicit_euler"):
+def run_ours(case, x0, dt, dtype, tol, device, integrator="implicit_euler", reuse_factor=None):
+    """Joint angles (samples, worlds, joints) over 1 s from x0, the largest joint residual [m], the
+    largest energy drift [J] and whether Newton reused its factors."""
     sim = Simulator(CASES[case][1](), num_worlds=len(x0), dt=dt, device=device, dtype=dtype, tol=tol,
-                    integrator=integrator)  # fmt: skip
+                    integrator=integrator, reuse_factor=reuse_factor)  # fmt: skip
     sim.set_joint_state(x0)
     e0 = sum(sim.energies().values())
     every, n = _samples(dt)
     out = np.zeros((n // every + 1,) + x0.shape)
     out[0] = sim.joint_angles_unwrapped()
-    residual, elapsed = 0.0, 0.0
-    sim.step()  # compile and capture outside the timing
-    sim.set_joint_state(x0)
+    residual = 0.0
     for i in range(1, n + 1):
-        t0 = time.perf_counter()
         sim.step()
-        wp.synchronize_device(sim.device)
-        elapsed += time.perf_counter() - t0
         if i % every == 0:
             out[i // every] = sim.joint_angles_unwrapped()
             residual = max(residual, float(sim.joint_violation().max()))
     drift = float(np.max(sum(sim.energies().values()) - e0))
-    return out, residual, drift, len(x0) * n / elapsed
+    return out, residual, drift, sim.solver.reuse_factor
 
 
 def run_mjw(case, x0, dt, device):
+    """MuJoCo Warp's joint angles (samples, worlds, joints) over 1 s from x0."""
     import mujoco
     import mujoco_warp as mjw
 
@@ -85,15 +85,11 @@ def run_mjw(case, x0, dt, device):
         d = mjw.put_data(mjm, mujoco.MjData(mjm), nworld=len(x0))
         d.qpos.assign(x0.astype(np.float32))
         out[0] = x0
-        elapsed = 0.0
         for i in range(1, n + 1):
-            t0 = time.perf_counter()
             mjw.step(m, d)
-            wp.synchronize()
-            elapsed += time.perf_counter() - t0
             if i % every == 0:
                 out[i // every] = d.qpos.numpy()
-    return out, len(x0) * n / elapsed
+    return out
 
 
 def main(argv=None):
@@ -105,6 +101,7 @@ def main(argv=None):
     ap.add_argument("--dtypes", default="float32,float64")
     ap.add_argument("--tols", default="1e-5,1e-3")
     ap.add_argument("--integrators", default="implicit_euler,bdf2")
+    ap.add_argument("--reuse-factors", default="auto", help="comma-separated auto/0/1 (Simulator reuse_factor)")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--reference-worlds", type=int, default=8, help="worlds the error is measured on")
     ap.add_argument("--reference-dt", type=float, default=1e-4, help="step of the reference run [s]")
@@ -121,20 +118,27 @@ def main(argv=None):
         except ImportError:
             ref = run_ours(case, x0[:nref], args.reference_dt, "float64", 1e-10, "cpu")[0]
             ref_name = f"abd_gym_float64_dt{args.reference_dt:g}"
+        reuse_choice = {"auto": None, "0": False, "1": True}
+        settings = [(i, d, float(t), reuse_choice[r]) for i in args.integrators.split(",")
+                    for d in args.dtypes.split(",") for t in args.tols.split(",") for r in args.reuse_factors.split(",")]
         for dt in dts:
-            for integrator, dtype, tol in ((i, d, float(t)) for i in args.integrators.split(",")
-                                           for d in args.dtypes.split(",") for t in args.tols.split(",")):  # fmt: skip
-                traj, residual, drift, sps = run_ours(case, x0, dt, dtype, tol, args.device, integrator)
+            steps = _samples(dt)[1]
+            for integrator, dtype, tol, reuse in settings:
+                traj, residual, drift, reused = run_ours(case, x0, dt, dtype, tol, args.device, integrator, reuse)
+                sps = ours_steps_per_second(case, W, steps, dt, args.device, dtype, tol=tol, integrator=integrator,
+                                            reuse_factor=reuse)[0]  # fmt: skip
                 err = np.abs(traj[:, :nref] - ref)
                 rows.append(dict(engine="abd_gym", integrator=integrator, case=case, dt=dt, dtype=dtype,
-                                 tol=tol, error_final=float(err[-1].max()), error_max=float(err.max()),
-                                 joint_residual=residual, energy_drift=drift, world_steps_per_second=sps))  # fmt: skip
+                                 tol=tol, reuse_factor=reused, error_final=float(err[-1].max()),
+                                 error_max=float(err.max()), joint_residual=residual, energy_drift=drift,
+                                 world_steps_per_second=sps))  # fmt: skip
                 print(_fmt(rows[-1]), flush=True)
             try:
-                traj, sps = run_mjw(case, x0, dt, args.device)
+                traj = run_mjw(case, x0, dt, args.device)
+                sps = mjw_steps_per_second(case, W, steps, dt, args.device)
                 err = np.abs(traj[:, :nref] - ref)
                 rows.append(dict(engine="mujoco_warp", integrator="semi_implicit_euler", case=case, dt=dt,
-                                 dtype="float32", tol=None, error_final=float(err[-1].max()), error_max=float(err.max()),
+                                 dtype="float32", tol=None, reuse_factor=None, error_final=float(err[-1].max()), error_max=float(err.max()),
                                  joint_residual=0.0, energy_drift=None, world_steps_per_second=sps))  # fmt: skip
                 print(_fmt(rows[-1]), flush=True)
             except ImportError:
@@ -150,7 +154,8 @@ def main(argv=None):
 
 def _fmt(r):
     drift = "" if r["energy_drift"] is None else f"  drift {r['energy_drift']:+.2e} J"
-    return (f"{r['engine']:11s} {r['integrator']:19s} {r['case']:16s} dt {r['dt']:<6} {r['dtype']:8s} tol {str(r['tol']):6s} "
+    reuse = " reuse" if r.get("reuse_factor") else ""
+    return (f"{r['engine']:11s} {r['integrator']:19s} {r['case']:16s} dt {r['dt']:<6} {r['dtype']:8s} tol {str(r['tol']):6s}{reuse} "
             f"err(1s) {r['error_final']:.2e}  err(max) {r['error_max']:.2e}  residual {r['joint_residual']:.1e}"
             f"{drift}  {r['world_steps_per_second']:,.0f} world-steps/s")  # fmt: skip
 
@@ -169,11 +174,11 @@ def _plot(result, path):
         series = {}
         for r in result["rows"]:
             if r["case"] == case:
-                key = (r["engine"], r["integrator"], r["dtype"], r["tol"])
+                key = (r["engine"], r["integrator"], r["dtype"], r["tol"], bool(r.get("reuse_factor")))
                 series.setdefault(key, []).append(r)
-        for (engine, integrator, dtype, tol), rs in series.items():
+        for (engine, integrator, dtype, tol, reuse), rs in series.items():
             rs = sorted(rs, key=lambda r: r["dt"])
-            label = f"{engine} {integrator} {dtype}" + (f" tol {tol}" if tol is not None else "")
+            label = f"{engine} {integrator} {dtype}" + (f" tol {tol}" if tol is not None else "") + (" reuse" if reuse else "")
             ax.loglog([r["world_steps_per_second"] for r in rs], [r["error_max"] for r in rs], "o-", label=label)
             for r in rs:
                 ax.annotate(f"{r['dt']}", (r["world_steps_per_second"], r["error_max"]), fontsize=6)

@@ -6,15 +6,17 @@
 #
 #     bash scripts/gpu_measure.sh [PART ...]
 #
-# PARTs: bench (simulator and env tables), variants (tolerance, tiled scratch, the cart-pole
-# without limit / drive), compare (MuJoCo Warp, up to 131,072 worlds and 1M of ours), accuracy
-# (speed against error, both mechanisms); default: bench variants compare.  Each part takes a few
+# PARTs: bench (simulator and env tables), reuse (Newton's factor reuse on and off), variants
+# (tolerance, tiled scratch, the cart-pole without limit / drive), compare (MuJoCo Warp, up to
+# 131,072 worlds and 1M of ours), accuracy (speed against error, both mechanisms); default: bench
+# reuse variants compare.  Each part takes a few
 # minutes on an H100; keep a device call under its 10-minute limit by splitting the parts.
 set -uo pipefail
-parts=${*:-bench variants compare}
+parts=${*:-bench reuse variants compare}
 out=${OUT:-gpu_out}
 dev=${DEVICE:-cuda:0}
 worlds=${WORLDS:-1024,16384,131072}   # WORLDS=4,8 DEVICE=cpu: a quick smoke run of the script itself
+# CASES=cartpole: the accuracy part for one mechanism (one device call each keeps it under 10 minutes)
 few=${WORLDS:-1024,131072}
 mkdir -p "$out"
 run() {  # name, then the command; its output to $out/name.log
@@ -28,12 +30,15 @@ for part in $parts; do
     case $part in
     bench) run bench python3 -m abd_gym.bench --device "$dev" --worlds "$worlds" --envs \
         --tasks CartPole-v0,Pendulum-v0,DoublePendulumCart-v0 --out "$out/bench" ;;
+    reuse) run reuse python3 -m abd_gym.bench --device "$dev" --worlds "$worlds" --reuse-factor auto,0 \
+        --cases cartpole,double_pendulum --out "$out/reuse" ;;
     variants) run variants python3 -m abd_gym.bench --device "$dev" --worlds "$few" --tol 1e-5,1e-3 \
         --scratch global,tiled --cases cartpole,double_pendulum,cartpole_nolimit,cartpole_bare --out "$out/variants" ;;
     compare) run compare python3 -m abd_gym.bench compare --device "$dev" --worlds "$worlds" --out "$out/compare" ;;
     accuracy) run accuracy python3 -m abd_gym.bench accuracy --device "$dev" --worlds "${WORLDS:-4096}" \
-        --dtypes float32 --tols 1e-5 --out "$out/accuracy" ;;
-    *) echo "unknown part $part (bench, variants, compare, accuracy)" >&2; exit 2 ;;
+        --dtypes float32 --tols 1e-5 --reuse-factors auto,0 --cases "${CASES:-double_pendulum,cartpole}" \
+        --out "$out/accuracy" ;;
+    *) echo "unknown part $part (bench, reuse, variants, compare, accuracy)" >&2; exit 2 ;;
     esac
 done
 tmp=$(mktemp -d)
