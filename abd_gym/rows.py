@@ -32,7 +32,36 @@ def kernels(dtype):
         unwrapped[k, j] = u
         x_hist[k, j] = u - dt * coord_vel[k, j]
 
-    return dict(scatter=scatter, restart_unwrapped=restart_unwrapped)
+    vec12 = wp.types.vector(12, dtype)
+
+    @wp.kernel
+    def restart_q(idx: wp.array(dtype=wp.int32), q_src: wp.array2d(dtype=vec12), qd_src: wp.array2d(dtype=vec12),
+                  dt: dtype, q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
+                  q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32)):  # fmt: skip
+        """World idx[i] restarts at (q, q̇) = row i: no past (q^{n−1} = q − dt q̇, q̇^{n−1} = q̇), status OK."""
+        i, b = wp.tid()
+        k = idx[i]
+        x = q_src[i, b]
+        v = qd_src[i, b]
+        q[k, b] = x
+        qd[k, b] = v
+        q_prev[k, b] = x
+        q_hist[k, b] = x - dt * v
+        qd_hist[k, b] = v
+        if b == 0:
+            status[k] = 0
+
+    return dict(scatter=scatter, restart_unwrapped=restart_unwrapped, restart_q=restart_q)
+
+
+def restart(state, idx: wp.array, q, qd, dt: float, model) -> None:
+    """The worlds idx (N,) restart at q, q̇ (each broadcast to (N, bodies, 12)); see restart_q."""
+    N, nb = idx.shape[0], model.num_bodies
+    src = [wp.array(np.ascontiguousarray(np.broadcast_to(a, (N, nb, 12)), dtype=model.np_dtype), dtype=model.vec12,
+                    device=model.device) for a in (q, qd)]  # fmt: skip
+    wp.launch(kernels(model.dtype)["restart_q"], dim=(N, nb),
+              inputs=[idx, *src, model.dtype(dt), state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
+                      state.status], device=model.device)  # fmt: skip
 
 
 @wp.kernel

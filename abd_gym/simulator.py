@@ -12,25 +12,19 @@ import os
 import numpy as np
 import warp as wp
 
-from . import rows
+from . import kinematics, rows
 from .model import Model
-from .scene import FIXED, PRISMATIC, REVOLUTE, Scene
+from .scene import REVOLUTE, Scene
 from .solver import Solver, SolverSettings
 from .state import State
 
 
-def _rot(axis, angle):
-    """Rotation matrices (N, 3, 3) about unit axis (3,) by angles (N,) (Rodrigues)."""
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
-
-
 def _skew(w):
-    z = np.zeros(w.shape[:-1])
-    return np.stack(
-        [np.stack([z, -w[..., 2], w[..., 1]], -1), np.stack([w[..., 2], z, -w[..., 0]], -1),
-         np.stack([-w[..., 1], w[..., 0], z], -1)], -2)  # fmt: skip
+    """[w]× (..., 3, 3) of vectors w (..., 3)."""
+    out = np.zeros(w.shape + (3,))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    return out
 
 
 def _finite_array(name, values, shape):
@@ -88,6 +82,7 @@ class Simulator:
         self._limits = {}  # joint kind -> host copies of the limits' (lower, upper, strength), (W, limits)
         self.use_graph = True if use_graph is None else bool(use_graph)
         self._set_mask = None
+        self._plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
         self._torch_views = {}
         self._graph = None
         self._warm = False
@@ -278,19 +273,21 @@ class Simulator:
         qd[:, fixed] = 0.0
         self._set_q(idx, q, qd)
 
-    def _set_q(self, idx, q, qd, unwrapped=None):
+    def _set_q(self, idx, q, qd):
+        """Restart the worlds idx at body states q, q̇ (N, bodies, 12)."""
+        if len(idx):
+            idx_dev = rows.indices(idx, self.device)
+            # q, q̇, q_prev and the BDF2 history (a set state has no past: as if the velocity had
+            # been constant), and status OK, in one launch
+            rows.restart(self.state, idx_dev, q, qd, self.dt, self.model)
+            self._restarted(idx, idx_dev)
+
+    def _restarted(self, idx, idx_dev, unwrapped=None):
+        """After the worlds idx got new body states: their clocks, joint histories and coordinates
+        (the multi-turn angles given, or else the principal ones)."""
         st, m = self.state, self.model
         st.time[idx] = 0.0
-        if len(idx) == 0:
-            return
-        idx_dev = rows.indices(idx, self.device)
-        # a set state has no past: the BDF2 history starts as if the velocity had been constant
-        for arr, val in ((st.q, q), (st.qd, qd), (st.q_prev, q), (st.q_hist, q - self.dt * qd), (st.qd_hist, qd)):
-            self._write_rows(arr, idx_dev, val)
-        rows.fill(st.status, idx_dev, 0)
-        mask = self._mask(idx_dev)
-        self.solver.begin(st, mask)
-        self.solver.update_coordinates(st, accumulate=False, rate_from_qd=True, mask=mask)
+        self.solver.restart_joints(st, self._mask(idx_dev))
         if m.num_joints:
             nj = m.num_joints
             given = np.zeros((1, 1)) if unwrapped is None else np.broadcast_to(unwrapped, (len(idx), nj))
@@ -300,72 +297,22 @@ class Simulator:
                               st.unwrapped, st.x_hist], device=self.device)  # fmt: skip
 
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
-        """Forward kinematics for tree mechanisms: joint coordinates (N, num_joints) [rad, m] and
-        rates, from the scene's zero pose.  Joints that close a loop are left to the solver."""
+        """Forward kinematics for tree mechanisms (kinematics.py, on the device): joint coordinates
+        (N, num_joints) [rad, m] and rates, from the scene's zero pose.  Joints that close a loop
+        are left to the solver."""
         idx = self._worlds(worlds)
-        m, scene = self.model, self.scene
+        m = self.model
         nj, N = m.num_joints, len(idx)
         x = _finite_array("coordinates", coordinates, (N, nj))
         xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj))
-        bodies = scene.bodies
-        R = np.broadcast_to(np.stack([b.rotation for b in bodies]), (N, len(bodies), 3, 3)).copy()
-        p = np.broadcast_to(np.stack([b.position for b in bodies]), (N, len(bodies), 3)).copy()
-        v = np.zeros((N, len(bodies), 3))
-        w = np.zeros((N, len(bodies), 3))
-        placed = np.array([b.fixed for b in bodies])
-        # roots: fixed bodies, then free bodies that no joint drives from a placed parent
-        pending = list(range(nj))
-        while pending:
-            progress = False
-            for k in list(pending):
-                j = scene.joints[k]
-                a, b = j.body_a, j.body_b
-                if placed[a] and placed[b]:
-                    pending.remove(k)  # closes a loop: the solver pulls it together
-                    continue
-                if not (placed[a] or placed[b]):
-                    continue
-                sign = 1.0 if placed[a] else -1.0
-                par, ch = (a, b) if placed[a] else (b, a)
-                Bp, Bc = bodies[par], bodies[ch]
-                R_rel0 = Bp.rotation.T @ Bc.rotation
-                p_rel0 = Bp.rotation.T @ (Bc.position - Bp.position)
-                t_loc = Bp.to_local_dir(j.frame[0])
-                c_loc = Bp.to_local_point(j.anchor)
-                xs, vs = sign * x[:, k], sign * xd[:, k]
-                if j.kind == REVOLUTE:
-                    G = _rot(t_loc, xs)
-                    R_rel = G @ R_rel0
-                    p_rel = c_loc + np.einsum("nij,j->ni", G, p_rel0 - c_loc)
-                elif j.kind == PRISMATIC:
-                    R_rel = np.broadcast_to(R_rel0, (N, 3, 3))
-                    p_rel = p_rel0 + xs[:, None] * t_loc
-                else:
-                    R_rel = np.broadcast_to(R_rel0, (N, 3, 3))
-                    p_rel = np.broadcast_to(p_rel0, (N, 3))
-                Rp = R[:, par]
-                R[:, ch] = Rp @ R_rel
-                p[:, ch] = p[:, par] + np.einsum("nij,nj->ni", Rp, p_rel)
-                t_world = np.einsum("nij,j->ni", Rp, t_loc)
-                v[:, ch] = v[:, par] + np.cross(w[:, par], p[:, ch] - p[:, par])
-                w[:, ch] = w[:, par]
-                if j.kind == REVOLUTE:
-                    anchor = p[:, par] + np.einsum("nij,j->ni", Rp, c_loc)
-                    w[:, ch] += vs[:, None] * t_world
-                    v[:, ch] += np.cross(vs[:, None] * t_world, p[:, ch] - anchor)
-                elif j.kind == PRISMATIC:
-                    v[:, ch] += vs[:, None] * t_world
-                placed[ch] = True
-                pending.remove(k)
-                progress = True
-            if not progress and pending:
-                # a free body with no placed neighbour: it is a root at its scene pose
-                k = pending[0]
-                placed[scene.joints[k].body_a] = True
-        q = np.concatenate([p, R.reshape(N, len(bodies), 9)], axis=-1)
-        qd = np.concatenate([v, (_skew(w) @ R).reshape(N, len(bodies), 9)], axis=-1)
-        unwrapped = np.where(m.joint_kind_np[None, :] == 2, 0.0, x)
-        self._set_q(idx, q, qd, unwrapped=unwrapped)
+        if N == 0:
+            return
+        if self._plan is None:
+            self._plan = kinematics.tree_plan(self.scene, m)
+            self._omega = wp.zeros((self.num_worlds, m.num_bodies), dtype=m.vec3, device=self.device)
+        idx_dev = rows.indices(idx, self.device)
+        kinematics.place(self._plan, self.state, m, idx_dev, x, xd, self.dt, self._omega)
+        self._restarted(idx, idx_dev, unwrapped=np.where(m.joint_kind_np[None, :] == 2, 0.0, x))
 
     def reset(self, worlds=None):
         """Back to the scene's initial state (all worlds, or those listed); clears failure flags

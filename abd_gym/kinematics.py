@@ -1,0 +1,180 @@
+"""Forward kinematics of tree mechanisms: joint coordinates and rates to body states, on the device.
+
+``Simulator.set_joint_state`` places each body from its parent, joint by joint, in an order fixed
+by the scene's topology (``tree_plan``, built once): a revolute child turns by x about the joint
+axis through its anchor, a prismatic child slides by x along the axis, a fixed child keeps its
+scene pose relative to its parent; rates add ω = ẋ t (revolute) or v = ẋ t (prismatic) to the
+parent's rigid motion.  Bodies no tree joint reaches keep their scene pose at rest; a joint between
+two placed bodies closes a loop and is left to the solver.  One kernel does every listed world
+and writes q, q̇ and the restart history (``rows.restart_q``), so a reset costs one launch, not a
+host computation and a transfer of every body's state.
+"""
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .scene import PRISMATIC, REVOLUTE
+from .warp_ops import ops
+
+KIND_CODE = {REVOLUTE: 0, PRISMATIC: 1}  # anything else (fixed): 2
+
+
+@dataclass
+class TreePlan:
+    """Placement order on the device: per tree joint (in order) its joint index, parent, child, kind,
+    sign (−1 when the joint's first body is the child) and, in the parent's frame, the child's
+    rest rotation and position, the joint axis and anchor; per body its scene pose."""
+
+    steps: wp.array  # (S, 4) int32: joint, parent, child, kind
+    sign: wp.array  # (S,)
+    R_rel0: wp.array  # (S,) mat33
+    p_rel0: wp.array  # (S,) vec3
+    t_loc: wp.array  # (S,) vec3
+    c_loc: wp.array  # (S,) vec3
+    R0: wp.array  # (bodies,) mat33
+    p0: wp.array  # (bodies,) vec3
+
+
+def tree_plan(scene, model) -> TreePlan:
+    """The order forward kinematics places bodies in (fixed bodies first, then free roots)."""
+    bodies = scene.bodies
+    placed = np.array([b.fixed for b in bodies])
+    rows = []
+    pending = list(range(len(scene.joints)))
+    while pending:
+        progress = False
+        for k in list(pending):
+            j = scene.joints[k]
+            a, b = j.body_a, j.body_b
+            if placed[a] and placed[b]:
+                pending.remove(k)  # closes a loop: the solver pulls it together
+                continue
+            if not (placed[a] or placed[b]):
+                continue
+            par, ch = (a, b) if placed[a] else (b, a)
+            Bp, Bc = bodies[par], bodies[ch]
+            rows.append(((k, par, ch, KIND_CODE.get(j.kind, 2)), 1.0 if placed[a] else -1.0, Bp.rotation.T @ Bc.rotation,
+                         Bp.rotation.T @ (Bc.position - Bp.position), Bp.to_local_dir(j.frame[0]),
+                         Bp.to_local_point(j.anchor)))  # fmt: skip
+            placed[ch] = True
+            pending.remove(k)
+            progress = True
+        if not progress and pending:
+            # a free body with no placed neighbour: it is a root at its scene pose
+            placed[scene.joints[pending[0]].body_a] = True
+    dev, npd = model.device, model.np_dtype
+
+    def arr(values, dtype, shape):
+        return wp.array(np.asarray(values, dtype=npd).reshape(shape), dtype=dtype, device=dev)
+
+    S = len(rows)
+    return TreePlan(
+        steps=wp.array(np.array([r[0] for r in rows], dtype=np.int32).reshape(S, 4), dtype=wp.int32, device=dev),
+        sign=arr([r[1] for r in rows], model.dtype, (S,)),
+        R_rel0=arr([r[2] for r in rows], model.mat33, (S, 3, 3)),
+        p_rel0=arr([r[3] for r in rows], model.vec3, (S, 3)),
+        t_loc=arr([r[4] for r in rows], model.vec3, (S, 3)),
+        c_loc=arr([r[5] for r in rows], model.vec3, (S, 3)),
+        R0=arr([b.rotation for b in bodies], model.mat33, (len(bodies), 3, 3)),
+        p0=arr([b.position for b in bodies], model.vec3, (len(bodies), 3)),
+    )
+
+
+@functools.lru_cache(maxsize=None)
+def kernels(dtype):
+    o = ops(dtype)
+    vec3, vec12, mat33 = o.vec3, o.vec12, o.mat33
+    zero, one = dtype(0.0), dtype(1.0)
+
+    @wp.func
+    def pack(p: vec3, R: mat33):
+        """q = (p, rows of R)."""
+        return vec12(p[0], p[1], p[2], R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2])
+
+    @wp.func
+    def rotation(q: vec12):
+        return mat33(q[3], q[4], q[5], q[6], q[7], q[8], q[9], q[10], q[11])
+
+    @wp.func
+    def axis_rotation(t: vec3, x: dtype):
+        """Rotation by x [rad] about the unit axis t (Rodrigues)."""
+        K = wp.skew(t)
+        return wp.identity(3, dtype) + wp.sin(x) * K + (one - wp.cos(x)) * (K * K)
+
+    @wp.kernel
+    def place(
+        idx: wp.array(dtype=wp.int32), x: wp.array2d(dtype=dtype), xd: wp.array2d(dtype=dtype),
+        steps: wp.array2d(dtype=wp.int32), sign: wp.array(dtype=dtype), R_rel0: wp.array(dtype=mat33),
+        p_rel0: wp.array(dtype=vec3), t_loc: wp.array(dtype=vec3), c_loc: wp.array(dtype=vec3),
+        R0: wp.array(dtype=mat33), p0: wp.array(dtype=vec3), dt: dtype, omega: wp.array2d(dtype=vec3),
+        q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """World idx[i] at joint coordinates x[i] and rates xd[i]; its restart history as
+        rows.restart_q (no past: q^{n−1} = q − dt q̇, q̇^{n−1} = q̇) and status OK.  ``omega``
+        holds each body's angular velocity while the tree is walked."""
+        i = wp.tid()
+        k = idx[i]
+        for b in range(q.shape[1]):
+            q[k, b] = pack(p0[b], R0[b])
+            qd[k, b] = vec12()
+            omega[k, b] = vec3()
+        for s in range(steps.shape[0]):
+            j = steps[s, 0]
+            par = steps[s, 1]
+            ch = steps[s, 2]
+            kind = steps[s, 3]
+            xs = sign[s] * x[i, j]
+            vs = sign[s] * xd[i, j]
+            qp = q[k, par]
+            Rp = rotation(qp)
+            pp = vec3(qp[0], qp[1], qp[2])
+            vpar = qd[k, par]
+            vp = vec3(vpar[0], vpar[1], vpar[2])
+            wpar = omega[k, par]
+            R_rel = R_rel0[s]
+            p_rel = p_rel0[s]
+            if kind == 0:
+                G = axis_rotation(t_loc[s], xs)
+                R_rel = G * R_rel
+                p_rel = c_loc[s] + G * (p_rel - c_loc[s])
+            elif kind == 1:
+                p_rel = p_rel + xs * t_loc[s]
+            Rc = Rp * R_rel
+            pc = pp + Rp * p_rel
+            t_world = Rp * t_loc[s]
+            vc = vp + wp.cross(wpar, pc - pp)
+            wc = wpar
+            if kind == 0:
+                anchor = pp + Rp * c_loc[s]
+                wc = wc + vs * t_world
+                vc = vc + wp.cross(vs * t_world, pc - anchor)
+            elif kind == 1:
+                vc = vc + vs * t_world
+            q[k, ch] = pack(pc, Rc)
+            qd[k, ch] = pack(vc, wp.skew(wc) * Rc)
+            omega[k, ch] = wc
+        for b in range(q.shape[1]):
+            qb = q[k, b]
+            vb = qd[k, b]
+            q_prev[k, b] = qb
+            q_hist[k, b] = qb - dt * vb
+            qd_hist[k, b] = vb
+        status[k] = 0
+
+    return place
+
+
+def place(plan: TreePlan, state, model, idx: wp.array, x: np.ndarray, xd: np.ndarray, dt: float, omega: wp.array):
+    """Set the worlds idx (N,) to joint coordinates x and rates xd (N, joints), on the device."""
+    N, nj = idx.shape[0], max(model.num_joints, 1)  # a scene without joints still passes (N, 1) arrays
+    xs = [wp.array(np.ascontiguousarray(np.broadcast_to(a, (N, nj)) if a.size else np.zeros((N, 1)),
+                                        dtype=model.np_dtype), dtype=model.dtype, device=model.device)
+          for a in (x, xd)]  # fmt: skip
+    wp.launch(kernels(model.dtype), dim=N,
+              inputs=[idx, *xs, plan.steps, plan.sign, plan.R_rel0, plan.p_rel0, plan.t_loc, plan.c_loc, plan.R0,
+                      plan.p0, model.dtype(dt), omega, state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
+                      state.status], device=model.device)  # fmt: skip
