@@ -16,10 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .scene import PRISMATIC, REVOLUTE
+from .coordinates import PRISMATIC_CODE, REVOLUTE_CODE
 from .warp_ops import ops
-
-KIND_CODE = {REVOLUTE: 0, PRISMATIC: 1}  # anything else (fixed): 2
 
 
 @dataclass
@@ -56,7 +54,7 @@ def tree_plan(scene, model) -> TreePlan:
                 continue
             par, ch = (a, b) if placed[a] else (b, a)
             Bp, Bc = bodies[par], bodies[ch]
-            rows.append(((k, par, ch, KIND_CODE.get(j.kind, 2)), 1.0 if placed[a] else -1.0, Bp.rotation.T @ Bc.rotation,
+            rows.append(((k, par, ch, model.joint_kind_np[k]), 1.0 if placed[a] else -1.0, Bp.rotation.T @ Bc.rotation,
                          Bp.rotation.T @ (Bc.position - Bp.position), Bp.to_local_dir(j.frame[0]),
                          Bp.to_local_point(j.anchor)))  # fmt: skip
             placed[ch] = True
@@ -106,14 +104,14 @@ def kernels(dtype):
 
     @wp.kernel
     def place(
-        idx: wp.array(dtype=wp.int32), x: wp.array2d(dtype=dtype), xd: wp.array2d(dtype=dtype),
+        idx: wp.array(dtype=wp.int32), xx: wp.array3d(dtype=dtype),
         steps: wp.array2d(dtype=wp.int32), sign: wp.array(dtype=dtype), R_rel0: wp.array(dtype=mat33),
         p_rel0: wp.array(dtype=vec3), t_loc: wp.array(dtype=vec3), c_loc: wp.array(dtype=vec3),
         R0: wp.array(dtype=mat33), p0: wp.array(dtype=vec3), dt: dtype, omega: wp.array2d(dtype=vec3),
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
     ):  # fmt: skip
-        """World idx[i] at joint coordinates x[i] and rates xd[i]; its restart history as
+        """World idx[i] at joint coordinates xx[i, 0] and rates xx[i, 1]; its restart history as
         rows.restart_q (no past: q^{n−1} = q − dt q̇, q̇^{n−1} = q̇) and status OK.  ``omega``
         holds each body's angular velocity while the tree is walked."""
         i = wp.tid()
@@ -127,8 +125,8 @@ def kernels(dtype):
             par = steps[s, 1]
             ch = steps[s, 2]
             kind = steps[s, 3]
-            xs = sign[s] * x[i, j]
-            vs = sign[s] * xd[i, j]
+            xs = sign[s] * xx[i, 0, j]
+            vs = sign[s] * xx[i, 1, j]
             qp = q[k, par]
             Rp = rotation(qp)
             pp = vec3(qp[0], qp[1], qp[2])
@@ -137,22 +135,22 @@ def kernels(dtype):
             wpar = omega[k, par]
             R_rel = R_rel0[s]
             p_rel = p_rel0[s]
-            if kind == 0:
+            if kind == REVOLUTE_CODE:
                 G = axis_rotation(t_loc[s], xs)
                 R_rel = G * R_rel
                 p_rel = c_loc[s] + G * (p_rel - c_loc[s])
-            elif kind == 1:
+            elif kind == PRISMATIC_CODE:
                 p_rel = p_rel + xs * t_loc[s]
             Rc = Rp * R_rel
             pc = pp + Rp * p_rel
             t_world = Rp * t_loc[s]
             vc = vp + wp.cross(wpar, pc - pp)
             wc = wpar
-            if kind == 0:
+            if kind == REVOLUTE_CODE:
                 anchor = pp + Rp * c_loc[s]
                 wc = wc + vs * t_world
                 vc = vc + wp.cross(vs * t_world, pc - anchor)
-            elif kind == 1:
+            elif kind == PRISMATIC_CODE:
                 vc = vc + vs * t_world
             q[k, ch] = pack(pc, Rc)
             qd[k, ch] = pack(vc, wp.skew(wc) * Rc)
@@ -168,13 +166,15 @@ def kernels(dtype):
     return place
 
 
-def place(plan: TreePlan, state, model, idx: wp.array, x: np.ndarray, xd: np.ndarray, dt: float, omega: wp.array):
-    """Set the worlds idx (N,) to joint coordinates x and rates xd (N, joints), on the device."""
-    N, nj = idx.shape[0], max(model.num_joints, 1)  # a scene without joints still passes (N, 1) arrays
-    xs = [wp.array(np.ascontiguousarray(np.broadcast_to(a, (N, nj)) if a.size else np.zeros((N, 1)),
-                                        dtype=model.np_dtype), dtype=model.dtype, device=model.device)
-          for a in (x, xd)]  # fmt: skip
+def place(plan: TreePlan, state, model, idx: wp.array, xx: np.ndarray, dt: float, omega: wp.array) -> wp.array:
+    """Set the worlds idx (N,) to joint coordinates xx[:, 0] and rates xx[:, 1] (N, 2, joints), on
+    the device; returns xx as a device array."""
+    N = idx.shape[0]
+    if xx.shape[2] == 0:  # a scene without joints still passes (N, 2, 1) arrays
+        xx = np.zeros((N, 2, 1))
+    xx = wp.array(np.ascontiguousarray(xx, dtype=model.np_dtype), dtype=model.dtype, device=model.device)
     wp.launch(kernels(model.dtype), dim=N,
-              inputs=[idx, *xs, plan.steps, plan.sign, plan.R_rel0, plan.p_rel0, plan.t_loc, plan.c_loc, plan.R0,
+              inputs=[idx, xx, plan.steps, plan.sign, plan.R_rel0, plan.p_rel0, plan.t_loc, plan.c_loc, plan.R0,
                       plan.p0, model.dtype(dt), omega, state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
                       state.status], device=model.device)  # fmt: skip
+    return xx

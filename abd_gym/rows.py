@@ -20,15 +20,15 @@ def kernels(dtype):
 
     @wp.kernel
     def restart_unwrapped(idx: wp.array(dtype=wp.int32), coord: wp.array2d(dtype=dtype),
-                          coord_vel: wp.array2d(dtype=dtype), given: wp.array2d(dtype=dtype), has_given: int, dt: dtype,
+                          coord_vel: wp.array2d(dtype=dtype), given: wp.array3d(dtype=dtype), has_given: int, dt: dtype,
                           unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype)):  # fmt: skip
-        """A set state's multi-turn coordinate (given, else the principal one) and its BDF2 history
-        x^{n−1} = x − dt·ẋ."""
+        """A set state's multi-turn coordinate (given[i, 0], else the principal one) and its BDF2
+        history x^{n−1} = x − dt·ẋ."""
         i, j = wp.tid()
         k = idx[i]
         u = coord[k, j]
         if has_given != 0:
-            u = given[i, j]
+            u = given[i, 0, j]
         unwrapped[k, j] = u
         x_hist[k, j] = u - dt * coord_vel[k, j]
 
@@ -36,9 +36,11 @@ def kernels(dtype):
 
     @wp.kernel
     def restart_q(idx: wp.array(dtype=wp.int32), q_src: wp.array2d(dtype=vec12), qd_src: wp.array2d(dtype=vec12),
-                  dt: dtype, q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
-                  q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32)):  # fmt: skip
-        """World idx[i] restarts at (q, q̇) = row i: no past (q^{n−1} = q − dt q̇, q̇^{n−1} = q̇), status OK."""
+                  dt: dtype, q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
+                  q_prev: wp.array2d(dtype=vec12), q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
+                  status: wp.array(dtype=wp.int32)):  # fmt: skip
+        """World idx[i] restarts at (q, q̇) = row i: no past (q^{n−1} = q − dt q̇, q̇^{n−1} = q̇),
+        status OK."""
         i, b = wp.tid()
         k = idx[i]
         x = q_src[i, b]

@@ -13,6 +13,7 @@ import numpy as np
 import warp as wp
 
 from . import kinematics, rows
+from .coordinates import FIXED_CODE
 from .model import Model
 from .scene import REVOLUTE, Scene
 from .solver import Solver, SolverSettings
@@ -33,6 +34,8 @@ def _finite_array(name, values, shape):
         a = np.broadcast_to(a, shape)
     except ValueError:
         raise ValueError(f"{name} must have shape {shape}, got {np.shape(values)}") from None
+    if np.isfinite(a).all():  # the common case, without argwhere's cost
+        return a
     bad = np.argwhere(~np.isfinite(a))
     if bad.size:
         raise ValueError(f"{name} has a non-finite value {a[tuple(bad[0])]} at index {tuple(bad[0].tolist())}")
@@ -84,6 +87,8 @@ class Simulator:
         self._set_mask = None
         self._plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
         self._torch_views = {}
+        self._host_views = {}
+        self._no_given = None  # a stand-in for _restarted's given
         self._graph = None
         self._warm = False
         self.reset()
@@ -232,6 +237,13 @@ class Simulator:
         rows.fill(self._set_mask, idx_dev, 1)
         return self._set_mask
 
+    def _host_view(self, array):
+        """A NumPy view of a CPU array's memory (cached per array)."""
+        view = self._host_views.get(id(array))
+        if view is None or view[0] is not array:
+            view = self._host_views[id(array)] = (array, array.numpy())
+        return view[1]
+
     def _write_rows(self, array, idx, values):
         """array[idx] = values for a (W, C) device array; only those rows travel (rows.py)."""
         idx_dev = idx if isinstance(idx, wp.array) else rows.indices(idx, self.device)
@@ -250,7 +262,9 @@ class Simulator:
             self._out(self.state.control, "torch").copy_(values)  # on the device, converting dtype
             return
         vals = _finite_array("controls", values, (len(idx), nd))
-        if worlds is None:
+        if worlds is None and self.device.is_cpu:
+            self._host_view(self.state.control)[...] = vals  # the array's own memory: no temporary array
+        elif worlds is None:
             self.state.control.assign(vals.astype(self.model.np_dtype))
         else:
             self._write_rows(self.state.control, idx, vals)
@@ -282,19 +296,19 @@ class Simulator:
             rows.restart(self.state, idx_dev, q, qd, self.dt, self.model)
             self._restarted(idx, idx_dev)
 
-    def _restarted(self, idx, idx_dev, unwrapped=None):
+    def _restarted(self, idx, idx_dev, given=None):
         """After the worlds idx got new body states: their clocks, joint histories and coordinates
-        (the multi-turn angles given, or else the principal ones)."""
+        (the multi-turn angles ``given[:, 0]``, a device array (N, 2, joints), or else the principal
+        ones)."""
         st, m = self.state, self.model
         st.time[idx] = 0.0
         self.solver.restart_joints(st, self._mask(idx_dev))
         if m.num_joints:
-            nj = m.num_joints
-            given = np.zeros((1, 1)) if unwrapped is None else np.broadcast_to(unwrapped, (len(idx), nj))
-            given = wp.array(np.ascontiguousarray(given, dtype=m.np_dtype), dtype=m.dtype, device=self.device)
-            wp.launch(rows.kernels(m.dtype)["restart_unwrapped"], dim=(len(idx), nj),
-                      inputs=[idx_dev, st.coord, st.coord_vel, given, int(unwrapped is not None), m.dtype(self.dt),
-                              st.unwrapped, st.x_hist], device=self.device)  # fmt: skip
+            if given is None and self._no_given is None:
+                self._no_given = wp.zeros((1, 1, 1), dtype=m.dtype, device=self.device)
+            wp.launch(rows.kernels(m.dtype)["restart_unwrapped"], dim=(len(idx), m.num_joints),
+                      inputs=[idx_dev, st.coord, st.coord_vel, self._no_given if given is None else given,
+                              int(given is not None), m.dtype(self.dt), st.unwrapped, st.x_hist], device=self.device)  # fmt: skip
 
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
         """Forward kinematics for tree mechanisms (kinematics.py, on the device): joint coordinates
@@ -311,8 +325,11 @@ class Simulator:
             self._plan = kinematics.tree_plan(self.scene, m)
             self._omega = wp.zeros((self.num_worlds, m.num_bodies), dtype=m.vec3, device=self.device)
         idx_dev = rows.indices(idx, self.device)
-        kinematics.place(self._plan, self.state, m, idx_dev, x, xd, self.dt, self._omega)
-        self._restarted(idx, idx_dev, unwrapped=np.where(m.joint_kind_np[None, :] == 2, 0.0, x))
+        # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
+        # is 0, which is its multi-turn coordinate
+        xx = np.stack([np.where(m.joint_kind_np[None, :] == FIXED_CODE, 0.0, x), xd], axis=1)
+        xx = kinematics.place(self._plan, self.state, m, idx_dev, xx, self.dt, self._omega)
+        self._restarted(idx, idx_dev, given=xx)
 
     def reset(self, worlds=None):
         """Back to the scene's initial state (all worlds, or those listed); clears failure flags

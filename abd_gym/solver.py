@@ -270,7 +270,8 @@ class Solver:
             return wp.launch(self.begin_step, dim=(m.num_worlds, m.num_joints),
                              inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref,
                                      m.s_ref, state.theta0, state.c_prev, state.s_prev, mask, state.unwrapped,
-                                     state.x_hist, self.bdf2, state.x_anchor], device=m.device, record_cmd=record)  # fmt: skip
+                                     state.x_hist, self.bdf2, state.x_anchor],
+                             device=m.device, record_cmd=record)  # fmt: skip
 
     def update_coordinates(self, state, accumulate, rate_from_qd=False, mask=None, record=False):
         m = self.model
