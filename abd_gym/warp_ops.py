@@ -75,6 +75,19 @@ def ops(dtype):
         return M
 
     @wp.func
+    def outer_blocks(gi: vec12, gj: vec12, c: dtype, derivs: int):
+        """c·(gᵢgᵢᵀ, gᵢgⱼᵀ, gⱼgⱼᵀ): the blocks of c ∇x∇xᵀ for a scalar coordinate x of a body pair
+        with gradient (gᵢ, gⱼ) (a limit's or a drive's Hessian), built for HESSIAN and c ≠ 0 only."""
+        hii = mat12()
+        hij = mat12()
+        hjj = mat12()
+        if derivs == HESSIAN and c != dtype(0.0):
+            hii = c * wp.outer(gi, gi)
+            hij = c * wp.outer(gi, gj)
+            hjj = c * wp.outer(gj, gj)
+        return hii, hij, hjj
+
+    @wp.func
     def add_energy(E: wp.array2d(dtype=dtype), w: int, col: int, e: dtype):
         wp.atomic_add(E, w, col, e)
 

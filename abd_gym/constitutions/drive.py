@@ -21,7 +21,7 @@ import numpy as np
 import warp as wp
 
 from ..angles import angle_ops
-from ..warp_ops import HESSIAN, ops
+from ..warp_ops import ops
 
 NAME = "drive"
 EFFORT, POSITION, VELOCITY = 0, 1, 2
@@ -47,9 +47,9 @@ def drive_np(x, x_prev, u, mode, k, d, max_effort, h):
 def kernel(dtype):
     o = ops(dtype)
     a = angle_ops(dtype)
-    vec12, mat12 = o.vec12, o.mat12
+    vec12 = o.vec12
     vec3 = o.vec3
-    add_energy, scatter_pair = o.add_energy, o.scatter_pair
+    add_energy, scatter_pair, outer_blocks = o.add_energy, o.scatter_pair, o.outer_blocks
     cos_sin, delta_theta, theta_grad = a.cos_sin, a.delta_theta, a.theta_grad
     displacement, displacement_grad = a.displacement, a.displacement_grad
     half = dtype(0.5)
@@ -88,7 +88,8 @@ def kernel(dtype):
             e_phys = zero
             if md == 1:
                 e_phys = half * kp * (x - u) * (x - u)
-            return e_phys, gi, gj, dde_zero * wp.outer(gi, gi), dde_zero * wp.outer(gi, gj), dde_zero * wp.outer(gj, gj)
+            hii, hij, hjj = outer_blocks(gi, gj, dde_zero, 0)  # zero blocks: the report needs energies only
+            return e_phys, gi, gj, hii, hij, hjj
         e = zero
         de = zero
         dde = zero
@@ -120,14 +121,8 @@ def kernel(dtype):
             gi, gj = displacement_grad(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
         de = scale * de
         dde = scale * dde
-        hii = mat12()
-        hij = mat12()
-        hjj = mat12()
-        # effort drives and clipped PD drives are linear in x: no Hessian to build
-        if derivs == HESSIAN and dde != zero:
-            hii = dde * wp.outer(gi, gi)
-            hij = dde * wp.outer(gi, gj)
-            hjj = dde * wp.outer(gj, gj)
+        # effort drives and clipped PD drives are linear in x (dde = 0): no Hessian to build
+        hii, hij, hjj = outer_blocks(gi, gj, dde, derivs)
         return scale * e, de * gi, de * gj, hii, hij, hjj
 
     @wp.kernel(module="unique")

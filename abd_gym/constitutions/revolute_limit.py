@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from ..angles import angle_ops, revolute_angle_np
-from ..warp_ops import HESSIAN, ops
+from ..warp_ops import ops
 
 UID = 670
 NAME = "revolute_limit"
@@ -46,8 +46,8 @@ def revolute_limit_np(q, q_prev, q_ref, frames, lower, upper, s):
 def kernel(dtype):
     o = ops(dtype)
     a = angle_ops(dtype)
-    vec3, vec12, mat12 = o.vec3, o.vec12, o.mat12
-    add_energy, scatter_pair = o.add_energy, o.scatter_pair
+    vec3, vec12 = o.vec3, o.vec12
+    add_energy, scatter_pair, outer_blocks = o.add_energy, o.scatter_pair, o.outer_blocks
     cos_sin, delta_theta, theta_grad = a.cos_sin, a.delta_theta, a.theta_grad
     three, six = dtype(3.0), dtype(6.0)
 
@@ -80,13 +80,7 @@ def kernel(dtype):
         gj = vec12()
         if derivs != 0 and de != dtype(0.0):
             gi, gj = theta_grad(qi, qj, na, ba, nb, bb, c, s)
-        hii = mat12()
-        hij = mat12()
-        hjj = mat12()
-        if derivs == HESSIAN and dde != dtype(0.0):
-            hii = dde * wp.outer(gi, gi)
-            hij = dde * wp.outer(gi, gj)
-            hjj = dde * wp.outer(gj, gj)
+        hii, hij, hjj = outer_blocks(gi, gj, dde, derivs)
         return e, de * gi, de * gj, hii, hij, hjj
 
     @wp.kernel(module="unique")
