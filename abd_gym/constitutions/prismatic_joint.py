@@ -71,29 +71,29 @@ def kernel(dtype):
         hjj = mat12()
         if derivs == 0:
             return e, gi, gj, hii, hij, hjj
-        # C0, C1 (the slide direction): rows that mix p and A through cross products, added one
-        # by one; C2, C3 (the frames' normal and binormal) are linear in A alone, so their
+        # gradient K Σ_m C_m ∇C_m in closed form: row m of ∇(d × T) is J(c)ᵀ([T]×)_m-type terms,
+        # and Σ_m v_m ([t]×)_m = [t]×ᵀ v = v × t, so C0's rows sum to J(c_i)ᵀ(C0 × T_i) + J̊(t_i)ᵀ(C0 × d)
+        # on body i and −J(c_j)ᵀ(C0 × T_i) on body j (C1 likewise with T_j and −d)
+        a0 = wp.cross(C0, Ti)
+        a1 = wp.cross(C1, Tj)
+        gi = kk * (JT(ci, a0 - a1, one) + JT(ti, wp.cross(C0, d), zero) + JT(ni, C2, zero) + JT(bi, C3, zero))
+        gj = kk * (JT(cj, a1 - a0, one) - JT(tj, wp.cross(C1, d), zero) - JT(nj, C2, zero) - JT(bj, C3, zero))
+        if derivs != HESSIAN:
+            return e, gi, gj, hii, hij, hjj
+        # C0, C1 (the slide direction): Gauss–Newton rows that mix p and A through cross products,
+        # added one by one; C2, C3 (the frames' normal and binormal) are linear in A alone, so their
         # Hessian is K Σ (ũ_i ũ_jᵀ) ⊗ I₃ with ũ = (0, n̄) or (0, b̄), expanded once
         for c in range(2):
             for m in range(3):
-                v = C0[m]
                 ri = JT(ci, skew_row(Ti, m), one) + JT(ti, skew_row(d, m), zero)
                 rj = -JT(cj, skew_row(Ti, m), one)
                 if c == 1:
-                    v = C1[m]
                     ri = -JT(ci, skew_row(Tj, m), one)
                     rj = JT(cj, skew_row(Tj, m), one) + JT(tj, skew_row(-d, m), zero)
-                gi += (kk * v) * ri
-                gj += (kk * v) * rj
-                if derivs == HESSIAN:
-                    kri = kk * ri
-                    hii += wp.outer(kri, ri)
-                    hij += wp.outer(kri, rj)
-                    hjj += wp.outer(kk * rj, rj)
-        gi += kk * (JT(ni, C2, zero) + JT(bi, C3, zero))
-        gj -= kk * (JT(nj, C2, zero) + JT(bj, C3, zero))
-        if derivs != HESSIAN:
-            return e, gi, gj, hii, hij, hjj
+                kri = kk * ri
+                hii += wp.outer(kri, ri)
+                hij += wp.outer(kri, rj)
+                hjj += wp.outer(kk * rj, rj)
         uni = vec4(zero, ni[0], ni[1], ni[2])
         unj = vec4(zero, nj[0], nj[1], nj[2])
         ubi = vec4(zero, bi[0], bi[1], bi[2])
