@@ -477,10 +477,6 @@ class ABDVectorEnv(VectorEnv):
         else:
             truncated = self._zeros(N, dtype="bool")
         info_values = self._info(obs)
-        if bool(failed.any()):  # a broken world: zero observation and reward, terminated, reported
-            obs = xp.where(failed[:, None], 0.0, obs)
-            reward = xp.where(failed, 0.0, reward)
-            info_values = dict(info_values, sim_failed=failed)
         has_info = np.ones(N, dtype=bool)  # worlds whose info entries are this step's (not a reset's)
         if len(pending):
             p = self._index(pending)
@@ -488,8 +484,13 @@ class ABDVectorEnv(VectorEnv):
             terminated[p] = False
             truncated[p] = False
             has_info[pending] = False
-
-        done = _to_numpy(terminated | truncated)
+        # one device-to-host transfer for both host decisions (on a GPU each is a synchronisation)
+        flags = _to_numpy(xp.stack([failed, terminated | truncated]))
+        done = flags[1]
+        if flags[0].any():  # a broken world: zero observation and reward, terminated, reported
+            obs = xp.where(failed[:, None], 0.0, obs)
+            reward = xp.where(failed, 0.0, reward)
+            info_values = dict(info_values, sim_failed=failed)
         if done.any() and self.autoreset_mode == AutoresetMode.SAME_STEP:
             # as SyncVectorEnv: the finished episode's last obs and info under final_obs / final_info,
             # the new episode's first obs in obs (and its reset info, empty here, at the top level)
