@@ -136,6 +136,22 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                                 H[ob + b, oa + a, s] = H[ob + b, oa + a, s] + U[c, d]
 
     @wp.func
+    def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), step: Any,
+              w: int, row: int, alpha: dtype):  # fmt: skip
+        """q_trial[row] = q[w] + α Δq: Δq in scratch column ``row`` of ``step``, or (tiled) −y with
+        y = H⁻¹g in the block's shared tile ``step``."""
+        for b in range(q.shape[1]):
+            qb = q[w, b]
+            ob = dof[b]
+            if ob >= 0:
+                for r in range(12):
+                    if wp.static(tiled):
+                        qb[r] = qb[r] - alpha * wp.tile_extract(step, ob + r)
+                    else:
+                        qb[r] = qb[r] + alpha * step[ob + r, row]
+            q_trial[row, b] = qb
+
+    @wp.func
     def put_kron_pair(g: Any, H: Any, s: int, B: int, derivs: int, oi: int, oj: int, gi: vec12, gj: vec12,
                       uii: mat44, uij: mat44, ujj: mat44):  # fmt: skip
         put_grad(g, s, B, oi, gi)
@@ -295,16 +311,30 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return 0, 0
 
     @wp.func
-    def trial_point(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, dq: wp.array2d(dtype=dtype),
-                    w: int, s: int, alpha: dtype):  # fmt: skip
-        """Row s of q_trial = q[w] + α Δq (Δq in scratch column s)."""
-        for b in range(q.shape[1]):
-            qb = q[w, b]
-            ob = t.dof[b]
-            if ob >= 0:
-                for r in range(12):
-                    qb[r] = qb[r] + alpha * dq[ob + r, s]
-            q_trial[s, b] = qb
+    def search(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
+               w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, skip: int, done: int, chord: int,
+               max_line_search: int):  # fmt: skip
+        """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
+        factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
+        trial points go to row ``row`` of q_trial; s, B as in assemble."""
+        trial(q, q_trial, t.dof, step, w, row, one)
+        alpha = one
+        accepted = int(0)
+        stalled = int(0)
+        if skip != 0:
+            accepted = 1
+            stalled = done
+        elif chord != 0:
+            accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), one, gdq)
+        else:
+            for ls in range(max_line_search):
+                if ls > 0:
+                    trial(q, q_trial, t.dof, step, w, row, alpha)
+                accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
+                if accepted != 0:
+                    break
+                alpha = alpha * half
+        return accepted, stalled, alpha
 
     @wp.func
     def chord_step(chord: int, reuse: int, accepted: int, alpha: dtype, dmax: dtype, d_prev: dtype):
@@ -375,23 +405,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             iterations[w] = it + 1
             floor = noise_floor(q, w, threshold)
             skip, done = whole_step(e0, gdq, dmax, floor, chord)
-            trial_point(q, q_trial, t, dq, w, s, one)
-            alpha = one
-            accepted = int(0)
-            stalled = int(0)
-            if skip != 0:
-                accepted = 1
-                stalled = done
-            elif chord != 0:
-                accepted, stalled = armijo(e0, assemble(q_trial, s, w, s, 1, ENERGY, t, g, H), one, gdq)
-            else:  # backtracking line search (Armijo) on the world's own energy
-                for ls in range(max_line_search):
-                    if ls > 0:
-                        trial_point(q, q_trial, t, dq, w, s, alpha)
-                    accepted, stalled = armijo(e0, assemble(q_trial, s, w, s, 1, ENERGY, t, g, H), alpha, gdq)
-                    if accepted != 0:
-                        break
-                    alpha = alpha * half
+            accepted, stalled, alpha = search(q, q_trial, t, dq, g, H, w, s, s, 1, e0, gdq, skip, done, chord,
+                                              max_line_search)  # fmt: skip
             retry, chord = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
             if retry == 0 and end_iteration(q, q_trial, w, s, accepted, stalled, dmax, floor, converged) != 0:
                 return 0
@@ -416,18 +431,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     if scratch == "global":
         return newton, Terms
-
-    @wp.func
-    def trial_tiled(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, y: Any, w: int,
-                    alpha: dtype):  # fmt: skip
-        """q_trial[w] = q[w] − α y (y = H⁻¹g: the Newton step is −y)."""
-        for b in range(q.shape[1]):
-            qb = q[w, b]
-            ob = t.dof[b]
-            if ob >= 0:
-                for r in range(12):
-                    qb[r] = qb[r] - alpha * wp.tile_extract(y, ob + r)
-            q_trial[w, b] = qb
 
     @wp.func
     def solve_world_tiled(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, H: Any, g: Any,
@@ -471,23 +474,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             iterations[w] = it + 1
             floor = noise_floor(q, w, threshold)
             skip, done = whole_step(e0, gdq, dmax, floor, chord)
-            trial_tiled(q, q_trial, t, y, w, one)
-            alpha = one
-            accepted = int(0)
-            stalled = int(0)
-            if skip != 0:
-                accepted = 1
-                stalled = done
-            elif chord != 0:
-                accepted, stalled = armijo(e0, assemble(q_trial, w, w, lane, B, ENERGY, t, g, H), one, gdq)
-            else:
-                for ls in range(max_line_search):
-                    if ls > 0:
-                        trial_tiled(q, q_trial, t, y, w, alpha)
-                    accepted, stalled = armijo(e0, assemble(q_trial, w, w, lane, B, ENERGY, t, g, H), alpha, gdq)
-                    if accepted != 0:
-                        break
-                    alpha = alpha * half
+            accepted, stalled, alpha = search(q, q_trial, t, y, g, H, w, w, lane, B, e0, gdq, skip, done, chord,
+                                              max_line_search)  # fmt: skip
             retry, chord = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
             if retry == 0 and end_iteration(q, q_trial, w, w, accepted, stalled, dmax, floor, converged) != 0:
                 return 0
