@@ -113,7 +113,8 @@ class Simulator:
     # ------------------------------------------------------------------ output
     def _out(self, array, backend):
         if backend == "numpy":  # a copy: on the CPU .numpy() is a view of memory the next step overwrites
-            return np.array(array.numpy(), dtype=np.float64 if array.dtype != wp.int32 else np.int32)
+            src = self._host_view(array) if self.device.is_cpu else array.numpy()
+            return np.array(src, dtype=np.float64 if array.dtype != wp.int32 else np.int32)
         if backend == "warp":
             return array
         if backend == "torch":  # zero-copy views, made once: the state's arrays are never reallocated
@@ -200,7 +201,7 @@ class Simulator:
 
     def failed_worlds(self) -> np.ndarray:
         """Indices of worlds whose state went non-finite or whose system broke; reset them."""
-        return np.flatnonzero(self.state.status.numpy() != 0)
+        return np.flatnonzero(self._out(self.state.status, "numpy") != 0)
 
     def converged(self) -> np.ndarray:
         """(num_worlds,) bool: the last step's Newton solve met the tolerance."""
