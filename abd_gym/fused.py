@@ -366,6 +366,23 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return 0
 
     @wp.func
+    def take_step(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
+                  w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, dmax: dtype, threshold: dtype, chord: int,
+                  reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32)):  # fmt: skip
+        """Everything after a Newton direction (both layouts): the stop test, the line search, the
+        choice to reuse the factor next, and the update of q.  Returns (1 when the solve is over,
+        chord for the next iteration)."""
+        floor = noise_floor(q, w, threshold)
+        skip, done = whole_step(e0, gdq, dmax, floor, chord)
+        accepted, stalled, alpha = search(q, q_trial, t, step, g, H, w, row, s, B, e0, gdq, skip, done, chord,
+                                          max_line_search)  # fmt: skip
+        retry, chord_next = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
+        stop = int(0)
+        if retry == 0:
+            stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged)
+        return stop, chord_next
+
+    @wp.func
     def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array2d(dtype=dtype),
                     H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int, s: int, n: int, threshold: dtype,
                     max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
@@ -403,12 +420,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 status[w] = FAILED
                 return 0
             iterations[w] = it + 1
-            floor = noise_floor(q, w, threshold)
-            skip, done = whole_step(e0, gdq, dmax, floor, chord)
-            accepted, stalled, alpha = search(q, q_trial, t, dq, g, H, w, s, s, 1, e0, gdq, skip, done, chord,
-                                              max_line_search)  # fmt: skip
-            retry, chord = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
-            if retry == 0 and end_iteration(q, q_trial, w, s, accepted, stalled, dmax, floor, converged) != 0:
+            stop, chord = take_step(q, q_trial, t, dq, g, H, w, s, s, 1, e0, gdq, dmax, threshold, chord, reuse,
+                                    d_prev, max_line_search, converged)  # fmt: skip
+            if stop != 0:
                 return 0
             d_prev = dmax
         return 0
@@ -472,12 +486,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 status[w] = FAILED
                 return 0
             iterations[w] = it + 1
-            floor = noise_floor(q, w, threshold)
-            skip, done = whole_step(e0, gdq, dmax, floor, chord)
-            accepted, stalled, alpha = search(q, q_trial, t, y, g, H, w, w, lane, B, e0, gdq, skip, done, chord,
-                                              max_line_search)  # fmt: skip
-            retry, chord = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
-            if retry == 0 and end_iteration(q, q_trial, w, w, accepted, stalled, dmax, floor, converged) != 0:
+            stop, chord = take_step(q, q_trial, t, y, g, H, w, w, lane, B, e0, gdq, dmax, threshold, chord, reuse,
+                                    d_prev, max_line_search, converged)  # fmt: skip
+            if stop != 0:
                 return 0
             d_prev = dmax
         return 0
