@@ -30,16 +30,16 @@ def kernels(dtype):
         c_ref: wp.array2d(dtype=dtype), s_ref: wp.array2d(dtype=dtype),
         theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
         mask: wp.array(dtype=wp.int32), unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype),
-        bdf2: int, x_anchor: wp.array2d(dtype=dtype),
+        h_step: wp.array(dtype=dtype), h: dtype, x_anchor: wp.array2d(dtype=dtype),
     ):  # fmt: skip
         """θ0 and cos/sin θ of q^{t−1} (the state at the start of the step), and the drives' anchor
-        coordinate: xⁿ, or x̂ = (4xⁿ − xⁿ⁻¹)/3 for BDF2."""
+        coordinate: xⁿ, or x̂ = (4xⁿ − xⁿ⁻¹)/3 for a BDF2 step (h_step[w] = 2h/3 < h)."""
         w, j = wp.tid()
         if mask[w] == 0:
             return
         x_anchor[w, j] = unwrapped[w, j]
-        if bdf2 != 0:
-            x_anchor[w, j] = (dtype(4.0) * unwrapped[w, j] - x_hist[w, j]) / dtype(3.0)
+        if h_step[w] < h:
+            x_anchor[w, j] = unwrapped[w, j] + (unwrapped[w, j] - x_hist[w, j]) / dtype(3.0)
         if kind[j] != REVOLUTE_CODE:
             return
         c, s = cos_sin(q[w, body_a[j]], q[w, body_b[j]], n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j])

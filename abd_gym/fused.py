@@ -182,7 +182,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         mc: wp.array2d(dtype=vec3)
         S: wp.array2d(dtype=mat33)
         kv: wp.array2d(dtype=dtype)
-        h2: dtype
+        h_step: wp.array(dtype=dtype)  # each world's effective step (Solver.h_step)
         body_a: wp.array(dtype=wp.int32)
         body_b: wp.array(dtype=wp.int32)
         joint_kind: wp.array(dtype=wp.int32)
@@ -219,16 +219,17 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         control: wp.array2d(dtype=dtype)
         unwrapped: wp.array2d(dtype=dtype)
         x_anchor: wp.array2d(dtype=dtype)
-        h: dtype
 
     @wp.func
     def assemble(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any):
         """Total incremental potential of world w at q[qr]; derivs GRADIENT adds its g, HESSIAN its g
         and H (to scratch column s; tiled: to the block's shared g and H, s the lane, B the block size)."""
         e = zero
+        hw = t.h_step[w]
+        h2 = hw * hw
         for k in range(t.free.shape[0]):
             b = t.free[k]
-            e_in, e_or, f, hb = body_eval(q[qr, b], t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], t.kv[w, b] * t.h2, derivs)
+            e_in, e_or, f, hb = body_eval(q[qr, b], t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], t.kv[w, b] * h2, derivs)
             e += e_in + e_or
             if derivs != 0:
                 put_grad(g, s, B, t.dof[b], f)
@@ -281,7 +282,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 j = t.drive_joint[k]
                 ej, gi, gj, hii, hij, hjj = drive_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], w, k, t.drive_joint, t.joint_kind,
                                                        t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b, t.b_b, t.c_prev, t.s_prev, t.drive_mode, t.kp,
-                                                       t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, t.h, t.h2, 0, derivs)  # fmt: skip
+                                                       t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, hw, h2, 0, derivs)  # fmt: skip
                 e += ej
                 if derivs != 0 and t.drive_mode[k] == 0:  # an effort drive is linear: gradient only
                     put_grad(g, s, B, t.dof[t.body_a[j]], gi)

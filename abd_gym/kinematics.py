@@ -110,9 +110,10 @@ def kernels(dtype):
         R0: wp.array(dtype=mat33), p0: wp.array(dtype=vec3), dt: dtype, omega: wp.array2d(dtype=vec3),
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
+        fresh: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """World idx[i] at joint coordinates xx[i, 0] and rates xx[i, 1]; its restart history as
-        rows.restart_q (no past: q^{n−1} = q − dt q̇, q̇^{n−1} = q̇) and status OK.  ``omega``
+        rows.restart_q (no past: q^{n−1} = q − dt q̇, q̇^{n−1} = q̇, fresh) and status OK.  ``omega``
         holds each body's angular velocity while the tree is walked."""
         i = wp.tid()
         k = idx[i]
@@ -162,6 +163,7 @@ def kernels(dtype):
             q_hist[k, b] = qb - dt * vb
             qd_hist[k, b] = vb
         status[k] = 0
+        fresh[k] = 1
 
     return place
 
@@ -176,5 +178,5 @@ def place(plan: TreePlan, state, model, idx: wp.array, xx: np.ndarray, dt: float
     wp.launch(kernels(model.dtype), dim=N,
               inputs=[idx, xx, plan.steps, plan.sign, plan.R_rel0, plan.p_rel0, plan.t_loc, plan.c_loc, plan.R0,
                       plan.p0, model.dtype(dt), omega, state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
-                      state.status], device=model.device)  # fmt: skip
+                      state.status, state.fresh], device=model.device)  # fmt: skip
     return xx

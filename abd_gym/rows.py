@@ -38,9 +38,9 @@ def kernels(dtype):
     def restart_q(idx: wp.array(dtype=wp.int32), q_src: wp.array2d(dtype=vec12), qd_src: wp.array2d(dtype=vec12),
                   dt: dtype, q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
                   q_prev: wp.array2d(dtype=vec12), q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
-                  status: wp.array(dtype=wp.int32)):  # fmt: skip
-        """World idx[i] restarts at (q, q̇) = row i: no past (q^{n−1} = q − dt q̇, q̇^{n−1} = q̇),
-        status OK."""
+                  status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32)):  # fmt: skip
+        """World idx[i] restarts at (q, q̇) = row i: no past (q^{n−1} = q − dt q̇, q̇^{n−1} = q̇, and
+        ``fresh``: its next step is an implicit Euler one), status OK."""
         i, b = wp.tid()
         k = idx[i]
         x = q_src[i, b]
@@ -52,6 +52,7 @@ def kernels(dtype):
         qd_hist[k, b] = v
         if b == 0:
             status[k] = 0
+            fresh[k] = 1
 
     return dict(scatter=scatter, restart_unwrapped=restart_unwrapped, restart_q=restart_q)
 
@@ -63,7 +64,7 @@ def restart(state, idx: wp.array, q, qd, dt: float, model) -> None:
                     device=model.device) for a in (q, qd)]  # fmt: skip
     wp.launch(kernels(model.dtype)["restart_q"], dim=(N, nb),
               inputs=[idx, *src, model.dtype(dt), state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
-                      state.status], device=model.device)  # fmt: skip
+                      state.status, state.fresh], device=model.device)  # fmt: skip
 
 
 @wp.kernel

@@ -81,6 +81,8 @@ class Solver:
         # the step's effective h: physical potentials sit inside h_eff², velocities are Δq/h_eff
         self.h_eff = self.h * (2.0 / 3.0 if self.bdf2 else 1.0)
         W, n, dev, dt_ = model.num_worlds, model.num_dofs, model.device, model.dtype
+        # per world, set by each step (open_step): h_eff, or h for a BDF2 world's first step
+        self.h_step = wp.full(W, self.h_eff, dtype=dt_, device=dev)
         # only the constitutions this scene has get a term (and so a kernel launch)
         self.parts = [c for c in REGISTRY if c.terms(model)]
         self.cols = self._columns(physical=False)
@@ -165,14 +167,15 @@ class Solver:
         ``wp.capture_while`` on device flags, so the whole step can be captured in a CUDA graph."""
         m, k, dev = self.model, self.k, self.model.device
         W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
-        wp.launch(k["check_finite"], dim=(W, nb), inputs=[state.q, state.qd, state.status], device=dev)
+        wp.launch(k["open_step"], dim=(W, nb), inputs=[state.q, state.qd, state.status, state.fresh, dt(self.h), self.bdf2,
+                                                       self.h_step], device=dev)  # fmt: skip
         if m.num_joints:
             wp.launch(self.begin_step, dim=(W, m.num_joints),
                       inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
                               state.theta0, state.c_prev, state.s_prev, self.all_active, state.unwrapped,
-                              state.x_hist, self.bdf2, state.x_anchor], device=dev)  # fmt: skip
+                              state.x_hist, self.h_step, dt(self.h), state.x_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
-                                                     self.q_tilde, m.dof, m.gravity, dt(self.h), self.bdf2,
+                                                     self.q_tilde, m.dof, m.gravity, dt(self.h), self.h_step,
                                                      state.status], device=dev)  # fmt: skip
         if self.settings.fused:
             self._fused_newton(state)
@@ -182,7 +185,7 @@ class Solver:
             self.remaining.fill_(1)
             wp.capture_while(self.remaining, self._newton_iteration, state=state)
         wp.launch(k["finalize"], dim=(W, nb), inputs=[state.q, state.q_prev, state.qd, state.q_hist, state.qd_hist,
-                                                      m.dof, dt(self.h), self.bdf2, state.status], device=dev)  # fmt: skip
+                                                      m.dof, dt(self.h), self.h_step, state.status], device=dev)  # fmt: skip
         self.update_coordinates(state, accumulate=True)
 
     def _fused_newton(self, state):
@@ -220,7 +223,7 @@ class Solver:
         for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor"):
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
-        t.h2, t.h = m.dtype(self.h_eff * self.h_eff), m.dtype(self.h_eff)
+        t.h_step = self.h_step
         t.rev_ids, t.fix_ids, t.pri_ids = m.joint_ids[REVOLUTE], m.joint_ids[FIXED], m.joint_ids[PRISMATIC]
         t.rlim_ids, t.plim_ids = m.limit_joint_ids[REVOLUTE], m.limit_joint_ids[PRISMATIC]
         t.rlim_lo, t.rlim_up, t.rlim_s = m.limit_params[REVOLUTE]
@@ -270,7 +273,7 @@ class Solver:
             return wp.launch(self.begin_step, dim=(m.num_worlds, m.num_joints),
                              inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref,
                                      m.s_ref, state.theta0, state.c_prev, state.s_prev, mask, state.unwrapped,
-                                     state.x_hist, self.bdf2, state.x_anchor],
+                                     state.x_hist, self.h_step, m.dtype(self.h), state.x_anchor],
                              device=m.device, record_cmd=record)  # fmt: skip
 
     def update_coordinates(self, state, accumulate, rate_from_qd=False, mask=None, record=False):

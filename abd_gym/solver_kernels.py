@@ -35,11 +35,11 @@ def kernels(dtype):
     def predict(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
-        q_tilde: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), gravity: vec3, h: dtype, bdf2: int,
-        status: wp.array(dtype=wp.int32),
+        q_tilde: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), gravity: vec3, h: dtype,
+        h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """Implicit Euler: q̃ = qⁿ + h q̇ⁿ + h² (g, 0)  (M⁻¹f_g = (g, 0) exactly: gravity moves p only).
-        BDF2 (ĥ = 2h/3): q̃ = q̂ + ĥ v̂ + ĥ² (g, 0), q̂ = (4qⁿ − qⁿ⁻¹)/3, v̂ = (4q̇ⁿ − q̇ⁿ⁻¹)/3.
+        BDF2 (ĥ = h_step[w] = 2h/3): q̃ = q̂ + ĥ v̂ + ĥ² (g, 0), q̂ = (4qⁿ − qⁿ⁻¹)/3, v̂ = (4q̇ⁿ − q̇ⁿ⁻¹)/3.
 
         Newton starts from qⁿ + h q̇ⁿ + h (q̇ⁿ − q̇ⁿ⁻¹), the last step's motion extrapolated to second
         order, not from q̃: q̃ lets a jointed body fall freely by h²g, which the joints then undo
@@ -52,12 +52,16 @@ def kernels(dtype):
         if dof[b] < 0 or status[w] != OK:
             q_tilde[w, b] = qb
             return
-        he = h
+        he = h_step[w]
         qt = qb + h * qd[w, b]
-        if bdf2 != 0:
-            he = dtype(2.0 / 3.0) * h
-            third = dtype(1.0 / 3.0)
-            qt = third * (dtype(4.0) * qb - q_hist[w, b]) + he * third * (dtype(4.0) * qd[w, b] - qd_hist[w, b])
+        if he < h:
+            # q̂ = qⁿ + (qⁿ − qⁿ⁻¹)/3, not (4qⁿ − qⁿ⁻¹)/3: the rounding is then that of the
+            # increment, not of q (in float32, 4qⁿ/3 rounds by ~1e-7·|q| a step, always the same
+            # way).  The divisions stay in dtype: a literal quotient such as 1.0/3.0 in a Warp
+            # kernel is a float32 operation even inside dtype(...).
+            q_hat = qb + (qb - q_hist[w, b]) / dtype(3.0)
+            v_hat = qd[w, b] + (qd[w, b] - qd_hist[w, b]) / dtype(3.0)
+            qt = q_hat + he * v_hat
         for r in range(3):
             qt[r] = qt[r] + he * he * gravity[r]
         q_tilde[w, b] = qt
@@ -289,9 +293,9 @@ def kernels(dtype):
     def finalize(
         q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
-        dof: wp.array(dtype=wp.int32), h: dtype, bdf2: int, status: wp.array(dtype=wp.int32),
+        dof: wp.array(dtype=wp.int32), h: dtype, h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32),
     ):  # fmt: skip
-        """q̇ⁿ⁺¹ = (qⁿ⁺¹ − qⁿ)/h, or (3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹)/(2h) for BDF2; the history shifts.
+        """q̇ⁿ⁺¹ = (qⁿ⁺¹ − qⁿ)/h, or (3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹)/(2h) for a BDF2 step; the history shifts.
         A failed world keeps its last good state."""
         w, b = wp.tid()
         if status[w] != OK:
@@ -299,15 +303,30 @@ def kernels(dtype):
             return
         if dof[b] >= 0:
             v = (q[w, b] - q_prev[w, b]) / h
-            if bdf2 != 0:
-                v = (dtype(3.0) * q[w, b] - dtype(4.0) * q_prev[w, b] + q_hist[w, b]) / (dtype(2.0) * h)
+            if h_step[w] < h:
+                # the differences first: 3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹ cancels to ~eps·|q| in float32
+                v = (dtype(3.0) * (q[w, b] - q_prev[w, b]) - (q_prev[w, b] - q_hist[w, b])) / (dtype(2.0) * h)
             qd_hist[w, b] = qd[w, b]
             qd[w, b] = v
         q_hist[w, b] = q_prev[w, b]
 
     @wp.kernel(module="unique")
-    def check_finite(q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32)):
+    def open_step(
+        q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
+        fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype),
+    ):  # fmt: skip
+        """A world with a non-finite q or q̇ fails; each world's effective step: ĥ = 2h/3 for BDF2,
+        but h (an implicit Euler step) for a world without a past step (``fresh``).  BDF2 started
+        from a past invented as "the velocity was constant" takes a first velocity of (2/3)h·a for
+        h·a, an O(h) error it never loses (measured: first-order global error); an implicit Euler
+        first step is O(h²) accurate, which keeps BDF2 second order."""
         w, b = wp.tid()
+        if b == 0:
+            he = h
+            if bdf2 != 0 and fresh[w] == 0:
+                he = dtype(2.0) * h / dtype(3.0)
+            h_step[w] = he
+            fresh[w] = 0
         for r in range(12):
             if not (wp.isfinite(q[w, b][r]) and wp.isfinite(qd[w, b][r])):
                 status[w] = FAILED
@@ -316,5 +335,5 @@ def kernels(dtype):
         predict=predict, start=start, newton_direction=newton_direction, cholesky_solve=cholesky_solve,
         factored_solve=factored_solve,
         noise_floor=noise_floor, trial=trial, accept=accept, commit=commit,
-        converge=converge, finalize=finalize, check_finite=check_finite,
+        converge=converge, finalize=finalize, open_step=open_step,
     )  # fmt: skip

@@ -26,6 +26,9 @@ class State:
         )
         self.control = wp.zeros((W, nd), dtype=dt, device=dev)
         self.status = wp.zeros(W, dtype=wp.int32, device=dev)
+        # 1: the world has no past step (new, or its state was just set); its next step is an
+        # implicit Euler step even under BDF2 (see solver_kernels.open_step)
+        self.fresh = wp.ones(W, dtype=wp.int32, device=dev)
         self.iterations = wp.zeros(W, dtype=wp.int32, device=dev)
         self.factorizations = wp.zeros(W, dtype=wp.int32, device=dev)
         self.converged = wp.ones(W, dtype=wp.int32, device=dev)

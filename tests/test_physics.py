@@ -223,7 +223,7 @@ def test_setting_some_worlds_writes_only_their_rows():
     sim.set_joint_state([[0.3, -0.2]] * 4, [[1.0, 0.5]] * 4)
     sim.step(5)
     st = sim.state
-    names = ("q", "qd", "q_prev", "q_hist", "qd_hist", "unwrapped", "x_hist", "theta0", "status")
+    names = ("q", "qd", "q_prev", "q_hist", "qd_hist", "unwrapped", "x_hist", "theta0", "status", "fresh")
     before = {n: getattr(st, n).numpy().copy() for n in names}
     sim.set_joint_state([[7.0, 0.1], [-0.4, 0.2]], [[0.5, 0.0], [0.0, -1.0]], worlds=[3, 1])
     after = {n: getattr(st, n).numpy() for n in names}

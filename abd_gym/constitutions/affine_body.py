@@ -137,7 +137,7 @@ def kernels(dtype):
         q: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
         free: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
         mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33),
-        kv: wp.array2d(dtype=dtype), ortho_scale: dtype, active: wp.array(dtype=wp.int32),
+        kv: wp.array2d(dtype=dtype), h_step: wp.array(dtype=dtype), physical: int, active: wp.array(dtype=wp.int32),
         derivs: int, col: int, col_ortho: int,
         E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
     ):  # fmt: skip
@@ -146,6 +146,9 @@ def kernels(dtype):
             return
         b = free[k]
         o = dof[b]
+        ortho_scale = dtype(1.0)  # the physical energy [J], or inside the potential's ĥ²
+        if physical == 0:
+            ortho_scale = h_step[w] * h_step[w]
         e_in, e_or, f, h = body_eval(q[w, b], q_tilde[w, b], mass[w, b], mc[w, b], S[w, b], kv[w, b] * ortho_scale, derivs)
         add_energy(E, w, col, e_in)
         add_energy(E, w, col_ortho, e_or)
@@ -192,9 +195,9 @@ def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     if physical:
         wp.launch(body_report, dim=dim, inputs=[q, state.qd, *common, model.gravity, E,
                                                 cols["kinetic"], cols["gravity"]], device=model.device)  # fmt: skip
-        col_inertia, scale = cols["scratch"], 1.0
+        col_inertia = cols["scratch"]
     else:
-        col_inertia, scale = cols["inertia"], ctx.h_eff * ctx.h_eff
+        col_inertia = cols["inertia"]
     wp.launch(body_terms, dim=dim, inputs=[q, ctx.q_tilde, model.free, model.dof, model.mass, model.mc, model.S,
-                                           model.kv, model.dtype(scale), active, derivs, col_inertia,
+                                           model.kv, ctx.h_step, int(physical), active, derivs, col_inertia,
                                            cols["orthogonality"], E, g, H], device=model.device)  # fmt: skip

@@ -135,7 +135,7 @@ def kernel(dtype):
         mode: wp.array(dtype=wp.int32), stiffness: wp.array2d(dtype=dtype), damping: wp.array2d(dtype=dtype),
         max_effort: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype), x_prev_joint: wp.array2d(dtype=dtype),
         x_anchor: wp.array2d(dtype=dtype),
-        h: dtype, scale: dtype, physical: int, active: wp.array(dtype=wp.int32), derivs: int, col: int,
+        h_step: wp.array(dtype=dtype), physical: int, active: wp.array(dtype=wp.int32), derivs: int, col: int,
         E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
     ):  # fmt: skip
         w, k = wp.tid()
@@ -144,6 +144,10 @@ def kernel(dtype):
         j = joint[k]
         bi = body_a[j]
         bj = body_b[j]
+        h = h_step[w]
+        scale = h * h  # inside the potential's ĥ²; the report's physical energy is unscaled
+        if physical != 0:
+            scale = dtype(1.0)
         e, gi, gj, hii, hij, hjj = drive_eval(
             q[w, bi], q[w, bj], w, k, joint, joint_kind, c_a, c_b, t_a, n_a, b_a, n_b, b_b, c_prev, s_prev, mode,
             stiffness, damping, max_effort, control, x_prev_joint, x_anchor, h, scale, physical, derivs)  # fmt: skip
@@ -160,9 +164,8 @@ def terms(model, physical=False):
 
 def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     m = model
-    scale = 1.0 if physical else ctx.h_eff * ctx.h_eff
     wp.launch(kernel(m.dtype).kernel, dim=(m.num_worlds, m.num_drives),
               inputs=[q, m.drive_joint, m.joint_kind, m.body_a, m.body_b, m.dof, m.c_a, m.c_b, m.t_a,
                       m.n_a, m.b_a, m.n_b, m.b_b, state.c_prev, state.s_prev, m.drive_mode, m.drive_stiffness,
                       m.drive_damping, m.drive_max_effort, state.control, state.unwrapped, state.x_anchor,
-                      m.dtype(ctx.h_eff), m.dtype(scale), int(physical), active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip
+                      ctx.h_step, int(physical), active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip
