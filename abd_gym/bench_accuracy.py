@@ -11,7 +11,10 @@ second, the throughput of a separate run of the same batch (1 s of steps launche
 as ``bench compare`` times them; the trajectory run reads the angles back every 0.02 s).  With
 ``mujoco_warp`` installed its semi-implicit Euler is measured the same way.  ``--reuse-factors``
 adds the Newton factor-reuse setting as a dimension (default: each dtype's default).
-Writes ``accuracy.json`` and, with matplotlib, ``accuracy.png`` (error against speed) to --out.
+With MuJoCo Warp rows, the run ends with the comparison at equal error (:func:`equal_error`):
+simulated world-seconds per second (world-steps/s × dt) of each of our settings against MuJoCo
+Warp's at the same error.  Writes ``accuracy.json`` and, with matplotlib, ``accuracy.png`` (error
+against simulated world-seconds per second) to --out.
 """
 import argparse
 import json
@@ -143,13 +146,64 @@ def main(argv=None):
                 print(_fmt(rows[-1]), flush=True)
             except ImportError:
                 pass
+    for r in rows:
+        r["world_seconds_per_second"] = r["world_steps_per_second"] * r["dt"]
     result = dict(device=args.device, device_name=wp.get_device(args.device).name, worlds=W, reference=ref_name,
-                  rows=rows)  # fmt: skip
+                  rows=rows, equal_error=equal_error(rows))  # fmt: skip
+    if result["equal_error"]:
+        print(equal_error_table(result["equal_error"]))
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "accuracy.json"), "w") as f:
         json.dump(result, f, indent=1)
     _plot(result, os.path.join(args.out, "accuracy.png"))
     return result
+
+
+def equal_error(rows):
+    """Per abd_gym row: MuJoCo Warp's simulated world-seconds per second at the same error
+    (``error_max``), and our rate over it.
+
+    The rate that matters at equal error is simulated time per wall time, world-steps/s × dt: a
+    more accurate step lets a larger dt reach the same error.  MuJoCo Warp's rate at our error is
+    interpolated log-log between its two nearest dt points; below its smallest error it is
+    extrapolated as first order (error ∝ dt ∝ its rate at a fixed world-steps/s), and
+    ``extrapolated`` says so; above its largest error its largest-dt point is used (``beyond``:
+    the ratio then overstates ours, as MuJoCo Warp could take a larger step).  Empty without
+    MuJoCo Warp rows."""
+    out = []
+    for case in sorted({r["case"] for r in rows}):
+        mjw = sorted((r["error_max"], r["world_steps_per_second"] * r["dt"]) for r in rows
+                     if r["case"] == case and r["engine"] == "mujoco_warp")  # fmt: skip
+        if not mjw:
+            continue
+        errs, rates = np.log([m[0] for m in mjw]), np.log([m[1] for m in mjw])
+        for r in rows:
+            if r["case"] != case or r["engine"] != "abd_gym":
+                continue
+            e = r["error_max"]
+            note = ""
+            if e < mjw[0][0]:
+                rate, note = mjw[0][1] * e / mjw[0][0], "extrapolated"
+            elif e > mjw[-1][0]:
+                rate, note = mjw[-1][1], "beyond"
+            else:
+                rate = float(np.exp(np.interp(np.log(e), errs, rates)))
+            ours = r["world_steps_per_second"] * r["dt"]
+            out.append(dict(case=case, integrator=r["integrator"], dt=r["dt"], dtype=r["dtype"], tol=r["tol"],
+                            reuse_factor=r["reuse_factor"], error_max=e, world_seconds_per_second=ours,
+                            mujoco_warp_world_seconds_per_second=rate, ratio=ours / rate, note=note))  # fmt: skip
+    return out
+
+
+def equal_error_table(rows):
+    lines = ["| mechanism | integrator | dt [s] | dtype | reuse | max error [rad] | abd_gym world-s/s | "
+             "MuJoCo Warp world-s/s at that error | ratio |", "|---|---|---:|---|---|---:|---:|---:|---:|"]
+    for r in rows:
+        note = f" ({r['note']})" if r["note"] else ""
+        lines.append(f"| {r['case']} | {r['integrator']} | {r['dt']:g} | {r['dtype']} | {'yes' if r['reuse_factor'] else 'no'} | "
+                     f"{r['error_max']:.2e} | {r['world_seconds_per_second']:,.0f} | "
+                     f"{r['mujoco_warp_world_seconds_per_second']:,.0f}{note} | {r['ratio']:.2f} |")  # fmt: skip
+    return "\n".join(lines)
 
 
 def _fmt(r):
@@ -179,10 +233,11 @@ def _plot(result, path):
         for (engine, integrator, dtype, tol, reuse), rs in series.items():
             rs = sorted(rs, key=lambda r: r["dt"])
             label = f"{engine} {integrator} {dtype}" + (f" tol {tol}" if tol is not None else "") + (" reuse" if reuse else "")
-            ax.loglog([r["world_steps_per_second"] for r in rs], [r["error_max"] for r in rs], "o-", label=label)
-            for r in rs:
-                ax.annotate(f"{r['dt']}", (r["world_steps_per_second"], r["error_max"]), fontsize=6)
-        ax.set_xlabel("world-steps per second")
+            x = [r["world_steps_per_second"] * r["dt"] for r in rs]
+            ax.loglog(x, [r["error_max"] for r in rs], "o-", label=label)
+            for xi, r in zip(x, rs):
+                ax.annotate(f"{r['dt']}", (xi, r["error_max"]), fontsize=6)
+        ax.set_xlabel("simulated world-seconds per wall second (world-steps/s × dt)")
         ax.set_ylabel("max joint-angle error over 1 s [rad]")
         ax.set_title(f"{case} ({result['device_name']}, {result['worlds']} worlds)")
         ax.legend(fontsize=7)

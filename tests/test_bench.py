@@ -1,5 +1,6 @@
 """The benchmark commands at tiny sizes on the CPU: each writes its JSON with every field (the
 numbers themselves are measured on a GPU; see README, Performance)."""
+import importlib.util
 import json
 import math
 
@@ -68,3 +69,26 @@ def test_bench_accuracy(tmp_path):
     # second order: at dt 0.02 BDF2 tracks the reference better than implicit Euler
     assert ours["bdf2"]["error_max"] < ours["implicit_euler"]["error_max"]
     assert ours["implicit_euler"]["energy_drift"] < 0  # implicit Euler only loses energy
+    assert all(row["world_seconds_per_second"] == pytest.approx(row["world_steps_per_second"] * 0.02) for row in ours.values())
+    if importlib.util.find_spec("mujoco_warp") is None:
+        assert r["equal_error"] == []  # nothing to compare against
+
+
+def test_equal_error_interpolates_mujoco_warp_in_simulated_time():
+    """equal_error: MuJoCo Warp's world-seconds/s at our error, log-log between its dt points,
+    first-order extrapolation below its smallest error, its largest-dt point above its largest."""
+    from abd_gym.bench_accuracy import equal_error
+
+    def row(engine, dt, err, sps):
+        return dict(engine=engine, case="cartpole", integrator="x", dt=dt, dtype="float32", tol=None,
+                    reuse_factor=None, error_max=err, world_steps_per_second=sps)  # fmt: skip
+
+    mjw = [row("mujoco_warp", 0.01, 4e-2, 1e7), row("mujoco_warp", 0.005, 2e-2, 1e7)]  # 1e5 and 5e4 world-s/s
+    ours = [row("abd_gym", 0.01, 2.8284271e-2, 5e6), row("abd_gym", 0.01, 1e-2, 5e6), row("abd_gym", 0.02, 1.0, 5e6)]
+    got = equal_error(mjw + ours)
+    assert [g["note"] for g in got] == ["", "extrapolated", "beyond"]
+    assert got[0]["mujoco_warp_world_seconds_per_second"] == pytest.approx(5e4 * 2**0.5, rel=1e-6)  # geometric middle
+    assert got[1]["mujoco_warp_world_seconds_per_second"] == pytest.approx(2.5e4)  # error ∝ dt below 2e-2
+    assert got[2]["mujoco_warp_world_seconds_per_second"] == pytest.approx(1e5)
+    assert got[0]["ratio"] == pytest.approx(5e4 / (5e4 * 2**0.5), rel=1e-6)
+    assert equal_error(ours) == []  # without MuJoCo Warp rows: nothing to compare
