@@ -108,6 +108,7 @@ def main(argv=None):
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--reference-worlds", type=int, default=8, help="worlds the error is measured on")
     ap.add_argument("--reference-dt", type=float, default=1e-4, help="step of the reference run [s]")
+    ap.add_argument("--repeat", type=int, default=3, help="throughput: best of this many timed runs")
     ap.add_argument("--out", default="bench_out")
     args = ap.parse_args(argv)
     W = args.worlds or (4096 if args.device.startswith("cuda") else 8)
@@ -128,8 +129,8 @@ def main(argv=None):
             steps = _samples(dt)[1]
             for integrator, dtype, tol, reuse in settings:
                 traj, residual, drift, reused = run_ours(case, x0, dt, dtype, tol, args.device, integrator, reuse)
-                sps = ours_steps_per_second(case, W, steps, dt, args.device, dtype, tol=tol, integrator=integrator,
-                                            reuse_factor=reuse)[0]  # fmt: skip
+                sps = ours_steps_per_second(case, W, steps, dt, args.device, dtype, repeat=args.repeat, tol=tol,
+                                            integrator=integrator, reuse_factor=reuse)[0]  # fmt: skip
                 err = np.abs(traj[:, :nref] - ref)
                 rows.append(dict(engine="abd_gym", integrator=integrator, case=case, dt=dt, dtype=dtype,
                                  tol=tol, reuse_factor=reused, error_final=float(err[-1].max()),
@@ -138,7 +139,7 @@ def main(argv=None):
                 print(_fmt(rows[-1]), flush=True)
             try:
                 traj = run_mjw(case, x0, dt, args.device)
-                sps = mjw_steps_per_second(case, W, steps, dt, args.device)
+                sps = mjw_steps_per_second(case, W, steps, dt, args.device, repeat=args.repeat)
                 err = np.abs(traj[:, :nref] - ref)
                 rows.append(dict(engine="mujoco_warp", integrator="semi_implicit_euler", case=case, dt=dt,
                                  dtype="float32", tol=None, reuse_factor=None, error_final=float(err[-1].max()), error_max=float(err.max()),
