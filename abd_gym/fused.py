@@ -61,7 +61,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     drive_eval = drive.kernel(dtype).eval
     staged = solver_kernels.kernels(dtype)
     cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
-    noise_floor = staged["noise_floor"]
+    noise_floor, energy_noise = staged["noise_floor"], staged["energy_noise"]
     zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
 
@@ -292,12 +292,13 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return e
 
     @wp.func
-    def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype, chord: int):
+    def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype, noise: dtype, chord: int):
         """(skip, done): take the Newton step whole, without a line search, when it is under the
         tolerance or when its predicted decrease −gᵀΔq is below what the energy's float rounding
-        can resolve (the search could only halve it on noise); done: the solve ends with it.  A
-        step from a reused factor (chord) converges linearly: only one under the tolerance ends it."""
-        unresolved = -gdq <= dtype(1600.0) * EPS * wp.abs(e0)
+        can resolve (the search could only halve it on noise; ``noise``: solver_kernels.energy_noise);
+        done: the solve ends with it.  A step from a reused factor (chord) converges linearly: only
+        one under the tolerance ends it."""
+        unresolved = -gdq <= dtype(1600.0) * EPS * wp.abs(e0) or -gdq <= noise
         skip = dmax < floor or unresolved
         done = dmax < floor or (unresolved and dmax < dtype(1000.0) * floor and chord == 0)
         return wp.where(skip, 1, 0), wp.where(done, 1, 0)
@@ -352,35 +353,40 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def end_iteration(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), w: int, row: int, accepted: int,
-                      stalled: int, dmax: dtype, floor: dtype, converged: wp.array(dtype=wp.int32)):  # fmt: skip
+                      stalled: int, alpha: dtype, dmax: dtype, floor: dtype,
+                      converged: wp.array(dtype=wp.int32)):  # fmt: skip
         """Take the accepted trial point (row of q_trial) as world w's q; 1 when its solve is over.
-        A search that ran out takes no step: converged if the step was already near the tolerance."""
+        A search that ran out takes no step: converged if the step was already near the tolerance.
+        A step within 2x the noise floor that the search had to shorten also ends the solve: at that
+        scale the float32 model is rounding (the factor of a stiff system, cond ~1e6, is good to a
+        few percent), and the solve crawls; measured: float32 double pendulums at dt 0.002 spent up
+        to 14 iterations moving 1.7e-6 m by 1-6% each, which on a GPU stalls the whole warp."""
         if accepted == 0:
             if dmax < dtype(1000.0) * floor:
                 converged[w] = 1
             return 1
         for b in range(q.shape[1]):
             q[w, b] = q_trial[row, b]
-        if dmax < floor or stalled != 0:
+        if dmax < floor or stalled != 0 or (alpha < one and dmax < dtype(2.0) * floor):
             converged[w] = 1
             return 1
         return 0
 
     @wp.func
     def take_step(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
-                  w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, dmax: dtype, threshold: dtype, chord: int,
+                  w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, dmax: dtype, g_abs: dtype, threshold: dtype, chord: int,
                   reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32)):  # fmt: skip
         """Everything after a Newton direction (both layouts): the stop test, the line search, the
         choice to reuse the factor next, and the update of q.  Returns (1 when the solve is over,
         chord for the next iteration)."""
         floor = noise_floor(q, w, threshold)
-        skip, done = whole_step(e0, gdq, dmax, floor, chord)
+        skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(q, w, g_abs), chord)
         accepted, stalled, alpha = search(q, q_trial, t, step, g, H, w, row, s, B, e0, gdq, skip, done, chord,
                                           max_line_search)  # fmt: skip
         retry, chord_next = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
         stop = int(0)
         if retry == 0:
-            stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged)
+            stop = end_iteration(q, q_trial, w, row, accepted, stalled, alpha, dmax, floor, converged)
         return stop, chord_next
 
     @wp.func
@@ -410,18 +416,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             ok = int(0)
             gdq = zero
             dmax = zero
+            g_abs = zero
             if chord != 0:
                 e0 = assemble(q, w, w, s, 1, GRADIENT, t, g, H)
-                ok, gdq, dmax = factored_solve(H, g, dq, s, n)
+                ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, n)
             else:
                 e0 = assemble(q, w, w, s, 1, HESSIAN, t, g, H)
-                ok, gdq, dmax = cholesky_solve(H, g, dq, s, n)
+                ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, n)
                 factorizations[w] = factorizations[w] + 1
             if ok == 0:
                 status[w] = FAILED
                 return 0
             iterations[w] = it + 1
-            stop, chord = take_step(q, q_trial, t, dq, g, H, w, s, s, 1, e0, gdq, dmax, threshold, chord, reuse,
+            stop, chord = take_step(q, q_trial, t, dq, g, H, w, s, s, 1, e0, gdq, dmax, g_abs, threshold, chord, reuse,
                                     d_prev, max_line_search, converged)  # fmt: skip
             if stop != 0:
                 return 0
@@ -479,15 +486,18 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             wp.tile_cholesky_solve_inplace(H, y)
             gdq = zero
             dmax = zero
+            g_abs = zero
             for i in range(N):
                 yi = wp.tile_extract(y, i)
-                gdq -= wp.tile_extract(g, i) * yi
+                gi = wp.tile_extract(g, i)
+                gdq -= gi * yi
                 dmax = wp.max(dmax, wp.abs(yi))
+                g_abs += wp.abs(gi)
             if not (wp.isfinite(gdq) and wp.isfinite(dmax)):  # H not positive definite
                 status[w] = FAILED
                 return 0
             iterations[w] = it + 1
-            stop, chord = take_step(q, q_trial, t, y, g, H, w, w, lane, B, e0, gdq, dmax, threshold, chord, reuse,
+            stop, chord = take_step(q, q_trial, t, y, g, H, w, w, lane, B, e0, gdq, dmax, g_abs, threshold, chord, reuse,
                                     d_prev, max_line_search, converged)  # fmt: skip
             if stop != 0:
                 return 0

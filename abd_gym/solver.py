@@ -119,7 +119,7 @@ class Solver:
         self.L = None if settings.fused else wp.zeros((n, n, T), dtype=dt_, device=dev)
         self.chord = wp.zeros(W, dtype=wp.int32, device=dev)
         self.d_prev = wp.zeros(W, dtype=dt_, device=dev)
-        self.gdq, self.dq_max, self.alpha = (wp.zeros(W, dtype=dt_, device=dev) for _ in range(3))
+        self.gdq, self.dq_max, self.alpha, self.g_abs = (wp.zeros(W, dtype=dt_, device=dev) for _ in range(4))
         self.active, self.searching, self.take = (wp.zeros(W, dtype=wp.int32, device=dev) for _ in range(3))
         self.all_active = wp.ones(W, dtype=wp.int32, device=dev)
         self.remaining = wp.zeros(1, dtype=wp.int32, device=dev)  # loop flags for wp.capture_while
@@ -239,7 +239,7 @@ class Solver:
         self.H.zero_()
         self.assemble(state, state.q, self.E, self.active, HESSIAN)
         wp.launch(k["newton_direction"], dim=W, inputs=[self.H, self.L, self.g, m.num_dofs, self.active, self.chord,
-                                                        self.dq, self.gdq, self.dq_max, state.status,
+                                                        self.dq, self.gdq, self.dq_max, self.g_abs, state.status,
                                                         state.factorizations], device=dev)  # fmt: skip
         self.alpha.fill_(1.0)
         wp.copy(self.searching, self.active)
@@ -261,7 +261,7 @@ class Solver:
         self.E_trial.zero_()
         self.assemble(state, self.q_trial, self.E_trial, self.searching, 0)
         self.ls_remaining.zero_()
-        wp.launch(k["accept"], dim=W, inputs=[state.q, self.E, self.E_trial, len(self.cols), self.gdq, self.dq_max,
+        wp.launch(k["accept"], dim=W, inputs=[state.q, self.E, self.E_trial, len(self.cols), self.gdq, self.g_abs, self.dq_max,
                                               dt(s.tol * self.h), dt(0.5 ** (s.max_line_search - 1)), self.alpha,
                                               self.searching, self.take, self.chord, self.active, state.converged,
                                               self.ls_remaining], device=dev)  # fmt: skip
