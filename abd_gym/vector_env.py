@@ -185,6 +185,10 @@ class ABDVectorEnv(VectorEnv):
 
         # ---- per-world bookkeeping
         self._elapsed = self._zeros(N, dtype="int")  # env steps in the current episode
+        # all-False flags made once: building them each step was a host-to-device copy (on a GPU, a
+        # copy from pageable memory, which waits for the stream) in every step of every task
+        # without terminations
+        self._no_flags = self._zeros(N, dtype="bool")
         self._pending = np.zeros(N, dtype=bool)  # NEXT_STEP: worlds to reset at the next step
         self._has_reset = False
 
@@ -239,7 +243,7 @@ class ABDVectorEnv(VectorEnv):
         raise NotImplementedError
 
     def _terminated(self, obs):
-        return self._zeros(self.num_envs, dtype="bool")
+        return self._no_flags  # read only: step combines it into a new array
 
     def _initial_state(self, n: int, rng: np.random.Generator, options: dict):
         """Joint coordinates and velocities (n, num_joints) of n fresh episodes (host NumPy)."""
@@ -408,7 +412,7 @@ class ABDVectorEnv(VectorEnv):
         self._apply_parameters(idx, rng)
         coords, vels = self._initial_state(len(idx), rng, options)
         self.sim.set_joint_state(coords, vels, worlds=idx)
-        self._put(self._elapsed, idx, np.zeros(len(idx)))
+        self._elapsed[self._index(idx)] = 0  # one index upload, no value array
         self._reset_task(idx, rng, options)
         self._pending[idx] = False
 
@@ -475,7 +479,7 @@ class ABDVectorEnv(VectorEnv):
         if self.max_episode_steps is not None:
             truncated = self._elapsed >= self.max_episode_steps
         else:
-            truncated = self._zeros(N, dtype="bool")
+            truncated = self._no_flags.copy() if self.xp is np else self._no_flags.clone()
         info_values = self._info(obs)
         has_info = np.ones(N, dtype=bool)  # worlds whose info entries are this step's (not a reset's)
         if len(pending):
