@@ -240,6 +240,18 @@ def test_reacher_shoulder_limit_near_180_degrees():
     assert q[:, 0].max() < 3.05 + 0.05 and q[:, 1].min() > -3.05 - 0.05  # ...and not through them
 
 
+def test_fourbar_loop_stays_closed_under_bdf2():
+    """The closed loop under BDF2 (whose first step after each reset is implicit Euler)."""
+    env = vector_class("abd_gym/FourBar-v0")(N, integrator="bdf2")
+    env.reset(seed=4)
+    rng = np.random.default_rng(4)
+    for _ in range(40):
+        env.step(rng.uniform(-1, 1, (N, 1)))
+        assert env.sim.joint_violation().max() < 1e-3
+    assert env.sim.converged().all() and not env.sim.failed_worlds().size
+    env.close()
+
+
 def test_fourbar_loop_stays_closed():
     _, _, _, env = rollout("abd_gym/FourBar-v0", "random")
     env.reset(seed=4)

@@ -1,5 +1,6 @@
-"""Numerical stability on hard cases: each must finish with no NaN, no energy gain (implicit Euler
-only dissipates), a bounded joint residual, and Newton converged in every world."""
+"""Numerical stability on hard cases, under implicit Euler and BDF2: each must finish with no NaN,
+no energy gain (both integrators only dissipate here), a bounded joint residual, and Newton
+converged in every world."""
 import numpy as np
 import pytest
 
@@ -26,37 +27,46 @@ def _run(scene, x0, dt, steps, dtype="float32", **kw):
     return sim, np.max(gain), residual, converged, np.abs(e0).max()
 
 
+INTEGRATORS = pytest.mark.parametrize("integrator", ["implicit_euler", "bdf2"])
+
+
+@INTEGRATORS
 @pytest.mark.parametrize("masses", [(0.01, 10.0), (10.0, 0.01)])
-def test_mass_ratio_1_to_1000(masses):
+def test_mass_ratio_1_to_1000(masses, integrator):
     """A 10 g link hanging from a 10 kg one and the reverse: K = strength_ratio·(m_i + m_j) keeps
     the light link's joint as tight as the heavy one's; residual under 0.2 mm, no energy gain."""
-    _, gain, residual, converged, e0 = _run(mechanisms.chain(2, masses=list(masses)), [[1.0, 0.5]], 0.01, 150)
+    _, gain, residual, converged, e0 = _run(mechanisms.chain(2, masses=list(masses)), [[1.0, 0.5]], 0.01, 150,
+                                            integrator=integrator)  # fmt: skip
     assert gain <= 1e-4 * e0
     assert residual < 2e-4
     assert converged
 
 
-def test_twenty_link_chain():
+@INTEGRATORS
+def test_twenty_link_chain(integrator):
     """A 20-link chain (240 unknowns per world, one dense solve) released at 0.3 rad per joint."""
-    sim, gain, residual, converged, e0 = _run(mechanisms.chain(20, length=0.1), [[0.3] * 20], 0.01, 40)
+    sim, gain, residual, converged, e0 = _run(mechanisms.chain(20, length=0.1), [[0.3] * 20], 0.01, 40, integrator=integrator)
     assert gain <= 1e-4 * e0
     assert residual < 5e-4
     assert converged
 
 
-def test_large_step_dt_0_05():
+@INTEGRATORS
+def test_large_step_dt_0_05(integrator):
     """dt = 0.05 on a double pendulum released at (2, 1) rad: stable, residual under 1 mm."""
-    _, gain, residual, converged, e0 = _run(mechanisms.double_pendulum(), [[2.0, 1.0]], 0.05, 60)
+    _, gain, residual, converged, e0 = _run(mechanisms.double_pendulum(), [[2.0, 1.0]], 0.05, 60, integrator=integrator)
     assert gain <= 1e-4 * e0
     assert residual < 1e-3
     assert converged
 
 
+@INTEGRATORS
 @pytest.mark.parametrize("ratio,bound", [(1.0, 1e-2), (1e2, 1e-4), (1e4, 1e-6), (1e6, 1e-6)])
-def test_strength_ratios_1_to_1e6(ratio, bound):
+def test_strength_ratios_1_to_1e6(ratio, bound, integrator):
     """Joint strength ratio over six decades: the residual falls with strength (to float32's floor)
     and Newton still converges at 1e6."""
-    _, gain, residual, converged, e0 = _run(mechanisms.double_pendulum(strength_ratio=ratio), [[2.0, 1.0]], 0.01, 100)
+    _, gain, residual, converged, e0 = _run(mechanisms.double_pendulum(strength_ratio=ratio), [[2.0, 1.0]], 0.01, 100,
+                                            integrator=integrator)  # fmt: skip
     assert gain <= 1e-4 * e0
     assert residual < bound
     assert converged
