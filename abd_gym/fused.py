@@ -32,7 +32,7 @@ OK, FAILED = 0, 1
 
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
-                 max_registers=0, smem_spilling=False):  # fmt: skip
+                 max_registers=0, smem_spilling=False, envelope=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -59,7 +59,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     rlim_eval = revolute_limit.kernel(dtype).eval
     plim_eval = prismatic_limit.kernel(dtype).eval
     drive_eval = drive.kernel(dtype).eval
-    staged = solver_kernels.kernels(dtype)
+    staged = solver_kernels.kernels(dtype, envelope and scratch != "tiled")
     cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
     noise_floor, energy_noise = staged["noise_floor"], staged["energy_noise"]
     zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
@@ -178,6 +178,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         q_tilde: wp.array2d(dtype=vec12)
         free: wp.array(dtype=wp.int32)
         dof: wp.array(dtype=wp.int32)
+        first: wp.array(dtype=wp.int32)  # the Hessian's envelope (Model.first)
         mass: wp.array2d(dtype=dtype)
         mc: wp.array2d(dtype=vec3)
         S: wp.array2d(dtype=mat33)
@@ -410,7 +411,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             for i in range(n):
                 g[i, s] = zero
                 if chord == 0:
-                    for j in range(i + 1):
+                    for j in range(t.first[i] if wp.static(envelope) else 0, i + 1):
                         H[i, j, s] = zero
             e0 = zero
             ok = int(0)
@@ -419,10 +420,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             g_abs = zero
             if chord != 0:
                 e0 = assemble(q, w, w, s, 1, GRADIENT, t, g, H)
-                ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, n)
+                ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, n, t.first)
             else:
                 e0 = assemble(q, w, w, s, 1, HESSIAN, t, g, H)
-                ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, n)
+                ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, n, t.first)
                 factorizations[w] = factorizations[w] + 1
             if ok == 0:
                 status[w] = FAILED

@@ -48,6 +48,9 @@ class SolverSettings:
     # the solve's error either way; in float64 the reused factor's linear convergence leaves ~1e-10 m
     # per step where Newton's quadratic convergence leaves ~1e-14 (tests/test_hard_cases.py)
     reuse_factor: bool | None = None
+    # factor only the Hessian's envelope (Model.first: a block-banded chain costs O(n·12²) instead of
+    # O(n³)); None: when the scene has one (a dense Hessian keeps the plain loops)
+    envelope: bool | None = None
 
 
 def default_threads(device, num_worlds: int) -> int:
@@ -124,7 +127,8 @@ class Solver:
         self.all_active = wp.ones(W, dtype=wp.int32, device=dev)
         self.remaining = wp.zeros(1, dtype=wp.int32, device=dev)  # loop flags for wp.capture_while
         self.ls_remaining = wp.zeros(1, dtype=wp.int32, device=dev)
-        self.k = solver_kernels(dt_)
+        self.envelope = model.envelope if settings.envelope is None else bool(settings.envelope)
+        self.k = solver_kernels(dt_, self.envelope)
         self._fused = None  # (kernel, struct of arrays), built on the first fused step
         self.begin_step, self.coordinates = coordinates.kernels(dt_)
         self._restart_cmds = {}  # restart_joints' recorded launches
@@ -215,9 +219,9 @@ class Solver:
                len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
         st = self.settings
         kernel, Terms = fused_kernel(m.dtype, *has, scratch=st.scratch, n=m.num_dofs, max_registers=st.max_registers,
-                                     smem_spilling=st.smem_spilling)  # fmt: skip
+                                     smem_spilling=st.smem_spilling, envelope=self.envelope)  # fmt: skip
         t = Terms()
-        for name in ("free", "dof", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
+        for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
             setattr(t, name, getattr(m, name))
         for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor"):
@@ -238,7 +242,7 @@ class Solver:
         self.g.zero_()
         self.H.zero_()
         self.assemble(state, state.q, self.E, self.active, HESSIAN)
-        wp.launch(k["newton_direction"], dim=W, inputs=[self.H, self.L, self.g, m.num_dofs, self.active, self.chord,
+        wp.launch(k["newton_direction"], dim=W, inputs=[self.H, self.L, self.g, m.num_dofs, m.first, self.active, self.chord,
                                                         self.dq, self.gdq, self.dq_max, self.g_abs, state.status,
                                                         state.factorizations], device=dev)  # fmt: skip
         self.alpha.fill_(1.0)

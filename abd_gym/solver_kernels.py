@@ -16,7 +16,9 @@ OK, FAILED = 0, 1
 
 
 @functools.lru_cache(maxsize=None)
-def kernels(dtype):
+def kernels(dtype, envelope=False):
+    """The per-world Newton kernels for ``dtype``; ``envelope``: the Cholesky factor and solves skip
+    the columns left of each row's first non-zero (``Model.first``), for block-banded scenes."""
     o = ops(dtype)
     vec3, vec12 = o.vec3, o.vec12
     zero, one = dtype(0.0), dtype(1.0)
@@ -81,67 +83,91 @@ def kernels(dtype):
         q[w, b] = qb + h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])  # Newton's initial guess
 
     @wp.func
-    def cholesky(H: wp.array3d(dtype=dtype), w: int, n: int):
+    def cholesky(H: wp.array3d(dtype=dtype), w: int, n: int, first: wp.array(dtype=wp.int32)):
         """H = L Lᵀ in place on H's lower triangle (column w of the world-minor arrays); 0 when H is
-        not positive definite."""
+        not positive definite.  With ``envelope``, row i starts at column first[i]: L has H's
+        envelope (Cholesky fills nothing left of a row's first non-zero), so the skipped products
+        are exact zeros and the result is the dense one."""
         for j in range(n):
+            fj = int(0)
+            if wp.static(envelope):
+                fj = first[j]
             s = H[j, j, w]
-            for k in range(j):
+            for k in range(fj, j):
                 s -= H[j, k, w] * H[j, k, w]
             if not (s > zero) or not wp.isfinite(s):
                 return 0
             d = wp.sqrt(s)
             H[j, j, w] = d
             for i in range(j + 1, n):
-                t = H[i, j, w]
-                for k in range(j):
-                    t -= H[i, k, w] * H[j, k, w]
-                H[i, j, w] = t / d
+                fi = int(0)
+                if wp.static(envelope):
+                    fi = first[i]
+                if fi <= j:
+                    t = H[i, j, w]
+                    for k in range(wp.max(fi, fj), j):
+                        t -= H[i, k, w] * H[j, k, w]
+                    H[i, j, w] = t / d
         return 1
 
     @wp.func
     def factored_solve(L: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int,
-                       n: int):  # fmt: skip
+                       n: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
         """dq = −(L Lᵀ)⁻¹g by two triangular solves (n² multiply-adds, against n³/6 for the factor).
 
         Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when the result is not finite.
         """
         for i in range(n):  # L y = −g
+            fi = int(0)
+            if wp.static(envelope):
+                fi = first[i]
             t = -g[i, w]
-            for k in range(i):
+            for k in range(fi, i):
                 t -= L[i, k, w] * dq[k, w]
             dq[i, w] = t / L[i, i, w]
         gdq = zero
         dmax = zero
         g_abs = zero
-        for ii in range(n):  # Lᵀ x = y
-            i = n - 1 - ii
-            t = dq[i, w]
-            for k in range(i + 1, n):
-                t -= L[k, i, w] * dq[k, w]
-            dq[i, w] = t / L[i, i, w]
-            gdq += g[i, w] * dq[i, w]
-            dmax = wp.max(dmax, wp.abs(dq[i, w]))
-            g_abs += wp.abs(g[i, w])
+        if wp.static(envelope):
+            for ii in range(n):  # Lᵀ x = y by columns of Lᵀ (rows of L: their envelope)
+                i = n - 1 - ii
+                xi = dq[i, w] / L[i, i, w]
+                dq[i, w] = xi
+                for k in range(first[i], i):
+                    dq[k, w] = dq[k, w] - L[i, k, w] * xi
+            for i in range(n):
+                gdq += g[i, w] * dq[i, w]
+                dmax = wp.max(dmax, wp.abs(dq[i, w]))
+                g_abs += wp.abs(g[i, w])
+        else:
+            for ii in range(n):  # Lᵀ x = y
+                i = n - 1 - ii
+                t = dq[i, w]
+                for k in range(i + 1, n):
+                    t -= L[k, i, w] * dq[k, w]
+                dq[i, w] = t / L[i, i, w]
+                gdq += g[i, w] * dq[i, w]
+                dmax = wp.max(dmax, wp.abs(dq[i, w]))
+                g_abs += wp.abs(g[i, w])
         if not wp.isfinite(gdq):
             return 0, zero, zero, zero
         return 1, gdq, dmax, g_abs
 
     @wp.func
     def cholesky_solve(H: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int,
-                       n: int):  # fmt: skip
+                       n: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
         """dq = −H⁻¹g for world w by Cholesky, in place on H's lower triangle (world-minor arrays).
 
         Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when H is not positive definite or the result not finite.
         """
-        if cholesky(H, w, n) == 0:
+        if cholesky(H, w, n, first) == 0:
             return 0, zero, zero, zero
-        return factored_solve(H, g, dq, w, n)
+        return factored_solve(H, g, dq, w, n, first)
 
     @wp.kernel(module="unique")
     def newton_direction(
         H: wp.array3d(dtype=dtype), L: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), n: int,
-        active: wp.array(dtype=wp.int32), chord: wp.array(dtype=wp.int32),
+        first: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), chord: wp.array(dtype=wp.int32),
         dq: wp.array2d(dtype=dtype), gdq: wp.array(dtype=dtype), dq_max: wp.array(dtype=dtype),
         g_abs: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
     ):  # fmt: skip
@@ -154,7 +180,7 @@ def kernels(dtype):
         ok = int(1)
         if chord[w] == 0:
             factorizations[w] = factorizations[w] + 1
-            ok = cholesky(H, w, n)
+            ok = cholesky(H, w, n, first)
             for i in range(n):
                 for j in range(i + 1):
                     L[i, j, w] = H[i, j, w]
@@ -162,7 +188,7 @@ def kernels(dtype):
         m = zero
         ga = zero
         if ok != 0:
-            ok, s, m, ga = factored_solve(L, g, dq, w, n)
+            ok, s, m, ga = factored_solve(L, g, dq, w, n, first)
         if ok == 0:
             status[w] = FAILED
             active[w] = 0

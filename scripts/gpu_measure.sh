@@ -7,7 +7,8 @@
 #     bash scripts/gpu_measure.sh [PART ...]
 #
 # PARTs: bench (simulator and env tables), reuse (Newton's factor reuse on and off), variants
-# (tolerance, tiled scratch, the cart-pole without limit / drive), compare (MuJoCo Warp, up to
+# (tolerance, tiled scratch, the cart-pole without limit / drive), envelope (a 10-link chain with
+# the dense and the envelope factor), compare (MuJoCo Warp, up to
 # 131,072 worlds and 1M of ours), accuracy (speed against error, both mechanisms); default: bench
 # reuse variants compare.  Each part takes a few
 # minutes on an H100; keep a device call under its 10-minute limit by splitting the parts.
@@ -34,11 +35,13 @@ for part in $parts; do
         --cases cartpole,double_pendulum --out "$out/reuse" ;;
     variants) run variants python3 -m abd_gym.bench --device "$dev" --worlds "$few" --tol 1e-5,1e-3 \
         --scratch global,tiled --cases cartpole,double_pendulum,cartpole_nolimit,cartpole_bare --out "$out/variants" ;;
+    envelope) run envelope python3 -m abd_gym.bench --device "$dev" --worlds "$few" --cases chain10 --envelope 0,1 \
+        --out "$out/envelope" ;;
     compare) run compare python3 -m abd_gym.bench compare --device "$dev" --worlds "$worlds" --out "$out/compare" ;;
     accuracy) run accuracy python3 -m abd_gym.bench accuracy --device "$dev" --worlds "${WORLDS:-4096}" \
         --dtypes float32 --tols 1e-5 --reuse-factors auto,0 --cases "${CASES:-double_pendulum,cartpole}" \
         --out "$out/accuracy" ;;
-    *) echo "unknown part $part (bench, reuse, variants, compare, accuracy)" >&2; exit 2 ;;
+    *) echo "unknown part $part (bench, reuse, variants, envelope, compare, accuracy)" >&2; exit 2 ;;
     esac
 done
 tmp=$(mktemp -d)

@@ -10,7 +10,7 @@ from abd_gym import bench
 
 SIM_FIELDS = {"case", "num_worlds", "steps", "dt", "dtype", "device", "seconds", "steps_per_second",
               "world_steps_per_second", "newton_iterations", "newton_factorizations", "joint_residual",
-              "converged_fraction", "reuse_factor",
+              "converged_fraction", "reuse_factor", "envelope",
               "failed_worlds", "threads", "block_dim", "memory_bytes_per_world"}  # fmt: skip
 
 
