@@ -168,15 +168,9 @@ def kernels(dtype):
     return place
 
 
-def place(plan: TreePlan, state, model, idx: wp.array, xx: np.ndarray, dt: float, omega: wp.array) -> wp.array:
-    """Set the worlds idx (N,) to joint coordinates xx[:, 0] and rates xx[:, 1] (N, 2, joints), on
-    the device; returns xx as a device array."""
-    N = idx.shape[0]
-    if xx.shape[2] == 0:  # a scene without joints still passes (N, 2, 1) arrays
-        xx = np.zeros((N, 2, 1))
-    xx = wp.array(np.ascontiguousarray(xx, dtype=model.np_dtype), dtype=model.dtype, device=model.device)
-    wp.launch(kernels(model.dtype), dim=N,
-              inputs=[idx, xx, plan.steps, plan.sign, plan.R_rel0, plan.p_rel0, plan.t_loc, plan.c_loc, plan.R0,
-                      plan.p0, model.dtype(dt), omega, state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
-                      state.status, state.fresh], device=model.device)  # fmt: skip
-    return xx
+def place_launch(plan: TreePlan, state, model, idx: wp.array, xx: wp.array, N: int, dt: float, omega: wp.array):
+    """(kernel, dim, inputs) that set the worlds idx[:N] to joint coordinates xx[:N, 0] and rates
+    xx[:N, 1] (device arrays; xx (≥N, 2, max(joints, 1))), for the caller to launch or replay."""
+    return kernels(model.dtype), N, [
+        idx, xx, plan.steps, plan.sign, plan.R_rel0, plan.p_rel0, plan.t_loc, plan.c_loc, plan.R0, plan.p0, float(dt),
+        omega, state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist, state.status, state.fresh]

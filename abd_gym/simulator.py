@@ -93,6 +93,8 @@ class Simulator:
         self._torch_views = {}
         self._host_views = {}
         self._no_given = None  # a stand-in for _restarted's given
+        self._cmds = {}  # recorded launches of the reset path, replayed with changed arguments (_replay)
+        self._upload = {}  # CPU only: persistent (W, ...) arrays that a reset's rows are written into
         self._graph = None
         self._warm = False
         self.reset()
@@ -234,12 +236,45 @@ class Simulator:
             raise ValueError(f"world indices must lie in [0, {self.num_worlds}), got {w.tolist()}")
         return w
 
-    def _mask(self, idx_dev):
-        """A device int32 mask (W,) of the worlds idx_dev (reused: valid until the next call)."""
+    def _replay(self, key, kernel, dim, inputs):
+        """Launch ``kernel`` as a command recorded on the first call and replayed after, with only the
+        arguments that changed (by identity; Python scalars by value) and the dim set again: packing
+        a reset's ~40 unchanged arguments cost more than its kernels on the CPU."""
+        entry = self._cmds.get(key)
+        if entry is None:
+            cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
+            self._cmds[key] = (cmd, list(inputs))
+        else:
+            cmd, old = entry
+            for i, (a, b) in enumerate(zip(inputs, old)):
+                if a is not b and not (isinstance(a, (int, float)) and a == b):
+                    cmd.set_param_at_index(i, a)
+                    old[i] = a
+            cmd.set_dim(dim)
+        cmd.launch()
+
+    def _rows_array(self, name, values, wp_dtype):
+        """``values`` (N, ...) as a device array whose first N rows hold them.  On the CPU, rows of a
+        persistent (W, ...) array written in place (its launches run before the next write); on a
+        GPU, a new array (its copy from pageable memory finishes before the host goes on, so a later
+        write cannot race the launches that read it)."""
+        values = np.ascontiguousarray(values, dtype={wp.int32: np.int32, wp.float32: np.float32}.get(wp_dtype, np.float64))
+        if not self.device.is_cpu:
+            return wp.array(values, dtype=wp_dtype, device=self.device)
+        buf = self._upload.get(name)
+        if buf is None or buf.shape[1:] != values.shape[1:]:
+            buf = self._upload[name] = wp.zeros((self.num_worlds,) + values.shape[1:], dtype=wp_dtype, device=self.device)
+        self._host_view(buf)[: len(values)] = values
+        return buf
+
+    def _mask(self, idx_dev, n=None):
+        """A device int32 mask (W,) of the worlds idx_dev[:n] (reused: valid until the next call)."""
+        n = idx_dev.shape[0] if n is None else n
         if self._set_mask is None:
             self._set_mask = wp.zeros(self.num_worlds, dtype=wp.int32, device=self.device)
         self._set_mask.zero_()
-        rows.fill(self._set_mask, idx_dev, 1)
+        if n:
+            self._replay("mask", rows.fill_int, n, [self._set_mask, idx_dev, 1])
         return self._set_mask
 
     def _host_view(self, array):
@@ -303,17 +338,18 @@ class Simulator:
 
     def _restarted(self, idx, idx_dev, given=None):
         """After the worlds idx got new body states: their clocks, joint histories and coordinates
-        (the multi-turn angles ``given[:, 0]``, a device array (N, 2, joints), or else the principal
-        ones)."""
+        (the multi-turn angles ``given[:, 0]``, a device array (≥N, 2, joints), or else the principal
+        ones).  idx_dev: the indices on the device (its first len(idx) rows)."""
         st, m = self.state, self.model
+        N = len(idx)
         st.time[idx] = 0.0
-        self.solver.restart_joints(st, self._mask(idx_dev))
+        self.solver.restart_joints(st, self._mask(idx_dev, N))
         if m.num_joints:
             if given is None and self._no_given is None:
                 self._no_given = wp.zeros((1, 1, 1), dtype=m.dtype, device=self.device)
-            wp.launch(rows.kernels(m.dtype)["restart_unwrapped"], dim=(len(idx), m.num_joints),
-                      inputs=[idx_dev, st.coord, st.coord_vel, self._no_given if given is None else given,
-                              int(given is not None), m.dtype(self.dt), st.unwrapped, st.x_hist], device=self.device)  # fmt: skip
+            self._replay("unwrapped", rows.kernels(m.dtype)["restart_unwrapped"], (N, m.num_joints),
+                         [idx_dev, st.coord, st.coord_vel, self._no_given if given is None else given,
+                          int(given is not None), float(self.dt), st.unwrapped, st.x_hist])  # fmt: skip
 
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
         """Forward kinematics for tree mechanisms (kinematics.py, on the device): joint coordinates
@@ -329,11 +365,12 @@ class Simulator:
         if self._plan is None:
             self._plan = kinematics.tree_plan(self.scene, m)
             self._omega = wp.zeros((self.num_worlds, m.num_bodies), dtype=m.vec3, device=self.device)
-        idx_dev = rows.indices(idx, self.device)
+        idx_dev = self._rows_array("idx", idx, wp.int32)
         # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
-        # is 0, which is its multi-turn coordinate
-        xx = np.stack([np.where(m.joint_kind_np[None, :] == FIXED_CODE, 0.0, x), xd], axis=1)
-        xx = kinematics.place(self._plan, self.state, m, idx_dev, xx, self.dt, self._omega)
+        # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
+        xx = np.stack([np.where(m.joint_kind_np[None, :] == FIXED_CODE, 0.0, x), xd], axis=1) if nj else np.zeros((N, 2, 1))
+        xx = self._rows_array("xx", xx, m.dtype)
+        self._replay("place", *kinematics.place_launch(self._plan, self.state, m, idx_dev, xx, N, self.dt, self._omega))
         self._restarted(idx, idx_dev, given=xx)
 
     def reset(self, worlds=None):
