@@ -300,7 +300,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         done: the solve ends with it.  A step from a reused factor (chord) converges linearly: only
         one under the tolerance ends it."""
         unresolved = -gdq <= dtype(1600.0) * EPS * wp.abs(e0) or -gdq <= noise
-        skip = dmax < floor or unresolved
+        # within 10x the noise floor the step is taken whole: in float32 the energy's rounding there
+        # exceeds the step's decrease (a joint's energy K/2‖Δx‖² at ‖Δx‖ ~ 1e-6 m is computed from
+        # positions rounded to ~6e-8 m), and a search halves good steps on noise (measured: double
+        # pendulums at dt 0.005 crawling at α = 1/32 where float64 takes α = 1 and converges in 2)
+        skip = dmax < dtype(10.0) * floor or unresolved
         done = dmax < floor or (unresolved and dmax < dtype(1000.0) * floor and chord == 0)
         return wp.where(skip, 1, 0), wp.where(done, 1, 0)
 
@@ -344,31 +348,27 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         """(retry, chord) after an iteration.  A step from a reused factor (chord) is tried at α = 1
         only: rejected, it is not taken and the next iteration refactors at the same q (retry 1).
         The factor is reused after a full step taken whole, and kept while the reused steps shrink at
-        least 4× an iteration (they converge linearly, at the rate the Hessian has changed; a slow
+        least 8× an iteration (they converge linearly, at the rate the Hessian has changed; a slow
         rate would leave the solve's error near the tolerance, where Newton's leaves it far below)."""
         if chord != 0:
             if accepted == 0:
                 return 1, 0
-            return 0, wp.where(dmax <= dtype(0.25) * d_prev, 1, 0)
+            return 0, wp.where(dmax <= dtype(0.125) * d_prev, 1, 0)
         return 0, wp.where(accepted != 0 and alpha == one, reuse, 0)
 
     @wp.func
     def end_iteration(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), w: int, row: int, accepted: int,
-                      stalled: int, alpha: dtype, dmax: dtype, floor: dtype,
-                      converged: wp.array(dtype=wp.int32)):  # fmt: skip
+                      stalled: int, dmax: dtype, floor: dtype, converged: wp.array(dtype=wp.int32)):  # fmt: skip
         """Take the accepted trial point (row of q_trial) as world w's q; 1 when its solve is over.
         A search that ran out takes no step: converged if the step was already near the tolerance.
-        A step within 2x the noise floor that the search had to shorten also ends the solve: at that
-        scale the float32 model is rounding (the factor of a stiff system, cond ~1e6, is good to a
-        few percent), and the solve crawls; measured: float32 double pendulums at dt 0.002 spent up
-        to 14 iterations moving 1.7e-6 m by 1-6% each, which on a GPU stalls the whole warp."""
+        (Steps within 10x the noise floor are taken whole, see whole_step.)"""
         if accepted == 0:
             if dmax < dtype(1000.0) * floor:
                 converged[w] = 1
             return 1
         for b in range(q.shape[1]):
             q[w, b] = q_trial[row, b]
-        if dmax < floor or stalled != 0 or (alpha < one and dmax < dtype(2.0) * floor):
+        if dmax < floor or stalled != 0:
             converged[w] = 1
             return 1
         return 0
@@ -387,7 +387,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         retry, chord_next = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
         stop = int(0)
         if retry == 0:
-            stop = end_iteration(q, q_trial, w, row, accepted, stalled, alpha, dmax, floor, converged)
+            stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged)
         return stop, chord_next
 
     @wp.func

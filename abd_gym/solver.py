@@ -8,7 +8,7 @@ Cholesky (one thread per world), backtracks on E (Armijo), and stops a world onc
 ``‖Δq‖∞/h`` is under ``tol`` [m/s].  With ``reuse_factor`` (float32 by default) an iteration after
 a full step taken whole assembles only the gradient and solves it against the last factor (a
 simplified-Newton step: two triangular solves instead of a factorisation; tried at α = 1, kept
-while the steps shrink 4× an iteration, else the next iteration factors again).  Worlds that
+while the steps shrink 8× an iteration, else the next iteration factors again).  Worlds that
 have converged or failed drop out of the remaining iterations.
 """
 from __future__ import annotations
@@ -43,7 +43,7 @@ class SolverSettings:
     max_registers: int = 0
     smem_spilling: bool = False
     # after a full Newton step taken whole, solve the next iteration's gradient against the same
-    # Cholesky factor (a simplified-Newton step, tried at α = 1, kept while it converges 4× per
+    # Cholesky factor (a simplified-Newton step, tried at α = 1, kept while it converges 8× per
     # iteration); False: factor at every iteration.  None: in float32 only, where rounding bounds
     # the solve's error either way; in float64 the reused factor's linear convergence leaves ~1e-10 m
     # per step where Newton's quadratic convergence leaves ~1e-14 (tests/test_hard_cases.py)

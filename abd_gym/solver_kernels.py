@@ -243,12 +243,14 @@ def kernels(dtype, envelope=False):
             mag += wp.abs(E0[w, t]) + wp.abs(E1[w, t])
         floor = noise_floor(q, w, threshold)
         unresolved = -gdq[w] <= dtype(1600.0) * EPS * wp.abs(e0) or -gdq[w] <= energy_noise(q, w, g_abs[w])
-        if dq_max[w] < floor or unresolved:
-            # taken whole (α = 1, the first trial), as the fused step: under the tolerance, or a
-            # predicted decrease below the energy's rounding, which the test could only halve on
-            # noise; the solve ends here if the step is within 1000× the tolerance (take 2)
+        if dq_max[w] < dtype(10.0) * floor or unresolved:
+            # taken whole (α = 1, the first trial), as the fused step (fused.whole_step): within 10×
+            # the noise floor, or a predicted decrease below the energy's rounding, which the test
+            # could only halve on noise; the solve ends here if the step is under the tolerance, or
+            # unresolved and within 1000× it (take 2)
             searching[w] = 0
-            take[w] = wp.where(dq_max[w] < dtype(1000.0) * floor, 2, 1)
+            done = dq_max[w] < floor or (unresolved and dq_max[w] < dtype(1000.0) * floor)
+            take[w] = wp.where(done, 2, 1)
             if chord[w] != 0 and dq_max[w] >= floor:
                 take[w] = 1
             return
@@ -259,8 +261,6 @@ def kernels(dtype, envelope=False):
             take[w] = 1
             if e0 - e1 <= noise:
                 take[w] = 2  # no decrease the precision can resolve: this is as converged as it gets
-            if a < one and dq_max[w] < dtype(2.0) * floor:
-                take[w] = 2  # a shortened step at the noise floor: the solve would crawl (fused.end_iteration)
         elif chord[w] != 0:
             searching[w] = 0
             take[w] = 0
@@ -292,7 +292,7 @@ def kernels(dtype, envelope=False):
         """‖Δq‖∞ below h·tol (or q's rounding), or a step whose energy change is below rounding:
         the step just taken was the last one needed.  At the iteration cap a world stops unconverged.
         The next iteration reuses the factor after a full step taken whole (with ``reuse``), and
-        keeps reusing it while the steps shrink 4× an iteration (fused.chord_step)."""
+        keeps reusing it while the steps shrink 8× an iteration (fused.chord_step)."""
         w = wp.tid()
         if active[w] == 0:
             return
@@ -303,7 +303,7 @@ def kernels(dtype, envelope=False):
         was_chord = chord[w]
         retry = was_chord != 0 and taken == 0
         if was_chord != 0:
-            chord[w] = wp.where(taken != 0 and dq_max[w] <= dtype(0.25) * d_prev[w], 1, 0)
+            chord[w] = wp.where(taken != 0 and dq_max[w] <= dtype(0.125) * d_prev[w], 1, 0)
         else:
             chord[w] = wp.where(taken != 0 and alpha[w] == one, reuse, 0)
         d_prev[w] = dq_max[w]
