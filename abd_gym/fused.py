@@ -380,8 +380,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         """Everything after a Newton direction (both layouts): the stop test, the line search, the
         choice to reuse the factor next, and the update of q.  Returns (1 when the solve is over,
         chord for the next iteration)."""
-        floor = noise_floor(q, w, threshold)
-        skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(q, w, g_abs), chord)
+        floor, rounding = noise_floor(q, w, threshold)
+        skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(rounding, g_abs), chord)
         accepted, stalled, alpha = search(q, q_trial, t, step, g, H, w, row, s, B, e0, gdq, skip, done, chord,
                                           max_line_search)  # fmt: skip
         retry, chord_next = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)

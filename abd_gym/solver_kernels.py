@@ -26,25 +26,24 @@ def kernels(dtype, envelope=False):
 
     @wp.func
     def noise_floor(q: wp.array2d(dtype=vec12), w: int, threshold: dtype):
-        """max(h·tol, 4·eps·(1 + ‖q‖∞)): a step below the rounding of q itself cannot shrink further."""
+        """(max(h·tol, 4·eps·(1 + ‖q‖∞)), eps·(1 + ‖q‖∞)): the Newton stop, since a step below the
+        rounding of q itself cannot shrink further, and the rounding of q, from which the energy's
+        noise follows (energy_noise)."""
         m = zero
         for b in range(q.shape[1]):
             for r in range(12):
                 m = wp.max(m, wp.abs(q[w, b][r]))
-        return wp.max(threshold, dtype(4.0) * EPS * (one + m))
+        rounding = EPS * (one + m)
+        return wp.max(threshold, dtype(4.0) * rounding), rounding
 
     @wp.func
-    def energy_noise(q: wp.array2d(dtype=vec12), w: int, g_abs: dtype):
+    def energy_noise(rounding: dtype, g_abs: dtype):
         """eps·(1 + ‖q‖∞)·‖g‖₁: how much the energy can change when q moves by its own rounding (a
         first-order bound).  The rounding of E's own sum (eps·|E|) is far smaller where q − q̃ and
         the joints' offsets are differences of nearly equal numbers: a predicted decrease −gᵀΔq under
         this is noise, and a line search on it only halves the step (measured: float32 double
         pendulums at dt 0.002 and 0.005 spent up to 15 iterations at α = 1/32 on such steps)."""
-        m = zero
-        for b in range(q.shape[1]):
-            for r in range(12):
-                m = wp.max(m, wp.abs(q[w, b][r]))
-        return EPS * (one + m) * g_abs
+        return rounding * g_abs
 
     @wp.kernel(module="unique")
     def predict(
@@ -241,8 +240,8 @@ def kernels(dtype, envelope=False):
             e0 += E0[w, t]
             e1 += E1[w, t]
             mag += wp.abs(E0[w, t]) + wp.abs(E1[w, t])
-        floor = noise_floor(q, w, threshold)
-        unresolved = -gdq[w] <= dtype(1600.0) * EPS * wp.abs(e0) or -gdq[w] <= energy_noise(q, w, g_abs[w])
+        floor, rounding = noise_floor(q, w, threshold)
+        unresolved = -gdq[w] <= dtype(1600.0) * EPS * wp.abs(e0) or -gdq[w] <= energy_noise(rounding, g_abs[w])
         if dq_max[w] < dtype(10.0) * floor or unresolved:
             # taken whole (α = 1, the first trial), as the fused step (fused.whole_step): within 10×
             # the noise floor, or a predicted decrease below the energy's rounding, which the test
@@ -268,7 +267,7 @@ def kernels(dtype, envelope=False):
             searching[w] = 0
             take[w] = 0
             active[w] = 0
-            if dq_max[w] < dtype(1000.0) * noise_floor(q, w, threshold):
+            if dq_max[w] < dtype(1000.0) * floor:
                 converged[w] = 1
         else:
             alpha[w] = a * dtype(0.5)
@@ -307,12 +306,13 @@ def kernels(dtype, envelope=False):
         else:
             chord[w] = wp.where(taken != 0 and alpha[w] == one, reuse, 0)
         d_prev[w] = dq_max[w]
+        floor, rounding = noise_floor(q, w, threshold)
         if retry:
             if iterations[w] >= max_iterations:
                 active[w] = 0
             else:
                 wp.atomic_add(remaining, 0, 1)
-        elif dq_max[w] < noise_floor(q, w, threshold) or stalled:
+        elif dq_max[w] < floor or stalled:
             converged[w] = 1
             active[w] = 0
         elif iterations[w] >= max_iterations:
