@@ -101,9 +101,3 @@ def write(array: wp.array, idx: wp.array, values, np_dtype) -> None:
 def _row_shape(array: wp.array) -> tuple:
     """One row's shape in scalars: array.shape[1:] followed by the element's own shape."""
     return tuple(array.shape[1:]) + tuple(getattr(array.dtype, "_shape_", ()))
-
-
-def fill(array: wp.array, idx: wp.array, value: int) -> None:
-    """array[idx] = value for a (W,) int32 array."""
-    if idx.shape[0]:
-        wp.launch(fill_int, dim=idx.shape[0], inputs=[array, idx, int(value)], device=array.device)

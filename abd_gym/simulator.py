@@ -258,7 +258,7 @@ class Simulator:
         persistent (W, ...) array written in place (its launches run before the next write); on a
         GPU, a new array (its copy from pageable memory finishes before the host goes on, so a later
         write cannot race the launches that read it)."""
-        values = np.ascontiguousarray(values, dtype={wp.int32: np.int32, wp.float32: np.float32}.get(wp_dtype, np.float64))
+        values = np.ascontiguousarray(values, dtype=wp.dtype_to_numpy(wp_dtype))
         if not self.device.is_cpu:
             return wp.array(values, dtype=wp_dtype, device=self.device)
         buf = self._upload.get(name)
