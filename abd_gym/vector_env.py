@@ -34,12 +34,15 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
 * backends: ``backend="numpy"`` (default) returns NumPy arrays; ``backend="torch"`` returns Torch
   tensors on the simulator's device, computed from zero-copy views of the simulator's arrays, and
   takes actions as tensors (or arrays).  Only the NaN check (one bool), the done mask and, when
-  worlds are done, their reset states cross between host and device.
+  worlds are done, their reset states cross between host and device.  On a GPU a step waits for
+  the device once, at the NaN check, before its physics is queued: the done mask reaches the host
+  by an asynchronous copy that the next step reads after queuing its own physics, so the host's
+  work on a step's results runs while the device steps (SAME_STEP resets must wait for it).
 * bad actions: actions are clipped to the action space (so out-of-range values and ±inf act as
   ±1).  An action batch containing NaN raises ``ValueError`` before anything is stepped: no world
   (and no other world) changes state.  A world whose solve fails (``Simulator.failed_worlds``, or a
-  non-finite observation) is terminated, reported in ``info["sim_failed"]`` and gets a zero
-  observation and reward; the autoreset (or your masked reset) brings it back.
+  non-finite observation) is terminated, reported in ``info["sim_failed"]`` (a bool per world,
+  in every step's info) and gets a zero observation and reward; the autoreset (or your masked reset) brings it back.
 * observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
   and chosen above what the task reaches (rates: ``velocity_bound`` = 100 rad/s or m/s).
 * per-world physical parameters: ``randomize={...}`` (constructor or ``reset`` option, sticky:
@@ -190,6 +193,8 @@ class ABDVectorEnv(VectorEnv):
         # without terminations
         self._no_flags = self._zeros(N, dtype="bool")
         self._pending = np.zeros(N, dtype=bool)  # NEXT_STEP: worlds to reset at the next step
+        self._pending_copy = None  # (pinned host mask, event) of a copy of the next pending mask in flight
+        self._pinned = None
         self._has_reset = False
 
         # ---- per-world physical parameters (host copies of what the simulator holds)
@@ -414,7 +419,7 @@ class ABDVectorEnv(VectorEnv):
         self.sim.set_joint_state(coords, vels, worlds=idx)
         self._elapsed[self._index(idx)] = 0  # one index upload, no value array
         self._reset_task(idx, rng, options)
-        self._pending[idx] = False
+        self._pending_now()[idx] = False
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Reset every world, or those in ``options["reset_mask"]``; returns ``(obs, info)``.
@@ -459,17 +464,46 @@ class ABDVectorEnv(VectorEnv):
             info["_" + key] = mask.copy()
         return info
 
+    def _pending_now(self) -> np.ndarray:
+        """NEXT_STEP: the worlds that ended in the last step (host bool mask).  On a GPU the mask of
+        the last step arrives by an asynchronous copy; this waits for that copy only, which the
+        stream finishes before the physics step launched after it."""
+        if self._pending_copy is not None:
+            host, event = self._pending_copy
+            event.synchronize()
+            self._pending = host.numpy().copy()
+            self._pending_copy = None
+        return self._pending
+
+    def _defer_pending(self, done):
+        """Keep ``done`` as the next step's pending mask without waiting for the device: a
+        non-blocking copy to pinned host memory and an event the next step waits on after it has
+        launched its physics (so the host's work on this step's results overlaps the device's work
+        on the next one)."""
+        if self.xp is np or self._torch_device.type != "cuda":
+            self._pending = _to_numpy(done).copy()
+            return
+        torch = self.xp
+        if self._pinned is None:
+            self._pinned = (torch.empty(self.num_envs, dtype=torch.bool, pin_memory=True), torch.cuda.Event())
+        host, event = self._pinned
+        host.copy_(done, non_blocking=True)
+        event.record()
+        self._pending_copy = (host, event)
+
     def step(self, actions):
         if not self._has_reset:
             raise RuntimeError("call reset() before step()")
         xp, N = self.xp, self.num_envs
         a = self._prepare_actions(actions)
-        pending = np.flatnonzero(self._pending) if self.autoreset_mode == AutoresetMode.NEXT_STEP else np.zeros(0, int)
 
         self.sim.set_controls(self._controls(a))
-        self.sim.step(self.frame_skip)
+        self.sim.step(self.frame_skip)  # on a GPU: queued; the host goes on while it runs
         self._elapsed += 1
-        if len(pending):  # NEXT_STEP: these worlds ended last step; this step only resets them
+        # NEXT_STEP: the worlds that ended last step; this step only resets them (read after the
+        # physics launch: on a GPU that read waits for the last step's flags, not for this step)
+        pending = np.flatnonzero(self._pending_now()) if self.autoreset_mode == AutoresetMode.NEXT_STEP else np.zeros(0, int)
+        if len(pending):
             self._reset_worlds(pending)
 
         obs = self._observe_safe()
@@ -488,27 +522,28 @@ class ABDVectorEnv(VectorEnv):
             terminated[p] = False
             truncated[p] = False
             has_info[pending] = False
-        # one device-to-host transfer for both host decisions (on a GPU each is a synchronisation)
-        flags = _to_numpy(xp.stack([failed, terminated | truncated]))
-        done = flags[1]
-        if flags[0].any():  # a broken world: zero observation and reward, terminated, reported
-            obs = xp.where(failed[:, None], 0.0, obs)
-            reward = xp.where(failed, 0.0, reward)
-            info_values = dict(info_values, sim_failed=failed)
-        if done.any() and self.autoreset_mode == AutoresetMode.SAME_STEP:
-            # as SyncVectorEnv: the finished episode's last obs and info under final_obs / final_info,
-            # the new episode's first obs in obs (and its reset info, empty here, at the top level)
-            final_info = self._batch_info(info_values, done)
-            final_obs = obs
-            self._reset_worlds(np.flatnonzero(done))
-            obs = self._observe_safe()
-            info = self._batch_info(info_values, has_info & ~done)
-            info.update(final_obs=final_obs, _final_obs=done.copy(), final_info=final_info, _final_info=done.copy())
-        else:
-            info = self._batch_info(info_values, has_info)
-            if self.autoreset_mode == AutoresetMode.NEXT_STEP:
-                self._pending = done.copy()
-        return obs, reward, terminated, truncated, info
+        # a broken world: zero observation and reward, terminated, reported (applied to every world
+        # by mask: asking the device whether any world failed would make the host wait for it)
+        obs = xp.where(failed[:, None], 0.0, obs)
+        reward = xp.where(failed, 0.0, reward)
+        info_values = dict(info_values, sim_failed=failed)
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            done = _to_numpy(terminated | truncated)  # the host resets now: it waits for the step here
+            if done.any():
+                # as SyncVectorEnv: the finished episode's last obs and info under final_obs /
+                # final_info, the new episode's first obs in obs (and its reset info, empty here, at
+                # the top level)
+                final_info = self._batch_info(info_values, done)
+                final_obs = obs
+                self._reset_worlds(np.flatnonzero(done))
+                obs = self._observe_safe()
+                info = self._batch_info(info_values, has_info & ~done)
+                info.update(final_obs=final_obs, _final_obs=done.copy(), final_info=final_info,
+                            _final_info=done.copy())  # fmt: skip
+                return obs, reward, terminated, truncated, info
+        elif self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            self._defer_pending(terminated | truncated)
+        return obs, reward, terminated, truncated, self._batch_info(info_values, has_info)
 
     # ================================================================== render / close
     def render(self):

@@ -260,36 +260,53 @@ def test_action_shape_is_validated(envs):
 
 
 # ----------------------------------------------------------------------------- torch backend
-def test_torch_backend_matches_numpy_and_stays_on_device():
+def _cuda_or_skip(device):
+    import warp as wp
+
+    if device.startswith("cuda") and not wp.is_cuda_available():
+        pytest.skip("no CUDA device")
+
+
+@pytest.mark.parametrize("device", ["cpu", "cuda:0"])
+@pytest.mark.parametrize("mode", [AutoresetMode.SAME_STEP, AutoresetMode.NEXT_STEP])
+def test_torch_backend_matches_numpy_and_stays_on_device(mode, device):
+    """The torch backend against the numpy one on the same device and seed, autoresets included
+    (on a GPU, NEXT_STEP's done mask travels by an asynchronous copy read one step later)."""
     torch = pytest.importorskip("torch")
     import warp as wp
 
-    tenv = make(AutoresetMode.SAME_STEP, backend="torch")
-    nenv = make(AutoresetMode.SAME_STEP)
+    _cuda_or_skip(device)
+    tenv = make(mode, backend="torch", device=device)
+    nenv = make(mode, device=device)
     to, _ = tenv.reset(seed=6)
     no, _ = nenv.reset(seed=6)
     assert isinstance(to, torch.Tensor) and to.dtype == torch.float32
     assert to.device == torch.device(wp.device_to_torch(tenv.device))
-    np.testing.assert_allclose(to.numpy(), no, atol=1e-6)
+    np.testing.assert_allclose(to.cpu().numpy(), no, atol=1e-6)
     # observations come from zero-copy views of the simulator state
     assert tenv.coords().data_ptr() == wp.to_torch(tenv.sim.state.coord).data_ptr()
     actions = np.random.default_rng(3).uniform(-1, 1, size=(40, N, 1)).astype(np.float32)
     ended = False
     for a in actions:
-        to, tr_, tt, ttr, tinfo = tenv.step(torch.as_tensor(a))
+        to, tr_, tt, ttr, tinfo = tenv.step(torch.as_tensor(a, device=to.device))
         no, nr, nt, ntr, ninfo = nenv.step(a)
         assert isinstance(tr_, torch.Tensor) and tr_.dtype == torch.float32 and tt.dtype == torch.bool
-        np.testing.assert_allclose(to.numpy(), no, atol=1e-5)
-        np.testing.assert_array_equal(tt.numpy(), nt)
+        assert tr_.device == to.device and tt.device == to.device
+        np.testing.assert_allclose(to.cpu().numpy(), no, atol=1e-5)
+        np.testing.assert_allclose(tr_.cpu().numpy(), nr, atol=1e-5)
+        np.testing.assert_array_equal(tt.cpu().numpy(), nt)
+        np.testing.assert_array_equal(tinfo["_sim_failed"], ninfo["_sim_failed"])
+        ended |= bool(nt.any())
         if "final_obs" in tinfo:
-            ended = True
             assert isinstance(tinfo["final_obs"], torch.Tensor)
-            np.testing.assert_allclose(tinfo["final_obs"].numpy(), ninfo["final_obs"], atol=1e-5)
+            np.testing.assert_allclose(tinfo["final_obs"].cpu().numpy(), ninfo["final_obs"], atol=1e-5)
     assert ended
-    bad = torch.zeros(N, 1)
+    bad = torch.zeros(N, 1, device=to.device)
     bad[0, 0] = float("nan")
     with pytest.raises(ValueError, match="NaN"):
         tenv.step(bad)
+    tenv.close()
+    nenv.close()
 
 
 # ----------------------------------------------------------------------------- registration
