@@ -53,6 +53,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     o = ops(dtype)
     vec3, vec12, mat33, mat12, mat44 = o.vec3, o.vec12, o.mat33, o.mat12, o.mat44
     body_eval = affine_body.kernels(dtype).body_eval
+    retract = affine_body.kernels(dtype).retract
     point_eval_kron = _point_joint.kernel(dtype).eval_kron
     kron3, kron_index = o.kron3, o.kron_index
     prismatic_eval = prismatic_joint.kernel(dtype).eval
@@ -144,19 +145,22 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                                 hadd(H, ob + b, oa + a, s, U[c, d])
 
     @wp.func
-    def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), step: Any,
-              w: int, row: int, alpha: dtype):  # fmt: skip
-        """q_trial[row] = q[w] + α Δq: Δq in scratch column ``row`` of ``step``, or (tiled) −y with
-        y = H⁻¹g in the block's shared tile ``step``."""
+    def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Any, step: Any, w: int, row: int,
+              alpha: dtype):  # fmt: skip
+        """q_trial[row] = q[w] + α Δq along the retraction's path (affine_body.retract): Δq in
+        scratch column ``row`` of ``step``, or (tiled) −y with y = H⁻¹g in the block's shared tile
+        ``step``."""
         for b in range(q.shape[1]):
             qb = q[w, b]
-            ob = dof[b]
+            ob = t.dof[b]
             if ob >= 0:
+                d = vec12()
                 for r in range(12):
                     if wp.static(tiled):
-                        qb[r] = qb[r] - alpha * wp.tile_extract(step, ob + r)
+                        d[r] = -wp.tile_extract(step, ob + r)
                     else:
-                        qb[r] = qb[r] + alpha * step[ob + r, row]
+                        d[r] = step[ob + r, row]
+                qb = retract(qb, d, alpha, t.mass[w, b], t.mc[w, b])
             q_trial[row, b] = qb
 
     @wp.func
@@ -332,7 +336,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
         factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
         trial points go to row ``row`` of q_trial; s, B as in assemble."""
-        trial(q, q_trial, t.dof, step, w, row, one)
+        trial(q, q_trial, t, step, w, row, one)
         alpha = one
         accepted = int(0)
         stalled = int(0)
@@ -344,7 +348,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         else:
             for ls in range(max_line_search):
                 if ls > 0:
-                    trial(q, q_trial, t.dof, step, w, row, alpha)
+                    trial(q, q_trial, t, step, w, row, alpha)
                 accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
                 if accepted != 0:
                     break

@@ -194,7 +194,7 @@ class Solver:
                               state.theta0, state.c_prev, state.s_prev, self.all_active, state.unwrapped,
                               state.x_hist, self.h_step, dt(self.h), state.x_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
-                                                     self.q_tilde, m.dof, m.gravity, dt(self.h), self.h_step,
+                                                     self.q_tilde, m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step,
                                                      state.status], device=dev)  # fmt: skip
         if self.settings.fused:
             self._fused_newton(state)
@@ -275,7 +275,8 @@ class Solver:
         """Try α on every searching world; Armijo accepts or halves it (down to 2^-(max_line_search-1))."""
         m, k, dev, s = self.model, self.k, self.model.device, self.settings
         W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
-        wp.launch(k["trial"], dim=(W, nb), inputs=[state.q, self.dq, m.dof, self.alpha, self.searching, self.q_trial],
+        wp.launch(k["trial"], dim=(W, nb), inputs=[state.q, self.dq, m.dof, m.mass, m.mc, self.alpha, self.searching,
+                                                    self.q_trial],
                   device=dev)  # fmt: skip
         self.E_trial.zero_()
         self.assemble(state, self.q_trial, self.E_trial, self.searching, 0)

@@ -136,6 +136,48 @@ def test_orthogonality_psd_hessian_is_exact_when_R_is_psd():
     check_derivatives(lambda z: affine_body.orthogonality_np(z, 2.0), q)
 
 
+def _retract_warp(q, d, alpha, m, mc):
+    k = affine_body.kernels(wp.float64).retract
+    vec12 = wp.types.vector(12, wp.float64)
+
+    @wp.kernel(module="unique")
+    def run(q: wp.array(dtype=vec12), d: wp.array(dtype=vec12), alpha: wp.float64, m: wp.float64, mc: wp.vec3d,
+            out: wp.array(dtype=vec12)):  # fmt: skip
+        i = wp.tid()
+        out[i] = k(q[i], d[i], alpha, m, mc)
+
+    out = wp.zeros(len(q), dtype=vec12, device="cpu")
+    wp.launch(run, dim=len(q), inputs=[wp.array(q, dtype=vec12, device="cpu"), wp.array(d, dtype=vec12, device="cpu"),
+                                       float(alpha), float(m), wp.vec3d(*mc), out], device="cpu")  # fmt: skip
+    return out.numpy()
+
+
+def test_retraction_path():
+    """Newton's trial points (affine_body.retract): the path leaves q along d (first order, so
+    Armijo's test holds), keeps a rotation a rotation, and moves the centre of mass by αd alone."""
+    rng = np.random.default_rng(7)
+    m, mc = 0.7, np.array([0.02, -0.05, 0.1])
+    R0 = affine_body_rotation(rng)
+    q = np.concatenate([rng.normal(size=3), R0.ravel()])
+    W = np.array([[0.0, -0.3, 0.2], [0.3, 0.0, -0.1], [-0.2, 0.1, 0.0]])
+    d = np.concatenate([rng.normal(size=3) * 0.1, (W @ R0).ravel()])  # a rotation's tangent
+    got = _retract_warp(np.stack([q, q]), np.stack([d, d]), 0.5, m, mc)
+    np.testing.assert_allclose(got[0], affine_body.retract_np(q, d, 0.5, m, mc), rtol=0, atol=1e-14)
+    A = got[0][3:].reshape(3, 3)
+    np.testing.assert_allclose(A @ A.T, np.eye(3), atol=1e-14)  # a straight step: off by ~|αW|² = 0.035
+    com = lambda x: x[:3] + x[3:].reshape(3, 3) @ (mc / m)  # noqa: E731
+    np.testing.assert_allclose(com(got[0]), com(q) + 0.5 * (d[:3] + (W @ R0) @ (mc / m)), atol=1e-14)
+    d = rng.normal(size=12)
+    for a in (1e-2, 1e-3):  # (retract(α) − q)/α → d with an O(α) error
+        err = np.abs((affine_body.retract_np(q, d, a, m, mc) - q) / a - d).max()
+        assert err < 2.0 * a * np.abs(d).max() ** 2 * (1 + np.abs(mc / m).max())
+
+
+def affine_body_rotation(rng):
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return Q * np.sign(np.linalg.det(Q))
+
+
 def test_inertia_derivatives():
     rng = np.random.default_rng(12)
     q, qt = near_rotation_q(rng), near_rotation_q(rng)

@@ -89,3 +89,24 @@ def test_default_tolerance_matches_exact_implicit_euler():
     exact = trajectory("float64", 1e-10)
     assert np.abs(trajectory("float64", 1e-5) - exact).max() < 1e-7
     assert np.abs(trajectory("float32", 1e-5) - exact).max() < 5e-3
+
+
+@pytest.mark.parametrize("dtype, most", [("float64", 3.7), ("float32", 4.5)])
+def test_newton_follows_rotations(dtype, most):
+    """A pole turning under random cart forces at dt 0.02 (the CartPole-v0 scene): the initial
+    guess and the trial points rotate A along rotations (affine_body.retract) instead of lines
+    that leave the rotations by ~(ωh)², where the stiff orthogonality energy makes Newton take
+    several steps to turn the pole.  Measured on 16 worlds: 4.54 → 3.41 iterations a step
+    (float64) and 5.91 → 4.06 (float32)."""
+    from envs.cartpole import build_cart_scene
+
+    sim = ag.Simulator(build_cart_scene(), num_worlds=16, dt=0.02, dtype=dtype)
+    rng = np.random.default_rng(0)
+    sim.set_joint_state(np.c_[np.zeros(16), rng.uniform(-0.2, 0.2, 16)])
+    its = []
+    for _ in range(40):
+        sim.set_controls(rng.uniform(-10, 10, (16, 1)))
+        sim.step()
+        assert sim.converged().all()
+        its.append(sim.newton_iterations().mean())
+    assert np.mean(its) < most

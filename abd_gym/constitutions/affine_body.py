@@ -57,6 +57,20 @@ def inertia_np(q, q_tilde, mass, com, second_moment):
     return 0.5 * d @ M @ d, M @ d, M
 
 
+def retract_np(q, d, alpha, m, mc):
+    """Float64 reference of the Warp ``retract``: q + αd with A's part bent along the rotation
+    Cay(αK), K = skew(ΔA Aᵀ), about the centre of mass mc/m."""
+    A, D = q[3:].reshape(3, 3), d[3:].reshape(3, 3)
+    M = D @ A.T
+    k = alpha * 0.5 * np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    X = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    dA = ((X + 0.5 * X @ X) / (1.0 + 0.25 * k @ k) - X) @ A
+    out = q + alpha * d
+    out[:3] -= dA @ (np.asarray(mc) / m)
+    out[3:] += dA.ravel()
+    return out
+
+
 # ----------------------------------------------------------------------------- Warp
 @functools.lru_cache(maxsize=None)
 def kernels(dtype):
@@ -179,7 +193,30 @@ def kernels(dtype):
         com = m * vec3(qb[0], qb[1], qb[2]) + vec3(wp.dot(row(qb, 0), c), wp.dot(row(qb, 1), c), wp.dot(row(qb, 2), c))
         wp.atomic_add(E, w, col_gravity, -wp.dot(gravity, com))
 
-    return SimpleNamespace(body_terms=body_terms, body_report=body_report, body_eval=body_eval)
+    @wp.func
+    def retract(qb: vec12, d: vec12, alpha: dtype, m: dtype, mc: vec3):
+        """qb + α d, bent along the rotation the step makes: A + αΔA + (Cay(αK) − I − αK) A with
+        K = skew(ΔA Aᵀ) (Cayley's rotation, exactly orthogonal), p shifted so that the centre of
+        mass moves by α d alone.  The path leaves q along d (same first derivative, so Armijo's test
+        is unchanged) and differs from the straight one at O(α²): a straight step in A rotates by
+        turning A off the rotations by ~½(αθ)², which the stiff orthogonality energy (κ·vol·h²)
+        then pushes back across several Newton iterations."""
+        A = wp.matrix_from_rows(row(qb, 0), row(qb, 1), row(qb, 2))
+        D = wp.matrix_from_rows(row(d, 0), row(d, 1), row(d, 2))
+        M = D * wp.transpose(A)
+        k = alpha * half * vec3(M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1])
+        X = wp.skew(k)
+        C = (X + half * (X * X)) / (dtype(1.0) + dtype(0.25) * wp.dot(k, k)) - X
+        dA = C * A
+        out = qb + alpha * d
+        dp = dA * (mc / m)
+        for r in range(3):
+            out[r] = out[r] - dp[r]
+            for l in range(3):
+                out[3 + 3 * r + l] = out[3 + 3 * r + l] + dA[r, l]
+        return out
+
+    return SimpleNamespace(body_terms=body_terms, body_report=body_report, body_eval=body_eval, retract=retract)
 
 
 # ----------------------------------------------------------------------------- wiring
