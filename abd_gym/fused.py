@@ -61,11 +61,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     plim_eval = prismatic_limit.kernel(dtype).eval
     drive_eval = drive.kernel(dtype).eval
     staged = solver_kernels.kernels(dtype, envelope and scratch != "tiled")
-    packed = scratch == "packed"
-    dense = solver_kernels.dense_solve(dtype, envelope and scratch != "tiled", packed)
-    cholesky_solve, factored_solve = dense["cholesky_solve"], dense["factored_solve"]
-    hget, hset = dense["hget"], dense["hset"]
-    Harray = wp.array2d(dtype=dtype) if packed else wp.array3d(dtype=dtype)
+    cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
     noise_floor, energy_noise = staged["noise_floor"], staged["energy_noise"]
     zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
@@ -108,19 +104,15 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     g[o + r, s] = g[o + r, s] + v[r]
 
         @wp.func
-        def hadd(H: Any, i: int, j: int, s: int, v: dtype):
-            hset(H, i, j, s, hget(H, i, j, s) + v)
-
-        @wp.func
         def put_block(H: Any, s: int, B: int, oa: int, ob: int, m: mat12):
             """Add block (oa, ob) and its transpose, lower triangle only (all the Cholesky reads)."""
             if oa >= 0 and ob >= 0:
                 for r in range(12):
                     for c in range(12):
                         if oa + r >= ob + c:
-                            hadd(H, oa + r, ob + c, s, m[r, c])
+                            H[oa + r, ob + c, s] = H[oa + r, ob + c, s] + m[r, c]
                         elif oa != ob:
-                            hadd(H, ob + c, oa + r, s, m[r, c])
+                            H[ob + c, oa + r, s] = H[ob + c, oa + r, s] + m[r, c]
 
     if tiled:
 
@@ -140,9 +132,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                         for d in range(4):
                             b = kron_index(m, d)
                             if oa > ob or (oa == ob and a >= b):
-                                hadd(H, oa + a, ob + b, s, U[c, d])
+                                H[oa + a, ob + b, s] = H[oa + a, ob + b, s] + U[c, d]
                             elif oa < ob:
-                                hadd(H, ob + b, oa + a, s, U[c, d])
+                                H[ob + b, oa + a, s] = H[ob + b, oa + a, s] + U[c, d]
 
     @wp.func
     def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Any, step: Any, w: int, row: int,
@@ -404,7 +396,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array2d(dtype=dtype),
-                    H: Harray, dq: wp.array2d(dtype=dtype), w: int, s: int, n: int, threshold: dtype,
+                    H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int, s: int, n: int, threshold: dtype,
                     max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
                     iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
                     converged: wp.array(dtype=wp.int32)):  # fmt: skip
@@ -424,7 +416,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 g[i, s] = zero
                 if chord == 0:
                     for j in range(t.first[i] if wp.static(envelope) else 0, i + 1):
-                        hset(H, i, j, s, zero)
+                        H[i, j, s] = zero
             e0 = zero
             ok = int(0)
             gdq = zero
@@ -451,7 +443,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     @wp.kernel(**options)
     def newton(
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
-        g: wp.array2d(dtype=dtype), H: Harray, dq: wp.array2d(dtype=dtype),
+        g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype),
         n: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
         status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
         factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
@@ -464,7 +456,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             solve_world(q, q_trial, t, g, H, dq, w, s, n, threshold, max_iterations, max_line_search, reuse, status,
                         iterations, factorizations, converged)  # fmt: skip
 
-    if scratch != "tiled":
+    if scratch == "global":
         return newton, Terms
 
     @wp.func

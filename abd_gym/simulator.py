@@ -54,8 +54,7 @@ class Simulator:
     one kernel; ``threads`` (that kernel's thread count; each thread solves worlds s, s+T, …) and
     ``block_dim`` (its CUDA block size) default to values measured on an H100.  ``scratch``: where the
     fused step keeps a world's gradient, Hessian and Newton step: "global" (arrays, one column per
-    thread), "packed" (the same with the Hessian's lower triangle packed by rows: half its memory)
-    or "tiled" (a CUDA block per world, the Hessian in shared memory, factored by
+    thread) or "tiled" (a CUDA block per world, the Hessian in shared memory, factored by
     ``wp.tile_cholesky``); same arithmetic, same trajectories to rounding.  ``max_registers`` and
     ``smem_spilling``: the fused kernel's CUDA register cap and spilling to shared memory.
     ``reuse_factor``: Newton's reuse of a Cholesky factor (default: float32 only).  ``envelope``:

@@ -36,8 +36,7 @@ class SolverSettings:
     threads: int | None = None
     block_dim: int | None = None
     # where the fused step keeps a world's g, H and Δq (fused.py): "global" arrays, one column per
-    # thread ("packed": H's lower triangle only, packed by rows, half the memory), or "tiled": a
-    # CUDA block per world, H in shared memory
+    # thread, or "tiled": a CUDA block per world, H in shared memory
     scratch: str = "global"
     # CUDA register cap of the fused kernel (0: the compiler's choice) and register spills to shared
     # memory (see bench: occupancy against spills)
@@ -92,8 +91,8 @@ class Solver:
         self.cols = self._columns(physical=False)
         self.report_cols = self._columns(physical=True)
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
-        if settings.scratch not in ("global", "packed", "tiled"):
-            raise ValueError(f"scratch must be 'global', 'packed' or 'tiled', got {settings.scratch!r}")
+        if settings.scratch not in ("global", "tiled"):
+            raise ValueError(f"scratch must be 'global' or 'tiled', got {settings.scratch!r}")
         if settings.scratch != "global" and not settings.fused:
             raise ValueError(f"scratch={settings.scratch!r} needs the fused step (fused=True)")
         self.tiled = settings.scratch == "tiled"
@@ -117,11 +116,7 @@ class Solver:
         self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=dt_, device=dev)
         # column-minor: thread s reads H[i, j, s] coalesced with its neighbours
         self.g = wp.zeros((n, T), dtype=dt_, device=dev)
-        self.packed = settings.scratch == "packed"
-        self.H = wp.zeros((n * (n + 1) // 2, T) if self.packed else (n, n, T), dtype=dt_, device=dev)
-        # what the per-constitution kernels (energies, the staged step) take as H: the square layout
-        # (never written through the packed solver's, which raises on a derivative assembly)
-        self.H_square = wp.zeros((1, 1, 1), dtype=dt_, device=dev) if self.packed else self.H
+        self.H = wp.zeros((n, n, T), dtype=dt_, device=dev)
         self.dq = wp.zeros((n, T), dtype=dt_, device=dev)
         # the staged step's Cholesky factors, kept for an iteration that reuses them (H is reassembled)
         self.L = None if settings.fused else wp.zeros((n, n, T), dtype=dt_, device=dev)
@@ -152,25 +147,15 @@ class Solver:
         if (derivs or q is self.q_trial) and self.threads < self.model.num_worlds:
             raise RuntimeError("per-world assembly needs one scratch column per world: build the solver with "
                                "fused=False or threads >= num_worlds")  # fmt: skip
-        if derivs and self.packed:
-            raise RuntimeError("per-constitution assembly writes the square Hessian: build the solver with "
-                               "scratch='global' to read it")  # fmt: skip
         for c in self.parts:
-            c.launch(self.model, state, self, q, E, self.g, self.H_square, active, derivs, cols, physical)
+            c.launch(self.model, state, self, q, E, self.g, self.H, active, derivs, cols, physical)
 
     def gradient(self) -> np.ndarray:
         """(T, n) copy of the last assembled gradient (T = W unless the fused step has fewer threads)."""
         return self.g.numpy().T.copy()
 
     def hessian(self) -> np.ndarray:
-        """(T, n, n) copy of the last assembled Hessian (before factorisation; the packed scratch
-        holds the lower triangle only, returned with zeros above the diagonal)."""
-        if self.packed:
-            n = self.model.num_dofs
-            i, j = np.tril_indices(n)
-            out = np.zeros((self.threads, n, n), dtype=self.H.numpy().dtype)
-            out[:, i, j] = self.H.numpy().T[:, i * (i + 1) // 2 + j]
-            return out
+        """(T, n, n) copy of the last assembled Hessian (before factorisation)."""
         return np.moveaxis(self.H.numpy(), -1, 0).copy()
 
     def energies(self, state) -> dict:

@@ -17,122 +17,6 @@ OK, FAILED = 0, 1
 
 
 @functools.lru_cache(maxsize=None)
-def dense_solve(dtype, envelope=False, packed=False):
-    """A world's dense Cholesky factor and solves, on scratch column w of world-minor arrays.
-
-    ``packed``: H's lower triangle packed by rows, entry (i, j) (i ≥ j) at row i(i+1)/2 + j of a
-    2-D array, half the memory of the square (n, n, ·) layout (the factor reads only the lower
-    triangle).  ``envelope`` as in ``kernels``."""
-    zero = dtype(0.0)
-
-    if packed:
-        Harray = wp.array2d(dtype=dtype)
-
-        @wp.func
-        def hget(H: Harray, i: int, j: int, w: int):
-            return H[i * (i + 1) // 2 + j, w]
-
-        @wp.func
-        def hset(H: Harray, i: int, j: int, w: int, v: dtype):
-            H[i * (i + 1) // 2 + j, w] = v
-
-    else:
-        Harray = wp.array3d(dtype=dtype)
-
-        @wp.func
-        def hget(H: Harray, i: int, j: int, w: int):
-            return H[i, j, w]
-
-        @wp.func
-        def hset(H: Harray, i: int, j: int, w: int, v: dtype):
-            H[i, j, w] = v
-
-    @wp.func
-    def cholesky(H: Harray, w: int, n: int, first: wp.array(dtype=wp.int32)):
-        """H = L Lᵀ in place on H's lower triangle (column w of the world-minor arrays); 0 when H is
-        not positive definite.  With ``envelope``, row i starts at column first[i]: L has H's
-        envelope (Cholesky fills nothing left of a row's first non-zero), so the skipped products
-        are exact zeros and the result is the dense one."""
-        for j in range(n):
-            fj = int(0)
-            if wp.static(envelope):
-                fj = first[j]
-            s = hget(H, j, j, w)
-            for k in range(fj, j):
-                s -= hget(H, j, k, w) * hget(H, j, k, w)
-            if not (s > zero) or not wp.isfinite(s):
-                return 0
-            d = wp.sqrt(s)
-            hset(H, j, j, w, d)
-            for i in range(j + 1, n):
-                fi = int(0)
-                if wp.static(envelope):
-                    fi = first[i]
-                if fi <= j:
-                    t = hget(H, i, j, w)
-                    for k in range(wp.max(fi, fj), j):
-                        t -= hget(H, i, k, w) * hget(H, j, k, w)
-                    hset(H, i, j, w, t / d)
-        return 1
-
-    @wp.func
-    def factored_solve(L: Harray, g: wp.array2d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int,
-                       n: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
-        """dq = −(L Lᵀ)⁻¹g by two triangular solves (n² multiply-adds, against n³/6 for the factor).
-
-        Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when the result is not finite.
-        """
-        for i in range(n):  # L y = −g
-            fi = int(0)
-            if wp.static(envelope):
-                fi = first[i]
-            t = -g[i, w]
-            for k in range(fi, i):
-                t -= hget(L, i, k, w) * dq[k, w]
-            dq[i, w] = t / hget(L, i, i, w)
-        gdq = zero
-        dmax = zero
-        g_abs = zero
-        if wp.static(envelope):
-            for ii in range(n):  # Lᵀ x = y by columns of Lᵀ (rows of L: their envelope)
-                i = n - 1 - ii
-                xi = dq[i, w] / hget(L, i, i, w)
-                dq[i, w] = xi
-                for k in range(first[i], i):
-                    dq[k, w] = dq[k, w] - hget(L, i, k, w) * xi
-            for i in range(n):
-                gdq += g[i, w] * dq[i, w]
-                dmax = wp.max(dmax, wp.abs(dq[i, w]))
-                g_abs += wp.abs(g[i, w])
-        else:
-            for ii in range(n):  # Lᵀ x = y
-                i = n - 1 - ii
-                t = dq[i, w]
-                for k in range(i + 1, n):
-                    t -= hget(L, k, i, w) * dq[k, w]
-                dq[i, w] = t / hget(L, i, i, w)
-                gdq += g[i, w] * dq[i, w]
-                dmax = wp.max(dmax, wp.abs(dq[i, w]))
-                g_abs += wp.abs(g[i, w])
-        if not wp.isfinite(gdq):
-            return 0, zero, zero, zero
-        return 1, gdq, dmax, g_abs
-
-    @wp.func
-    def cholesky_solve(H: Harray, g: wp.array2d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int,
-                       n: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
-        """dq = −H⁻¹g for world w by Cholesky, in place on H's lower triangle (world-minor arrays).
-
-        Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when H is not positive definite or the result not finite.
-        """
-        if cholesky(H, w, n, first) == 0:
-            return 0, zero, zero, zero
-        return factored_solve(H, g, dq, w, n, first)
-
-    return dict(cholesky=cholesky, factored_solve=factored_solve, cholesky_solve=cholesky_solve, hget=hget, hset=hset)
-
-
-@functools.lru_cache(maxsize=None)
 def kernels(dtype, envelope=False):
     """The per-world Newton kernels for ``dtype``; ``envelope``: the Cholesky factor and solves skip
     the columns left of each row's first non-zero (``Model.first``), for block-banded scenes."""
@@ -204,8 +88,87 @@ def kernels(dtype, envelope=False):
         # 0.02 whose first Newton step turned the pole 1/4 of the way (4.6 → 3.9 iterations a step)
         q[w, b] = retract(qb, h * (dtype(2.0) * qd[w, b] - qd_hist[w, b]), one, mass[w, b], mc[w, b])
 
-    dense = dense_solve(dtype, envelope, packed=False)
-    cholesky, factored_solve, cholesky_solve = dense["cholesky"], dense["factored_solve"], dense["cholesky_solve"]
+    @wp.func
+    def cholesky(H: wp.array3d(dtype=dtype), w: int, n: int, first: wp.array(dtype=wp.int32)):
+        """H = L Lᵀ in place on H's lower triangle (column w of the world-minor arrays); 0 when H is
+        not positive definite.  With ``envelope``, row i starts at column first[i]: L has H's
+        envelope (Cholesky fills nothing left of a row's first non-zero), so the skipped products
+        are exact zeros and the result is the dense one."""
+        for j in range(n):
+            fj = int(0)
+            if wp.static(envelope):
+                fj = first[j]
+            s = H[j, j, w]
+            for k in range(fj, j):
+                s -= H[j, k, w] * H[j, k, w]
+            if not (s > zero) or not wp.isfinite(s):
+                return 0
+            d = wp.sqrt(s)
+            H[j, j, w] = d
+            for i in range(j + 1, n):
+                fi = int(0)
+                if wp.static(envelope):
+                    fi = first[i]
+                if fi <= j:
+                    t = H[i, j, w]
+                    for k in range(wp.max(fi, fj), j):
+                        t -= H[i, k, w] * H[j, k, w]
+                    H[i, j, w] = t / d
+        return 1
+
+    @wp.func
+    def factored_solve(L: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int,
+                       n: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
+        """dq = −(L Lᵀ)⁻¹g by two triangular solves (n² multiply-adds, against n³/6 for the factor).
+
+        Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when the result is not finite.
+        """
+        for i in range(n):  # L y = −g
+            fi = int(0)
+            if wp.static(envelope):
+                fi = first[i]
+            t = -g[i, w]
+            for k in range(fi, i):
+                t -= L[i, k, w] * dq[k, w]
+            dq[i, w] = t / L[i, i, w]
+        gdq = zero
+        dmax = zero
+        g_abs = zero
+        if wp.static(envelope):
+            for ii in range(n):  # Lᵀ x = y by columns of Lᵀ (rows of L: their envelope)
+                i = n - 1 - ii
+                xi = dq[i, w] / L[i, i, w]
+                dq[i, w] = xi
+                for k in range(first[i], i):
+                    dq[k, w] = dq[k, w] - L[i, k, w] * xi
+            for i in range(n):
+                gdq += g[i, w] * dq[i, w]
+                dmax = wp.max(dmax, wp.abs(dq[i, w]))
+                g_abs += wp.abs(g[i, w])
+        else:
+            for ii in range(n):  # Lᵀ x = y
+                i = n - 1 - ii
+                t = dq[i, w]
+                for k in range(i + 1, n):
+                    t -= L[k, i, w] * dq[k, w]
+                dq[i, w] = t / L[i, i, w]
+                gdq += g[i, w] * dq[i, w]
+                dmax = wp.max(dmax, wp.abs(dq[i, w]))
+                g_abs += wp.abs(g[i, w])
+        if not wp.isfinite(gdq):
+            return 0, zero, zero, zero
+        return 1, gdq, dmax, g_abs
+
+    @wp.func
+    def cholesky_solve(H: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int,
+                       n: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
+        """dq = −H⁻¹g for world w by Cholesky, in place on H's lower triangle (world-minor arrays).
+
+        Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when H is not positive definite or the result not finite.
+        """
+        if cholesky(H, w, n, first) == 0:
+            return 0, zero, zero, zero
+        return factored_solve(H, g, dq, w, n, first)
 
     @wp.kernel(module="unique")
     def newton_direction(

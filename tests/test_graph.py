@@ -73,23 +73,6 @@ def test_tiled_scratch_matches_global_scratch():
     assert sim.failed_worlds().tolist() == [3]
 
 
-@pytest.mark.parametrize("threads", [None, 3])
-def test_packed_scratch_is_the_global_step(threads):
-    """H's lower triangle packed by rows: the same operations in the same order, so the same
-    trajectories bit for bit (threads that share a column included); the gradient and the factor
-    read back as from the square layout."""
-    ref, rsim = _run(True, threads=threads)
-    out, sim = _run(True, threads=threads, scratch="packed")
-    assert sim.solver.H.shape == (24 * 25 // 2, sim.solver.threads)
-    np.testing.assert_array_equal(np.nan_to_num(out), np.nan_to_num(ref))
-    assert sim.failed_worlds().tolist() == [3]
-    np.testing.assert_array_equal(sim.solver.gradient(), rsim.solver.gradient())
-    np.testing.assert_array_equal(sim.solver.hessian(), np.tril(rsim.solver.hessian()))
-    with pytest.raises(RuntimeError, match="scratch column|scratch=.global."):
-        sim.solver.assemble(sim.state, sim.state.q, sim.solver.E, sim.solver.all_active, 2)
-    np.testing.assert_array_equal(sim.energies()["kinetic"], rsim.energies()["kinetic"])
-
-
 def test_threads_must_be_positive():
     import pytest
 
