@@ -278,15 +278,24 @@ class ABDVectorEnv(VectorEnv):
     def _zeros(self, *shape, dtype="float"):
         return self._asarray(np.zeros(shape), dtype)
 
+    def _upload(self, values: np.ndarray):
+        """Host values as a tensor on the env's device.  To a GPU through pinned memory and a
+        non-blocking copy: a copy from pageable memory makes the host wait for the device's queue
+        (the step's physics), which is what a reset in every step would then cost."""
+        t = self.xp.from_numpy(np.ascontiguousarray(values))
+        if self._torch_device.type == "cuda":
+            return t.pin_memory().to(self._torch_device, non_blocking=True)
+        return t
+
     def _index(self, idx: np.ndarray):
-        return idx if self.xp is np else self.xp.as_tensor(idx, device=self._torch_device)
+        return idx if self.xp is np else self._upload(np.asarray(idx, dtype=np.int64))
 
     def _put(self, array, idx: np.ndarray, values):
         """array[idx] = values (host values into a backend array of the same dtype)."""
         if self.xp is np:
             array[idx] = values
         else:
-            array[self._index(idx)] = self.xp.as_tensor(np.asarray(values), dtype=array.dtype, device=array.device)
+            array[self._index(idx)] = self._upload(np.asarray(values)).to(array.dtype)
 
     def _f32(self, x):
         return x.astype(np.float32, copy=False) if self.xp is np else x.to(self.xp.float32)

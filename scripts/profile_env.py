@@ -1,0 +1,88 @@
+"""Where a vector env's step spends host time: each phase of ``ABDVectorEnv.step`` timed on the
+host clock (no synchronisation added), and, on a GPU, Torch's warnings for every operation that
+makes the host wait for the device (``torch.cuda.set_sync_debug_mode``).
+
+    python scripts/profile_env.py [--task CartPole-v0] [--envs 1024] [--steps 200] [--device cuda:0]
+
+A phase that waits for the device shows the device's time in its row; with the step's syncs
+removed, only the NaN check at the start of ``step`` should (see abd_gym/vector_env.py).
+"""
+import argparse
+import collections
+import time
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import warp as wp
+
+import abd_gym  # noqa: F401 -- registers the ids
+
+PHASES = ("_prepare_actions", "_controls", "_pending_now", "_reset_worlds", "_observe_safe", "_reward", "_terminated",
+          "_info", "_defer_pending", "_failed")  # fmt: skip
+
+
+def main(argv=None):
+    import torch
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--task", default="CartPole-v0")
+    ap.add_argument("--envs", type=int, default=1024)
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--device", default="cuda:0" if wp.is_cuda_available() else "cpu")
+    args = ap.parse_args(argv)
+    env = gym.make_vec(f"abd_gym/{args.task}", num_envs=args.envs, vectorization_mode="vector_entry_point",
+                       device=args.device, backend="torch")  # fmt: skip
+    u = env.unwrapped
+    print(f"{args.task} envs {args.envs} on {args.device}: {type(env).__name__} over {type(u).__name__}, "
+          f"autoreset {u.autoreset_mode}, frame_skip {u.frame_skip}")
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    actions = [torch.as_tensor(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32), device=u._torch_device)
+               for _ in range(16)]  # fmt: skip
+    env.step(actions[0])
+    wp.synchronize_device(u.device)
+    spent = collections.defaultdict(float)
+    calls = collections.Counter()
+
+    def timed(name, fn):
+        def run(*a, **k):
+            t = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[name] += time.perf_counter() - t
+                calls[name] += 1
+
+        return run
+
+    for name in PHASES:
+        setattr(u, name, timed(name, getattr(u, name)))
+    sim = u.sim
+    sim.step = timed("sim.step", sim.step)
+    sim.set_controls = timed("sim.set_controls", sim.set_controls)
+    t0 = time.perf_counter()
+    for k in range(args.steps):
+        env.step(actions[k % len(actions)])
+    host = time.perf_counter() - t0
+    wp.synchronize_device(u.device)
+    total = time.perf_counter() - t0
+    print(f"step: {host / args.steps * 1e6:.0f} us on the host, {total / args.steps * 1e6:.0f} us with the device drained")
+    for name, s in sorted(spent.items(), key=lambda kv: -kv[1]):
+        print(f"  {name:20s} {s / args.steps * 1e6:8.1f} us/step  ({calls[name]} calls)")
+    if wp.get_device(u.device).is_cuda:
+        torch.cuda.set_sync_debug_mode("warn")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            for k in range(5):
+                env.step(actions[k])
+        torch.cuda.set_sync_debug_mode(0)
+        sites = collections.Counter(f"{w.filename}:{w.lineno}" for w in caught)
+        print(f"synchronising torch operations in 5 steps: {sum(sites.values())}")
+        for site, n in sites.most_common():
+            print(f"  {n:3d}  {site}")
+    env.close()
+
+
+if __name__ == "__main__":
+    main()
