@@ -109,7 +109,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
         seconds=elapsed, steps_per_second=steps / elapsed, world_steps_per_second=num_worlds * steps / elapsed,
         newton_iterations=float(sim.newton_iterations().mean()),
         newton_factorizations=float(sim.newton_factorizations().mean()), joint_residual=residual,
-        reuse_factor=sim.solver.reuse_factor, envelope=sim.solver.envelope,
+        reuse_factor=sim.solver.reuse_factor, envelope=sim.solver.envelope, retract=sim.solver.settings.retract,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
         threads=sim.solver.threads, block_dim=sim.solver.block_dim,
         memory_bytes_per_world=sim.memory_bytes()["total"] / num_worlds,
@@ -150,6 +150,8 @@ def main(argv=None):
                          "(auto: in float32 only)")
     ap.add_argument("--envelope", default="auto",
                     help="comma-separated auto/0/1: factor the Hessian's envelope only (default: when the scene has one)")
+    ap.add_argument("--retract", default="1",
+                    help="comma-separated 0/1: Newton's guess and trial points turn A along rotations (1) or lines (0)")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--out", default="bench_out")
     ap.add_argument("--envs", action="store_true", help="also time each task's vector env")
@@ -166,14 +168,15 @@ def main(argv=None):
             accuracy.append(dict(case=case, dt=args.dt, dtype=args.dtype,
                                  period_error=period_error(case, args.dt, args.dtype, args.device)))  # fmt: skip
         reuse_choice = {"auto": None, "0": False, "1": True}
-        variants = [(k, float(t), int(r), bool(int(sp)), reuse_choice[ru], reuse_choice[en])
+        variants = [(k, float(t), int(r), bool(int(sp)), reuse_choice[ru], reuse_choice[en], bool(int(rt)))
                     for k in args.scratch.split(",") for t in args.tol.split(",") for r in args.max_registers.split(",")
                     for sp in args.smem_spilling.split(",") for ru in args.reuse_factor.split(",")
-                    for en in args.envelope.split(",")]  # fmt: skip
-        for (scratch, tol, regs, spill, reuse, env), w in ((v, w) for v in variants for w in worlds):
+                    for en in args.envelope.split(",") for rt in args.retract.split(",")]  # fmt: skip
+        for (scratch, tol, regs, spill, reuse, env, rt), w in ((v, w) for v in variants for w in worlds):
             runs = [time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol, integrator=args.integrator,
                                scratch=scratch, block_dim=args.block_dim, max_registers=regs, smem_spilling=spill,
-                               reuse_factor=reuse, envelope=env, threads=_thread_count(args.threads, w, args.device))
+                               reuse_factor=reuse, envelope=env, retract=rt,
+                               threads=_thread_count(args.threads, w, args.device))
                     for _ in range(max(args.repeat, 1))]  # fmt: skip
             rows.append(max(runs, key=lambda r: r["world_steps_per_second"]))
             rows[-1]["repeats"] = len(runs)
@@ -275,6 +278,7 @@ def _solver(r) -> str:
     extra = (f" r{r['max_registers']}" if r.get("max_registers") else "") + (" smem" if r.get("smem_spilling") else "")
     extra += "" if r.get("reuse_factor", False) else " full"  # every iteration factors (older results: all)
     extra += " envelope" if r.get("envelope", False) else ""
+    extra += "" if r.get("retract", True) else " straight"  # trial points on lines (older results: all)
     return f"{scratch}/{r['block_dim']}{extra} T{r['threads']}"
 
 

@@ -32,7 +32,7 @@ OK, FAILED = 0, 1
 
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
-                 max_registers=0, smem_spilling=False, envelope=False):  # fmt: skip
+                 max_registers=0, smem_spilling=False, envelope=False, retract=True):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -53,7 +53,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     o = ops(dtype)
     vec3, vec12, mat33, mat12, mat44 = o.vec3, o.vec12, o.mat33, o.mat12, o.mat44
     body_eval = affine_body.kernels(dtype).body_eval
-    retract = affine_body.kernels(dtype).retract
+    retract_body = affine_body.kernels(dtype).retract
     point_eval_kron = _point_joint.kernel(dtype).eval_kron
     kron3, kron_index = o.kron3, o.kron_index
     prismatic_eval = prismatic_joint.kernel(dtype).eval
@@ -152,7 +152,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                         d[r] = -wp.tile_extract(step, ob + r)
                     else:
                         d[r] = step[ob + r, row]
-                qb = retract(qb, d, alpha, t.mass[w, b], t.mc[w, b])
+                if wp.static(retract):
+                    qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b])
+                else:
+                    qb = qb + alpha * d
             q_trial[row, b] = qb
 
     @wp.func

@@ -59,7 +59,9 @@ class Simulator:
     ``smem_spilling``: the fused kernel's CUDA register cap and spilling to shared memory.
     ``reuse_factor``: Newton's reuse of a Cholesky factor (default: float32 only).  ``envelope``:
     factor only the Hessian's envelope, the columns from each row's first coupled body on (default:
-    when the scene has one, e.g. a chain; same result as the dense factor).
+    when the scene has one, e.g. a chain; same result as the dense factor).  ``retract`` (default
+    on): Newton's initial guess and trial points turn each body's A along a rotation
+    (``affine_body.retract``) instead of a straight line; False is the ablation.
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
@@ -67,7 +69,7 @@ class Simulator:
                  use_graph: bool | None = None, fused: bool = True, integrator: str = "implicit_euler",
                  threads: int | None = None, block_dim: int | None = None, scratch: str = "global",
                  max_registers: int = 0, smem_spilling: bool = False, reuse_factor: bool | None = None,
-                 envelope: bool | None = None):  # fmt: skip
+                 envelope: bool | None = None, retract: bool = True):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
@@ -78,7 +80,8 @@ class Simulator:
         self.state = State(self.model)
         self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search), bool(fused), integrator,
                                                            threads, block_dim, scratch, int(max_registers),
-                                                           bool(smem_spilling), reuse_factor, envelope))  # fmt: skip
+                                                           bool(smem_spilling), reuse_factor, envelope,
+                                                           bool(retract)))  # fmt: skip
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device

@@ -51,6 +51,9 @@ class SolverSettings:
     # factor only the Hessian's envelope (Model.first: a block-banded chain costs O(n·12²) instead of
     # O(n³)); None: when the scene has one (a dense Hessian keeps the plain loops)
     envelope: bool | None = None
+    # Newton's initial guess and trial points turn A along rotations (affine_body.retract); False:
+    # along straight lines (the ablation)
+    retract: bool = True
 
 
 def default_threads(device, num_worlds: int) -> int:
@@ -180,7 +183,7 @@ class Solver:
                               state.x_hist, self.h_step, dt(self.h), state.x_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
                                                      self.q_tilde, m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step,
-                                                     state.status], device=dev)  # fmt: skip
+                                                     state.status, int(self.settings.retract)], device=dev)  # fmt: skip
         if self.settings.fused:
             self._fused_newton(state)
         else:
@@ -219,7 +222,8 @@ class Solver:
                len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
         st = self.settings
         kernel, Terms = fused_kernel(m.dtype, *has, scratch=st.scratch, n=m.num_dofs, max_registers=st.max_registers,
-                                     smem_spilling=st.smem_spilling, envelope=self.envelope)  # fmt: skip
+                                     smem_spilling=st.smem_spilling, envelope=self.envelope,
+                                     retract=bool(st.retract))  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -261,7 +265,7 @@ class Solver:
         m, k, dev, s = self.model, self.k, self.model.device, self.settings
         W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
         wp.launch(k["trial"], dim=(W, nb), inputs=[state.q, self.dq, m.dof, m.mass, m.mc, self.alpha, self.searching,
-                                                    self.q_trial],
+                                                    self.q_trial, int(s.retract)],
                   device=dev)  # fmt: skip
         self.E_trial.zero_()
         self.assemble(state, self.q_trial, self.E_trial, self.searching, 0)

@@ -53,7 +53,7 @@ def kernels(dtype, envelope=False):
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
         q_tilde: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
         mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype, h_step: wp.array(dtype=dtype),
-        status: wp.array(dtype=wp.int32),
+        status: wp.array(dtype=wp.int32), bend: int,
     ):  # fmt: skip
         """Implicit Euler: q̃ = qⁿ + h q̇ⁿ + h² (g, 0)  (M⁻¹f_g = (g, 0) exactly: gravity moves p only).
         BDF2 (ĥ = h_step[w] = 2h/3): q̃ = q̂ + ĥ v̂ + ĥ² (g, 0), q̂ = (4qⁿ − qⁿ⁻¹)/3, v̂ = (4q̇ⁿ − q̇ⁿ⁻¹)/3.
@@ -86,7 +86,8 @@ def kernels(dtype, envelope=False):
         # straight line, A leaves the rotations by ~(ωh)², and at a stretched A the orthogonality's
         # Hessian (its R ⪰ 0 term) is stiff in every direction: measured, a float64 cart-pole at dt
         # 0.02 whose first Newton step turned the pole 1/4 of the way (4.6 → 3.9 iterations a step)
-        q[w, b] = retract(qb, h * (dtype(2.0) * qd[w, b] - qd_hist[w, b]), one, mass[w, b], mc[w, b])
+        d = h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
+        q[w, b] = wp.where(bend != 0, retract(qb, d, one, mass[w, b], mc[w, b]), qb + d)
 
     @wp.func
     def cholesky(H: wp.array3d(dtype=dtype), w: int, n: int, first: wp.array(dtype=wp.int32)):
@@ -207,9 +208,10 @@ def kernels(dtype, envelope=False):
     def trial(
         q: wp.array2d(dtype=vec12), dq: wp.array2d(dtype=dtype), dof: wp.array(dtype=wp.int32),
         mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), alpha: wp.array(dtype=dtype),
-        searching: wp.array(dtype=wp.int32), q_trial: wp.array2d(dtype=vec12),
+        searching: wp.array(dtype=wp.int32), q_trial: wp.array2d(dtype=vec12), bend: int,
     ):  # fmt: skip
-        """The trial point q + αΔq along the retraction's path (affine_body.retract)."""
+        """The trial point q + αΔq along the retraction's path (affine_body.retract; ``bend`` 0:
+        the straight line)."""
         w, b = wp.tid()
         if searching[w] == 0:
             return  # keeps an accepted trial point until it is committed
@@ -219,7 +221,10 @@ def kernels(dtype, envelope=False):
             d = vec12()
             for r in range(12):
                 d[r] = dq[o + r, w]
-            qb = retract(qb, d, alpha[w], mass[w, b], mc[w, b])
+            if bend != 0:
+                qb = retract(qb, d, alpha[w], mass[w, b], mc[w, b])
+            else:
+                qb = qb + alpha[w] * d
         q_trial[w, b] = qb
 
     @wp.kernel(module="unique")

@@ -290,6 +290,14 @@ class ABDVectorEnv(VectorEnv):
     def _index(self, idx: np.ndarray):
         return idx if self.xp is np else self._upload(np.asarray(idx, dtype=np.int64))
 
+    def _fill(self, array, idx, value):
+        """array[idx] = value (a Python scalar).  Torch's ``index_fill_``: ``t[i] = 0.0`` makes a
+        host tensor of the scalar and copies it, which waits for the device."""
+        if self.xp is np:
+            array[idx] = value
+        else:
+            array.index_fill_(0, idx, value)
+
     def _put(self, array, idx: np.ndarray, values):
         """array[idx] = values (host values into a backend array of the same dtype)."""
         if self.xp is np:
@@ -426,7 +434,7 @@ class ABDVectorEnv(VectorEnv):
         self._apply_parameters(idx, rng)
         coords, vels = self._initial_state(len(idx), rng, options)
         self.sim.set_joint_state(coords, vels, worlds=idx)
-        self._elapsed[self._index(idx)] = 0  # one index upload, no value array
+        self._fill(self._elapsed, self._index(idx), 0)  # one index upload, no value array
         self._reset_task(idx, rng, options)
         self._pending_now()[idx] = False
 
@@ -527,9 +535,9 @@ class ABDVectorEnv(VectorEnv):
         has_info = np.ones(N, dtype=bool)  # worlds whose info entries are this step's (not a reset's)
         if len(pending):
             p = self._index(pending)
-            reward[p] = 0.0
-            terminated[p] = False
-            truncated[p] = False
+            self._fill(reward, p, 0.0)
+            self._fill(terminated, p, False)
+            self._fill(truncated, p, False)
             has_info[pending] = False
         # a broken world: zero observation and reward, terminated, reported (applied to every world
         # by mask: asking the device whether any world failed would make the host wait for it)

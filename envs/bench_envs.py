@@ -18,10 +18,11 @@ import abd_gym  # noqa: F401 -- registers the abd_gym/ ids
 
 
 def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | None = "cpu", backend: str = "numpy",
-                         seed: int = 0, raw: bool = False):  # fmt: skip
+                         seed: int = 0, raw: bool = False, configure=None):  # fmt: skip
     """World-steps per second (``num_envs × steps / seconds``) of ``steps`` calls of ``step``.
 
-    ``task_id``: a registered id, with or without the ``abd_gym/`` namespace.  With ``raw``, returns
+    ``task_id``: a registered id, with or without the ``abd_gym/`` namespace.  ``configure``: called
+    with the unwrapped env before its first step (e.g. to change ``env.sim.solver.settings``).  With ``raw``, returns
     ``(env rate, simulator-alone rate, physics-time rate)``:
 
     - simulator alone: the env's simulator stepped ``frame_skip`` steps per env step by itself, after
@@ -37,6 +38,8 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
         env = gym.make_vec(task_id, num_envs=num_envs, vectorization_mode="vector_entry_point", device=device,
                            backend=backend)  # fmt: skip
         u = env.unwrapped
+        if configure is not None:
+            configure(u)
         sim, inner = u.sim, u.sim.step
         cuda = wp.get_device(u.device).is_cuda
         events = [wp.Event(u.device, enable_timing=True) for _ in range(2 * steps)] if timed and cuda else []

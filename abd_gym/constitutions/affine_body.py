@@ -64,7 +64,7 @@ def retract_np(q, d, alpha, m, mc):
     M = D @ A.T
     k = alpha * 0.5 * np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
     X = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    dA = ((X + 0.5 * X @ X) / (1.0 + 0.25 * k @ k) - X) @ A
+    dA = ((0.5 * X @ X - 0.25 * (k @ k) * X) / (1.0 + 0.25 * (k @ k))) @ A
     out = q + alpha * d
     out[:3] -= dA @ (np.asarray(mc) / m)
     out[3:] += dA.ravel()
@@ -206,7 +206,9 @@ def kernels(dtype):
         M = D * wp.transpose(A)
         k = alpha * half * vec3(M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1])
         X = wp.skew(k)
-        C = (X + half * (X * X)) / (dtype(1.0) + dtype(0.25) * wp.dot(k, k)) - X
+        kk = dtype(0.25) * wp.dot(k, k)
+        # Cay(X) − I − X = (X + X²/2)/(1 + |k|²/4) − X, written without the cancellation
+        C = (half * (X * X) - kk * X) / (dtype(1.0) + kk)
         dA = C * A
         out = qb + alpha * d
         dp = dA * (mc / m)
