@@ -153,7 +153,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     else:
                         d[r] = step[ob + r, row]
                 if wp.static(retract):
-                    qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b])
+                    qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b], 0)
                 else:
                     qb = qb + alpha * d
             q_trial[row, b] = qb

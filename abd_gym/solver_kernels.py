@@ -87,7 +87,7 @@ def kernels(dtype, envelope=False):
         # Hessian (its R ⪰ 0 term) is stiff in every direction: measured, a float64 cart-pole at dt
         # 0.02 whose first Newton step turned the pole 1/4 of the way (4.6 → 3.9 iterations a step)
         d = h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
-        q[w, b] = wp.where(bend != 0, retract(qb, d, one, mass[w, b], mc[w, b]), qb + d)
+        q[w, b] = wp.where(bend != 0, retract(qb, d, one, mass[w, b], mc[w, b], 1), qb + d)
 
     @wp.func
     def cholesky(H: wp.array3d(dtype=dtype), w: int, n: int, first: wp.array(dtype=wp.int32)):
@@ -222,7 +222,7 @@ def kernels(dtype, envelope=False):
             for r in range(12):
                 d[r] = dq[o + r, w]
             if bend != 0:
-                qb = retract(qb, d, alpha[w], mass[w, b], mc[w, b])
+                qb = retract(qb, d, alpha[w], mass[w, b], mc[w, b], 0)
             else:
                 qb = qb + alpha[w] * d
         q_trial[w, b] = qb

@@ -144,7 +144,7 @@ def _retract_warp(q, d, alpha, m, mc):
     def run(q: wp.array(dtype=vec12), d: wp.array(dtype=vec12), alpha: wp.float64, m: wp.float64, mc: wp.vec3d,
             out: wp.array(dtype=vec12)):  # fmt: skip
         i = wp.tid()
-        out[i] = k(q[i], d[i], alpha, m, mc)
+        out[i] = k(q[i], d[i], alpha, m, mc, 0)
 
     out = wp.zeros(len(q), dtype=vec12, device="cpu")
     wp.launch(run, dim=len(q), inputs=[wp.array(q, dtype=vec12, device="cpu"), wp.array(d, dtype=vec12, device="cpu"),
@@ -160,14 +160,21 @@ def test_retraction_path():
     R0 = affine_body_rotation(rng)
     q = np.concatenate([rng.normal(size=3), R0.ravel()])
     W = np.array([[0.0, -0.3, 0.2], [0.3, 0.0, -0.1], [-0.2, 0.1, 0.0]])
-    d = np.concatenate([rng.normal(size=3) * 0.1, (W @ R0).ravel()])  # a rotation's tangent
+    d = np.concatenate([rng.normal(size=3) * 0.1, (0.2 * W @ R0).ravel()])  # a rotation's tangent, |K| = 0.075
     got = _retract_warp(np.stack([q, q]), np.stack([d, d]), 0.5, m, mc)
     np.testing.assert_allclose(got[0], affine_body.retract_np(q, d, 0.5, m, mc), rtol=0, atol=1e-14)
     A = got[0][3:].reshape(3, 3)
-    np.testing.assert_allclose(A @ A.T, np.eye(3), atol=1e-14)  # a straight step: off by ~|αW|² = 0.035
+    np.testing.assert_allclose(A @ A.T, np.eye(3), atol=1e-14)  # a straight step: off by ~|αK|² = 1.4e-3
     com = lambda x: x[:3] + x[3:].reshape(3, 3) @ (mc / m)  # noqa: E731
-    np.testing.assert_allclose(com(got[0]), com(q) + 0.5 * (d[:3] + (W @ R0) @ (mc / m)), atol=1e-14)
-    d = rng.normal(size=12)
+    np.testing.assert_allclose(com(got[0]), com(q) + 0.5 * (d[:3] + (0.2 * W @ R0) @ (mc / m)), atol=1e-14)
+    # the initial guess (rigid): an extrapolated rotation plus its symmetric curvature part ½W²A
+    # turns by Cayley alone and stays a rotation
+    d2 = np.concatenate([np.zeros(3), ((0.1 * W + 0.5 * 0.01 * W @ W) @ R0).ravel()])
+    A2 = affine_body.retract_np(q, d2, 1.0, m, mc, rigid=True)[3:].reshape(3, 3)
+    np.testing.assert_allclose(A2 @ A2.T, np.eye(3), atol=1e-14)
+    d3 = np.concatenate([np.zeros(3), (W @ R0).ravel()])
+    assert np.abs(affine_body.retract_np(q, d3, 1.0, m, mc) - (q + d3)).max() == 0.0  # |K| = 0.37 rad: a line
+    d = rng.normal(size=12) * 0.01
     for a in (1e-2, 1e-3):  # (retract(α) − q)/α → d with an O(α) error
         err = np.abs((affine_body.retract_np(q, d, a, m, mc) - q) / a - d).max()
         assert err < 2.0 * a * np.abs(d).max() ** 2 * (1 + np.abs(mc / m).max())
