@@ -82,10 +82,9 @@ def kernels(dtype, envelope=False):
         for r in range(3):
             qt[r] = qt[r] + he * he * gravity[r]
         q_tilde[w, b] = qt
-        # Newton's initial guess, its rotation part along the rotation (retract): extrapolated along a
-        # straight line, A leaves the rotations by ~(ωh)², and at a stretched A the orthogonality's
-        # Hessian (its R ⪰ 0 term) is stiff in every direction: measured, a float64 cart-pole at dt
-        # 0.02 whose first Newton step turned the pole 1/4 of the way (4.6 → 3.9 iterations a step)
+        # Newton's initial guess, A turned by Cayley's rotation of its extrapolated step (retract,
+        # rigid); with the bent trial steps, CartPole-v0's scene at dt 0.02 under random forces takes
+        # 3.14 Newton iterations a step instead of 4.54 (float64, tests/test_hard_cases.py)
         d = h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
         q[w, b] = wp.where(bend != 0, retract(qb, d, one, mass[w, b], mc[w, b], 1), qb + d)
 

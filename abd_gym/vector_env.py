@@ -42,7 +42,8 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   ±1).  An action batch containing NaN raises ``ValueError`` before anything is stepped: no world
   (and no other world) changes state.  A world whose solve fails (``Simulator.failed_worlds``, or a
   non-finite observation) is terminated, reported in ``info["sim_failed"]`` (a bool per world,
-  in every step's info) and gets a zero observation and reward; the autoreset (or your masked reset) brings it back.
+  in every step's info) and gets a zero observation and reward; the autoreset (or your masked
+  reset) brings it back.
 * observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
   and chosen above what the task reaches (rates: ``velocity_bound`` = 100 rad/s or m/s).
 * per-world physical parameters: ``randomize={...}`` (constructor or ``reset`` option, sticky:
@@ -193,8 +194,8 @@ class ABDVectorEnv(VectorEnv):
         # without terminations
         self._no_flags = self._zeros(N, dtype="bool")
         self._pending = np.zeros(N, dtype=bool)  # NEXT_STEP: worlds to reset at the next step
-        self._pending_copy = None  # (pinned host mask, event) of a copy of the next pending mask in flight
-        self._pinned = None
+        self._pinned = None  # GPU: (pinned host mask, event) that the next pending mask is copied through
+        self._pending_in_flight = False
         self._has_reset = False
 
         # ---- per-world physical parameters (host copies of what the simulator holds)
@@ -485,11 +486,11 @@ class ABDVectorEnv(VectorEnv):
         """NEXT_STEP: the worlds that ended in the last step (host bool mask).  On a GPU the mask of
         the last step arrives by an asynchronous copy; this waits for that copy only, which the
         stream finishes before the physics step launched after it."""
-        if self._pending_copy is not None:
-            host, event = self._pending_copy
+        if self._pending_in_flight:
+            host, event = self._pinned
             event.synchronize()
             self._pending = host.numpy().copy()
-            self._pending_copy = None
+            self._pending_in_flight = False
         return self._pending
 
     def _defer_pending(self, done):
@@ -506,7 +507,7 @@ class ABDVectorEnv(VectorEnv):
         host, event = self._pinned
         host.copy_(done, non_blocking=True)
         event.record()
-        self._pending_copy = (host, event)
+        self._pending_in_flight = True
 
     def step(self, actions):
         if not self._has_reset:
