@@ -205,6 +205,37 @@ def test_per_world_reset_leaves_other_worlds_untouched():
     assert not np.allclose(ob[mask], oa[mask])
 
 
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+def test_a_failed_world_is_reported_and_autoreset(backend):
+    """A world whose state goes non-finite: terminated with zero observation and reward, flagged in
+    info["sim_failed"] (False for the others, which step on as in an untouched env), and reset by
+    the NEXT_STEP autoreset."""
+    if backend == "torch":
+        pytest.importorskip("torch")
+    env = make(AutoresetMode.NEXT_STEP, PendulumVectorEnv, backend=backend)
+    ref = make(AutoresetMode.NEXT_STEP, PendulumVectorEnv)
+    env.reset(seed=4)
+    ref.reset(seed=4)
+    a = np.full((N, 1), 0.3, dtype=np.float32)
+    for _ in range(3):
+        env.step(a)
+        ref.step(a)
+    q = env.sim.state.q.numpy()
+    q[2, 1, 0] = np.nan
+    env.sim.state.q.assign(q)
+    obs, r, te, tr, info = (np.asarray(x.cpu()) if hasattr(x, "cpu") else x for x in env.step(a))
+    robs, rr, *_ = ref.step(a)
+    failed = np.asarray(info["sim_failed"].cpu() if hasattr(info["sim_failed"], "cpu") else info["sim_failed"])
+    assert failed.tolist() == [False, False, True, False]
+    assert te[2] and not te[[0, 1, 3]].any()
+    assert not obs[2].any() and r[2] == 0.0
+    np.testing.assert_allclose(obs[[0, 1, 3]], robs[[0, 1, 3]], atol=1e-6)
+    obs, r, te, tr, info = env.step(a)  # the autoreset brings world 2 back
+    assert env.sim.failed_worlds().size == 0
+    assert np.isfinite(np.asarray(obs.cpu() if hasattr(obs, "cpu") else obs)).all()
+    assert not bool(te[2])
+
+
 def test_time_limit_truncates_inside_the_vector_env():
     env = make(AutoresetMode.NEXT_STEP, PendulumVectorEnv, max_episode_steps=5)
     env.reset(seed=0)
@@ -295,7 +326,7 @@ def test_torch_backend_matches_numpy_and_stays_on_device(mode, device):
         np.testing.assert_allclose(to.cpu().numpy(), no, atol=1e-5)
         np.testing.assert_allclose(tr_.cpu().numpy(), nr, atol=1e-5)
         np.testing.assert_array_equal(tt.cpu().numpy(), nt)
-        np.testing.assert_array_equal(tinfo["_sim_failed"], ninfo["_sim_failed"])
+        np.testing.assert_array_equal(tinfo["sim_failed"].cpu().numpy(), ninfo["sim_failed"])
         ended |= bool(nt.any())
         if "final_obs" in tinfo:
             assert isinstance(tinfo["final_obs"], torch.Tensor)
