@@ -97,7 +97,7 @@ class Simulator:
         self._host_views = {}
         self._no_given = None  # a stand-in for _restarted's given
         self._cmds = {}  # recorded launches of the reset path, replayed with changed arguments (_replay)
-        self._upload = {}  # CPU only: persistent (W, ...) arrays that a reset's rows are written into
+        self._stage = rows.Staging(self.device)  # host rows to the device without waiting for the device
         self._graph = None
         self._warm = False
         self.reset()
@@ -256,20 +256,6 @@ class Simulator:
             cmd.set_dim(dim)
         cmd.launch()
 
-    def _rows_array(self, name, values, wp_dtype):
-        """``values`` (N, ...) as a device array whose first N rows hold them.  On the CPU, rows of a
-        persistent (W, ...) array written in place (its launches run before the next write); on a
-        GPU, a new array (its copy from pageable memory finishes before the host goes on, so a later
-        write cannot race the launches that read it)."""
-        values = np.ascontiguousarray(values, dtype=wp.dtype_to_numpy(wp_dtype))
-        if not self.device.is_cpu:
-            return wp.array(values, dtype=wp_dtype, device=self.device)
-        buf = self._upload.get(name)
-        if buf is None or buf.shape[1:] != values.shape[1:]:
-            buf = self._upload[name] = wp.zeros((self.num_worlds,) + values.shape[1:], dtype=wp_dtype, device=self.device)
-        self._host_view(buf)[: len(values)] = values
-        return buf
-
     def _mask(self, idx_dev, n=None):
         """A device int32 mask (W,) of the worlds idx_dev[:n] (reused: valid until the next call)."""
         n = idx_dev.shape[0] if n is None else n
@@ -289,8 +275,8 @@ class Simulator:
 
     def _write_rows(self, array, idx, values):
         """array[idx] = values for a (W, C) device array; only those rows travel (rows.py)."""
-        idx_dev = idx if isinstance(idx, wp.array) else rows.indices(idx, self.device)
-        rows.write(array, idx_dev, values, self.model.np_dtype)
+        idx_dev = idx if isinstance(idx, wp.array) else rows.indices(idx, self._stage)
+        rows.write(array, idx_dev, values, self.model.np_dtype, self._stage)
 
     def set_controls(self, values, worlds=None):
         """Drive inputs (num_worlds or len(worlds), num_drives): torque/force [N·m, N] of effort drives,
@@ -333,10 +319,10 @@ class Simulator:
     def _set_q(self, idx, q, qd):
         """Restart the worlds idx at body states q, q̇ (N, bodies, 12)."""
         if len(idx):
-            idx_dev = rows.indices(idx, self.device)
+            idx_dev = rows.indices(idx, self._stage)
             # q, q̇, q_prev and the BDF2 history (a set state has no past: as if the velocity had
             # been constant), and status OK, in one launch
-            rows.restart(self.state, idx_dev, q, qd, self.dt, self.model)
+            rows.restart(self.state, idx_dev, q, qd, self.dt, self.model, self._stage)
             self._restarted(idx, idx_dev)
 
     def _restarted(self, idx, idx_dev, given=None):
@@ -368,11 +354,11 @@ class Simulator:
         if self._plan is None:
             self._plan = kinematics.tree_plan(self.scene, m)
             self._omega = wp.zeros((self.num_worlds, m.num_bodies), dtype=m.vec3, device=self.device)
-        idx_dev = self._rows_array("idx", idx, wp.int32)
+        idx_dev = rows.indices(idx, self._stage)
         # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
         # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
         xx = np.stack([np.where(m.joint_kind_np[None, :] == FIXED_CODE, 0.0, x), xd], axis=1) if nj else np.zeros((N, 2, 1))
-        xx = self._rows_array("xx", xx, m.dtype)
+        xx = self._stage("xx", xx, m.dtype)
         self._replay("place", *kinematics.place_launch(self._plan, self.state, m, idx_dev, xx, N, self.dt, self._omega))
         self._restarted(idx, idx_dev, given=xx)
 
@@ -408,7 +394,7 @@ class Simulator:
             raise ValueError(f"mass must be positive, got {vals[vals <= 0][0]}")
         self._mass[np.ix_(idx, bi)] = vals
         scale = self._mass[idx] / m.base_mass  # only the listed worlds' rows travel to the device
-        idx_dev = rows.indices(idx, self.device)
+        idx_dev = rows.indices(idx, self._stage)
         self._write_rows(m.mass, idx_dev, m.base_mass * scale)
         self._write_rows(m.mc, idx_dev, m.base_mc[None] * scale[..., None])
         self._write_rows(m.S, idx_dev, m.base_S[None] * scale[..., None, None])
@@ -449,7 +435,7 @@ class Simulator:
             raise ValueError(f"limit strength must be positive, got {st[st <= 0][0]}")
         if kind == REVOLUTE and (lo < -math.pi).any() | (up > math.pi).any():
             raise ValueError("revolute limits must lie in [-pi, pi]")
-        idx_dev = rows.indices(idx, self.device)
+        idx_dev = rows.indices(idx, self._stage)
         for h, v, dev_a in zip(host, new, m.limit_params[kind]):
             h[idx, col] = v
             self._write_rows(dev_a, idx_dev, h[idx])
