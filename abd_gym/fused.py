@@ -50,6 +50,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     if smem_spilling:
         options["enable_cuda_smem_spilling"] = True
     tiled = n if scratch == "tiled" else 0
+    N = n  # unknowns per world (12 per free body), a constant of the kernel
     o = ops(dtype)
     vec3, vec12, mat33, mat12, mat44 = o.vec3, o.vec12, o.mat33, o.mat12, o.mat44
     body_eval = affine_body.kernels(dtype).body_eval
@@ -67,7 +68,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
 
     if tiled:
-        N = tiled
 
         @wp.func
         def put_grad(g: Any, s: int, B: int, o: int, v: vec12):
@@ -97,22 +97,40 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     else:
 
+        # the thread's scratch column s of the flat g, H (solver_kernels: entry (i, j) of H at
+        # (i·N + j)·T + s, entry i of g at i·T + s); B is T, the scratch width
+
         @wp.func
         def put_grad(g: Any, s: int, B: int, o: int, v: vec12):
             if o >= 0:
+                p = o * B + s
                 for r in range(12):
-                    g[o + r, s] = g[o + r, s] + v[r]
+                    g[p] = g[p] + v[r]
+                    p += B
 
         @wp.func
         def put_block(H: Any, s: int, B: int, oa: int, ob: int, m: mat12):
-            """Add block (oa, ob) and its transpose, lower triangle only (all the Cholesky reads)."""
+            """Add block (oa, ob) and its transpose, lower triangle only (all the Cholesky reads):
+            a diagonal block's lower half; (oa, ob) below the diagonal as it is, above it transposed."""
             if oa >= 0 and ob >= 0:
-                for r in range(12):
+                if oa == ob:
+                    for r in range(12):
+                        p = ((oa + r) * N + ob) * B + s
+                        for c in range(r + 1):
+                            H[p] = H[p] + m[r, c]
+                            p += B
+                elif oa > ob:
+                    for r in range(12):
+                        p = ((oa + r) * N + ob) * B + s
+                        for c in range(12):
+                            H[p] = H[p] + m[r, c]
+                            p += B
+                else:
                     for c in range(12):
-                        if oa + r >= ob + c:
-                            H[oa + r, ob + c, s] = H[oa + r, ob + c, s] + m[r, c]
-                        elif oa != ob:
-                            H[ob + c, oa + r, s] = H[ob + c, oa + r, s] + m[r, c]
+                        p = ((ob + c) * N + oa) * B + s
+                        for r in range(12):
+                            H[p] = H[p] + m[r, c]
+                            p += B
 
     if tiled:
 
@@ -132,16 +150,18 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                         for d in range(4):
                             b = kron_index(m, d)
                             if oa > ob or (oa == ob and a >= b):
-                                H[oa + a, ob + b, s] = H[oa + a, ob + b, s] + U[c, d]
+                                p = ((oa + a) * N + ob + b) * B + s
+                                H[p] = H[p] + U[c, d]
                             elif oa < ob:
-                                H[ob + b, oa + a, s] = H[ob + b, oa + a, s] + U[c, d]
+                                p = ((ob + b) * N + oa + a) * B + s
+                                H[p] = H[p] + U[c, d]
 
     @wp.func
     def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Any, step: Any, w: int, row: int,
-              alpha: dtype):  # fmt: skip
+              T: int, alpha: dtype):  # fmt: skip
         """q_trial[row] = q[w] + α Δq along the retraction's path (affine_body.retract): Δq in
-        scratch column ``row`` of ``step``, or (tiled) −y with y = H⁻¹g in the block's shared tile
-        ``step``."""
+        scratch column ``row`` of the flat ``step`` (T columns), or (tiled) −y with y = H⁻¹g in the
+        block's shared tile ``step``."""
         for b in range(q.shape[1]):
             qb = q[w, b]
             ob = t.dof[b]
@@ -151,7 +171,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     if wp.static(tiled):
                         d[r] = -wp.tile_extract(step, ob + r)
                     else:
-                        d[r] = step[ob + r, row]
+                        d[r] = step[(ob + r) * T + row]
                 if wp.static(retract):
                     qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b], 0)
                 else:
@@ -331,7 +351,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
         factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
         trial points go to row ``row`` of q_trial; s, B as in assemble."""
-        trial(q, q_trial, t, step, w, row, one)
+        trial(q, q_trial, t, step, w, row, B, one)
         alpha = one
         accepted = int(0)
         stalled = int(0)
@@ -343,7 +363,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         else:
             for ls in range(max_line_search):
                 if ls > 0:
-                    trial(q, q_trial, t, step, w, row, alpha)
+                    trial(q, q_trial, t, step, w, row, B, alpha)
                 accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
                 if accepted != 0:
                     break
@@ -398,12 +418,13 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return stop, chord_next
 
     @wp.func
-    def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array2d(dtype=dtype),
-                    H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int, s: int, n: int, threshold: dtype,
+    def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
+                    H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, s: int, T: int, threshold: dtype,
                     max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
                     iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
                     converged: wp.array(dtype=wp.int32)):  # fmt: skip
-        """World w's whole Newton solve, in scratch column s of g, H, dq and row s of q_trial.
+        """World w's whole Newton solve, in scratch column s (of T) of the flat g, H, dq and row s of
+        q_trial.
 
         With ``reuse``, an iteration after a full step (α = 1) keeps the Cholesky factor it left in H
         and solves only the new gradient against it (a simplified-Newton step; see ``chord_step``)."""
@@ -415,28 +436,33 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         chord = int(0)  # 1: H holds the factor of an earlier iteration, reused for this one
         d_prev = zero
         for it in range(max_iterations):
-            for i in range(n):
-                g[i, s] = zero
+            for i in range(N):
+                g[i * T + s] = zero
                 if chord == 0:
-                    for j in range(t.first[i] if wp.static(envelope) else 0, i + 1):
-                        H[i, j, s] = zero
+                    j0 = int(0)
+                    if wp.static(envelope):
+                        j0 = t.first[i]
+                    p = (i * N + j0) * T + s
+                    for j in range(j0, i + 1):
+                        H[p] = zero
+                        p += T
             e0 = zero
             ok = int(0)
             gdq = zero
             dmax = zero
             g_abs = zero
             if chord != 0:
-                e0 = assemble(q, w, w, s, 1, GRADIENT, t, g, H)
-                ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, n, t.first)
+                e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
+                ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, N, T, t.first)
             else:
-                e0 = assemble(q, w, w, s, 1, HESSIAN, t, g, H)
-                ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, n, t.first)
+                e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
+                ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, N, T, t.first)
                 factorizations[w] = factorizations[w] + 1
             if ok == 0:
                 status[w] = FAILED
                 return 0
             iterations[w] = it + 1
-            stop, chord = take_step(q, q_trial, t, dq, g, H, w, s, s, 1, e0, gdq, dmax, g_abs, threshold, chord, reuse,
+            stop, chord = take_step(q, q_trial, t, dq, g, H, w, s, s, T, e0, gdq, dmax, g_abs, threshold, chord, reuse,
                                     d_prev, max_line_search, converged)  # fmt: skip
             if stop != 0:
                 return 0
@@ -446,17 +472,16 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     @wp.kernel(**options)
     def newton(
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
-        g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype), dq: wp.array2d(dtype=dtype),
-        n: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
+        g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
+        T: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
         status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
         factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """Thread s solves worlds s, s + T, s + 2T, … (T threads, T = the scratch width): the scratch
         of a thread is reused world after world, so it stays in cache however many worlds there are."""
         s = wp.tid()
-        T = g.shape[1]
         for w in range(s, q.shape[0], T):
-            solve_world(q, q_trial, t, g, H, dq, w, s, n, threshold, max_iterations, max_line_search, reuse, status,
+            solve_world(q, q_trial, t, g, H, dq, w, s, T, threshold, max_iterations, max_line_search, reuse, status,
                         iterations, factorizations, converged)  # fmt: skip
 
     if scratch == "global":

@@ -201,8 +201,8 @@ class Simulator:
     def memory_bytes(self) -> dict:
         """Device memory [bytes] of the simulator's own arrays: "model", "state", "solver" and
         "total" (kernels' code and a captured graph not included)."""
-        def size(obj):
-            return sum(a.capacity for a in vars(obj).values() if isinstance(a, wp.array))
+        def size(obj):  # arrays that own their memory (views, such as the solver's flat scratch, do not)
+            return sum(a.capacity for a in vars(obj).values() if isinstance(a, wp.array) and a.deleter is not None)
 
         out = {"model": size(self.model), "state": size(self.state), "solver": size(self.solver)}
         out["total"] = sum(out.values())

@@ -56,6 +56,11 @@ class SolverSettings:
     retract: bool = True
 
 
+def _flat(a: wp.array) -> wp.array:
+    """A contiguous array's memory as a 1-D array of its scalars (a view: ``a`` keeps it alive)."""
+    return wp.array(ptr=a.ptr, dtype=a.dtype, shape=(a.size,), device=a.device)
+
+
 def default_threads(device, num_worlds: int) -> int:
     """Threads of the fused step.  On a GPU at most 256 per SM: measured on an H100
     (``python -m abd_gym.bench threads``), 131,072 cart-poles step 3% slower on 33,792 threads
@@ -123,6 +128,10 @@ class Solver:
         self.dq = wp.zeros((n, T), dtype=dt_, device=dev)
         # the staged step's Cholesky factors, kept for an iteration that reuses them (H is reassembled)
         self.L = None if settings.fused else wp.zeros((n, n, T), dtype=dt_, device=dev)
+        # the same memory as flat 1-D arrays, which the factor, the solves and the fused step index
+        # (solver_kernels: one multiply per access instead of three, and no negative-index tests)
+        self.g_flat, self.H_flat, self.dq_flat = (_flat(a) for a in (self.g, self.H, self.dq))
+        self.L_flat = None if self.L is None else _flat(self.L)
         self.chord = wp.zeros(W, dtype=wp.int32, device=dev)
         self.d_prev = wp.zeros(W, dtype=dt_, device=dev)
         self.gdq, self.dq_max, self.alpha, self.g_abs = (wp.zeros(W, dtype=dt_, device=dev) for _ in range(4))
@@ -207,7 +216,7 @@ class Solver:
                 block_dim=self.block_dim, device=m.device)  # fmt: skip
             return
         wp.launch(kernel, dim=self.threads, inputs=[
-            state.q, self.q_trial, terms, self.g, self.H, self.dq, m.num_dofs, m.dtype(s.tol * self.h),
+            state.q, self.q_trial, terms, self.g_flat, self.H_flat, self.dq_flat, self.threads, m.dtype(s.tol * self.h),
             s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
             state.factorizations, state.converged], device=m.device, block_dim=self.block_dim)  # fmt: skip
 
@@ -246,8 +255,8 @@ class Solver:
         self.g.zero_()
         self.H.zero_()
         self.assemble(state, state.q, self.E, self.active, HESSIAN)
-        wp.launch(k["newton_direction"], dim=W, inputs=[self.H, self.L, self.g, m.num_dofs, m.first, self.active, self.chord,
-                                                        self.dq, self.gdq, self.dq_max, self.g_abs, state.status,
+        wp.launch(k["newton_direction"], dim=W, inputs=[self.H_flat, self.L_flat, self.g_flat, m.num_dofs, m.first, self.active,
+                                                        self.chord, self.dq_flat, self.gdq, self.dq_max, self.g_abs, state.status,
                                                         state.factorizations], device=dev)  # fmt: skip
         self.alpha.fill_(1.0)
         wp.copy(self.searching, self.active)

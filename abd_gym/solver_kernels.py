@@ -88,113 +88,256 @@ def kernels(dtype, envelope=False):
         d = h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
         q[w, b] = wp.where(bend != 0, retract(qb, d, one, mass[w, b], mc[w, b], 1), qb + d)
 
+    # The Newton scratch of a world (or of a fused thread) is column w of n × n and n × 1 arrays with
+    # one column per world or thread, stored flat: H's entry (i, j) at (i·n + j)·T + w, g's entry i
+    # at i·T + w (T columns; neighbouring threads read neighbouring words).  Flat 1-D indices, kept
+    # as running offsets in the loops: with 3-D indexing every access cost three multiplies and
+    # three negative-index tests, half of all the instructions the fused step executed (Nsight
+    # Compute, cart-pole, H100).
+
     @wp.func
-    def cholesky(H: wp.array3d(dtype=dtype), w: int, n: int, first: wp.array(dtype=wp.int32)):
-        """H = L Lᵀ in place on H's lower triangle (column w of the world-minor arrays); 0 when H is
-        not positive definite.  With ``envelope``, row i starts at column first[i]: L has H's
-        envelope (Cholesky fills nothing left of a row's first non-zero), so the skipped products
-        are exact zeros and the result is the dense one."""
+    def cholesky_envelope(H: wp.array(dtype=dtype), w: int, n: int, T: int, first: wp.array(dtype=wp.int32)):
+        """H = L Lᵀ in place on H's lower triangle (flat, column w of T); 0 when H is not positive
+        definite.  Row i starts at column first[i]: L has H's envelope (Cholesky fills nothing left
+        of a row's first non-zero), so the skipped products are exact zeros and the result is the
+        dense one."""
+        R = n * T
         for j in range(n):
-            fj = int(0)
-            if wp.static(envelope):
-                fj = first[j]
-            s = H[j, j, w]
+            fj = first[j]
+            rj = j * R + w
+            s = H[rj + j * T]
             for k in range(fj, j):
-                s -= H[j, k, w] * H[j, k, w]
+                a = H[rj + k * T]
+                s -= a * a
             if not (s > zero) or not wp.isfinite(s):
                 return 0
             d = wp.sqrt(s)
-            H[j, j, w] = d
+            H[rj + j * T] = d
             for i in range(j + 1, n):
-                fi = int(0)
-                if wp.static(envelope):
-                    fi = first[i]
+                fi = first[i]
                 if fi <= j:
-                    t = H[i, j, w]
+                    ri = i * R + w
+                    t = H[ri + j * T]
                     for k in range(wp.max(fi, fj), j):
-                        t -= H[i, k, w] * H[j, k, w]
-                    H[i, j, w] = t / d
+                        t -= H[ri + k * T] * H[rj + k * T]
+                    H[ri + j * T] = t / d
         return 1
 
     @wp.func
-    def factored_solve(L: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int,
-                       n: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
-        """dq = −(L Lᵀ)⁻¹g by two triangular solves (n² multiply-adds, against n³/6 for the factor).
+    def cholesky_dense(H: wp.array(dtype=dtype), w: int, n: int, T: int):
+        """H = L Lᵀ in place on H's lower triangle (flat, column w of T); 0 when H is not positive
+        definite.  Left-looking, four rows of a column at a time: each L[j, k] loaded serves four
+        rows, and the four sums are independent, so four loads are in flight where a one-row loop
+        waits for each (GPU threads issue in order)."""
+        R = n * T
+        for j in range(n):
+            rj = j * R + w
+            s0 = H[rj + j * T]
+            s1 = zero
+            s2 = zero
+            s3 = zero
+            p = rj
+            k = int(0)
+            while k + 4 <= j:
+                a0 = H[p]
+                a1 = H[p + T]
+                a2 = H[p + 2 * T]
+                a3 = H[p + 3 * T]
+                s0 -= a0 * a0
+                s1 -= a1 * a1
+                s2 -= a2 * a2
+                s3 -= a3 * a3
+                p += 4 * T
+                k += 4
+            while k < j:
+                a0 = H[p]
+                s0 -= a0 * a0
+                p += T
+                k += 1
+            s = (s0 + s1) + (s2 + s3)
+            if not (s > zero) or not wp.isfinite(s):
+                return 0
+            d = wp.sqrt(s)
+            H[rj + j * T] = d
+            i = j + 1
+            while i + 4 <= n:
+                r0 = i * R + w
+                t0 = H[r0 + j * T]
+                t1 = H[r0 + R + j * T]
+                t2 = H[r0 + 2 * R + j * T]
+                t3 = H[r0 + 3 * R + j * T]
+                pj = rj
+                p0 = r0
+                for k in range(j):
+                    b = H[pj]
+                    t0 -= H[p0] * b
+                    t1 -= H[p0 + R] * b
+                    t2 -= H[p0 + 2 * R] * b
+                    t3 -= H[p0 + 3 * R] * b
+                    pj += T
+                    p0 += T
+                H[r0 + j * T] = t0 / d
+                H[r0 + R + j * T] = t1 / d
+                H[r0 + 2 * R + j * T] = t2 / d
+                H[r0 + 3 * R + j * T] = t3 / d
+                i += 4
+            while i < n:
+                r0 = i * R + w
+                t0 = H[r0 + j * T]
+                for k in range(j):
+                    t0 -= H[r0 + k * T] * H[rj + k * T]
+                H[r0 + j * T] = t0 / d
+                i += 1
+        return 1
+
+    @wp.func
+    def cholesky(H: wp.array(dtype=dtype), w: int, n: int, T: int, first: wp.array(dtype=wp.int32)):
+        """H = L Lᵀ in place (flat, column w of T; ``envelope``: within Model.first's envelope); 0
+        when H is not positive definite."""
+        if wp.static(envelope):
+            return cholesky_envelope(H, w, n, T, first)
+        return cholesky_dense(H, w, n, T)
+
+    @wp.func
+    def solve_dense(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, n: int,
+                    T: int):  # fmt: skip
+        """dq = −(L Lᵀ)⁻¹g, n a multiple of 4 (12 per body): each substitution runs four rows at a
+        time (as cholesky_dense, for loads in flight), the known part first, then the 4 × 4
+        triangle of the four rows themselves."""
+        R = n * T
+        i = int(0)
+        while i < n:  # L y = −g
+            r0 = i * R + w
+            r1 = r0 + R
+            r2 = r1 + R
+            r3 = r2 + R
+            t0 = -g[i * T + w]
+            t1 = -g[(i + 1) * T + w]
+            t2 = -g[(i + 2) * T + w]
+            t3 = -g[(i + 3) * T + w]
+            pk = w
+            for k in range(i):
+                y = dq[pk]
+                c = k * T
+                t0 -= L[r0 + c] * y
+                t1 -= L[r1 + c] * y
+                t2 -= L[r2 + c] * y
+                t3 -= L[r3 + c] * y
+                pk += T
+            c = i * T
+            y0 = t0 / L[r0 + c]
+            y1 = (t1 - L[r1 + c] * y0) / L[r1 + c + T]
+            y2 = (t2 - L[r2 + c] * y0 - L[r2 + c + T] * y1) / L[r2 + c + 2 * T]
+            y3 = (t3 - L[r3 + c] * y0 - L[r3 + c + T] * y1 - L[r3 + c + 2 * T] * y2) / L[r3 + c + 3 * T]
+            dq[c + w] = y0
+            dq[c + T + w] = y1
+            dq[c + 2 * T + w] = y2
+            dq[c + 3 * T + w] = y3
+            i += 4
+        i = n - 4
+        while i >= 0:  # Lᵀ x = y, rows i + 3 … i
+            c = i * T
+            t0 = dq[c + w]
+            t1 = dq[c + T + w]
+            t2 = dq[c + 2 * T + w]
+            t3 = dq[c + 3 * T + w]
+            pk = (i + 4) * R + c + w  # L[k, i], k = i + 4, …
+            for k in range(i + 4, n):
+                x = dq[k * T + w]
+                t0 -= L[pk] * x
+                t1 -= L[pk + T] * x
+                t2 -= L[pk + 2 * T] * x
+                t3 -= L[pk + 3 * T] * x
+                pk += R
+            r0 = i * R + c + w  # L[i, i]
+            r1 = r0 + R
+            r2 = r1 + R
+            r3 = r2 + R
+            x3 = t3 / L[r3 + 3 * T]
+            x2 = (t2 - L[r3 + 2 * T] * x3) / L[r2 + 2 * T]
+            x1 = (t1 - L[r2 + T] * x2 - L[r3 + T] * x3) / L[r1 + T]
+            x0 = (t0 - L[r1] * x1 - L[r2] * x2 - L[r3] * x3) / L[r0]
+            dq[c + w] = x0
+            dq[c + T + w] = x1
+            dq[c + 2 * T + w] = x2
+            dq[c + 3 * T + w] = x3
+            i -= 4
+
+    @wp.func
+    def factored_solve(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int,
+                       n: int, T: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
+        """dq = −(L Lᵀ)⁻¹g by two triangular solves (n² multiply-adds, against n³/6 for the factor);
+        flat arrays, column w of T.
 
         Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when the result is not finite.
         """
-        for i in range(n):  # L y = −g
-            fi = int(0)
-            if wp.static(envelope):
-                fi = first[i]
-            t = -g[i, w]
-            for k in range(fi, i):
-                t -= L[i, k, w] * dq[k, w]
-            dq[i, w] = t / L[i, i, w]
+        if wp.static(envelope):
+            R = n * T
+            for i in range(n):  # L y = −g
+                t = -g[i * T + w]
+                for k in range(first[i], i):
+                    t -= L[i * R + k * T + w] * dq[k * T + w]
+                dq[i * T + w] = t / L[i * R + i * T + w]
+            for ii in range(n):  # Lᵀ x = y by columns of Lᵀ (rows of L: their envelope)
+                i = n - 1 - ii
+                xi = dq[i * T + w] / L[i * R + i * T + w]
+                dq[i * T + w] = xi
+                for k in range(first[i], i):
+                    dq[k * T + w] = dq[k * T + w] - L[i * R + k * T + w] * xi
+        else:
+            solve_dense(L, g, dq, w, n, T)
         gdq = zero
         dmax = zero
         g_abs = zero
-        if wp.static(envelope):
-            for ii in range(n):  # Lᵀ x = y by columns of Lᵀ (rows of L: their envelope)
-                i = n - 1 - ii
-                xi = dq[i, w] / L[i, i, w]
-                dq[i, w] = xi
-                for k in range(first[i], i):
-                    dq[k, w] = dq[k, w] - L[i, k, w] * xi
-            for i in range(n):
-                gdq += g[i, w] * dq[i, w]
-                dmax = wp.max(dmax, wp.abs(dq[i, w]))
-                g_abs += wp.abs(g[i, w])
-        else:
-            for ii in range(n):  # Lᵀ x = y
-                i = n - 1 - ii
-                t = dq[i, w]
-                for k in range(i + 1, n):
-                    t -= L[k, i, w] * dq[k, w]
-                dq[i, w] = t / L[i, i, w]
-                gdq += g[i, w] * dq[i, w]
-                dmax = wp.max(dmax, wp.abs(dq[i, w]))
-                g_abs += wp.abs(g[i, w])
+        p = w
+        for i in range(n):
+            gi = g[p]
+            di = dq[p]
+            gdq += gi * di
+            dmax = wp.max(dmax, wp.abs(di))
+            g_abs += wp.abs(gi)
+            p += T
         if not wp.isfinite(gdq):
             return 0, zero, zero, zero
         return 1, gdq, dmax, g_abs
 
     @wp.func
-    def cholesky_solve(H: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), dq: wp.array2d(dtype=dtype), w: int,
-                       n: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
-        """dq = −H⁻¹g for world w by Cholesky, in place on H's lower triangle (world-minor arrays).
+    def cholesky_solve(H: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int,
+                       n: int, T: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
+        """dq = −H⁻¹g for world w by Cholesky, in place on H's lower triangle (flat, column w of T).
 
         Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when H is not positive definite or the result not finite.
         """
-        if cholesky(H, w, n, first) == 0:
+        if cholesky(H, w, n, T, first) == 0:
             return 0, zero, zero, zero
-        return factored_solve(H, g, dq, w, n, first)
+        return factored_solve(H, g, dq, w, n, T, first)
 
     @wp.kernel(module="unique")
     def newton_direction(
-        H: wp.array3d(dtype=dtype), L: wp.array3d(dtype=dtype), g: wp.array2d(dtype=dtype), n: int,
+        H: wp.array(dtype=dtype), L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), n: int,
         first: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), chord: wp.array(dtype=wp.int32),
-        dq: wp.array2d(dtype=dtype), gdq: wp.array(dtype=dtype), dq_max: wp.array(dtype=dtype),
+        dq: wp.array(dtype=dtype), gdq: wp.array(dtype=dtype), dq_max: wp.array(dtype=dtype),
         g_abs: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """Newton direction of every active world, from H's Cholesky factor (kept in L) or, for a
         world whose iteration reuses the last factor (chord), from L as it is; a world whose
-        system is bad is flagged."""
+        system is bad is flagged.  Flat scratch, one column per world."""
         w = wp.tid()
+        T = active.shape[0]
         if active[w] == 0:
             return
         ok = int(1)
         if chord[w] == 0:
             factorizations[w] = factorizations[w] + 1
-            ok = cholesky(H, w, n, first)
+            ok = cholesky(H, w, n, T, first)
             for i in range(n):
                 for j in range(i + 1):
-                    L[i, j, w] = H[i, j, w]
+                    L[(i * n + j) * T + w] = H[(i * n + j) * T + w]
         s = zero
         m = zero
         ga = zero
         if ok != 0:
-            ok, s, m, ga = factored_solve(L, g, dq, w, n, first)
+            ok, s, m, ga = factored_solve(L, g, dq, w, n, T, first)
         if ok == 0:
             status[w] = FAILED
             active[w] = 0

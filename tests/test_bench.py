@@ -92,3 +92,19 @@ def test_equal_error_interpolates_mujoco_warp_in_simulated_time():
     assert got[2]["mujoco_warp_world_seconds_per_second"] == pytest.approx(1e5)
     assert got[0]["ratio"] == pytest.approx(5e4 / (5e4 * 2**0.5), rel=1e-6)
     assert equal_error(ours) == []  # without MuJoCo Warp rows: nothing to compare
+
+
+def test_memory_counts_each_allocation_once():
+    """memory_bytes counts arrays that own memory: the solver's flat views of its scratch (the same
+    memory as g, H and Δq) add nothing."""
+    import warp as wp
+
+    from abd_gym import mechanisms
+    from abd_gym.simulator import Simulator
+
+    sim = Simulator(mechanisms.double_pendulum(), num_worlds=4)
+    s = sim.solver
+    assert s.H_flat.ptr == s.H.ptr and s.H_flat.size == s.H.size
+    owned = {a.ptr: a.capacity for a in vars(s).values() if isinstance(a, wp.array) and a.deleter is not None}
+    assert sim.memory_bytes()["solver"] == sum(owned.values())
+    assert s.H.ptr in owned and s.H_flat.deleter is None
