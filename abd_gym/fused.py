@@ -284,7 +284,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 j = t.pri_ids[k]
                 ej, gi, gj, hii, hij, hjj = prismatic_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.c_a[w, j], t.c_b[w, j],
                                                            t.t_a[w, j], t.t_b[w, j], t.n_a[w, j], t.n_b[w, j], t.b_a[w, j],
-                                                           t.b_b[w, j], t.K[w, j], derivs)  # fmt: skip
+                                                           t.b_b[w, j], t.K[w, j], derivs,
+                                                           wp.where(t.dof[t.body_a[j]] >= 0, 1, 0),
+                                                           wp.where(t.dof[t.body_b[j]] >= 0, 1, 0))  # fmt: skip
                 e += ej
                 if derivs != 0:
                     put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)

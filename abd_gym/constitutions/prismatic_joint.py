@@ -54,8 +54,11 @@ def kernel(dtype):
     @wp.func
     def prismatic_eval(
         qi: vec12, qj: vec12, ci: vec3, cj: vec3, ti: vec3, tj: vec3, ni: vec3, nj: vec3, bi: vec3, bj: vec3,
-        kk: dtype, derivs: int,
+        kk: dtype, derivs: int, free_i: int, free_j: int,
     ):  # fmt: skip
+        """(E, g_i, g_j, H_ii, H_ij, H_jj).  ``free_i`` / ``free_j`` 0: that body has no unknowns
+        (the rail a slider rides on), so its blocks, which nobody reads, are left zero (for a
+        cart on a fixed rail: two thirds of the slide rows' outer products)."""
         d = point(qj, cj) - point(qi, ci)
         Ti = direction(qi, ti)
         Tj = direction(qj, tj)
@@ -91,16 +94,22 @@ def kernel(dtype):
                     ri = -JT(ci, skew_row(Tj, m), one)
                     rj = JT(cj, skew_row(Tj, m), one) + JT(tj, skew_row(-d, m), zero)
                 kri = kk * ri
-                hii += wp.outer(kri, ri)
-                hij += wp.outer(kri, rj)
-                hjj += wp.outer(kk * rj, rj)
+                if free_i != 0:
+                    hii += wp.outer(kri, ri)
+                    if free_j != 0:
+                        hij += wp.outer(kri, rj)
+                if free_j != 0:
+                    hjj += wp.outer(kk * rj, rj)
         uni = vec4(zero, ni[0], ni[1], ni[2])
         unj = vec4(zero, nj[0], nj[1], nj[2])
         ubi = vec4(zero, bi[0], bi[1], bi[2])
         ubj = vec4(zero, bj[0], bj[1], bj[2])
-        hii += kron3(kk * (wp.outer(uni, uni) + wp.outer(ubi, ubi)))
-        hij += kron3(-kk * (wp.outer(uni, unj) + wp.outer(ubi, ubj)))
-        hjj += kron3(kk * (wp.outer(unj, unj) + wp.outer(ubj, ubj)))
+        if free_i != 0:
+            hii += kron3(kk * (wp.outer(uni, uni) + wp.outer(ubi, ubi)))
+        if free_i != 0 and free_j != 0:
+            hij += kron3(-kk * (wp.outer(uni, unj) + wp.outer(ubi, ubj)))
+        if free_j != 0:
+            hjj += kron3(kk * (wp.outer(unj, unj) + wp.outer(ubj, ubj)))
         return e, gi, gj, hii, hij, hjj
 
     @wp.kernel(module="unique")
@@ -119,7 +128,8 @@ def kernel(dtype):
         bi = body_a[j]
         bj = body_b[j]
         e, gi, gj, hii, hij, hjj = prismatic_eval(q[w, bi], q[w, bj], c_a[w, j], c_b[w, j], t_a[w, j], t_b[w, j],
-                                                  n_a[w, j], n_b[w, j], b_a[w, j], b_b[w, j], K[w, j], derivs)  # fmt: skip
+                                                  n_a[w, j], n_b[w, j], b_a[w, j], b_b[w, j], K[w, j], derivs,
+                                                  wp.where(dof[bi] >= 0, 1, 0), wp.where(dof[bj] >= 0, 1, 0))  # fmt: skip
         add_energy(E, w, col, e)
         if derivs != 0:
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
