@@ -54,6 +54,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     o = ops(dtype)
     vec3, vec12, mat33, mat12, mat44 = o.vec3, o.vec12, o.mat33, o.mat12, o.mat44
     body_eval = affine_body.kernels(dtype).body_eval
+    hessian_parts, a_block = affine_body.kernels(dtype).hessian_parts, affine_body.kernels(dtype).a_block
     retract_body = affine_body.kernels(dtype).retract
     point_eval_kron = _point_joint.kernel(dtype).eval_kron
     kron3, kron_index = o.kron3, o.kron_index
@@ -131,6 +132,39 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                         for r in range(12):
                             H[p] = H[p] + m[r, c]
                             p += B
+
+    if tiled:
+
+        @wp.func
+        def put_body(H: Any, s: int, B: int, o: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype):
+            """Unused: a tiled world adds body_eval's 12 × 12 block."""
+            pass
+
+    else:
+
+        @wp.func
+        def put_body(H: Any, s: int, B: int, o: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype):
+            """Body o's Hessian (affine_body.body_eval's h) added to the lower triangle from its parts,
+            without building the 12 × 12 matrix in the thread's local memory: m on the translation
+            diagonal, the first moments c below it, and the A rows' 3 × 3 blocks (a_block), 57
+            entries where the dense block's lower triangle has 78."""
+            if o >= 0:
+                Rp, ata = hessian_parts(qb)
+                for r in range(3):
+                    p = ((o + r) * N + o + r) * B + s
+                    H[p] = H[p] + m
+                    for a in range(3):
+                        p = ((o + 3 + 3 * r + a) * N + o + r) * B + s
+                        H[p] = H[p] + c[a]
+                for kk in range(3):
+                    for ll in range(kk + 1):
+                        blk = a_block(qb, kk, ll, Rp, ata, ks, S)
+                        for a in range(3):
+                            p = ((o + 3 + 3 * kk + a) * N + o + 3 + 3 * ll) * B + s
+                            for bb in range(3):
+                                if kk != ll or bb <= a:
+                                    H[p] = H[p] + blk[a, bb]
+                                p += B
 
     if tiled:
 
@@ -257,12 +291,20 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         h2 = hw * hw
         for k in range(t.free.shape[0]):
             b = t.free[k]
-            e_in, e_or, f, hb = body_eval(q[qr, b], t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], t.kv[w, b] * h2, derivs)
+            qb = q[qr, b]
+            ks = t.kv[w, b] * h2
+            d_body = derivs
+            if wp.static(not tiled) and derivs == HESSIAN:
+                d_body = GRADIENT  # the Hessian goes straight into H (put_body)
+            e_in, e_or, f, hb = body_eval(qb, t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], ks, d_body)
             e += e_in + e_or
             if derivs != 0:
                 put_grad(g, s, B, t.dof[b], f)
                 if derivs == HESSIAN:
-                    put_block(H, s, B, t.dof[b], t.dof[b], hb)
+                    if wp.static(tiled):
+                        put_block(H, s, B, t.dof[b], t.dof[b], hb)
+                    else:
+                        put_body(H, s, B, t.dof[b], qb, t.mass[w, b], t.mc[w, b], t.S[w, b], ks)
         if wp.static(has_rev):
             for k in range(t.rev_ids.shape[0]):
                 j = t.rev_ids[k]
@@ -486,8 +528,17 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             solve_world(q, q_trial, t, g, H, dq, w, s, T, threshold, max_iterations, max_line_search, reuse, status,
                         iterations, factorizations, converged)  # fmt: skip
 
+    @wp.kernel(**options)
+    def assemble_system(q: wp.array2d(dtype=vec12), t: Terms, derivs: int, g: wp.array(dtype=dtype),
+                        H: wp.array(dtype=dtype), E: wp.array(dtype=dtype)):  # fmt: skip
+        """The incremental potential of world w and, per ``derivs``, its gradient and Hessian (lower
+        triangle) as the fused step assembles them, into scratch column w of the zeroed flat g, H
+        (one column per world): for checking the fused assembly against the staged one."""
+        w = wp.tid()
+        E[w] = assemble(q, w, w, w, q.shape[0], derivs, t, g, H)
+
     if scratch == "global":
-        return newton, Terms
+        return newton, Terms, assemble_system
 
     @wp.func
     def solve_world_tiled(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, H: Any, g: Any,
@@ -557,5 +608,5 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         solve_world_tiled(q, q_trial, t, H, g, y, Hz, gz, w, lane, B, threshold, max_iterations, max_line_search,
                           reuse, status, iterations, factorizations, converged)  # fmt: skip
 
-    return newton_tiled, Terms
+    return newton_tiled, Terms, None
 

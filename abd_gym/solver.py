@@ -170,6 +170,23 @@ class Solver:
         """(T, n, n) copy of the last assembled Hessian (before factorisation)."""
         return np.moveaxis(self.H.numpy(), -1, 0).copy()
 
+    def fused_system(self, state, derivs: int = HESSIAN):
+        """(E (W,), g (W, n), H (W, n, n) lower triangle) of the incremental potential at state.q as
+        the fused step assembles them (global scratch, one thread per world): for checking it
+        against the staged kernels' ``hessian()``.  Uses the solver's scratch (g, H)."""
+        m = self.model
+        if self.threads != m.num_worlds or self.tiled:
+            raise RuntimeError("fused_system needs the fused step's global scratch with one thread per world")
+        if self._fused is None:
+            self._fused = self._build_fused(state)
+        _, terms, assemble_system = self._fused
+        self.g.zero_()
+        self.H.zero_()
+        E = wp.zeros(m.num_worlds, dtype=m.dtype, device=m.device)
+        wp.launch(assemble_system, dim=m.num_worlds, inputs=[state.q, terms, int(derivs), self.g_flat, self.H_flat, E],
+                  device=m.device)  # fmt: skip
+        return E.numpy(), self.gradient(), self.hessian()
+
     def energies(self, state) -> dict:
         """Each term's own physical energy [J] per world (see Simulator.energies)."""
         self.E_report.zero_()
@@ -208,7 +225,7 @@ class Solver:
         m, s = self.model, self.settings
         if self._fused is None:
             self._fused = self._build_fused(state)
-        kernel, terms = self._fused
+        kernel, terms, _ = self._fused
         if self.tiled:
             wp.launch_tiled(kernel, dim=[m.num_worlds], inputs=[
                 state.q, self.q_trial, terms, m.dtype(s.tol * self.h), s.max_iterations, s.max_line_search,
@@ -230,7 +247,7 @@ class Solver:
         has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
                len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
         st = self.settings
-        kernel, Terms = fused_kernel(m.dtype, *has, scratch=st.scratch, n=m.num_dofs, max_registers=st.max_registers,
+        kernel, Terms, assemble_system = fused_kernel(m.dtype, *has, scratch=st.scratch, n=m.num_dofs, max_registers=st.max_registers,
                                      smem_spilling=st.smem_spilling, envelope=self.envelope,
                                      retract=bool(st.retract))  # fmt: skip
         t = Terms()
@@ -246,7 +263,7 @@ class Solver:
         t.rlim_lo, t.rlim_up, t.rlim_s = m.limit_params[REVOLUTE]
         t.plim_lo, t.plim_up, t.plim_s = m.limit_params[PRISMATIC]
         t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
-        return kernel, t
+        return kernel, t, assemble_system
 
     def _newton_iteration(self, state):
         m, k, dev, s = self.model, self.k, self.model.device, self.settings

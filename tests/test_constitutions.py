@@ -764,6 +764,25 @@ def test_warp_matches_numpy(sims, ref, dtype, rtol, case_name):
                 assert sign * (x - (up if w == 0 else lo)) > 0.02, (k, w, x)
 
 
+@pytest.mark.parametrize("case_name", list(CASES))
+def test_fused_assembly_matches_staged(sims, ref, case_name):
+    """The fused step's assembly (its own Hessian puts: a body's block from its parts, point joints'
+    4 × 4 Kronecker factors, a fixed body's blocks skipped) gives the staged kernels' energy,
+    gradient and lower-triangular Hessian, every constitution with limits and drives active or not."""
+    sim = sims["float64"]
+    case = make_case(ref, np.random.default_rng(36 + sorted(CASES).index(case_name)), **CASES[case_name])
+    load(sim, case)
+    E, g, H = assemble(sim)
+    for derivs in (HESSIAN, GRADIENT):
+        Ef, gf, Hf = sim.solver.fused_system(sim.state, derivs)
+        np.testing.assert_allclose(Ef, E.sum(axis=1), rtol=1e-12)
+        np.testing.assert_allclose(gf, g, rtol=1e-11, atol=1e-11 * np.abs(g).max())
+        if derivs == HESSIAN:
+            np.testing.assert_allclose(Hf, np.tril(H), rtol=1e-11, atol=1e-11 * np.abs(H).max())
+        else:
+            assert not Hf.any()
+
+
 def test_gradient_only_assembly(sims, ref):
     """derivs=GRADIENT (an iteration that reuses its Cholesky factor) adds the same energies and
     gradient as HESSIAN, and nothing to H, for every constitution with its limits active."""
@@ -987,7 +1006,7 @@ def test_warp_bdf2_uses_its_effective_step(scene):
 def test_prismatic_joint_to_a_fixed_body(rail_first):
     """A slider between a fixed rail and a free block (rail as body i or as body j): the Warp
     evaluator leaves the fixed body's blocks out, and the free body's gradient and Hessian block
-    match the float64 reference's."""
+    match the float64 reference's, staged and fused."""
     scene = ag.Scene(gravity=(0.0, 0.0, 0.0))
     rail = scene.add_body(ag.Box(half_extents=(1.0, 0.02, 0.02)), mass=1.0, fixed=True)
     block = scene.add_body(ag.Box(half_extents=(0.1, 0.1, 0.1)), mass=0.7, position=(0.2, 0.0, 0.0))
@@ -1011,3 +1030,9 @@ def test_prismatic_joint_to_a_fixed_body(rail_first):
         assert E[w, s.cols["prismatic_joint"]] == pytest.approx(e, rel=1e-12)
         np.testing.assert_allclose(g[w], g_ref[o:o + 12], rtol=1e-10, atol=1e-12 * np.abs(g_ref).max())
         np.testing.assert_allclose(H[w], H_ref[o:o + 12, o:o + 12], rtol=1e-10, atol=1e-12 * np.abs(H_ref).max())
+    # the fused step's assembly of the whole potential agrees with the staged one
+    E_all, g_all, H_all = assemble(sim)
+    Ef, gf, Hf = s.fused_system(sim.state)
+    np.testing.assert_allclose(Ef, E_all.sum(axis=1), rtol=1e-12)
+    np.testing.assert_allclose(gf, g_all, rtol=1e-11, atol=1e-12 * np.abs(g_all).max())
+    np.testing.assert_allclose(Hf, np.tril(H_all), rtol=1e-11, atol=1e-12 * np.abs(H_all).max())

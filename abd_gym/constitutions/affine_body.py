@@ -98,6 +98,29 @@ def kernels(dtype):
                 and wp.determinant(R) >= z)  # fmt: skip
 
     @wp.func
+    def hessian_parts(qb: vec12):
+        """(R⁺, AᵀA) of the orthogonality Hessian: R⁺ = R = AAᵀ − I where R ⪰ 0, else 0 (its
+        Gauss–Newton part, PSD)."""
+        A = wp.matrix_from_rows(row(qb, 0), row(qb, 1), row(qb, 2))
+        R = A * wp.transpose(A) - wp.identity(3, dtype)
+        Rp = mat33()
+        if is_psd3(R):
+            Rp = R
+        return Rp, wp.transpose(A) * A
+
+    @wp.func
+    def a_block(qb: vec12, kk: int, ll: int, Rp: mat33, ata: mat33, ks: dtype, s: mat33):
+        """Block (k, l) of the Hessian's A rows: 4κ(a_l a_kᵀ + R⁺_kl I + δ_kl AᵀA) + δ_kl S
+        (orthogonality, then the mass matrix's second moments S)."""
+        blk = wp.outer(row(qb, ll), row(qb, kk)) + Rp[kk, ll] * wp.identity(3, dtype)
+        if kk == ll:
+            blk = blk + ata
+        blk = (four * ks) * blk
+        if kk == ll:
+            blk = blk + s
+        return blk
+
+    @wp.func
     def body_eval(qb: vec12, qt: vec12, m: dtype, c: vec3, s: mat33, ks: dtype, derivs: int):
         """Inertia and (scaled) orthogonality of one body: energies, gradient, PSD Hessian."""
         d = qb - qt
@@ -128,25 +151,15 @@ def kernels(dtype):
         if derivs == GRADIENT:
             return e_inertia, e_ortho, f, h
         # Hessian: mass matrix plus the PSD orthogonality blocks
-        Rp = mat33()
-        if is_psd3(R):
-            Rp = R
-        ata = wp.transpose(A) * A
+        Rp, ata = hessian_parts(qb)
         for r in range(3):
             h[r, r] = m
             for a in range(3):
                 h[r, 3 + 3 * r + a] = c[a]
                 h[3 + 3 * r + a, r] = c[a]
         for kk in range(3):
-            ak = row(qb, kk)
             for ll in range(3):
-                al = row(qb, ll)
-                blk = wp.outer(al, ak) + Rp[kk, ll] * wp.identity(3, dtype)
-                if kk == ll:
-                    blk = blk + ata
-                blk = (four * ks) * blk
-                if kk == ll:
-                    blk = blk + s
+                blk = a_block(qb, kk, ll, Rp, ata, ks, s)
                 for a in range(3):
                     for bb in range(3):
                         h[3 + 3 * kk + a, 3 + 3 * ll + bb] = blk[a, bb]
@@ -235,7 +248,8 @@ def kernels(dtype):
                 out[3 + 3 * r + l] = out[3 + 3 * r + l] + dA[r, l]
         return out
 
-    return SimpleNamespace(body_terms=body_terms, body_report=body_report, body_eval=body_eval, retract=retract)
+    return SimpleNamespace(body_terms=body_terms, body_report=body_report, body_eval=body_eval, retract=retract,
+                           hessian_parts=hessian_parts, a_block=a_block)
 
 
 # ----------------------------------------------------------------------------- wiring
