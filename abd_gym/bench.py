@@ -197,7 +197,7 @@ def main(argv=None):
         for task in tasks:
             for w in env_worlds:
                 env_sps, raw_sps, physics_sps = env_steps_per_second(task, w, steps, args.device, backend=backend,
-                                                                     raw=True)  # fmt: skip
+                                                                     raw=True, repeat=args.repeat)  # fmt: skip
                 env_rows.append(dict(task=task, num_envs=w, backend=backend, env_steps_per_second=env_sps,
                                      raw_steps_per_second=raw_sps, env_over_raw=env_sps / raw_sps,
                                      physics_steps_per_second=physics_sps, env_over_physics=env_sps / physics_sps))  # fmt: skip

@@ -8,6 +8,7 @@ env's device for the torch backend), after a reset and one warm-up step, autores
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 import gymnasium as gym
@@ -18,8 +19,11 @@ import abd_gym  # noqa: F401 -- registers the abd_gym/ ids
 
 
 def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | None = "cpu", backend: str = "numpy",
-                         seed: int = 0, raw: bool = False, configure=None):  # fmt: skip
-    """World-steps per second (``num_envs × steps / seconds``) of ``steps`` calls of ``step``.
+                         seed: int = 0, raw: bool = False, configure=None, repeat: int = 1):  # fmt: skip
+    """World-steps per second (``num_envs × steps / seconds``) of ``steps`` calls of ``step``; with
+    ``repeat``, the fastest of ``repeat`` consecutive windows of ``steps`` calls in one env (each
+    rate below likewise): on a GPU a small batch's env rate is set by the host's Python, and single
+    windows were seen to vary by 2x from one run to the next.
 
     ``task_id``: a registered id, with or without the ``abd_gym/`` namespace.  ``configure``: called
     with the unwrapped env before its first step (e.g. to change ``env.sim.solver.settings``).  With ``raw``, returns
@@ -68,29 +72,37 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
                 actions = [torch.as_tensor(a, device=u._torch_device) for a in actions]
             env.step(actions[0])  # warm-up: kernel loads, graph capture
             wp.synchronize_device(u.device)
-            if timed:
-                sim.step = timed_step
-            t0 = time.perf_counter()
-            for k in range(steps):
-                env.step(actions[k % len(actions)])
-            wp.synchronize_device(u.device)
-            elapsed = time.perf_counter() - t0
-            sim.step = inner  # the simulator alone, below, runs without the event timers
-            if timed:
-                if len(spans) != steps:
-                    raise RuntimeError(f"expected one sim.step per env step, timed {len(spans)} in {steps} steps")
-                physics = sum(wp.get_event_elapsed_time(a, b) / 1000.0 for a, b in spans) if cuda else sum(spans)
+            elapsed = physics = alone = math.inf
+            for _ in range(repeat):
+                if timed:
+                    spans.clear()
+                    sim.step = timed_step
                 t0 = time.perf_counter()
-                for _ in range(steps):
-                    sim.step(u.frame_skip)
+                for k in range(steps):
+                    env.step(actions[k % len(actions)])
                 wp.synchronize_device(u.device)
-                alone = time.perf_counter() - t0
+                elapsed = min(elapsed, time.perf_counter() - t0)
+                sim.step = inner  # the simulator alone, below, runs without the event timers
+                if timed:
+                    if len(spans) != steps:
+                        raise RuntimeError(f"expected one sim.step per env step, timed {len(spans)} in {steps} steps")
+                    span = sum(wp.get_event_elapsed_time(a, b) / 1000.0 for a, b in spans) if cuda else sum(spans)
+                    physics = min(physics, span)
+            if timed:
+                for _ in range(repeat):
+                    t0 = time.perf_counter()
+                    for _ in range(steps):
+                        sim.step(u.frame_skip)
+                    wp.synchronize_device(u.device)
+                    alone = min(alone, time.perf_counter() - t0)
                 return elapsed, alone, physics
             return elapsed, None, None
         finally:
             sim.step = inner
             env.close()
 
+    if not (isinstance(repeat, int) and repeat >= 1):
+        raise ValueError(f"repeat must be a positive integer, got {repeat!r}")
     elapsed = run(timed=False)[0]
     if not raw:
         return num_envs * steps / elapsed

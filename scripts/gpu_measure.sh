@@ -29,7 +29,7 @@ run() {  # name, then the command; its output to $out/name.log
 }
 for part in $parts; do
     case $part in
-    bench) run bench python3 -m abd_gym.bench --device "$dev" --worlds "$worlds" --envs \
+    bench) run bench python3 -m abd_gym.bench --device "$dev" --worlds "$worlds" --envs --repeat 3 \
         --tasks CartPole-v0,Pendulum-v0,DoublePendulumCart-v0 --out "$out/bench" ;;
     reuse) run reuse python3 -m abd_gym.bench --device "$dev" --worlds "$worlds" --reuse-factor auto,0 \
         --cases cartpole,double_pendulum --out "$out/reuse" ;;

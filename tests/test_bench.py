@@ -108,3 +108,12 @@ def test_memory_counts_each_allocation_once():
     owned = {a.ptr: a.capacity for a in vars(s).values() if isinstance(a, wp.array) and a.deleter is not None}
     assert sim.memory_bytes()["solver"] == sum(owned.values())
     assert s.H.ptr in owned and s.H_flat.deleter is None
+
+
+def test_env_rate_keeps_the_fastest_window():
+    from envs.bench_envs import env_steps_per_second
+
+    rates = env_steps_per_second("CartPole-v0", 2, 3, "cpu", raw=True, repeat=2)
+    assert len(rates) == 3 and all(r > 0 and math.isfinite(r) for r in rates)
+    with pytest.raises(ValueError, match="repeat"):
+        env_steps_per_second("CartPole-v0", 2, 3, "cpu", repeat=0)
