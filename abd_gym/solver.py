@@ -122,6 +122,9 @@ class Solver:
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)
         self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=dt_, device=dev)
+        if n * n * T >= 2**31:  # the flat scratch is indexed with 32-bit integers
+            raise ValueError(f"the Newton scratch of {T} columns of {n} unknowns exceeds 2**31 entries: use the fused "
+                             "step (fused=True, its threads reuse their scratch) or fewer worlds")  # fmt: skip
         # column-minor: thread s reads H[i, j, s] coalesced with its neighbours
         self.g = wp.zeros((n, T), dtype=dt_, device=dev)
         self.H = wp.zeros((n, n, T), dtype=dt_, device=dev)

@@ -78,3 +78,12 @@ def test_threads_must_be_positive():
 
     with pytest.raises(ValueError, match="threads"):
         ag.Simulator(mechanisms.cartpole(), num_worlds=2, threads=0)
+
+
+def test_scratch_beyond_32_bit_indexing_is_refused():
+    """The flat Newton scratch is indexed with 32-bit integers: a staged solver whose n² × worlds
+    passes 2³¹ (a 40-link chain, 480 unknowns, 9,400 worlds) is refused with a clear error."""
+    import pytest
+
+    with pytest.raises(ValueError, match="exceeds 2\\*\\*31"):
+        ag.Simulator(mechanisms.chain(40), num_worlds=9400, fused=False)
