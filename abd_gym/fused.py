@@ -3,9 +3,11 @@ solve in a single kernel launch, world after world when there are more worlds th
 
 Same arithmetic and the same Newton rules as the staged kernels of ``solver.py`` (each
 constitution's per-instance evaluator; point joints' Hessian blocks added from their 4 × 4
-Kronecker factors, effort drives' gradient only, as their blocks are zero; an iteration that
-reuses the last Cholesky factor assembles the gradient only and leaves H, which holds the factor),
-without atomics (a thread owns its scratch column of ``g``/``H``/``dq``), without per-iteration
+Kronecker factors and bodies' from their parts, neither built as a 12 × 12 matrix; effort drives'
+gradient only, as their blocks are zero; an iteration that reuses the last Cholesky factor
+assembles the gradient only and leaves H, which holds the factor; ``Solver.fused_system`` checks
+this assembly against the staged one), without atomics (a thread owns its scratch column of the
+flat ``g``/``H``/``dq``, indexed as in ``solver_kernels``), without per-iteration
 launches, and with the code of absent constitutions compiled out (``wp.static`` on what the scene
 has).  ``Solver(fused=True)`` uses it.
 

@@ -430,14 +430,18 @@ class ABDVectorEnv(VectorEnv):
             sim.set_limit(k, lower=lo_k, upper=up_k, strength=st_k, worlds=idx)
 
     def _reset_worlds(self, idx: np.ndarray, options: dict | None = None):
+        """Reset the worlds idx; returns idx as a backend index array (uploaded once, for the
+        caller's own fills)."""
         options = options or {}
         rng = self.np_random
         self._apply_parameters(idx, rng)
         coords, vels = self._initial_state(len(idx), rng, options)
         self.sim.set_joint_state(coords, vels, worlds=idx)
-        self._fill(self._elapsed, self._index(idx), 0)  # one index upload, no value array
+        idx_b = self._index(idx)
+        self._fill(self._elapsed, idx_b, 0)  # no value array
         self._reset_task(idx, rng, options)
         self._pending_now()[idx] = False
+        return idx_b
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Reset every world, or those in ``options["reset_mask"]``; returns ``(obs, info)``.
@@ -521,8 +525,9 @@ class ABDVectorEnv(VectorEnv):
         # NEXT_STEP: the worlds that ended last step; this step only resets them (read after the
         # physics launch: on a GPU that read waits for the last step's flags, not for this step)
         pending = np.flatnonzero(self._pending_now()) if self.autoreset_mode == AutoresetMode.NEXT_STEP else np.zeros(0, int)
+        p = None
         if len(pending):
-            self._reset_worlds(pending)
+            p = self._reset_worlds(pending)
 
         obs = self._observe_safe()
         failed = self._failed() | ~self.xp.isfinite(obs).all(axis=1)
@@ -535,7 +540,6 @@ class ABDVectorEnv(VectorEnv):
         info_values = self._info(obs)
         has_info = np.ones(N, dtype=bool)  # worlds whose info entries are this step's (not a reset's)
         if len(pending):
-            p = self._index(pending)
             self._fill(reward, p, 0.0)
             self._fill(terminated, p, False)
             self._fill(truncated, p, False)
