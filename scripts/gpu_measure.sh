@@ -9,8 +9,9 @@
 # PARTs: bench (simulator and env tables), reuse (Newton's factor reuse on and off), variants
 # (tolerance, tiled scratch, the cart-pole without limit / drive), envelope (a 10-link chain with
 # the dense and the envelope factor), compare (MuJoCo Warp, up to
-# 131,072 worlds and 1M of ours), accuracy (speed against error, both mechanisms); default: bench
-# reuse variants compare.  Each part takes a few
+# 131,072 worlds and 1M of ours), accuracy (speed against error, both mechanisms), tests (the test
+# files that build their simulators on the default device, run there with ABD_GYM_DEVICE=$DEVICE,
+# and the vector env's CUDA cases; needs pytest on the machine); default: bench reuse variants compare.  Each part takes a few
 # minutes on an H100; keep a device call under its 10-minute limit by splitting the parts.
 set -uo pipefail
 parts=${*:-bench reuse variants compare}
@@ -41,7 +42,11 @@ for part in $parts; do
     accuracy) run accuracy python3 -m abd_gym.bench accuracy --device "$dev" --worlds "${WORLDS:-4096}" \
         --dtypes float32 --tols 1e-5 --reuse-factors auto,0 --cases "${CASES:-double_pendulum,cartpole}" \
         --out "$out/accuracy" ;;
-    *) echo "unknown part $part (bench, reuse, variants, envelope, compare, accuracy)" >&2; exit 2 ;;
+    tests) ABD_GYM_DEVICE=$dev run tests python3 -m pytest -q -p no:cacheprovider tests/test_graph.py tests/test_physics.py \
+        tests/test_hard_cases.py tests/test_integrators.py tests/test_drives.py tests/test_envelope.py \
+        "tests/test_constitutions.py::test_fused_assembly_matches_staged" "tests/test_constitutions.py::test_prismatic_joint_to_a_fixed_body" \
+        "tests/test_vector_env.py::test_torch_backend_matches_numpy_and_stays_on_device" -k "not cpu" ;;
+    *) echo "unknown part $part (bench, reuse, variants, envelope, compare, accuracy, tests)" >&2; exit 2 ;;
     esac
 done
 tmp=$(mktemp -d)
