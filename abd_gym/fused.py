@@ -135,15 +135,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                             H[p] = H[p] + m[r, c]
                             p += B
 
-    if tiled:
-
-        @wp.func
-        def put_body(H: Any, s: int, B: int, o: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype):
-            """Unused: a tiled world adds body_eval's 12 × 12 block."""
-            pass
-
-    else:
-
         @wp.func
         def put_body(H: Any, s: int, B: int, o: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype):
             """Body o's Hessian (affine_body.body_eval's h) added to the lower triangle from its parts,
