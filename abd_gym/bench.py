@@ -111,7 +111,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
         newton_factorizations=float(sim.newton_factorizations().mean()), joint_residual=residual,
         reuse_factor=sim.solver.reuse_factor, envelope=sim.solver.envelope, retract=sim.solver.settings.retract,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
-        threads=sim.solver.threads, block_dim=sim.solver.block_dim,
+        threads=sim.solver.threads, block_dim=sim.solver.block_dim, cpu_workers=len(sim.solver.cpu_chunks),
         memory_bytes_per_world=sim.memory_bytes()["total"] / num_worlds,
         unknowns=sim.model.num_dofs, constitutions=[c.NAME for c in sim.solver.parts],
     )  # fmt: skip
@@ -152,6 +152,8 @@ def main(argv=None):
                     help="comma-separated auto/0/1: factor the Hessian's envelope only (default: when the scene has one)")
     ap.add_argument("--retract", default="1",
                     help="comma-separated 0/1: Newton's guess and trial points turn A along rotations (1) or lines (0)")
+    ap.add_argument("--cpu-workers", default="auto",
+                    help="comma-separated auto/N: concurrent launches of the fused step on the CPU (auto: one per core)")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--out", default="bench_out")
     ap.add_argument("--envs", action="store_true", help="also time each task's vector env")
@@ -168,14 +170,16 @@ def main(argv=None):
             accuracy.append(dict(case=case, dt=args.dt, dtype=args.dtype,
                                  period_error=period_error(case, args.dt, args.dtype, args.device)))  # fmt: skip
         reuse_choice = {"auto": None, "0": False, "1": True}
-        variants = [(k, float(t), int(r), bool(int(sp)), reuse_choice[ru], reuse_choice[en], bool(int(rt)))
+        variants = [(k, float(t), int(r), bool(int(sp)), reuse_choice[ru], reuse_choice[en], bool(int(rt)),
+                     None if cw == "auto" else int(cw))
                     for k in args.scratch.split(",") for t in args.tol.split(",") for r in args.max_registers.split(",")
                     for sp in args.smem_spilling.split(",") for ru in args.reuse_factor.split(",")
-                    for en in args.envelope.split(",") for rt in args.retract.split(",")]  # fmt: skip
-        for (scratch, tol, regs, spill, reuse, env, rt), w in ((v, w) for v in variants for w in worlds):
+                    for en in args.envelope.split(",") for rt in args.retract.split(",")
+                    for cw in args.cpu_workers.split(",")]  # fmt: skip
+        for (scratch, tol, regs, spill, reuse, env, rt, cw), w in ((v, w) for v in variants for w in worlds):
             runs = [time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol, integrator=args.integrator,
                                scratch=scratch, block_dim=args.block_dim, max_registers=regs, smem_spilling=spill,
-                               reuse_factor=reuse, envelope=env, retract=rt,
+                               reuse_factor=reuse, envelope=env, retract=rt, cpu_workers=cw,
                                threads=_thread_count(args.threads, w, args.device))
                     for _ in range(max(args.repeat, 1))]  # fmt: skip
             rows.append(max(runs, key=lambda r: r["world_steps_per_second"]))
@@ -279,6 +283,7 @@ def _solver(r) -> str:
     extra += "" if r.get("reuse_factor", False) else " full"  # every iteration factors (older results: all)
     extra += " envelope" if r.get("envelope", False) else ""
     extra += "" if r.get("retract", True) else " straight"  # trial points on lines (older results: all)
+    extra += f" W{r['cpu_workers']}" if r.get("cpu_workers", 1) > 1 else ""  # concurrent CPU launches
     return f"{scratch}/{r['block_dim']}{extra} T{r['threads']}"
 
 

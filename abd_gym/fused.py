@@ -185,9 +185,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Any, step: Any, w: int, row: int,
-              T: int, alpha: dtype):  # fmt: skip
+              s: int, T: int, alpha: dtype):  # fmt: skip
         """q_trial[row] = q[w] + α Δq along the retraction's path (affine_body.retract): Δq in
-        scratch column ``row`` of the flat ``step`` (T columns), or (tiled) −y with y = H⁻¹g in the
+        scratch column s of the flat ``step`` (T columns), or (tiled) −y with y = H⁻¹g in the
         block's shared tile ``step``."""
         for b in range(q.shape[1]):
             qb = q[w, b]
@@ -198,7 +198,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     if wp.static(tiled):
                         d[r] = -wp.tile_extract(step, ob + r)
                     else:
-                        d[r] = step[(ob + r) * T + row]
+                        d[r] = step[(ob + r) * T + s]
                 if wp.static(retract):
                     qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b], 0)
                 else:
@@ -388,7 +388,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
         factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
         trial points go to row ``row`` of q_trial; s, B as in assemble."""
-        trial(q, q_trial, t, step, w, row, B, one)
+        trial(q, q_trial, t, step, w, row, s, B, one)
         alpha = one
         accepted = int(0)
         stalled = int(0)
@@ -400,7 +400,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         else:
             for ls in range(max_line_search):
                 if ls > 0:
-                    trial(q, q_trial, t, step, w, row, B, alpha)
+                    trial(q, q_trial, t, step, w, row, s, B, alpha)
                 accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
                 if accepted != 0:
                     break
@@ -456,12 +456,12 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
-                    H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, s: int, T: int, threshold: dtype,
+                    H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, s: int, T: int, row: int, threshold: dtype,
                     max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
                     iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
                     converged: wp.array(dtype=wp.int32)):  # fmt: skip
-        """World w's whole Newton solve, in scratch column s (of T) of the flat g, H, dq and row s of
-        q_trial.
+        """World w's whole Newton solve, in scratch column s (of T) of the flat g, H, dq and row
+        ``row`` of q_trial.
 
         With ``reuse``, an iteration after a full step (α = 1) keeps the Cholesky factor it left in H
         and solves only the new gradient against it (a simplified-Newton step; see ``chord_step``)."""
@@ -499,7 +499,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 status[w] = FAILED
                 return 0
             iterations[w] = it + 1
-            stop, chord = take_step(q, q_trial, t, dq, g, H, w, s, s, T, e0, gdq, dmax, g_abs, threshold, chord, reuse,
+            stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord, reuse,
                                     d_prev, max_line_search, converged)  # fmt: skip
             if stop != 0:
                 return 0
@@ -510,16 +510,20 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     def newton(
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
         g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
-        T: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
+        s0: int, Tw: int, wa: int, wb: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
         status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
         factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
     ):  # fmt: skip
-        """Thread s solves worlds s, s + T, s + 2T, … (T threads, T = the scratch width): the scratch
-        of a thread is reused world after world, so it stays in cache however many worlds there are."""
-        s = wp.tid()
-        for w in range(s, q.shape[0], T):
-            solve_world(q, q_trial, t, g, H, dq, w, s, T, threshold, max_iterations, max_line_search, reuse, status,
-                        iterations, factorizations, converged)  # fmt: skip
+        """The launch's Tw threads solve worlds wa … wb − 1, thread c the worlds wa + c, wa + c + Tw,
+        …: a thread's scratch is reused world after world, so it stays in cache however many worlds
+        there are.  On a GPU one launch runs every world; on the CPU ranges of threads and worlds run
+        as concurrent launches, each with its own scratch (g, H, dq: Tw columns) and its own run of
+        worlds, so they share no cache lines; s0 + c is the thread's row of q_trial."""
+        c = wp.tid()
+        s = c + s0
+        for w in range(wa + c, wb, Tw):
+            solve_world(q, q_trial, t, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
+                        reuse, status, iterations, factorizations, converged)  # fmt: skip
 
     @wp.kernel(**options)
     def assemble_system(q: wp.array2d(dtype=vec12), t: Terms, derivs: int, g: wp.array(dtype=dtype),

@@ -61,7 +61,10 @@ class Simulator:
     factor only the Hessian's envelope, the columns from each row's first coupled body on (default:
     when the scene has one, e.g. a chain; same result as the dense factor).  ``retract`` (default
     on): Newton's initial guess and trial points turn each body's A along a rotation
-    (``affine_body.retract``) instead of a straight line; False is the ablation.
+    (``affine_body.retract``) instead of a straight line; False is the ablation.  ``cpu_workers``
+    (CPU only; default: one per core, each with at least 64 worlds): the fused step's threads run as
+    that many concurrent launches (Warp runs a launch's threads one after another), between the
+    step's captured phases before and after them.
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
@@ -69,7 +72,7 @@ class Simulator:
                  use_graph: bool | None = None, fused: bool = True, integrator: str = "implicit_euler",
                  threads: int | None = None, block_dim: int | None = None, scratch: str = "global",
                  max_registers: int = 0, smem_spilling: bool = False, reuse_factor: bool | None = None,
-                 envelope: bool | None = None, retract: bool = True):  # fmt: skip
+                 envelope: bool | None = None, retract: bool = True, cpu_workers: int | None = None):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
@@ -81,7 +84,7 @@ class Simulator:
         self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search), bool(fused), integrator,
                                                            threads, block_dim, scratch, int(max_registers),
                                                            bool(smem_spilling), reuse_factor, envelope,
-                                                           bool(retract)))  # fmt: skip
+                                                           bool(retract), cpu_workers))  # fmt: skip
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device
@@ -106,18 +109,28 @@ class Simulator:
     def step(self, num_steps: int = 1):
         """Advance every world ``num_steps`` steps of ``dt``."""
         for _ in range(int(num_steps)):
+            if self._graph is None and self.use_graph and self._warm:
+                # capture after one plain step, so every kernel is compiled and loaded; with the CPU's
+                # concurrent Newton launches (which a graph cannot hold), the phases around them
+                self._graph = [self._capture(phase) for phase in self.solver.phases()]
             if self._graph is not None:
-                wp.capture_launch(self._graph)
-            elif self.use_graph and self._warm:
-                # capture after one plain step, so every kernel is compiled and loaded
-                with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
-                    self.solver.step(self.state)
-                self._graph = capture.graph
-                wp.capture_launch(self._graph)
+                for phase, graph in zip(self.solver.phases(), self._graph):
+                    if graph is None:
+                        phase(self.state)
+                    else:
+                        wp.capture_launch(graph)
             else:
                 self.solver.step(self.state)
                 self._warm = True
             self.state.time += self.dt
+
+    def _capture(self, phase):
+        """A graph of ``phase`` (a solver step's part), or None for a phase that runs uncaptured."""
+        if not getattr(phase, "capturable", True):
+            return None
+        with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+            phase(self.state)
+        return capture.graph
 
     # ------------------------------------------------------------------ output
     def _out(self, array, backend):

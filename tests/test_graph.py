@@ -8,9 +8,9 @@ import abd_gym as ag
 from abd_gym import mechanisms
 
 
-def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global", reuse_factor=None):
+def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global", reuse_factor=None, cpu_workers=1):
     sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, use_graph=use_graph, fused=fused, dtype=dtype,
-                       threads=threads, scratch=scratch, reuse_factor=reuse_factor)  # fmt: skip
+                       threads=threads, scratch=scratch, reuse_factor=reuse_factor, cpu_workers=cpu_workers)  # fmt: skip
     rng = np.random.default_rng(3)
     sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
     out = []
@@ -73,11 +73,27 @@ def test_tiled_scratch_matches_global_scratch():
     assert sim.failed_worlds().tolist() == [3]
 
 
+def test_concurrent_cpu_launches_are_the_same_step():
+    """cpu_workers=2 (the fused step's 4 threads and 4 worlds as two launches run at once on the
+    CPU, between the captured phases before and after them) gives the one-launch, graph-captured
+    step bit for bit, through the same events."""
+    one, sim1 = _run(True, cpu_workers=1)
+    two, sim2 = _run(True, cpu_workers=2)
+    assert sim1.solver.capturable and len(sim1._graph) == 1 and sim1._graph[0] is not None
+    if sim2.device.is_cpu:  # the phases around the concurrent launches are captured, the launches not
+        assert sim2.solver.cpu_chunks == [(0, 2, 0, 2), (2, 2, 2, 4)] and not sim2.solver.capturable
+        assert sim2._graph[0] is not None and sim2._graph[1] is None and sim2._graph[2] is not None
+    np.testing.assert_array_equal(np.nan_to_num(two), np.nan_to_num(one))
+    assert sim2.failed_worlds().tolist() == [3]
+
+
 def test_threads_must_be_positive():
     import pytest
 
     with pytest.raises(ValueError, match="threads"):
         ag.Simulator(mechanisms.cartpole(), num_worlds=2, threads=0)
+    with pytest.raises(ValueError, match="cpu_workers"):
+        ag.Simulator(mechanisms.cartpole(), num_worlds=2, cpu_workers=0)
 
 
 def test_scratch_beyond_32_bit_indexing_is_refused():
