@@ -111,7 +111,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
         newton_factorizations=float(sim.newton_factorizations().mean()), joint_residual=residual,
         reuse_factor=sim.solver.reuse_factor, envelope=sim.solver.envelope, retract=sim.solver.settings.retract,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
-        threads=sim.solver.threads, block_dim=sim.solver.block_dim, cpu_workers=len(sim.solver.cpu_chunks),
+        threads=sim.solver.threads, block_dim=sim.solver.block_dim, cpu_workers=len(sim.solver.newton_launches),
         memory_bytes_per_world=sim.memory_bytes()["total"] / num_worlds,
         unknowns=sim.model.num_dofs, constitutions=[c.NAME for c in sim.solver.parts],
     )  # fmt: skip

@@ -161,7 +161,7 @@ class Solver:
         chunks = min(workers, T)
         tb = np.linspace(0, T, chunks + 1).round().astype(int)
         wb = np.linspace(0, W, chunks + 1).round().astype(int)
-        self.cpu_chunks = [(int(tb[k]), int(tb[k + 1] - tb[k]), int(wb[k]), int(wb[k + 1])) for k in range(chunks)]
+        self.newton_launches = [(int(tb[k]), int(tb[k + 1] - tb[k]), int(wb[k]), int(wb[k + 1])) for k in range(chunks)]
         self._chunk_cmds = None
         self.block_dim = settings.block_dim or (32 if self.tiled else default_block_dim(wp.get_device(dev), T))
         self.q_trial = wp.zeros((W if self.tiled else T, model.num_bodies), dtype=model.vec12, device=dev)
@@ -320,14 +320,15 @@ class Solver:
         def inputs(start, count, wa, wb):
             # the launch's own scratch: columns start … start + count − 1 of g, H, dq, stored as a
             # block of their own (count columns wide), so concurrent launches share no cache lines
-            g, H, dq = (a[start * size:(start + count) * size]
-                        for a, size in ((self.g_flat, n), (self.H_flat, n * n), (self.dq_flat, n)))  # fmt: skip
+            g, H, dq = self.g_flat, self.H_flat, self.dq_flat
+            if count != self.threads:
+                g, H, dq = (a[start * size:(start + count) * size] for a, size in ((g, n), (H, n * n), (dq, n)))
             return [state.q, self.q_trial, terms, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.h),
                     s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
                     state.factorizations, state.converged]  # fmt: skip
 
-        if len(self.cpu_chunks) == 1:
-            wp.launch(kernel, dim=self.threads, inputs=inputs(*self.cpu_chunks[0]), device=m.device,
+        if len(self.newton_launches) == 1:
+            wp.launch(kernel, dim=self.threads, inputs=inputs(*self.newton_launches[0]), device=m.device,
                       block_dim=self.block_dim)  # fmt: skip
             return
         # CPU: each chunk of threads in its own launch, run at once (a launch releases the GIL);
@@ -335,7 +336,7 @@ class Solver:
         if self._chunk_cmds is None:
             self._chunk_cmds = [wp.launch(kernel, dim=chunk[1], inputs=inputs(*chunk), device=m.device,
                                           block_dim=self.block_dim, record_cmd=True)
-                                for chunk in self.cpu_chunks]  # fmt: skip
+                                for chunk in self.newton_launches]  # fmt: skip
         futures = [_pool(len(self._chunk_cmds)).submit(cmd.launch) for cmd in self._chunk_cmds[1:]]
         self._chunk_cmds[0].launch()
         for f in futures:
@@ -344,7 +345,7 @@ class Solver:
     @property
     def capturable(self) -> bool:
         """Whether a step can be captured as one graph (not when the CPU runs concurrent launches)."""
-        return len(self.cpu_chunks) == 1
+        return len(self.newton_launches) == 1
 
     def _build_fused(self, state):
         """The fused kernel for what this scene has, and the struct of arrays it reads (built once:
