@@ -112,9 +112,10 @@ class Simulator:
             if self._graph is None and self.use_graph and self._warm:
                 # capture after one plain step, so every kernel is compiled and loaded; with the CPU's
                 # concurrent Newton launches (which a graph cannot hold), the phases around them
-                self._graph = [self._capture(phase) for phase in self.solver.phases()]
+                self._graph = [(phase, self._capture(phase) if capturable else None)
+                               for phase, capturable in self.solver.phases()]  # fmt: skip
             if self._graph is not None:
-                for phase, graph in zip(self.solver.phases(), self._graph):
+                for phase, graph in self._graph:
                     if graph is None:
                         phase(self.state)
                     else:
@@ -125,9 +126,7 @@ class Simulator:
             self.state.time += self.dt
 
     def _capture(self, phase):
-        """A graph of ``phase`` (a solver step's part), or None for a phase that runs uncaptured."""
-        if not getattr(phase, "capturable", True):
-            return None
+        """A graph of ``phase`` (a solver step's part)."""
         with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
             phase(self.state)
         return capture.graph

@@ -247,16 +247,16 @@ class Solver:
     def step(self, state):
         """One implicit Euler step of every world.  No host synchronisation: the loops run as
         ``wp.capture_while`` on device flags, so the whole step can be captured in a CUDA graph."""
-        for phase in self.phases():
+        for phase, _ in self.phases():
             phase(state)
 
     def phases(self) -> list:
-        """The step as parts to run in turn: one, or, with the CPU's concurrent Newton launches,
-        three (before, the launches, after), since a captured graph cannot hold launches that run at
-        once; the middle one has ``capturable`` False."""
+        """The step as (part, capturable) pairs to run in turn: the whole step, or, with the CPU's
+        concurrent Newton launches, before / the launches / after, since a captured graph cannot
+        hold launches that run at once."""
         if self.capturable:
-            return [self._whole_step]
-        return [self._open, self._concurrent_newton, self._close]
+            return [(self._whole_step, True)]
+        return [(self._open, True), (self._newton, False), (self._close, True)]
 
     def _whole_step(self, state):
         self._open(state)
@@ -289,12 +289,6 @@ class Solver:
                                                  self.take, self.chord, state.factorizations], device=dev)  # fmt: skip
             self.remaining.fill_(1)
             wp.capture_while(self.remaining, self._newton_iteration, state=state)
-
-    def _concurrent_newton(self, state):
-        """The fused Newton solve as the CPU's concurrent launches (not capturable)."""
-        self._fused_newton(state)
-
-    _concurrent_newton.capturable = False
 
     def _close(self, state):
         """After Newton: velocities and histories, then the joint coordinates."""
