@@ -369,7 +369,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         # positions rounded to ~6e-8 m), and a search halves good steps on noise (measured: double
         # pendulums at dt 0.005 crawling at α = 1/32 where float64 takes α = 1 and converges in 2)
         skip = dmax < dtype(10.0) * floor or unresolved
-        done = dmax < floor or (unresolved and dmax < dtype(1000.0) * floor and chord == 0)
+        done = dmax < floor or (unresolved and dmax < dtype(1000.0) * floor and chord <= 0)
         return wp.where(skip, 1, 0), wp.where(done, 1, 0)
 
     @wp.func
@@ -395,7 +395,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         if skip != 0:
             accepted = 1
             stalled = done
-        elif chord != 0:
+        elif chord > 0:
             accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), one, gdq)
         else:
             for ls in range(max_line_search):
@@ -409,15 +409,21 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def chord_step(chord: int, reuse: int, accepted: int, alpha: dtype, dmax: dtype, d_prev: dtype):
-        """(retry, chord) after an iteration.  A step from a reused factor (chord) is tried at α = 1
-        only: rejected, it is not taken and the next iteration refactors at the same q (retry 1).
-        The factor is reused after a full step taken whole, and kept while the reused steps shrink at
-        least 8× an iteration (they converge linearly, at the rate the Hessian has changed; a slow
-        rate would leave the solve's error near the tolerance, where Newton's leaves it far below)."""
-        if chord != 0:
+        """(retry, chord) after an iteration; chord 1: the next iteration reuses the factor, 0: it
+        factors, −1: it factors and the step reuses no factor again.  A step from a reused factor is
+        tried at α = 1 only: rejected, it is not taken and the next iteration refactors at the same q
+        (retry 1), and the rest of the step refactors every iteration (where a reused factor fails,
+        the Hessian changes fast: alternating the two doubled a hard step's iterations, 13 → 22 on a
+        float32 double pendulum at dt 0.05).  The factor is reused after a full step taken whole,
+        and kept while the reused steps shrink at least 8× an iteration (they converge linearly, at
+        the rate the Hessian has changed; a slow rate would leave the solve's error near the
+        tolerance, where Newton's leaves it far below)."""
+        if chord > 0:
             if accepted == 0:
-                return 1, 0
+                return 1, -1
             return 0, wp.where(dmax <= dtype(0.125) * d_prev, 1, 0)
+        if chord < 0:
+            return 0, -1
         return 0, wp.where(accepted != 0 and alpha == one, reuse, 0)
 
     @wp.func
@@ -470,12 +476,12 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         converged[w] = 0
         if status[w] != OK:
             return 0
-        chord = int(0)  # 1: H holds the factor of an earlier iteration, reused for this one
+        chord = int(0)  # 1: H holds the factor of an earlier iteration, reused for this one (chord_step)
         d_prev = zero
         for it in range(max_iterations):
             for i in range(N):
                 g[i * T + s] = zero
-                if chord == 0:
+                if chord <= 0:
                     j0 = int(0)
                     if wp.static(envelope):
                         j0 = t.first[i]
@@ -488,7 +494,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             gdq = zero
             dmax = zero
             g_abs = zero
-            if chord != 0:
+            if chord > 0:
                 e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
                 ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, N, T, t.first)
             else:
@@ -557,7 +563,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         for it in range(max_iterations):
             wp.tile_assign(g, gz, offset=(0,))
             e0 = zero
-            if chord != 0:
+            if chord > 0:
                 e0 = assemble(q, w, w, lane, B, GRADIENT, t, g, H)
                 wp.tile_assign(y, g, offset=(0,))
             else:

@@ -327,7 +327,7 @@ def kernels(dtype, envelope=False):
         if active[w] == 0:
             return
         ok = int(1)
-        if chord[w] == 0:
+        if chord[w] <= 0:
             factorizations[w] = factorizations[w] + 1
             ok = cholesky(H, w, n, T, first)
             for i in range(n):
@@ -407,7 +407,7 @@ def kernels(dtype, envelope=False):
             searching[w] = 0
             done = dq_max[w] < floor or (unresolved and dq_max[w] < dtype(1000.0) * floor)
             take[w] = wp.where(done, 2, 1)
-            if chord[w] != 0 and dq_max[w] >= floor:
+            if chord[w] > 0 and dq_max[w] >= floor:
                 take[w] = 1
             return
         a = alpha[w]
@@ -417,7 +417,7 @@ def kernels(dtype, envelope=False):
             take[w] = 1
             if e0 - e1 <= noise:
                 take[w] = 2  # no decrease the precision can resolve: this is as converged as it gets
-        elif chord[w] != 0:
+        elif chord[w] > 0:
             searching[w] = 0
             take[w] = 0
         elif a <= min_alpha:
@@ -448,7 +448,8 @@ def kernels(dtype, envelope=False):
         """‖Δq‖∞ below h·tol (or q's rounding), or a step whose energy change is below rounding:
         the step just taken was the last one needed.  At the iteration cap a world stops unconverged.
         The next iteration reuses the factor after a full step taken whole (with ``reuse``), and
-        keeps reusing it while the steps shrink 8× an iteration (fused.chord_step)."""
+        keeps reusing it while the steps shrink 8× an iteration, and not after a reused factor's step
+        was rejected (fused.chord_step)."""
         w = wp.tid()
         if active[w] == 0:
             return
@@ -457,10 +458,12 @@ def kernels(dtype, envelope=False):
         stalled = taken == 2
         take[w] = 0
         was_chord = chord[w]
-        retry = was_chord != 0 and taken == 0
-        if was_chord != 0:
+        retry = was_chord > 0 and taken == 0
+        if retry:
+            chord[w] = -1  # a reused factor failed: this step factors every iteration from now
+        elif was_chord > 0:
             chord[w] = wp.where(taken != 0 and dq_max[w] <= dtype(0.125) * d_prev[w], 1, 0)
-        else:
+        elif was_chord == 0:
             chord[w] = wp.where(taken != 0 and alpha[w] == one, reuse, 0)
         d_prev[w] = dq_max[w]
         floor, rounding = noise_floor(q, w, threshold)
