@@ -110,13 +110,20 @@ def kernels(dtype):
         R0: wp.array(dtype=mat33), p0: wp.array(dtype=vec3), dt: dtype, omega: wp.array2d(dtype=vec3),
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
-        fresh: wp.array(dtype=wp.int32),
+        fresh: wp.array(dtype=wp.int32), mask: wp.array(dtype=wp.int32), masked: int,
     ):  # fmt: skip
         """World idx[i] at joint coordinates xx[i, 0] and rates xx[i, 1]; its restart history as
         rows.restart_q (no past: q^{n−1} = q − dt q̇, q̇^{n−1} = q̇, fresh) and status OK.  ``omega``
-        holds each body's angular velocity while the tree is walked."""
+        holds each body's angular velocity while the tree is walked.  ``masked``: thread i is world
+        i, placed from xx[i] where mask[i] != 0 (idx unused)."""
         i = wp.tid()
-        k = idx[i]
+        k = int(0)
+        if masked != 0:
+            if mask[i] == 0:
+                return
+            k = i
+        else:
+            k = idx[i]
         for b in range(q.shape[1]):
             q[k, b] = pack(p0[b], R0[b])
             qd[k, b] = vec12()
@@ -168,9 +175,13 @@ def kernels(dtype):
     return place
 
 
-def place_launch(plan: TreePlan, state, model, idx: wp.array, xx: wp.array, N: int, dt: float, omega: wp.array):
+def place_launch(plan: TreePlan, state, model, idx: wp.array, xx: wp.array, N: int, dt: float, omega: wp.array,
+                 mask: wp.array | None = None):  # fmt: skip
     """(kernel, dim, inputs) that set the worlds idx[:N] to joint coordinates xx[:N, 0] and rates
-    xx[:N, 1] (device arrays; xx (≥N, 2, max(joints, 1))), for the caller to launch or replay."""
+    xx[:N, 1] (device arrays; xx (≥N, 2, max(joints, 1))), for the caller to launch or replay.
+    With ``mask`` (int32 (W,)): every world w with mask[w] != 0, from xx[w] (N = W, idx unused)."""
+    masked = mask is not None
     return kernels(model.dtype), N, [
         idx, xx, plan.steps, plan.sign, plan.R_rel0, plan.p_rel0, plan.t_loc, plan.c_loc, plan.R0, plan.p0, float(dt),
-        omega, state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist, state.status, state.fresh]
+        omega, state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist, state.status, state.fresh,
+        mask if masked else idx, int(masked)]

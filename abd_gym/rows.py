@@ -22,11 +22,18 @@ def kernels(dtype):
     @wp.kernel
     def restart_unwrapped(idx: wp.array(dtype=wp.int32), coord: wp.array2d(dtype=dtype),
                           coord_vel: wp.array2d(dtype=dtype), given: wp.array3d(dtype=dtype), has_given: int, dt: dtype,
-                          unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype)):  # fmt: skip
+                          unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype),
+                          mask: wp.array(dtype=wp.int32), masked: int):  # fmt: skip
         """A set state's multi-turn coordinate (given[i, 0], else the principal one) and its BDF2
-        history x^{n−1} = x − dt·ẋ."""
+        history x^{n−1} = x − dt·ẋ; world idx[i], or with ``masked`` world i where mask[i] != 0."""
         i, j = wp.tid()
-        k = idx[i]
+        k = int(0)
+        if masked != 0:
+            if mask[i] == 0:
+                return
+            k = i
+        else:
+            k = idx[i]
         u = coord[k, j]
         if has_given != 0:
             u = given[i, 0, j]

@@ -125,6 +125,18 @@ class Simulator:
                 self._warm = True
             self.state.time += self.dt
 
+    def launch_step(self, num_steps: int = 1):
+        """``num_steps`` steps as direct launches of the step's kernels, without the simulator's own
+        graphs and without advancing the host clock ``state.time``: for a caller that captures the
+        step in a graph of its own (the vector env's), and advances the clock (``tick``) at each
+        replay.  The same step as ``step``."""
+        for _ in range(int(num_steps)):
+            self.solver.step(self.state)
+
+    def tick(self, num_steps: int = 1):
+        """Advance the host clock ``state.time`` by ``num_steps`` steps (see ``launch_step``)."""
+        self.state.time += int(num_steps) * self.dt
+
     def _capture(self, phase):
         """A graph of ``phase`` (a solver step's part)."""
         with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
@@ -350,7 +362,7 @@ class Simulator:
                 self._no_given = wp.zeros((1, 1, 1), dtype=m.dtype, device=self.device)
             self._replay("unwrapped", rows.kernels(m.dtype)["restart_unwrapped"], (N, m.num_joints),
                          [idx_dev, st.coord, st.coord_vel, self._no_given if given is None else given,
-                          int(given is not None), float(self.dt), st.unwrapped, st.x_hist])  # fmt: skip
+                          int(given is not None), float(self.dt), st.unwrapped, st.x_hist, idx_dev, 0])  # fmt: skip
 
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
         """Forward kinematics for tree mechanisms (kinematics.py, on the device): joint coordinates
@@ -373,6 +385,29 @@ class Simulator:
         xx = self._stage("xx", xx, m.dtype)
         self._replay("place", *kinematics.place_launch(self._plan, self.state, m, idx_dev, xx, N, self.dt, self._omega))
         self._restarted(idx, idx_dev, given=xx)
+
+    def set_joint_state_where(self, mask: wp.array, xx: wp.array):
+        """``set_joint_state`` of the worlds w with mask[w] != 0 (a device int32 (num_worlds,) array)
+        from xx[w, 0] (coordinates) and xx[w, 1] (rates) (a device (num_worlds, 2, max(joints, 1))
+        array of the model's dtype), with no host work on the worlds: a fixed launch sequence on
+        device arrays that a graph can hold (the vector env's autoreset).  The host clock
+        (``state.time``) of those worlds is left to the caller, who learns which they are later."""
+        m, W = self.model, self.num_worlds
+        if tuple(mask.shape) != (W,) or mask.dtype != wp.int32:
+            raise ValueError(f"mask must be an int32 array of shape ({W},), got {mask.dtype} {tuple(mask.shape)}")
+        if tuple(xx.shape) != (W, 2, max(m.num_joints, 1)) or xx.dtype != m.dtype:
+            raise ValueError(f"xx must have shape ({W}, 2, {max(m.num_joints, 1)}) and the model's dtype, "
+                             f"got {xx.dtype} {tuple(xx.shape)}")  # fmt: skip
+        if self._plan is None:
+            self._plan = kinematics.tree_plan(self.scene, m)
+            self._omega = wp.zeros((W, m.num_bodies), dtype=m.vec3, device=self.device)
+        self._replay("place_where", *kinematics.place_launch(self._plan, self.state, m, mask, xx, W, self.dt, self._omega,
+                                                             mask=mask))  # fmt: skip
+        if m.num_joints:
+            st = self.state
+            self.solver.restart_joints(st, mask)
+            self._replay("unwrapped_where", rows.kernels(m.dtype)["restart_unwrapped"], (W, m.num_joints),
+                         [mask, st.coord, st.coord_vel, xx, 1, float(self.dt), st.unwrapped, st.x_hist, mask, 1])  # fmt: skip
 
     def reset(self, worlds=None):
         """Back to the scene's initial state (all worlds, or those listed); clears failure flags

@@ -82,6 +82,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from .autoreset import NextEpisodes
 from .scene import REVOLUTE, Scene
 from .simulator import Simulator
 
@@ -142,7 +143,7 @@ class ABDVectorEnv(VectorEnv):
     def __init__(self, num_envs: int = 1, *, device=None, backend: str = "numpy",
                  autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, max_episode_steps: int | None = None,
                  render_mode: str | None = None, render_worlds=None, randomize: dict | None = None,
-                 dtype: str = "float32", integrator: str | None = None):  # fmt: skip
+                 dtype: str = "float32", integrator: str | None = None, graph: bool | None = None):  # fmt: skip
         if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if backend not in BACKENDS:
@@ -197,6 +198,20 @@ class ABDVectorEnv(VectorEnv):
         self._pinned = None  # GPU: (pinned host mask, event) that the next pending mask is copied through
         self._pending_in_flight = False
         self._has_reset = False
+        # NEXT_STEP autoresets on the device (autoreset.py), for tasks whose episodes start from
+        # _initial_state alone (no _reset_task); not while parameters are randomised
+        own_reset = type(self)._reset_task is not ABDVectorEnv._reset_task
+        self._next = None
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP and not own_reset:
+            self._next = NextEpisodes(self.sim, lambda n: self._initial_state(n, self._next_rng, {}))
+        self._next_rng = None  # the generator of the next episodes' draws (spawned at each full reset)
+        cuda_torch = backend == "torch" and self.device.is_cuda
+        if graph and not (cuda_torch and self._next is not None):
+            raise ValueError("graph=True needs the Torch backend on a CUDA device and NEXT_STEP autoresets of a task "
+                             "without _reset_task")  # fmt: skip
+        self._use_graph = cuda_torch and self._next is not None if graph is None else bool(graph)
+        self._graph = None  # (torch.cuda.CUDAGraph, its outputs)
+        self._device_warm = False
 
         # ---- per-world physical parameters (host copies of what the simulator holds)
         scene = self.scene
@@ -468,6 +483,13 @@ class ABDVectorEnv(VectorEnv):
             idx = np.flatnonzero(mask)
         if len(idx):
             self._reset_worlds(idx, options)
+            if self._next is not None:
+                self._next.clear(idx)
+                if mask is None:
+                    # every world's next episode, from a generator spawned from np_random (which a
+                    # spawn does not advance: the same seed gives the same resets in every mode)
+                    self._next_rng = np.random.Generator(self.np_random.bit_generator.spawn(1)[0])
+                    self._next.draw(idx)
         self._has_reset = True
         return self._observe_safe(), {}
 
@@ -518,6 +540,8 @@ class ABDVectorEnv(VectorEnv):
             raise RuntimeError("call reset() before step()")
         xp, N = self.xp, self.num_envs
         a = self._prepare_actions(actions)
+        if self._next is not None and self._randomize is None and not self._randomized:
+            return self._step_on_device(a)
 
         self.sim.set_controls(self._controls(a))
         self.sim.step(self.frame_skip)  # on a GPU: queued; the host goes on while it runs
@@ -565,6 +589,92 @@ class ABDVectorEnv(VectorEnv):
                 return obs, reward, terminated, truncated, info
         elif self.autoreset_mode == AutoresetMode.NEXT_STEP:
             self._defer_pending(terminated | truncated)
+            if self._next is not None:  # kept for a later step on the device path
+                self._next.set_pending(terminated | truncated)
+        return obs, reward, terminated, truncated, self._batch_info(info_values, has_info)
+
+    # ================================================================== step with autoresets on the device
+    def _device_step(self, a, capturing: bool):
+        """One env step as device work only (no host reads, no host-dependent branches), so that a
+        CUDA graph can hold it: controls, physics, the autoreset of last step's ended worlds
+        (autoreset.py), then observation, reward and flags, those of the reset worlds replaced as
+        in ``step`` (reward 0, both flags False) and the ended worlds marked for the next step."""
+        xp = self.xp
+        self.sim.set_controls(self._controls(a))
+        if capturing:
+            self.sim.launch_step(self.frame_skip)  # the env's graph holds the step; the clock ticks at replay
+        else:
+            self.sim.step(self.frame_skip)
+        self._next.apply()
+        pend = self._next.mask(xp)
+        self._elapsed += 1
+        if xp is np:
+            self._elapsed[pend] = 0
+        else:
+            self._elapsed.masked_fill_(pend, 0)
+        obs = self._observe_safe()
+        failed = self._failed() | ~xp.isfinite(obs).all(axis=1)
+        reward = self._f32(self._reward(obs, a))
+        terminated = (self._terminated(obs) | failed) & ~pend
+        if self.max_episode_steps is not None:
+            truncated = (self._elapsed >= self.max_episode_steps) & ~pend
+        else:
+            truncated = self._no_flags.copy() if xp is np else self._no_flags.clone()
+        reward = xp.where(pend | failed, 0.0, reward)
+        obs = xp.where(failed[:, None], 0.0, obs)
+        info_values = self._info(obs)
+        self._next.set_pending(terminated | truncated)
+        return obs, reward, terminated, truncated, failed, info_values
+
+    def _capture(self):
+        """The CUDA graph of ``_device_step`` on a static action buffer: Torch's capture on a side
+        stream, Warp's launches on the same stream (told the capture is external), the simulator's
+        kernels launched directly (``Simulator.launch_step``)."""
+        import torch
+
+        dev = self._torch_device
+        self._action_buf = torch.zeros((self.num_envs, self.action_dim), dtype=torch.float32, device=dev)
+        graph = torch.cuda.CUDAGraph()
+        stream = torch.cuda.Stream(device=dev)
+        stream.wait_stream(torch.cuda.current_stream(dev))
+        ws = wp.stream_from_torch(stream)
+        with torch.cuda.graph(graph, stream=stream, capture_error_mode="thread_local"):
+            with wp.ScopedStream(ws, sync_enter=False):
+                wp.capture_begin(stream=ws, external=True)
+                try:
+                    outputs = self._device_step(self._action_buf, capturing=True)
+                finally:
+                    wp.capture_end(stream=ws)
+        torch.cuda.current_stream(dev).wait_stream(stream)
+        return graph, outputs
+
+    def _step_on_device(self, a):
+        """``step`` with NEXT_STEP autoresets on the device: one graph replay on a GPU with Torch (after
+        one step of plain launches, which loads every kernel), else the same work launched."""
+        if self._use_graph and self._device_warm:
+            if self._graph is None:
+                self._graph = self._capture()
+            graph, outputs = self._graph
+            self._action_buf.copy_(a)
+            graph.replay()
+            self.sim.tick(self.frame_skip)
+            # the graph's outputs are rewritten by the next replay: the caller gets its own copies
+            obs, reward, terminated, truncated, failed = (t.clone() for t in outputs[:5])
+            info_values = {k: v.clone() for k, v in outputs[5].items()}
+        else:
+            obs, reward, terminated, truncated, failed, info_values = self._device_step(a, capturing=False)
+            self._device_warm = True
+        # the worlds the device just reset (last step's ended ones, known on the host now): their
+        # info is a reset's (none), their clock restarts, their next episode is drawn
+        pending = np.flatnonzero(self._pending_now())
+        has_info = np.ones(self.num_envs, dtype=bool)
+        if len(pending):
+            has_info[pending] = False
+            self.sim.state.time[pending] = 0.0
+            self._next.draw(pending)
+            self._pending[pending] = False
+        self._defer_pending(terminated | truncated)
+        info_values = dict(info_values, sim_failed=failed)
         return obs, reward, terminated, truncated, self._batch_info(info_values, has_info)
 
     # ================================================================== render / close

@@ -19,7 +19,7 @@ import warp as wp
 import abd_gym  # noqa: F401 -- registers the ids
 
 PHASES = ("_prepare_actions", "_controls", "_pending_now", "_reset_worlds", "_observe_safe", "_reward", "_terminated",
-          "_info", "_defer_pending", "_failed")  # fmt: skip
+          "_info", "_defer_pending", "_failed", "_step_on_device", "_device_step", "_capture")  # fmt: skip
 
 
 def main(argv=None):
@@ -30,12 +30,16 @@ def main(argv=None):
     ap.add_argument("--envs", type=int, default=1024)
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--device", default="cuda:0" if wp.is_cuda_available() else "cpu")
+    ap.add_argument("--graph", type=int, default=None, help="1/0: the env step as one CUDA graph or not (default: "
+                    "the env's choice)")  # fmt: skip
     args = ap.parse_args(argv)
+    extra = {} if args.graph is None else {"graph": bool(args.graph)}
     env = gym.make_vec(f"abd_gym/{args.task}", num_envs=args.envs, vectorization_mode="vector_entry_point",
-                       device=args.device, backend="torch")  # fmt: skip
+                       device=args.device, backend="torch", **extra)  # fmt: skip
     u = env.unwrapped
     print(f"{args.task} envs {args.envs} on {args.device}: {type(env).__name__} over {type(u).__name__}, "
-          f"autoreset {u.autoreset_mode}, frame_skip {u.frame_skip}")
+          f"autoreset {u.autoreset_mode}, frame_skip {u.frame_skip}, autoreset on the device "
+          f"{u._next is not None}, graph {u._use_graph}")
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     actions = [torch.as_tensor(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32), device=u._torch_device)
@@ -58,6 +62,8 @@ def main(argv=None):
 
     for name in PHASES:
         setattr(u, name, timed(name, getattr(u, name)))
+    if u._next is not None:
+        u._next.draw = timed("_next.draw", u._next.draw)
     sim = u.sim
     sim.step = timed("sim.step", sim.step)
     sim.set_controls = timed("sim.set_controls", sim.set_controls)

@@ -340,6 +340,83 @@ def test_torch_backend_matches_numpy_and_stays_on_device(mode, device):
     nenv.close()
 
 
+class _FixedStartCartPole(CartPoleVectorEnv):
+    """Every episode starts from the same state (pole at 0.15 rad, falling): the host and device
+    autoreset paths then give the same stream, whatever generator each draws from."""
+
+    def _initial_state(self, n, rng, options):
+        return np.tile([0.0, 0.15], (n, 1)), np.tile([0.0, 0.5], (n, 1))
+
+
+@pytest.mark.parametrize("backend", ["numpy", "torch"])
+def test_device_autoreset_matches_the_host_reset(backend):
+    """NEXT_STEP autoresets on the device (autoreset.py: next episodes drawn ahead, applied by the
+    device mask of last step's ended worlds) against the same env resetting on the host: same
+    observations, rewards, flags, info masks and clocks through terminations and truncations."""
+    if backend == "torch":
+        pytest.importorskip("torch")
+    dev, host = (_FixedStartCartPole(N, max_episode_steps=9, backend=backend) for _ in range(2))
+    host._next = None  # the host path: _reset_worlds in the step
+    assert dev._next is not None and not dev._use_graph  # on the CPU: the same launches, no graph
+    for env in (dev, host):
+        env.reset(seed=2)
+    actions = np.random.default_rng(4).uniform(-1, 1, size=(40, N, 1)).astype(np.float32)
+    ends = truncs = 0
+    for a in actions:
+        out_d, out_h = dev.step(a), host.step(a)
+        for x, y in zip(out_d[:4], out_h[:4]):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        assert out_d[4].keys() == out_h[4].keys()
+        for k in out_d[4]:
+            np.testing.assert_array_equal(np.asarray(out_d[4][k]), np.asarray(out_h[4][k]))
+        np.testing.assert_array_equal(dev.sim.state.time, host.sim.state.time)
+        ends += int(np.asarray(out_h[2]).sum())
+        truncs += int(np.asarray(out_h[3]).sum())
+    assert ends > 0 and truncs > 0
+
+
+def test_device_autoreset_draws_fresh_episodes():
+    """Autoreset episodes come from the task's reset distribution, each world its own draw."""
+    env = make()
+    env.reset(seed=5)
+    starts = []
+    for _ in range(60):
+        obs, _, te, tr, info = env.step(push(1.0))
+        reset = ~info["_sim_failed"]  # worlds whose info is a reset's
+        starts += list(obs[reset])
+    starts = np.array(starts)
+    assert len(starts) >= 2 * N
+    assert np.all(np.abs(starts) <= 0.05 + 0.03)  # U(-0.05, 0.05), one step of motion from it
+    assert len(np.unique(starts[:, 2])) == len(starts)
+    env.close()
+
+
+@pytest.mark.parametrize("task", ["CartPole-v0", "Pendulum-v0"])
+def test_graph_step_matches_launched_step(task):
+    """On a GPU with Torch: the env step replayed as one CUDA graph (graph=True, the default there)
+    gives the stream of the same step launched op by op (graph=False)."""
+    torch = pytest.importorskip("torch")
+    _cuda_or_skip("cuda:0")
+    kw = dict(num_envs=64, vectorization_mode="vector_entry_point", device="cuda:0", backend="torch")
+    g, plain = gym.make_vec(f"abd_gym/{task}", **kw), gym.make_vec(f"abd_gym/{task}", graph=False, **kw)
+    assert g.unwrapped._use_graph and not plain.unwrapped._use_graph
+    g.reset(seed=8)
+    plain.reset(seed=8)
+    d = g.unwrapped.action_dim
+    actions = torch.rand((80, 64, d), device="cuda:0", generator=torch.Generator("cuda:0").manual_seed(0)) * 2 - 1
+    ends = 0
+    for a in actions:
+        out_g, out_p = g.step(a), plain.step(a)
+        for x, y in zip(out_g[:4], out_p[:4]):
+            torch.testing.assert_close(x, y, rtol=0, atol=1e-6)
+        torch.testing.assert_close(out_g[4]["sim_failed"], out_p[4]["sim_failed"])
+        ends += int((out_g[2] | out_g[3]).sum())
+    assert g.unwrapped._graph is not None
+    assert ends > 0 or task == "Pendulum-v0"
+    g.close()
+    plain.close()
+
+
 # ----------------------------------------------------------------------------- registration
 def test_every_task_is_registered():
     ids = env_ids()
