@@ -1,22 +1,22 @@
 """The vector env's autoreset on the device: next episodes drawn ahead, applied by a world mask.
 
 A NEXT_STEP autoreset (a world that ended in step t starts its next episode in step t+1) needs
-the new episode's initial state in step t+1.  Drawn then on the host, it costs a host round of
-NumPy draws, uploads and a dozen launches per step (~400 µs of host time at 1,024 CartPole
-worlds on an H100, a third of the env step).  Here every world's *next* initial state is drawn
-ahead and kept on the device, and the autoreset is a fixed launch sequence on device arrays (the
-mask of last step's ended worlds, these rows), which needs nothing from the host and which a
-graph can hold.  A world's next row is drawn again when the host learns that its row was used
-(the step after it ended, the same step the device uses the row): an autoreset step returns
-neither flag, so that world cannot use its next row before the step after, which the draw's
-upload precedes in the stream.
+the new episode's initial state in step t+1.  Drawn then on the host, it costs NumPy draws,
+uploads and a dozen launches per step (~400 µs of host time at 1,024 CartPole worlds on an H100,
+a third of the env step).  Here each world keeps a queue of its next ``depth`` initial states on
+the device, and the autoreset is a fixed launch sequence on device arrays (the mask of last
+step's ended worlds, the queues, each world's count of episodes taken), which needs nothing from
+the host and which a graph can hold.  The host follows the counts from the ended-world masks it
+reads anyway (one step late: the step in which the device takes the row) and tops the queues up
+in one upload when a world has used half its queue: an autoreset step returns neither flag, so
+a world takes at most one row every two steps, and a queue never runs dry between top-ups.
 
-Draws come from a generator the env spawns from its own (``np_random``) at each full reset, in
-world order, for every world at that reset and then for the worlds each autoreset used: the same
-seed and actions give the same episodes on every backend and device, and ``np_random``'s own
-stream (explicit resets) is the same as without autoresets.
+Draws come from a generator the env spawns from its own (``np_random``) at each full reset: the
+same seed and actions give the same episodes on every backend and device, and ``np_random``'s
+own stream (explicit resets) is the same as without autoresets.
 """
-from __future__ import annotations
+
+import functools
 
 import numpy as np
 import warp as wp
@@ -25,53 +25,103 @@ from . import rows
 from .coordinates import FIXED_CODE
 
 
-class NextEpisodes:
-    """Each world's next initial joint state (``xx``, device (W, 2, max(joints, 1)): coordinates
-    and rates) and the device mask of worlds to autoreset in the next step (``pending``, int32)."""
+@functools.lru_cache(maxsize=None)
+def _take(dtype):
+    @wp.kernel
+    def take(pending: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32), queue: wp.array3d(dtype=dtype),
+             xx: wp.array3d(dtype=dtype)):  # fmt: skip
+        """A pending world w's next initial state, row taken[w] mod depth of its queue (queue row
+        slot·W + w), into xx[w]; one more taken."""
+        w = wp.tid()
+        if pending[w] == 0:
+            return
+        W = pending.shape[0]
+        r = (taken[w] % (queue.shape[0] // W)) * W + w
+        for k in range(2):
+            for c in range(xx.shape[2]):
+                xx[w, k, c] = queue[r, k, c]
+        taken[w] = taken[w] + 1
 
-    def __init__(self, sim, draw):
+    return take
+
+
+class NextEpisodes:
+    """Each world's queue of next initial joint states (``queue``, device (depth·W, 2, max(joints,
+    1)): coordinates and rates, row slot·W + w), the device mask of worlds to autoreset in the next
+    step (``pending``, int32) and each world's count of rows taken (``taken``)."""
+
+    def __init__(self, sim, draw, depth: int = 8):
         """``draw(n)`` -> (coordinates, velocities), each (n, num_joints): n fresh episodes."""
-        self.sim, self.draw_fn = sim, draw
+        if depth < 4:
+            raise ValueError(f"depth must be at least 4 (a top-up at half a queue), got {depth}")
+        self.sim, self.draw_fn, self.depth = sim, draw, int(depth)
         m = sim.model
         W, nj = sim.num_worlds, max(m.num_joints, 1)
-        self.xx = wp.zeros((W, 2, nj), dtype=m.dtype, device=sim.device)
-        self._rows = wp.array(ptr=self.xx.ptr, dtype=m.dtype, shape=(W, 2 * nj), device=sim.device)  # its (W, 2·nj) view
-        self.pending = wp.zeros(W, dtype=wp.int32, device=sim.device)
+        dev = sim.device
+        self.queue = wp.zeros((self.depth * W, 2, nj), dtype=m.dtype, device=dev)
+        self._rows = wp.array(ptr=self.queue.ptr, dtype=m.dtype, shape=(self.depth * W, 2 * nj), device=dev)  # (rows, 2·nj)
+        self.xx = wp.zeros((W, 2, nj), dtype=m.dtype, device=dev)  # the pending worlds' states, taken
+        self.pending = wp.zeros(W, dtype=wp.int32, device=dev)
+        self.taken = wp.zeros(W, dtype=wp.int32, device=dev)
+        self._taken = np.zeros(W, dtype=np.int64)  # the host's count, from the masks it reads
+        self._drawn = np.zeros(W, dtype=np.int64)
         self._fixed = m.joint_kind_np == FIXED_CODE
 
-    def draw(self, idx: np.ndarray):
-        """Draw the next initial state of the worlds ``idx`` (host indices, in world order)."""
-        n = len(idx)
-        if n == 0:
+    def restart(self):
+        """Fresh queues for every world (after a full reset, from the env's new generator)."""
+        self.taken.zero_()
+        self._taken[:] = 0
+        self._drawn[:] = 0
+        self._top_up()
+
+    def took(self, idx: np.ndarray):
+        """The worlds ``idx`` took a row in this step (the host learns it from the ended-world mask);
+        the queues are topped up once some world has used half of its own."""
+        self._taken[idx] += 1
+        if len(idx) and np.any(self._drawn[idx] - self._taken[idx] <= self.depth // 2):
+            self._top_up()
+
+    def _top_up(self):
+        """Draw every world's missing rows (world w: taken + depth − drawn of them) in one upload:
+        round j draws row drawn + j of each world still short, in world order."""
+        W, K = len(self._taken), self.depth
+        short = self._taken + K - self._drawn
+        rounds = int(short.max())
+        if rounds <= 0:
             return
+        worlds = [np.flatnonzero(short > j) for j in range(rounds)]
+        w = np.concatenate(worlds)
+        e = np.concatenate([self._drawn[ws] + j for j, ws in enumerate(worlds)])
+        self._drawn += np.maximum(short, 0)
         m = self.sim.model
-        nj = m.num_joints
+        nj, n = m.num_joints, len(w)
         x, xd = (np.asarray(a, dtype=np.float64) for a in self.draw_fn(n))
         for name, a in (("coordinates", x), ("velocities", xd)):
             if a.shape != (n, nj) or not np.all(np.isfinite(a)):
                 raise ValueError(f"the task's initial {name} must be finite with shape ({n}, {nj}), got {a.shape}")
         # as set_joint_state: a fixed joint's coordinate is 0; a scene without joints has one 0 column
-        xx = np.zeros((n, 2, self.xx.shape[2]), dtype=m.np_dtype)
+        xx = np.zeros((n, 2, self.queue.shape[2]), dtype=m.np_dtype)
         xx[:, 0, :nj] = np.where(self._fixed[None, :], 0.0, x)
         xx[:, 1, :nj] = xd
         stage = self.sim._stage
-        idx_dev = rows.indices(idx, stage, "next_idx")
-        src = stage("next_rows", xx.reshape(n, -1), m.dtype)
-        # a recorded launch, replayed with the new arguments (a plain launch's argument packing was
-        # most of a draw's ~130 µs on the CPU)
-        self.sim._replay("next_draw", rows.kernels(m.dtype)["scatter"], (n, self._rows.shape[1]), [self._rows, idx_dev, src])
+        idx_dev = rows.indices((e % K) * W + w, stage, "queue_idx")
+        src = stage("queue_rows", xx.reshape(n, -1), m.dtype)
+        self.sim._replay("queue_top_up", rows.kernels(m.dtype)["scatter"], (n, self._rows.shape[1]),
+                         [self._rows, idx_dev, src])  # fmt: skip
 
     def clear(self, idx: np.ndarray):
         """No autoreset pending for the worlds ``idx`` (they were just reset by hand)."""
         if len(idx) == self.pending.shape[0]:
             self.pending.zero_()
         elif len(idx):
-            wp.launch(rows.fill_int, dim=len(idx), inputs=[self.pending, rows.indices(idx, self.sim._stage, "next_idx"), 0],
+            wp.launch(rows.fill_int, dim=len(idx), inputs=[self.pending, rows.indices(idx, self.sim._stage, "clear_idx"), 0],
                       device=self.sim.device)  # fmt: skip
 
     def apply(self):
         """Start the pending worlds' next episodes (device launches only)."""
-        self.sim.set_joint_state_where(self.pending, self.xx)
+        sim = self.sim
+        sim._replay("queue_take", _take(sim.model.dtype), sim.num_worlds, [self.pending, self.taken, self.queue, self.xx])
+        sim.set_joint_state_where(self.pending, self.xx)
 
     def mask(self, xp):
         """The pending mask as a backend bool array (Torch: on the device; NumPy: on the host, from

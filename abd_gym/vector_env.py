@@ -489,7 +489,7 @@ class ABDVectorEnv(VectorEnv):
                     # every world's next episode, from a generator spawned from np_random (which a
                     # spawn does not advance: the same seed gives the same resets in every mode)
                     self._next_rng = np.random.Generator(self.np_random.bit_generator.spawn(1)[0])
-                    self._next.draw(idx)
+                    self._next.restart()
         self._has_reset = True
         return self._observe_safe(), {}
 
@@ -541,6 +541,9 @@ class ABDVectorEnv(VectorEnv):
         xp, N = self.xp, self.num_envs
         a = self._prepare_actions(actions)
         if self._next is not None and self._randomize is None and not self._randomized:
+            if self._next_rng is None:  # no full reset yet (only masked ones): the queues start now
+                self._next_rng = np.random.Generator(self.np_random.bit_generator.spawn(1)[0])
+                self._next.restart()
             return self._step_on_device(a)
 
         self.sim.set_controls(self._controls(a))
@@ -665,13 +668,13 @@ class ABDVectorEnv(VectorEnv):
             obs, reward, terminated, truncated, failed, info_values = self._device_step(a, capturing=False)
             self._device_warm = True
         # the worlds the device just reset (last step's ended ones, known on the host now): their
-        # info is a reset's (none), their clock restarts, their next episode is drawn
+        # info is a reset's (none), their clock restarts, they took a row of their queues
         pending = np.flatnonzero(self._pending_now())
         has_info = np.ones(self.num_envs, dtype=bool)
         if len(pending):
             has_info[pending] = False
             self.sim.state.time[pending] = 0.0
-            self._next.draw(pending)
+            self._next.took(pending)
             self._pending[pending] = False
         self._defer_pending(terminated | truncated)
         info_values = dict(info_values, sim_failed=failed)

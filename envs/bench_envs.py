@@ -32,15 +32,19 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
     - simulator alone: the env's simulator stepped ``frame_skip`` steps per env step by itself, after
       the env run (wall clock; its states differ from the env's, which resets keep near rest);
     - physics time: a second, identically seeded env run with each of its own ``sim.step`` calls
-      timed (CUDA events on a GPU, the host clock on the CPU): the same states and resets as the
-      env run, but device time only, so an upper bound on the simulator's rate.
+      timed (CUDA events on a GPU, the host clock on the CPU; the env step launched op by op, not
+      as its graph): the same states and resets as the env run, but device time only, so an upper
+      bound on the simulator's rate.
     """
     if "/" not in task_id:
         task_id = f"abd_gym/{task_id}"
 
     def run(timed: bool):
+        # the timed run launches the env step op by op (graph=False): a graph replay has no
+        # sim.step to time
+        extra = {"graph": False} if timed else {}
         env = gym.make_vec(task_id, num_envs=num_envs, vectorization_mode="vector_entry_point", device=device,
-                           backend=backend)  # fmt: skip
+                           backend=backend, **extra)  # fmt: skip
         u = env.unwrapped
         if configure is not None:
             configure(u)
@@ -70,7 +74,8 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
                 import torch
 
                 actions = [torch.as_tensor(a, device=u._torch_device) for a in actions]
-            env.step(actions[0])  # warm-up: kernel loads, graph capture
+            for a in actions[:2]:  # warm-up: kernel loads, then the env's graph capture (on a GPU with Torch)
+                env.step(a)
             wp.synchronize_device(u.device)
             elapsed = physics = alone = math.inf
             for _ in range(repeat):

@@ -63,7 +63,8 @@ def main(argv=None):
     for name in PHASES:
         setattr(u, name, timed(name, getattr(u, name)))
     if u._next is not None:
-        u._next.draw = timed("_next.draw", u._next.draw)
+        u._next.took = timed("_next.took", u._next.took)
+        u._next._top_up = timed("_next._top_up", u._next._top_up)
     sim = u.sim
     sim.step = timed("sim.step", sim.step)
     sim.set_controls = timed("sim.set_controls", sim.set_controls)
