@@ -626,8 +626,9 @@ class ABDVectorEnv(VectorEnv):
         reward = xp.where(pend | failed, 0.0, reward)
         obs = xp.where(failed[:, None], 0.0, obs)
         info_values = self._info(obs)
-        self._next.set_pending(terminated | truncated)
-        return obs, reward, terminated, truncated, failed, info_values
+        done = terminated | truncated
+        self._next.set_pending(done)
+        return obs, reward, terminated, truncated, failed, info_values, done
 
     def _capture(self):
         """The CUDA graph of ``_device_step`` on a static action buffer: Torch's capture on a side
@@ -664,8 +665,9 @@ class ABDVectorEnv(VectorEnv):
             # the graph's outputs are rewritten by the next replay: the caller gets its own copies
             obs, reward, terminated, truncated, failed = (t.clone() for t in outputs[:5])
             info_values = {k: v.clone() for k, v in outputs[5].items()}
+            done = outputs[6]  # read by the copy below before the next replay rewrites it (one stream)
         else:
-            obs, reward, terminated, truncated, failed, info_values = self._device_step(a, capturing=False)
+            obs, reward, terminated, truncated, failed, info_values, done = self._device_step(a, capturing=False)
             self._device_warm = True
         # the worlds the device just reset (last step's ended ones, known on the host now): their
         # info is a reset's (none), their clock restarts, they took a row of their queues
@@ -676,7 +678,7 @@ class ABDVectorEnv(VectorEnv):
             self.sim.state.time[pending] = 0.0
             self._next.took(pending)
             self._pending[pending] = False
-        self._defer_pending(terminated | truncated)
+        self._defer_pending(done)
         info_values = dict(info_values, sim_failed=failed)
         return obs, reward, terminated, truncated, self._batch_info(info_values, has_info)
 
