@@ -38,6 +38,15 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   the device once, at the NaN check, before its physics is queued: the done mask reaches the host
   by an asynchronous copy that the next step reads after queuing its own physics, so the host's
   work on a step's results runs while the device steps (SAME_STEP resets must wait for it).
+* autoresets on the device and the step as one graph: in NEXT_STEP mode, for a task whose
+  episodes start from ``_initial_state`` alone (no ``_reset_task``) and while no parameters are
+  randomised, each world's next initial states are drawn ahead into a queue on the device
+  (:mod:`abd_gym.autoreset`; from a generator spawned from ``np_random`` at each full reset, so
+  the same seed gives the same episodes on every backend and device) and the autoreset is device
+  work only.  With the Torch backend on a GPU the whole step (controls, physics, autoreset,
+  observation, reward, flags) is then captured once as a CUDA graph and replayed on a static
+  action buffer; the returned tensors are copies.  ``graph=False`` launches the same work op by
+  op (the default elsewhere); ``graph=True`` where it cannot apply raises ``ValueError``.
 * bad actions: actions are clipped to the action space (so out-of-range values and ±inf act as
   ±1).  An action batch containing NaN raises ``ValueError`` before anything is stepped: no world
   (and no other world) changes state.  A world whose solve fails (``Simulator.failed_worlds``, or a
