@@ -45,7 +45,8 @@ for part in $parts; do
     tests) ABD_GYM_DEVICE=$dev run tests python3 -m pytest -q -p no:cacheprovider tests/test_graph.py tests/test_physics.py \
         tests/test_hard_cases.py tests/test_integrators.py tests/test_drives.py tests/test_envelope.py \
         "tests/test_constitutions.py::test_fused_assembly_matches_staged" "tests/test_constitutions.py::test_prismatic_joint_to_a_fixed_body" \
-        "tests/test_vector_env.py::test_torch_backend_matches_numpy_and_stays_on_device" -k "not cpu" ;;
+        "tests/test_vector_env.py::test_torch_backend_matches_numpy_and_stays_on_device" \
+        "tests/test_vector_env.py::test_graph_step_matches_launched_step" -k "not cpu" ;;
     *) echo "unknown part $part (bench, reuse, variants, envelope, compare, accuracy, tests)" >&2; exit 2 ;;
     esac
 done
