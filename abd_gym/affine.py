@@ -60,8 +60,3 @@ def cross_derivs(U, V, q):
     jac = np.einsum("mab,an,b->mn", eps, U, v) + np.einsum("mab,a,bn->mn", eps, u, V)
     hes = np.einsum("mab,an,bk->mnk", eps, U, V)
     return val, jac, hes + hes.transpose(0, 2, 1)
-
-
-def psd_project(h) -> np.ndarray:
-    w, v = np.linalg.eigh(0.5 * (h + h.T))
-    return (v * np.maximum(w, 0.0)) @ v.T
