@@ -17,6 +17,7 @@ import numpy as np
 import warp as wp
 
 from .coordinates import PRISMATIC_CODE, REVOLUTE_CODE
+from .rows import world_of
 from .warp_ops import ops
 
 
@@ -117,13 +118,9 @@ def kernels(dtype):
         holds each body's angular velocity while the tree is walked.  ``masked``: thread i is world
         i, placed from xx[i] where mask[i] != 0 (idx unused)."""
         i = wp.tid()
-        k = int(0)
-        if masked != 0:
-            if mask[i] == 0:
-                return
-            k = i
-        else:
-            k = idx[i]
+        k = world_of(i, idx, mask, masked)
+        if k < 0:
+            return
         for b in range(q.shape[1]):
             q[k, b] = pack(p0[b], R0[b])
             qd[k, b] = vec12()

@@ -12,6 +12,15 @@ import numpy as np
 import warp as wp
 
 
+@wp.func
+def world_of(i: int, idx: wp.array(dtype=wp.int32), mask: wp.array(dtype=wp.int32), masked: int):
+    """The world a restart kernel's thread i writes: idx[i], or with ``masked`` world i where
+    mask[i] != 0; −1: none (the thread returns)."""
+    if masked != 0:
+        return wp.where(mask[i] != 0, i, -1)
+    return idx[i]
+
+
 @functools.lru_cache(maxsize=None)
 def kernels(dtype):
     @wp.kernel
@@ -27,13 +36,9 @@ def kernels(dtype):
         """A set state's multi-turn coordinate (given[i, 0], else the principal one) and its BDF2
         history x^{n−1} = x − dt·ẋ; world idx[i], or with ``masked`` world i where mask[i] != 0."""
         i, j = wp.tid()
-        k = int(0)
-        if masked != 0:
-            if mask[i] == 0:
-                return
-            k = i
-        else:
-            k = idx[i]
+        k = world_of(i, idx, mask, masked)
+        if k < 0:
+            return
         u = coord[k, j]
         if has_given != 0:
             u = given[i, 0, j]
