@@ -617,8 +617,11 @@ class ABDVectorEnv(VectorEnv):
             self.sim.launch_step(self.frame_skip)  # the env's graph holds the step; the clock ticks at replay
         else:
             self.sim.step(self.frame_skip)
-        self._next.apply()
         pend = self._next.mask(xp)
+        # on the CPU the mask is host memory: the autoreset's five launches only when a world is
+        # pending (on a GPU, reading it would wait for the device; a graph holds them anyway)
+        if capturing or not self.device.is_cpu or bool(pend.any()):
+            self._next.apply()
         self._elapsed += 1
         if xp is np:
             self._elapsed[pend] = 0
