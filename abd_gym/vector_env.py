@@ -45,8 +45,11 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   the same seed gives the same episodes on every backend and device) and the autoreset is device
   work only.  With the Torch backend on a GPU the whole step (controls, physics, autoreset,
   observation, reward, flags) is then captured once as a CUDA graph and replayed on a static
-  action buffer; the returned tensors are copies.  ``graph=False`` launches the same work op by
-  op (the default elsewhere); ``graph=True`` where it cannot apply raises ``ValueError``.
+  action buffer; the returned tensors are copies.  The graph holds the task's Python constants
+  (thresholds, ``max_episode_steps``, reward weights) as they were when it was captured, at the
+  env's second step: set them before stepping.  ``graph=False``
+  launches the same work op by op (the default elsewhere); ``graph=True`` where it cannot apply
+  raises ``ValueError``.
 * bad actions: actions are clipped to the action space (so out-of-range values and ±inf act as
   ±1).  An action batch containing NaN raises ``ValueError`` before anything is stepped: no world
   (and no other world) changes state.  A world whose solve fails (``Simulator.failed_worlds``, or a
