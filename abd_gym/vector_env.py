@@ -564,29 +564,13 @@ class ABDVectorEnv(VectorEnv):
         # NEXT_STEP: the worlds that ended last step; this step only resets them (read after the
         # physics launch: on a GPU that read waits for the last step's flags, not for this step)
         pending = np.flatnonzero(self._pending_now()) if self.autoreset_mode == AutoresetMode.NEXT_STEP else np.zeros(0, int)
-        p = None
-        if len(pending):
-            p = self._reset_worlds(pending)
-
-        obs = self._observe_safe()
-        failed = self._failed() | ~self.xp.isfinite(obs).all(axis=1)
-        reward = self._f32(self._reward(obs, a))
-        terminated = self._terminated(obs) | failed
-        if self.max_episode_steps is not None:
-            truncated = self._elapsed >= self.max_episode_steps
-        else:
-            truncated = self._no_flags.copy() if self.xp is np else self._no_flags.clone()
-        info_values = self._info(obs)
+        pend = None
         has_info = np.ones(N, dtype=bool)  # worlds whose info entries are this step's (not a reset's)
         if len(pending):
-            self._fill(reward, p, 0.0)
-            self._fill(terminated, p, False)
-            self._fill(truncated, p, False)
+            pend = self._no_flags.copy() if xp is np else self._no_flags.clone()
+            self._fill(pend, self._reset_worlds(pending), True)
             has_info[pending] = False
-        # a broken world: zero observation and reward, terminated, reported (applied to every world
-        # by mask: asking the device whether any world failed would make the host wait for it)
-        obs = xp.where(failed[:, None], 0.0, obs)
-        reward = xp.where(failed, 0.0, reward)
+        obs, reward, terminated, truncated, failed, info_values = self._outcome(a, pend)
         info_values = dict(info_values, sim_failed=failed)
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             done = _to_numpy(terminated | truncated)  # the host resets now: it waits for the step here
@@ -607,6 +591,29 @@ class ABDVectorEnv(VectorEnv):
             if self._next is not None:  # kept for a later step on the device path
                 self._next.set_pending(terminated | truncated)
         return obs, reward, terminated, truncated, self._batch_info(info_values, has_info)
+
+    def _outcome(self, a, pend=None):
+        """Observation, reward, flags, failures and info values of the step just taken with the
+        clipped actions ``a``; ``pend``: a backend bool mask of the worlds reset in this step
+        (reward 0, neither flag), or None.  A broken world gets a zero observation and reward and is
+        terminated (by mask, for every world: asking the device whether any world failed would make
+        the host wait for it)."""
+        xp = self.xp
+        obs = self._observe_safe()
+        failed = self._failed() | ~xp.isfinite(obs).all(axis=1)
+        reward = self._f32(self._reward(obs, a))
+        terminated = self._terminated(obs) | failed
+        if self.max_episode_steps is not None:
+            truncated = self._elapsed >= self.max_episode_steps
+        else:
+            truncated = self._no_flags.copy() if xp is np else self._no_flags.clone()
+        info_values = self._info(obs)
+        zero = failed
+        if pend is not None:
+            terminated, truncated, zero = terminated & ~pend, truncated & ~pend, failed | pend
+        reward = xp.where(zero, 0.0, reward)
+        obs = xp.where(failed[:, None], 0.0, obs)
+        return obs, reward, terminated, truncated, failed, info_values
 
     # ================================================================== step with autoresets on the device
     def _device_step(self, a, capturing: bool):
@@ -630,17 +637,7 @@ class ABDVectorEnv(VectorEnv):
             self._elapsed[pend] = 0
         else:
             self._elapsed.masked_fill_(pend, 0)
-        obs = self._observe_safe()
-        failed = self._failed() | ~xp.isfinite(obs).all(axis=1)
-        reward = self._f32(self._reward(obs, a))
-        terminated = (self._terminated(obs) | failed) & ~pend
-        if self.max_episode_steps is not None:
-            truncated = (self._elapsed >= self.max_episode_steps) & ~pend
-        else:
-            truncated = self._no_flags.copy() if xp is np else self._no_flags.clone()
-        reward = xp.where(pend | failed, 0.0, reward)
-        obs = xp.where(failed[:, None], 0.0, obs)
-        info_values = self._info(obs)
+        obs, reward, terminated, truncated, failed, info_values = self._outcome(a, pend)
         done = terminated | truncated
         self._next.set_pending(done)
         return obs, reward, terminated, truncated, failed, info_values, done
