@@ -172,11 +172,12 @@ def kernels(dtype):
     return place
 
 
-def place_launch(plan: TreePlan, state, model, idx: wp.array, xx: wp.array, N: int, dt: float, omega: wp.array,
+def place_launch(plan: TreePlan, omega: wp.array, state, model, idx: wp.array, xx: wp.array, N: int, dt: float,
                  mask: wp.array | None = None):  # fmt: skip
     """(kernel, dim, inputs) that set the worlds idx[:N] to joint coordinates xx[:N, 0] and rates
     xx[:N, 1] (device arrays; xx (≥N, 2, max(joints, 1))), for the caller to launch or replay.
-    With ``mask`` (int32 (W,)): every world w with mask[w] != 0, from xx[w] (N = W, idx unused)."""
+    With ``mask`` (int32 (W,)): every world w with mask[w] != 0, from xx[w] (N = W, idx unused).
+    ``omega``: the (W, bodies) angular velocities the walk keeps."""
     masked = mask is not None
     return kernels(model.dtype), N, [
         idx, xx, plan.steps, plan.sign, plan.R_rel0, plan.p_rel0, plan.t_loc, plan.c_loc, plan.R0, plan.p0, float(dt),

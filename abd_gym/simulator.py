@@ -375,16 +375,21 @@ class Simulator:
         xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj))
         if N == 0:
             return
-        if self._plan is None:
-            self._plan = kinematics.tree_plan(self.scene, m)
-            self._omega = wp.zeros((self.num_worlds, m.num_bodies), dtype=m.vec3, device=self.device)
         idx_dev = rows.indices(idx, self._stage)
         # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
         # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
         xx = np.stack([np.where(m.joint_kind_np[None, :] == FIXED_CODE, 0.0, x), xd], axis=1) if nj else np.zeros((N, 2, 1))
         xx = self._stage("xx", xx, m.dtype)
-        self._replay("place", *kinematics.place_launch(self._plan, self.state, m, idx_dev, xx, N, self.dt, self._omega))
+        self._replay("place", *kinematics.place_launch(*self._tree(), self.state, m, idx_dev, xx, N, self.dt))
         self._restarted(idx, idx_dev, given=xx)
+
+    def _tree(self):
+        """(forward kinematics' plan, its per-world angular-velocity scratch), made on first use."""
+        if self._plan is None:
+            m = self.model
+            self._plan = kinematics.tree_plan(self.scene, m)
+            self._omega = wp.zeros((self.num_worlds, m.num_bodies), dtype=m.vec3, device=self.device)
+        return self._plan, self._omega
 
     def set_joint_state_where(self, mask: wp.array, xx: wp.array):
         """``set_joint_state`` of the worlds w with mask[w] != 0 (a device int32 (num_worlds,) array)
@@ -398,11 +403,7 @@ class Simulator:
         if tuple(xx.shape) != (W, 2, max(m.num_joints, 1)) or xx.dtype != m.dtype:
             raise ValueError(f"xx must have shape ({W}, 2, {max(m.num_joints, 1)}) and the model's dtype, "
                              f"got {xx.dtype} {tuple(xx.shape)}")  # fmt: skip
-        if self._plan is None:
-            self._plan = kinematics.tree_plan(self.scene, m)
-            self._omega = wp.zeros((W, m.num_bodies), dtype=m.vec3, device=self.device)
-        self._replay("place_where", *kinematics.place_launch(self._plan, self.state, m, mask, xx, W, self.dt, self._omega,
-                                                             mask=mask))  # fmt: skip
+        self._replay("place_where", *kinematics.place_launch(*self._tree(), self.state, m, mask, xx, W, self.dt, mask=mask))
         if m.num_joints:
             st = self.state
             self.solver.restart_joints(st, mask)

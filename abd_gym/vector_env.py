@@ -333,6 +333,10 @@ class ABDVectorEnv(VectorEnv):
         else:
             array[self._index(idx)] = self._upload(np.asarray(values)).to(array.dtype)
 
+    def _false(self):
+        """A new all-False flag array (N,)."""
+        return self._no_flags.copy() if self.xp is np else self._no_flags.clone()
+
     def _f32(self, x):
         return x.astype(np.float32, copy=False) if self.xp is np else x.to(self.xp.float32)
 
@@ -498,10 +502,8 @@ class ABDVectorEnv(VectorEnv):
             if self._next is not None:
                 self._next.clear(idx)
                 if mask is None:
-                    # every world's next episode, from a generator spawned from np_random (which a
-                    # spawn does not advance: the same seed gives the same resets in every mode)
-                    self._next_rng = np.random.Generator(self.np_random.bit_generator.spawn(1)[0])
-                    self._next.restart()
+                    # every world's next episodes: the same seed gives the same resets in every mode
+                    self._restart_next_episodes()
         self._has_reset = True
         return self._observe_safe(), {}
 
@@ -519,6 +521,12 @@ class ABDVectorEnv(VectorEnv):
             info[key] = v
             info["_" + key] = mask.copy()
         return info
+
+    def _restart_next_episodes(self):
+        """Fresh autoreset queues from a generator spawned from np_random (which a spawn does not
+        advance: explicit resets draw what they would without autoresets)."""
+        self._next_rng = np.random.Generator(self.np_random.bit_generator.spawn(1)[0])
+        self._next.restart()
 
     def _pending_now(self) -> np.ndarray:
         """NEXT_STEP: the worlds that ended in the last step (host bool mask).  On a GPU the mask of
@@ -554,8 +562,7 @@ class ABDVectorEnv(VectorEnv):
         a = self._prepare_actions(actions)
         if self._next is not None and self._randomize is None and not self._randomized:
             if self._next_rng is None:  # no full reset yet (only masked ones): the queues start now
-                self._next_rng = np.random.Generator(self.np_random.bit_generator.spawn(1)[0])
-                self._next.restart()
+                self._restart_next_episodes()
             return self._step_on_device(a)
 
         self.sim.set_controls(self._controls(a))
@@ -567,7 +574,7 @@ class ABDVectorEnv(VectorEnv):
         pend = None
         has_info = np.ones(N, dtype=bool)  # worlds whose info entries are this step's (not a reset's)
         if len(pending):
-            pend = self._no_flags.copy() if xp is np else self._no_flags.clone()
+            pend = self._false()
             self._fill(pend, self._reset_worlds(pending), True)
             has_info[pending] = False
         obs, reward, terminated, truncated, failed, info_values = self._outcome(a, pend)
@@ -606,7 +613,7 @@ class ABDVectorEnv(VectorEnv):
         if self.max_episode_steps is not None:
             truncated = self._elapsed >= self.max_episode_steps
         else:
-            truncated = self._no_flags.copy() if xp is np else self._no_flags.clone()
+            truncated = self._false()
         info_values = self._info(obs)
         zero = failed
         if pend is not None:
