@@ -139,7 +139,7 @@ def main(argv=None):
     ap.add_argument("--dtype", default="float32")
     ap.add_argument("--tol", default="1e-5", help="comma-separated Newton tolerances ‖Δq‖∞/h [m/s] to time")
     ap.add_argument("--integrator", default="implicit_euler")
-    ap.add_argument("--scratch", default="global", help="comma-separated fused-step scratch: global, tiled")
+    ap.add_argument("--scratch", default="global", help="comma-separated fused-step layouts: global (a thread per world), lanes (a block per world)")
     ap.add_argument("--block-dim", type=int, default=None, help="CUDA block size (default: per solver)")
     ap.add_argument("--repeat", type=int, default=1, help="time each row this many times and keep the fastest")
     ap.add_argument("--threads", default=None, help="fused-step threads: all (one per world), Nsm (N per SM) or a count")
@@ -231,7 +231,7 @@ def sweep_threads(argv=None):
     ap.add_argument("--worlds", default="1024,131072")
     ap.add_argument("--threads", default="all,64sm,128sm,256sm")
     ap.add_argument("--block-dims", default="32,64,128,256")
-    ap.add_argument("--scratch", default="global", help="the fused step's scratch: global or tiled")
+    ap.add_argument("--scratch", default="global", help="the fused step's layout: global or lanes")
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--dt", type=float, default=0.01)
     ap.add_argument("--dtype", default="float32")
@@ -277,7 +277,7 @@ def _thread_count(spec, worlds, device):
 
 
 def _solver(r) -> str:
-    """The fused step's scratch ("global", "tiled"; "local" in older results) and CUDA block size."""
+    """The fused step's layout ("global", "lanes"; "tiled", "local" in older results) and CUDA block size."""
     scratch = r.get("scratch") or ("tiled" if r.get("tiled") else "global")
     extra = (f" r{r['max_registers']}" if r.get("max_registers") else "") + (" smem" if r.get("smem_spilling") else "")
     extra += "" if r.get("reuse_factor", False) else " full"  # every iteration factors (older results: all)

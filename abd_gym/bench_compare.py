@@ -124,6 +124,8 @@ def main(argv=None):
     ap.add_argument("--dt", type=float, default=0.01)
     ap.add_argument("--ours-only", default=None, help="world counts run in abd_gym alone (default 1048576 on GPU)")
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--scratch", default="global", help="comma-separated layouts of our fused step: global, lanes "
+                    "(each timed against the same MuJoCo Warp run)")
     ap.add_argument("--out", default="bench_out")
     args = ap.parse_args(argv)
     gpu = args.device.startswith("cuda")
@@ -134,23 +136,24 @@ def main(argv=None):
     rows = []
     for case in args.cases.split(","):
         for w in worlds + alone:
-            ours, residual, mem = ours_steps_per_second(case, w, steps, args.dt, args.device)
             theirs = float("nan")
             if w not in alone:
                 try:
                     theirs = mjw_steps_per_second(case, w, steps, args.dt, args.device)
                 except ImportError:
                     pass
-            rows.append(dict(case=case, num_worlds=w, abd_gym=ours, mujoco_warp=theirs, ratio=ours / theirs,
-                             joint_residual=residual, memory_bytes_per_world=mem))  # fmt: skip
-            print(f"{case:16s} {w:8d} worlds  abd_gym {ours:14,.0f}  mujoco_warp {theirs:14,.0f} world-steps/s  "
-                  f"ratio {ours / theirs:.3f}  residual {residual:.1e} m  {mem:,.0f} B/world", flush=True)  # fmt: skip
+            for scratch in args.scratch.split(","):
+                ours, residual, mem = ours_steps_per_second(case, w, steps, args.dt, args.device, scratch=scratch)
+                rows.append(dict(case=case, num_worlds=w, scratch=scratch, abd_gym=ours, mujoco_warp=theirs,
+                                 ratio=ours / theirs, joint_residual=residual, memory_bytes_per_world=mem))  # fmt: skip
+                print(f"{case:16s} {w:8d} worlds  abd_gym ({scratch}) {ours:14,.0f}  mujoco_warp {theirs:14,.0f} "
+                      f"world-steps/s  ratio {ours / theirs:.3f}  residual {residual:.1e} m  {mem:,.0f} B/world", flush=True)  # fmt: skip
     result = dict(device=args.device, device_name=wp.get_device(args.device).name, dt=args.dt, rows=rows)
     lines = [f"Device: {result['device_name']}, dt = {args.dt}", "",
-             "| mechanism | worlds | abd_gym world-steps/s | MuJoCo Warp world-steps/s | ratio | joint residual [m] "
-             "| abd_gym memory [B/world] |", "|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+             "| mechanism | worlds | abd_gym step | abd_gym world-steps/s | MuJoCo Warp world-steps/s | ratio "
+             "| joint residual [m] | abd_gym memory [B/world] |", "|---|---:|---|---:|---:|---:|---:|---:|"]  # fmt: skip
     for r in rows:
-        lines.append(f"| {r['case']} | {r['num_worlds']} | {r['abd_gym']:,.0f} | {r['mujoco_warp']:,.0f} | {r['ratio']:.3f} "
+        lines.append(f"| {r['case']} | {r['num_worlds']} | {r['scratch']} | {r['abd_gym']:,.0f} | {r['mujoco_warp']:,.0f} | {r['ratio']:.3f} "
                      f"| {r['joint_residual']:.1e} | {r['memory_bytes_per_world']:,.0f} |")  # fmt: skip
     print("\n".join(lines))
     os.makedirs(args.out, exist_ok=True)

@@ -11,13 +11,13 @@ flat ``g``/``H``/``dq``, indexed as in ``solver_kernels``), without per-iteratio
 launches, and with the code of absent constitutions compiled out (``wp.static`` on what the scene
 has).  ``Solver(fused=True)`` uses it.
 
-``scratch="tiled"``: one CUDA block per world instead of one thread.  Every lane runs the same scalar code
-(the evaluators compute whole 12 × 12 blocks); the Hessian and gradient live in shared memory,
-added one entry per lane per ``wp.tile_scatter_add``, and the block factors and solves with
-``wp.tile_cholesky_inplace`` / ``wp.tile_cholesky_solve_inplace``.  Measured on an H100
-(``results/bench_h100_tiled.md``) it is faster only where there are few worlds and cheap terms
-(1,024 double pendulums: 1.4x); with the evaluators repeated on all 32 lanes a block issues as
-many instructions as 32 per-thread worlds, so it saturates near 1.8 M world-steps/s.
+``scratch="lanes"``: a block of L threads (lanes) per world instead of one thread, the world's
+system in a contiguous block of the global scratch.  The lanes share the work that splits:
+terms (one per lane within a round of terms that share no body; Solver._term_rounds), the
+Cholesky factor (a column at a time, lanes on the rows below the diagonal), the bodies' trial
+steps and updates; every lane takes every branch, decided from the same sums in the same order.
+A barrier (``block_sync``, also on the CPU's cooperative blocks) separates the phases.  Meant for
+few worlds, where one thread per world leaves the GPU idle waiting on each thread's chain.
 """
 import functools
 from typing import Any
@@ -32,17 +32,42 @@ from .warp_ops import ENERGY, GRADIENT, HESSIAN, ops
 OK, FAILED = 0, 1
 
 
+@wp.func_native("WP_TILE_SYNC();")
+def block_sync():
+    """A barrier for the threads of a block (``__syncthreads`` on CUDA; on the CPU a yield to the
+    block's other fibers when ``wp.config.enable_cpu_blocks``, else a no-op for its one thread)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return clock64();
+#else
+return 0;
+#endif
+""")
+def cycles() -> wp.int64:
+    """The SM's cycle counter on CUDA (0 on the CPU), for fused_kernel(phase_clock=True)."""
+    ...
+
+
+# the phases fused_kernel(phase_clock=True) times, columns of Terms.clock (cycles summed per world)
+PHASES = ("zero", "assemble", "factor", "solve", "step", "step: energy", "step: trial")
+
+
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
-                 max_registers=0, smem_spilling=False, envelope=False, retract=True):  # fmt: skip
+                 max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
-    "tiled": a CUDA block per world, H and g in shared memory, assembled together and factored by
-    ``wp.tile_cholesky``.  (A third layout, g, H and Δq in each thread's local memory, measured
+    "lanes": a block of lanes per world, its system contiguous (see the module's docstring).  (The
+    "tiled" layout, a block per world repeating every evaluator on all lanes with H in shared memory,
+    measured slower than "global" but for 1,024 double pendulums and was removed; a third layout, g, H and Δq in each thread's local memory, measured
     slower than "global" at every batch size on an H100 and was removed; see results/.)
     ``max_registers`` (0: the compiler's choice) caps registers per thread on CUDA, trading spills
-    for occupancy; ``smem_spilling`` lets the compiler spill registers to shared memory."""
+    for occupancy; ``smem_spilling`` lets the compiler spill registers to shared memory.
+    ``phase_clock``: lane 0 adds each phase's cycles (PHASES) to ``Terms.clock`` (profiling only)."""
     # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
     # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
     # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
@@ -51,10 +76,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         options["cuda_max_registers"] = int(max_registers)
     if smem_spilling:
         options["enable_cuda_smem_spilling"] = True
-    tiled = n if scratch == "tiled" else 0
+    lanes = scratch == "lanes"
     N = n  # unknowns per world (12 per free body), a constant of the kernel
     o = ops(dtype)
-    vec3, vec12, mat33, mat12, mat44 = o.vec3, o.vec12, o.mat33, o.mat12, o.mat44
+    vec3, vec4, vec12, mat33, mat12, mat44 = o.vec3, o.vec4, o.vec12, o.mat33, o.mat12, o.mat44
     body_eval = affine_body.kernels(dtype).body_eval
     hessian_parts, a_block = affine_body.kernels(dtype).hessian_parts, affine_body.kernels(dtype).a_block
     retract_body = affine_body.kernels(dtype).retract
@@ -64,146 +89,172 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     rlim_eval = revolute_limit.kernel(dtype).eval
     plim_eval = prismatic_limit.kernel(dtype).eval
     drive_eval = drive.kernel(dtype).eval
-    staged = solver_kernels.kernels(dtype, envelope and scratch != "tiled")
+    staged = solver_kernels.kernels(dtype, envelope)
     cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
+    reductions = staged["reductions"]
     noise_floor, energy_noise = staged["noise_floor"], staged["energy_noise"]
     zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
 
-    if tiled:
+    # the thread's scratch column s of the flat g, H (solver_kernels: entry (i, j) of H at
+    # (i·N + j)·T + s, entry i of g at i·T + s); B is T, the scratch width
 
-        @wp.func
-        def put_grad(g: Any, s: int, B: int, o: int, v: vec12):
-            """g[o:o+12] += v, lanes s, s+B, … of the block adding one entry each."""
-            if o >= 0:
-                for base in range(0, 12, B):
-                    r = wp.min(base + s, 11)
-                    wp.tile_scatter_add(g, o + r, v[r], base + s < 12, False)
+    @wp.func
+    def put_grad(g: Any, s: int, B: int, o: int, v: vec12):
+        if o >= 0:
+            p = o * B + s
+            for r in range(12):
+                g[p] = g[p] + v[r]
+                p += B
 
-        @wp.func
-        def put_block(H: Any, s: int, B: int, oa: int, ob: int, m: mat12):
-            """Block (oa, ob) and its transpose into the lower triangle of the shared H (all the
-            Cholesky reads), one entry per lane per call."""
-            if oa >= 0 and ob >= 0:
-                for base in range(0, 144, B):
-                    e = base + s
-                    r = wp.min(e // 12, 11)
-                    c = wp.min(e - r * 12, 11)  # lanes past the block's end write nothing
-                    i = oa + r
-                    j = ob + c
-                    keep = e < 144 and (oa != ob or i >= j)
-                    if i < j:
-                        t = i
-                        i = j
-                        j = t
-                    wp.tile_scatter_add(H, i, j, m[r, c], keep, False)
-
-    else:
-
-        # the thread's scratch column s of the flat g, H (solver_kernels: entry (i, j) of H at
-        # (i·N + j)·T + s, entry i of g at i·T + s); B is T, the scratch width
-
-        @wp.func
-        def put_grad(g: Any, s: int, B: int, o: int, v: vec12):
-            if o >= 0:
-                p = o * B + s
+    @wp.func
+    def put_block(H: Any, s: int, B: int, oa: int, ob: int, m: mat12):
+        """Add block (oa, ob) and its transpose, lower triangle only (all the Cholesky reads):
+        a diagonal block's lower half; (oa, ob) below the diagonal as it is, above it transposed."""
+        if oa >= 0 and ob >= 0:
+            if oa == ob:
                 for r in range(12):
-                    g[p] = g[p] + v[r]
-                    p += B
-
-        @wp.func
-        def put_block(H: Any, s: int, B: int, oa: int, ob: int, m: mat12):
-            """Add block (oa, ob) and its transpose, lower triangle only (all the Cholesky reads):
-            a diagonal block's lower half; (oa, ob) below the diagonal as it is, above it transposed."""
-            if oa >= 0 and ob >= 0:
-                if oa == ob:
-                    for r in range(12):
-                        p = ((oa + r) * N + ob) * B + s
-                        for c in range(r + 1):
-                            H[p] = H[p] + m[r, c]
-                            p += B
-                elif oa > ob:
-                    for r in range(12):
-                        p = ((oa + r) * N + ob) * B + s
-                        for c in range(12):
-                            H[p] = H[p] + m[r, c]
-                            p += B
-                else:
+                    p = ((oa + r) * N + ob) * B + s
+                    for c in range(r + 1):
+                        H[p] = H[p] + m[r, c]
+                        p += B
+            elif oa > ob:
+                for r in range(12):
+                    p = ((oa + r) * N + ob) * B + s
                     for c in range(12):
-                        p = ((ob + c) * N + oa) * B + s
-                        for r in range(12):
-                            H[p] = H[p] + m[r, c]
+                        H[p] = H[p] + m[r, c]
+                        p += B
+            else:
+                for c in range(12):
+                    p = ((ob + c) * N + oa) * B + s
+                    for r in range(12):
+                        H[p] = H[p] + m[r, c]
+                        p += B
+
+    @wp.func
+    def put_body(H: Any, s: int, B: int, o: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype):
+        """Body o's Hessian (affine_body.body_eval's h) added to the lower triangle from its parts,
+        without building the 12 × 12 matrix in the thread's local memory: m on the translation
+        diagonal, the first moments c below it, and the A rows' 3 × 3 blocks (a_block), 57
+        entries where the dense block's lower triangle has 78."""
+        if o >= 0:
+            Rp, ata = hessian_parts(qb)
+            for r in range(3):
+                p = ((o + r) * N + o + r) * B + s
+                H[p] = H[p] + m
+                for a in range(3):
+                    p = ((o + 3 + 3 * r + a) * N + o + r) * B + s
+                    H[p] = H[p] + c[a]
+            for kk in range(3):
+                for ll in range(kk + 1):
+                    blk = a_block(qb, kk, ll, Rp, ata, ks, S)
+                    for a in range(3):
+                        p = ((o + 3 + 3 * kk + a) * N + o + 3 + 3 * ll) * B + s
+                        for bb in range(3):
+                            if kk != ll or bb <= a:
+                                H[p] = H[p] + blk[a, bb]
                             p += B
 
-        @wp.func
-        def put_body(H: Any, s: int, B: int, o: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype):
-            """Body o's Hessian (affine_body.body_eval's h) added to the lower triangle from its parts,
-            without building the 12 × 12 matrix in the thread's local memory: m on the translation
-            diagonal, the first moments c below it, and the A rows' 3 × 3 blocks (a_block), 57
-            entries where the dense block's lower triangle has 78."""
-            if o >= 0:
-                Rp, ata = hessian_parts(qb)
-                for r in range(3):
-                    p = ((o + r) * N + o + r) * B + s
-                    H[p] = H[p] + m
-                    for a in range(3):
-                        p = ((o + 3 + 3 * r + a) * N + o + r) * B + s
-                        H[p] = H[p] + c[a]
-                for kk in range(3):
-                    for ll in range(kk + 1):
-                        blk = a_block(qb, kk, ll, Rp, ata, ks, S)
-                        for a in range(3):
-                            p = ((o + 3 + 3 * kk + a) * N + o + 3 + 3 * ll) * B + s
-                            for bb in range(3):
-                                if kk != ll or bb <= a:
-                                    H[p] = H[p] + blk[a, bb]
-                                p += B
+    @wp.func
+    def put_kron(H: Any, s: int, B: int, oa: int, ob: int, U: mat44):
+        """Block (oa, ob) = U ⊗ I₃ (see warp_ops.kron3): its 48 non-zero entries only."""
+        if oa >= 0 and ob >= 0:
+            for m in range(3):
+                for c in range(4):
+                    a = kron_index(m, c)
+                    for d in range(4):
+                        b = kron_index(m, d)
+                        if oa > ob or (oa == ob and a >= b):
+                            p = ((oa + a) * N + ob + b) * B + s
+                            H[p] = H[p] + U[c, d]
+                        elif oa < ob:
+                            p = ((ob + b) * N + oa + a) * B + s
+                            H[p] = H[p] + U[c, d]
 
-    if tiled:
-
-        @wp.func
-        def put_kron(H: Any, s: int, B: int, oa: int, ob: int, U: mat44):
-            put_block(H, s, B, oa, ob, kron3(U))
-
-    else:
-
-        @wp.func
-        def put_kron(H: Any, s: int, B: int, oa: int, ob: int, U: mat44):
-            """Block (oa, ob) = U ⊗ I₃ (see warp_ops.kron3): its 48 non-zero entries only."""
-            if oa >= 0 and ob >= 0:
-                for m in range(3):
-                    for c in range(4):
-                        a = kron_index(m, c)
-                        for d in range(4):
-                            b = kron_index(m, d)
-                            if oa > ob or (oa == ob and a >= b):
-                                p = ((oa + a) * N + ob + b) * B + s
-                                H[p] = H[p] + U[c, d]
+    @wp.func
+    def put_ksum(H: Any, s: int, B: int, oa: int, ob: int, ua: vec4, ta: vec4, ub: vec4, tb: vec4, Pcc: mat33, Pct: mat33,
+                 Ptc: mat33, Ptt: mat33, U: mat44):  # fmt: skip
+        """Add block (oa, ob) = (ua ubᵀ) ⊗ Pcc + (ua tbᵀ) ⊗ Pct + (ta ubᵀ) ⊗ Ptc + (ta tbᵀ) ⊗ Ptt + U ⊗ I₃
+        (entry (kron_index(α, a), kron_index(β, b)) = Σ u[a] v[b] P[α, β] + δ_αβ U[a, b]), lower
+        triangle only as put_block: the Gauss–Newton block of rows J(x)ᵀ-type Kronecker products
+        (prismatic_hessian), summed per entry in registers, without a 12 × 12 matrix."""
+        if oa >= 0 and ob >= 0:
+            for a in range(4):
+                for al in range(3):
+                    ra = kron_index(al, a)
+                    for b in range(4):
+                        cc = ua[a] * ub[b]
+                        ct = ua[a] * tb[b]
+                        tc = ta[a] * ub[b]
+                        tt = ta[a] * tb[b]
+                        for be in range(3):
+                            cb = kron_index(be, b)
+                            v = cc * Pcc[al, be] + ct * Pct[al, be] + tc * Ptc[al, be] + tt * Ptt[al, be]
+                            if al == be:
+                                v += U[a, b]
+                            if oa > ob or (oa == ob and ra >= cb):
+                                p = ((oa + ra) * N + ob + cb) * B + s
+                                H[p] = H[p] + v
                             elif oa < ob:
-                                p = ((ob + b) * N + oa + a) * B + s
-                                H[p] = H[p] + U[c, d]
+                                p = ((ob + cb) * N + oa + ra) * B + s
+                                H[p] = H[p] + v
+
+    @wp.func
+    def cross_gram(x: vec3, y: vec3):
+        """Σ_m (row m of [x]×)ᵀ(row m of [y]×) = [x]×ᵀ[y]× = (x·y) I − y xᵀ."""
+        return wp.dot(x, y) * wp.identity(3, dtype) - wp.outer(y, x)
+
+    @wp.func
+    def prismatic_hessian(H: Any, s: int, B: int, oi: int, oj: int, qi: vec12, qj: vec12, ci: vec3, cj: vec3, ti: vec3,
+                          tj: vec3, ni: vec3, nj: vec3, bi: vec3, bj: vec3, kk: dtype):  # fmt: skip
+        """The prismatic joint's Gauss–Newton Hessian (prismatic_joint.prismatic_eval's blocks) added
+        straight into H.  Its rows are Kronecker products: C0's row m is J(c_i)ᵀ([T_i]×)_m +
+        J̊(t_i)ᵀ([d]×)_m on body i and J(c_j)ᵀ([−T_i]×)_m on body j (C1's likewise), so Σ_m of their
+        outer products is (ũ ũ'ᵀ) ⊗ [x]×ᵀ[y]× summed over the pairs of terms, ũ = (1, c̄) or (0, t̄);
+        C2, C3 add (ũn ũnᵀ + ũb ũbᵀ) ⊗ I₃ as in prismatic_eval."""
+        d = o.point(qj, cj) - o.point(qi, ci)
+        Ti = o.direction(qi, ti)
+        Tj = o.direction(qj, tj)
+        uci = vec4(one, ci[0], ci[1], ci[2])
+        uti = vec4(zero, ti[0], ti[1], ti[2])
+        ucj = vec4(one, cj[0], cj[1], cj[2])
+        utj = vec4(zero, tj[0], tj[1], tj[2])
+        uni = vec4(zero, ni[0], ni[1], ni[2])
+        unj = vec4(zero, nj[0], nj[1], nj[2])
+        ubi = vec4(zero, bi[0], bi[1], bi[2])
+        ubj = vec4(zero, bj[0], bj[1], bj[2])
+        PT = kk * (cross_gram(Ti, Ti) + cross_gram(Tj, Tj))
+        Pdd = kk * cross_gram(d, d)
+        if oi >= 0:
+            put_ksum(H, s, B, oi, oi, uci, uti, uci, uti, PT, kk * cross_gram(Ti, d), kk * cross_gram(d, Ti), Pdd,
+                     kk * (wp.outer(uni, uni) + wp.outer(ubi, ubi)))  # fmt: skip
+        if oj >= 0:
+            put_ksum(H, s, B, oj, oj, ucj, utj, ucj, utj, PT, -kk * cross_gram(Tj, d), -kk * cross_gram(d, Tj), Pdd,
+                     kk * (wp.outer(unj, unj) + wp.outer(ubj, ubj)))  # fmt: skip
+        if oi >= 0 and oj >= 0:
+            put_ksum(H, s, B, oi, oj, uci, uti, ucj, utj, -PT, kk * cross_gram(Tj, d), -kk * cross_gram(d, Ti), mat33(),
+                     -kk * (wp.outer(uni, unj) + wp.outer(ubi, ubj)))  # fmt: skip
 
     @wp.func
     def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Any, step: Any, w: int, row: int,
-              s: int, T: int, alpha: dtype):  # fmt: skip
-        """q_trial[row] = q[w] + α Δq along the retraction's path (affine_body.retract): Δq in
-        scratch column s of the flat ``step`` (T columns), or (tiled) −y with y = H⁻¹g in the
-        block's shared tile ``step``."""
-        for b in range(q.shape[1]):
+              s: int, T: int, alpha: dtype, lane: int, L: int):  # fmt: skip
+        """q_trial[row] = q[w] + α Δq along the retraction's path (affine_body.retract), Δq in
+        scratch column s of the flat ``step`` (T columns); lane ``lane`` of L moves bodies lane,
+        lane + L, … (then the block synchronises)."""
+        for b in range(lane, q.shape[1], L):
             qb = q[w, b]
             ob = t.dof[b]
             if ob >= 0:
                 d = vec12()
                 for r in range(12):
-                    if wp.static(tiled):
-                        d[r] = -wp.tile_extract(step, ob + r)
-                    else:
-                        d[r] = step[(ob + r) * T + s]
+                    d[r] = step[(ob + r) * T + s]
                 if wp.static(retract):
                     qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b], 0)
                 else:
                     qb = qb + alpha * d
             q_trial[row, b] = qb
+        if wp.static(lanes):
+            block_sync()
 
     @wp.func
     def put_kron_pair(g: Any, H: Any, s: int, B: int, derivs: int, oi: int, oj: int, gi: vec12, gj: vec12,
@@ -274,86 +325,192 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         control: wp.array2d(dtype=dtype)
         unwrapped: wp.array2d(dtype=dtype)
         x_anchor: wp.array2d(dtype=dtype)
+        # every term as (kind, index within its kind), in rounds whose terms share no free body, in
+        # assemble's order (Solver._term_rounds): the lane-split step adds one round at a time
+        term_kind: wp.array(dtype=wp.int32)
+        term_k: wp.array(dtype=wp.int32)
+        round_start: wp.array(dtype=wp.int32)
+        clock: wp.array2d(dtype=wp.int64)  # (W, len(PHASES)) with phase_clock, else unused
 
     @wp.func
-    def assemble(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any):
+    def clock_now():
+        if wp.static(phase_clock):
+            return cycles()
+        return wp.int64(0)
+
+    @wp.func
+    def tick(t: Terms, w: int, lane: int, k: int, c: wp.int64):
+        """With phase_clock, add the cycles since c to phase k of world w; the cycle count now."""
+        now = c
+        if wp.static(phase_clock):
+            now = cycles()
+            if lane == 0:
+                t.clock[w, k] = t.clock[w, k] + (now - c)
+        return now
+
+    # one term of the incremental potential each (kind k of assemble's loops): its energy, and per
+    # derivs its gradient and Hessian added to scratch column s (of B) of g and H
+
+    @wp.func
+    def body_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any,
+                  k: int, h2: dtype):  # fmt: skip
+        b = t.free[k]
+        qb = q[qr, b]
+        ks = t.kv[w, b] * h2
+        d_body = derivs
+        if derivs == HESSIAN:
+            d_body = GRADIENT  # the Hessian goes straight into H (put_body)
+        e_in, e_or, f, hb = body_eval(qb, t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], ks, d_body)
+        if derivs != 0:
+            put_grad(g, s, B, t.dof[b], f)
+            if derivs == HESSIAN:
+                put_body(H, s, B, t.dof[b], qb, t.mass[w, b], t.mc[w, b], t.S[w, b], ks)
+        return e_in + e_or
+
+    @wp.func
+    def point_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
+                   H: Any, j: int, points: int):  # fmt: skip
+        """A revolute (2 points) or fixed (4 points) joint j."""
+        ej, gi, gj, uii, uij, ujj = point_eval_kron(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j, points,
+                                                    t.K[w, j], derivs)  # fmt: skip
+        if derivs != 0:
+            put_kron_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, uii, uij, ujj)
+        return ej
+
+    @wp.func
+    def prismatic_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
+                       H: Any, j: int):  # fmt: skip
+        qi = q[qr, t.body_a[j]]
+        qj = q[qr, t.body_b[j]]
+        oi = t.dof[t.body_a[j]]
+        oj = t.dof[t.body_b[j]]
+        # the Hessian goes straight into H (prismatic_hessian), so the evaluator builds none
+        ej, gi, gj, hii, hij, hjj = prismatic_eval(qi, qj, t.c_a[w, j], t.c_b[w, j], t.t_a[w, j], t.t_b[w, j], t.n_a[w, j],
+                                                   t.n_b[w, j], t.b_a[w, j], t.b_b[w, j], t.K[w, j], wp.min(derivs, GRADIENT),
+                                                   wp.where(oi >= 0, 1, 0), wp.where(oj >= 0, 1, 0))  # fmt: skip
+        if derivs != 0:
+            put_grad(g, s, B, oi, gi)
+            put_grad(g, s, B, oj, gj)
+            if derivs == HESSIAN:
+                prismatic_hessian(H, s, B, oi, oj, qi, qj, t.c_a[w, j], t.c_b[w, j], t.t_a[w, j], t.t_b[w, j], t.n_a[w, j],
+                                  t.n_b[w, j], t.b_a[w, j], t.b_b[w, j], t.K[w, j])  # fmt: skip
+        return ej
+
+    @wp.func
+    def rlim_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
+                  H: Any, k: int):  # fmt: skip
+        j = t.rlim_ids[k]
+        ej, gi, gj, hii, hij, hjj = rlim_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.n_a[w, j], t.b_a[w, j], t.n_b[w, j],
+                                              t.b_b[w, j], t.theta0[w, j], t.c_prev[w, j], t.s_prev[w, j], t.rlim_lo[w, k],
+                                              t.rlim_up[w, k], t.rlim_s[w, k], derivs)  # fmt: skip
+        if derivs != 0 and ej != zero:
+            put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+        return ej
+
+    @wp.func
+    def plim_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
+                  H: Any, k: int):  # fmt: skip
+        j = t.plim_ids[k]
+        ej, gi, gj, hii, hij, hjj = plim_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.c_a[w, j], t.c_b[w, j], t.t_a[w, j],
+                                              t.plim_lo[w, k], t.plim_up[w, k], t.plim_s[w, k], derivs)  # fmt: skip
+        if derivs != 0 and ej != zero:
+            put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+        return ej
+
+    @wp.func
+    def drive_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
+                   H: Any, k: int, hw: dtype, h2: dtype):  # fmt: skip
+        j = t.drive_joint[k]
+        ej, gi, gj, hii, hij, hjj = drive_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], w, k, t.drive_joint, t.joint_kind,
+                                               t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b, t.b_b, t.c_prev, t.s_prev, t.drive_mode, t.kp,
+                                               t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, hw, h2, 0, derivs)  # fmt: skip
+        if derivs != 0 and t.drive_mode[k] == 0:  # an effort drive is linear: gradient only
+            put_grad(g, s, B, t.dof[t.body_a[j]], gi)
+            put_grad(g, s, B, t.dof[t.body_b[j]], gj)
+        elif derivs != 0:
+            put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+        return ej
+
+    @wp.func
+    def term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any,
+             kind: int, k: int, hw: dtype, h2: dtype):  # fmt: skip
+        """Term k of kind ``kind`` (0 bodies, 1 revolute, 2 fixed, 3 prismatic, 4 revolute limits,
+        5 prismatic limits, 6 drives: assemble's order), for the lane-split step."""
+        e = zero
+        if kind == 0:
+            e = body_term(q, qr, w, s, B, derivs, t, g, H, k, h2)
+        if wp.static(has_rev):
+            if kind == 1:
+                e = point_term(q, qr, w, s, B, derivs, t, g, H, t.rev_ids[k], 2)
+        if wp.static(has_fix):
+            if kind == 2:
+                e = point_term(q, qr, w, s, B, derivs, t, g, H, t.fix_ids[k], 4)
+        if wp.static(has_pri):
+            if kind == 3:
+                e = prismatic_term(q, qr, w, s, B, derivs, t, g, H, t.pri_ids[k])
+        if wp.static(has_rlim):
+            if kind == 4:
+                e = rlim_term(q, qr, w, s, B, derivs, t, g, H, k)
+        if wp.static(has_plim):
+            if kind == 5:
+                e = plim_term(q, qr, w, s, B, derivs, t, g, H, k)
+        if wp.static(has_drive):
+            if kind == 6:
+                e = drive_term(q, qr, w, s, B, derivs, t, g, H, k, hw, h2)
+        return e
+
+    @wp.func
+    def lane_sum(part: wp.array(dtype=dtype), w: int, lane: int, L: int, e: dtype):
+        """Σ over the block's L lanes of e (each lane's share), the same sum on every lane."""
+        pw = wp.where(part.shape[0] > L, w * L, 0)  # the global shares, or the block's own L in shared memory
+        part[pw + lane] = e
+        block_sync()
+        total = zero
+        for k in range(L):
+            total += part[pw + k]
+        block_sync()  # read before any lane writes its next share
+        return total
+
+    @wp.func
+    def assemble(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any,
+                 lane: int, L: int, part: wp.array(dtype=dtype)):  # fmt: skip
         """Total incremental potential of world w at q[qr]; derivs GRADIENT adds its g, HESSIAN its g
-        and H (to scratch column s; tiled: to the block's shared g and H, s the lane, B the block size)."""
+        and H (to scratch column s of B).  Lane-split (L lanes): lane ``lane`` takes every L-th term
+        of a round at a time (a round's terms share no body, so no two lanes add to one entry; the
+        rounds keep each entry's sum in the one-thread order), and the lanes' energies are summed."""
         e = zero
         hw = t.h_step[w]
         h2 = hw * hw
+        if wp.static(lanes):
+            if derivs == 0:
+                for c in range(lane, t.term_kind.shape[0], L):
+                    e += term(q, qr, w, s, B, derivs, t, g, H, t.term_kind[c], t.term_k[c], hw, h2)
+            else:
+                for r in range(t.round_start.shape[0] - 1):
+                    for c in range(t.round_start[r] + lane, t.round_start[r + 1], L):
+                        e += term(q, qr, w, s, B, derivs, t, g, H, t.term_kind[c], t.term_k[c], hw, h2)
+                    block_sync()
+            return lane_sum(part, w, lane, L, e)
         for k in range(t.free.shape[0]):
-            b = t.free[k]
-            qb = q[qr, b]
-            ks = t.kv[w, b] * h2
-            d_body = derivs
-            if wp.static(not tiled) and derivs == HESSIAN:
-                d_body = GRADIENT  # the Hessian goes straight into H (put_body)
-            e_in, e_or, f, hb = body_eval(qb, t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], ks, d_body)
-            e += e_in + e_or
-            if derivs != 0:
-                put_grad(g, s, B, t.dof[b], f)
-                if derivs == HESSIAN:
-                    if wp.static(tiled):
-                        put_block(H, s, B, t.dof[b], t.dof[b], hb)
-                    else:
-                        put_body(H, s, B, t.dof[b], qb, t.mass[w, b], t.mc[w, b], t.S[w, b], ks)
+            e += body_term(q, qr, w, s, B, derivs, t, g, H, k, h2)
         if wp.static(has_rev):
             for k in range(t.rev_ids.shape[0]):
-                j = t.rev_ids[k]
-                ej, gi, gj, uii, uij, ujj = point_eval_kron(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j, 2,
-                                                            t.K[w, j], derivs)  # fmt: skip
-                e += ej
-                if derivs != 0:
-                    put_kron_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, uii, uij, ujj)
+                e += point_term(q, qr, w, s, B, derivs, t, g, H, t.rev_ids[k], 2)
         if wp.static(has_fix):
             for k in range(t.fix_ids.shape[0]):
-                j = t.fix_ids[k]
-                ej, gi, gj, uii, uij, ujj = point_eval_kron(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j, 4,
-                                                            t.K[w, j], derivs)  # fmt: skip
-                e += ej
-                if derivs != 0:
-                    put_kron_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, uii, uij, ujj)
+                e += point_term(q, qr, w, s, B, derivs, t, g, H, t.fix_ids[k], 4)
         if wp.static(has_pri):
             for k in range(t.pri_ids.shape[0]):
-                j = t.pri_ids[k]
-                ej, gi, gj, hii, hij, hjj = prismatic_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.c_a[w, j], t.c_b[w, j],
-                                                           t.t_a[w, j], t.t_b[w, j], t.n_a[w, j], t.n_b[w, j], t.b_a[w, j],
-                                                           t.b_b[w, j], t.K[w, j], derivs,
-                                                           wp.where(t.dof[t.body_a[j]] >= 0, 1, 0),
-                                                           wp.where(t.dof[t.body_b[j]] >= 0, 1, 0))  # fmt: skip
-                e += ej
-                if derivs != 0:
-                    put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                e += prismatic_term(q, qr, w, s, B, derivs, t, g, H, t.pri_ids[k])
         if wp.static(has_rlim):
             for k in range(t.rlim_ids.shape[0]):
-                j = t.rlim_ids[k]
-                ej, gi, gj, hii, hij, hjj = rlim_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.n_a[w, j], t.b_a[w, j], t.n_b[w, j],
-                                                      t.b_b[w, j], t.theta0[w, j], t.c_prev[w, j], t.s_prev[w, j], t.rlim_lo[w, k],
-                                                      t.rlim_up[w, k], t.rlim_s[w, k], derivs)  # fmt: skip
-                e += ej
-                if derivs != 0 and ej != zero:
-                    put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                e += rlim_term(q, qr, w, s, B, derivs, t, g, H, k)
         if wp.static(has_plim):
             for k in range(t.plim_ids.shape[0]):
-                j = t.plim_ids[k]
-                ej, gi, gj, hii, hij, hjj = plim_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.c_a[w, j], t.c_b[w, j], t.t_a[w, j],
-                                                      t.plim_lo[w, k], t.plim_up[w, k], t.plim_s[w, k], derivs)  # fmt: skip
-                e += ej
-                if derivs != 0 and ej != zero:
-                    put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                e += plim_term(q, qr, w, s, B, derivs, t, g, H, k)
         if wp.static(has_drive):
             for k in range(t.drive_joint.shape[0]):
-                j = t.drive_joint[k]
-                ej, gi, gj, hii, hij, hjj = drive_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], w, k, t.drive_joint, t.joint_kind,
-                                                       t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b, t.b_b, t.c_prev, t.s_prev, t.drive_mode, t.kp,
-                                                       t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, hw, h2, 0, derivs)  # fmt: skip
-                e += ej
-                if derivs != 0 and t.drive_mode[k] == 0:  # an effort drive is linear: gradient only
-                    put_grad(g, s, B, t.dof[t.body_a[j]], gi)
-                    put_grad(g, s, B, t.dof[t.body_b[j]], gj)
-                elif derivs != 0:
-                    put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+                e += drive_term(q, qr, w, s, B, derivs, t, g, H, k, hw, h2)
         return e
 
     @wp.func
@@ -384,11 +541,13 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     @wp.func
     def search(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, skip: int, done: int, chord: int,
-               max_line_search: int):  # fmt: skip
+               max_line_search: int, lane: int, L: int, part: wp.array(dtype=dtype)):  # fmt: skip
         """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
         factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
-        trial points go to row ``row`` of q_trial; s, B as in assemble."""
-        trial(q, q_trial, t, step, w, row, s, B, one)
+        trial points go to row ``row`` of q_trial; s, B, lane, L, part as in assemble."""
+        c = clock_now()
+        trial(q, q_trial, t, step, w, row, s, B, one, lane, L)
+        c = tick(t, w, lane, 6, c)
         alpha = one
         accepted = int(0)
         stalled = int(0)
@@ -396,12 +555,15 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             accepted = 1
             stalled = done
         elif chord > 0:
-            accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), one, gdq)
+            accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H, lane, L, part), one, gdq)
+            c = tick(t, w, lane, 5, c)
         else:
             for ls in range(max_line_search):
                 if ls > 0:
-                    trial(q, q_trial, t, step, w, row, s, B, alpha)
-                accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
+                    trial(q, q_trial, t, step, w, row, s, B, alpha, lane, L)
+                    c = tick(t, w, lane, 6, c)
+                accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H, lane, L, part), alpha, gdq)
+                c = tick(t, w, lane, 5, c)
                 if accepted != 0:
                     break
                 alpha = alpha * half
@@ -428,36 +590,42 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def end_iteration(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), w: int, row: int, accepted: int,
-                      stalled: int, dmax: dtype, floor: dtype, converged: wp.array(dtype=wp.int32)):  # fmt: skip
+                      stalled: int, dmax: dtype, floor: dtype, converged: wp.array(dtype=wp.int32), lane: int,
+                      L: int):  # fmt: skip
         """Take the accepted trial point (row of q_trial) as world w's q; 1 when its solve is over.
         A search that ran out takes no step: converged if the step was already near the tolerance.
-        (Steps within 10x the noise floor are taken whole, see whole_step.)"""
+        (Steps within 10x the noise floor are taken whole, see whole_step.)  Lane-split: each lane
+        copies its bodies, lane 0 writes the flag."""
         if accepted == 0:
-            if dmax < dtype(1000.0) * floor:
+            if dmax < dtype(1000.0) * floor and lane == 0:
                 converged[w] = 1
             return 1
-        for b in range(q.shape[1]):
+        for b in range(lane, q.shape[1], L):
             q[w, b] = q_trial[row, b]
         if dmax < floor or stalled != 0:
-            converged[w] = 1
+            if lane == 0:
+                converged[w] = 1
             return 1
         return 0
 
     @wp.func
     def take_step(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                   w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, dmax: dtype, g_abs: dtype, threshold: dtype, chord: int,
-                  reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32)):  # fmt: skip
+                  reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32), lane: int, L: int,
+                  part: wp.array(dtype=dtype)):  # fmt: skip
         """Everything after a Newton direction (both layouts): the stop test, the line search, the
         choice to reuse the factor next, and the update of q.  Returns (1 when the solve is over,
         chord for the next iteration)."""
         floor, rounding = noise_floor(q, w, threshold)
         skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(rounding, g_abs), chord)
         accepted, stalled, alpha = search(q, q_trial, t, step, g, H, w, row, s, B, e0, gdq, skip, done, chord,
-                                          max_line_search)  # fmt: skip
+                                          max_line_search, lane, L, part)  # fmt: skip
         retry, chord_next = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
         stop = int(0)
         if retry == 0:
-            stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged)
+            stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged, lane, L)
+        if wp.static(lanes):
+            block_sync()  # q is read whole by the next iteration
         return stop, chord_next
 
     @wp.func
@@ -465,71 +633,78 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, s: int, T: int, row: int, threshold: dtype,
                     max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
                     iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
-                    converged: wp.array(dtype=wp.int32)):  # fmt: skip
+                    converged: wp.array(dtype=wp.int32), lane: int, L: int, part: wp.array(dtype=dtype)):  # fmt: skip
         """World w's whole Newton solve, in scratch column s (of T) of the flat g, H, dq and row
-        ``row`` of q_trial.
+        ``row`` of q_trial; lane ``lane`` of L (one thread per world: 0 of 1).
 
         With ``reuse``, an iteration after a full step (α = 1) keeps the Cholesky factor it left in H
-        and solves only the new gradient against it (a simplified-Newton step; see ``chord_step``)."""
-        iterations[w] = 0
-        factorizations[w] = 0
-        converged[w] = 0
+        and solves only the new gradient against it (a simplified-Newton step; see ``chord_step``).
+        Lane-split, every lane takes every branch (each decides from the same sums in the same
+        order) and lane 0 alone writes the world's counters."""
+        if lane == 0:
+            iterations[w] = 0
+            factorizations[w] = 0
+            converged[w] = 0
         if status[w] != OK:
             return 0
         chord = int(0)  # 1: H holds the factor of an earlier iteration, reused for this one (chord_step)
         d_prev = zero
+        nfact = int(0)
         for it in range(max_iterations):
-            for i in range(N):
+            c = clock_now()
+            for i in range(lane, N, L):
                 g[i * T + s] = zero
                 if chord <= 0:
                     j0 = int(0)
-                    if wp.static(envelope):
+                    if wp.static(envelope or lanes):
                         j0 = t.first[i]
                     p = (i * N + j0) * T + s
                     for j in range(j0, i + 1):
                         H[p] = zero
                         p += T
+            if wp.static(lanes):
+                block_sync()
+            c = tick(t, w, lane, 0, c)
             e0 = zero
             ok = int(0)
             gdq = zero
             dmax = zero
             g_abs = zero
             if chord > 0:
-                e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
-                ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, N, T, t.first)
+                e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H, lane, L, part)
             else:
-                e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
+                e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H, lane, L, part)
+                nfact += 1
+            c = tick(t, w, lane, 1, c)
+            if wp.static(lanes):
+                ok = 1
+                if chord <= 0:
+                    ok = cholesky_lanes(H, s, T, t.first, lane, L)
+                c = tick(t, w, lane, 2, c)
+                if ok != 0:
+                    ok, gdq, dmax, g_abs = solve_lanes(H, g, dq, s, T, t.first, lane, L)
+                c = tick(t, w, lane, 3, c)
+            elif chord > 0:
+                ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, N, T, t.first)
+                c = tick(t, w, lane, 3, c)
+            else:
                 ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, N, T, t.first)
-                factorizations[w] = factorizations[w] + 1
+                c = tick(t, w, lane, 2, c)
+            if lane == 0:
+                factorizations[w] = nfact
             if ok == 0:
-                status[w] = FAILED
+                if lane == 0:
+                    status[w] = FAILED
                 return 0
-            iterations[w] = it + 1
+            if lane == 0:
+                iterations[w] = it + 1
             stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord, reuse,
-                                    d_prev, max_line_search, converged)  # fmt: skip
+                                    d_prev, max_line_search, converged, lane, L, part)  # fmt: skip
+            c = tick(t, w, lane, 4, c)
             if stop != 0:
                 return 0
             d_prev = dmax
         return 0
-
-    @wp.kernel(**options)
-    def newton(
-        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
-        g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
-        s0: int, Tw: int, wa: int, wb: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
-        status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-        factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
-    ):  # fmt: skip
-        """The launch's Tw threads solve worlds wa … wb − 1, thread c the worlds wa + c, wa + c + Tw,
-        …: a thread's scratch is reused world after world, so it stays in cache however many worlds
-        there are.  On a GPU one launch runs every world; on the CPU ranges of threads and worlds run
-        as concurrent launches, each with its own scratch (g, H, dq: Tw columns) and its own run of
-        worlds, so they share no cache lines; s0 + c is the thread's row of q_trial."""
-        c = wp.tid()
-        s = c + s0
-        for w in range(wa + c, wb, Tw):
-            solve_world(q, q_trial, t, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
-                        reuse, status, iterations, factorizations, converged)  # fmt: skip
 
     @wp.kernel(**options)
     def assemble_system(q: wp.array2d(dtype=vec12), t: Terms, derivs: int, g: wp.array(dtype=dtype),
@@ -538,78 +713,153 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         triangle) as the fused step assembles them, into scratch column w of the zeroed flat g, H
         (one column per world): for checking the fused assembly against the staged one."""
         w = wp.tid()
-        E[w] = assemble(q, w, w, w, q.shape[0], derivs, t, g, H)
+        E[w] = assemble(q, w, w, w, q.shape[0], derivs, t, g, H, 0, 1, E)
 
-    if scratch == "global":
+    if not lanes:
+
+        @wp.kernel(**options)
+        def newton(
+            q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
+            g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
+            s0: int, Tw: int, wa: int, wb: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
+            status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
+            factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), part: wp.array(dtype=dtype),
+        ):  # fmt: skip
+            """The launch's Tw threads solve worlds wa … wb − 1, thread c the worlds wa + c, wa + c + Tw,
+            …: a thread's scratch is reused world after world, so it stays in cache however many worlds
+            there are.  On a GPU one launch runs every world; on the CPU ranges of threads and worlds run
+            as concurrent launches, each with its own scratch (g, H, dq: Tw columns) and its own run of
+            worlds, so they share no cache lines; s0 + c is the thread's row of q_trial."""
+            c = wp.tid()
+            s = c + s0
+            for w in range(wa + c, wb, Tw):
+                solve_world(q, q_trial, t, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
+                            reuse, status, iterations, factorizations, converged, 0, 1, part)  # fmt: skip
+
         return newton, Terms, assemble_system
 
     @wp.func
-    def solve_world_tiled(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, H: Any, g: Any,
-                          y: Any, Hz: Any, gz: Any, w: int, lane: int, B: int, threshold: dtype, max_iterations: int,
-                          max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
-                          iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
-                          converged: wp.array(dtype=wp.int32)):  # fmt: skip
-        """World w's Newton solve by the B lanes of one block: every lane runs the same scalar code
-        (so every branch is uniform and the lanes' global writes agree), H and g live in shared
-        memory, assembled one entry per lane, and the block factors H together (kept for the next
-        iteration as in ``solve_world``)."""
-        iterations[w] = 0
-        factorizations[w] = 0
-        converged[w] = 0
-        if status[w] != OK:
-            return 0
-        chord = int(0)
+    def cholesky_lanes(H: wp.array(dtype=dtype), s: int, T: int, first: wp.array(dtype=wp.int32), lane: int, L: int):
+        """H = L Lᵀ in place (flat, column s of T, within Model.first's envelope) by the block's L
+        lanes, a column at a time: every lane computes the diagonal (the same sum), lane l the rows
+        j + 1 + l, j + 1 + l + L, … below it; one barrier a column.  The diagonal is stored a column
+        late, once no lane reads it any more.  0 when H is not positive definite (on every lane)."""
+        R = N * T
         d_prev = zero
-        for it in range(max_iterations):
-            wp.tile_assign(g, gz, offset=(0,))
-            e0 = zero
-            if chord > 0:
-                e0 = assemble(q, w, w, lane, B, GRADIENT, t, g, H)
-                wp.tile_assign(y, g, offset=(0,))
-            else:
-                wp.tile_assign(H, Hz, offset=(0, 0))
-                e0 = assemble(q, w, w, lane, B, HESSIAN, t, g, H)
-                wp.tile_assign(y, g, offset=(0,))
-                wp.tile_cholesky_inplace(H)
-                factorizations[w] = factorizations[w] + 1
-            wp.tile_cholesky_solve_inplace(H, y)
-            gdq = zero
-            dmax = zero
-            g_abs = zero
-            for i in range(N):
-                yi = wp.tile_extract(y, i)
-                gi = wp.tile_extract(g, i)
-                gdq -= gi * yi
-                dmax = wp.max(dmax, wp.abs(yi))
-                g_abs += wp.abs(gi)
-            if not (wp.isfinite(gdq) and wp.isfinite(dmax)):  # H not positive definite
-                status[w] = FAILED
+        for j in range(N):
+            if lane == 0 and j > 0:
+                H[(j - 1) * R + (j - 1) * T + s] = d_prev
+            fj = first[j]
+            rj = j * R + s
+            s0 = H[rj + j * T]
+            s1 = zero
+            k = fj
+            while k + 2 <= j:
+                a0 = H[rj + k * T]
+                a1 = H[rj + (k + 1) * T]
+                s0 -= a0 * a0
+                s1 -= a1 * a1
+                k += 2
+            if k < j:
+                a0 = H[rj + k * T]
+                s0 -= a0 * a0
+            sj = s0 + s1
+            if not (sj > zero) or not wp.isfinite(sj):
                 return 0
-            iterations[w] = it + 1
-            stop, chord = take_step(q, q_trial, t, y, g, H, w, w, lane, B, e0, gdq, dmax, g_abs, threshold, chord, reuse,
-                                    d_prev, max_line_search, converged)  # fmt: skip
-            if stop != 0:
-                return 0
-            d_prev = dmax
-        return 0
+            d = wp.sqrt(sj)
+            for i in range(j + 1 + lane, N, L):
+                fi = first[i]
+                if fi <= j:
+                    ri = i * R + s
+                    t0 = H[ri + j * T]
+                    t1 = zero
+                    k = wp.max(fi, fj)
+                    while k + 2 <= j:
+                        t0 -= H[ri + k * T] * H[rj + k * T]
+                        t1 -= H[ri + (k + 1) * T] * H[rj + (k + 1) * T]
+                        k += 2
+                    if k < j:
+                        t0 -= H[ri + k * T] * H[rj + k * T]
+                    H[ri + j * T] = (t0 + t1) / d
+            d_prev = d
+            block_sync()
+        if lane == 0:
+            H[(N - 1) * R + (N - 1) * T + s] = d_prev
+        return 1
+
+    @wp.func
+    def solve_lanes(H: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), s: int, T: int,
+                    first: wp.array(dtype=wp.int32), lane: int, L: int):  # fmt: skip
+        """Δq = −(L Lᵀ)⁻¹g from the factor in H by the block's lanes, a column at a time: each
+        unknown once known (every lane divides the same numbers) updates the rows below it (forward)
+        or above it (backward), lanes on the rows, one barrier an unknown; lane 0 stores it.  Then
+        every lane forms (ok, gᵀΔq, ‖Δq‖∞, ‖g‖₁)."""
+        R = N * T
+        for i in range(lane, N, L):
+            dq[i * T + s] = -g[i * T + s]
+        block_sync()
+        for k in range(N):  # L y = −g
+            yk = dq[k * T + s] / H[k * R + k * T + s]
+            for i in range(k + 1 + lane, N, L):
+                if first[i] <= k:
+                    dq[i * T + s] = dq[i * T + s] - H[i * R + k * T + s] * yk
+            block_sync()
+            if lane == 0:
+                dq[k * T + s] = yk  # no lane reads y_k again until the backward sweep
+        block_sync()
+        for ii in range(N):  # Lᵀ x = y, by rows of L
+            i = N - 1 - ii
+            xi = dq[i * T + s] / H[i * R + i * T + s]
+            for k in range(first[i] + lane, i, L):
+                dq[k * T + s] = dq[k * T + s] - H[i * R + k * T + s] * xi
+            block_sync()
+            if lane == 0:
+                dq[i * T + s] = xi
+        block_sync()
+        return reductions(g, dq, s, N, T)
+
+    # the block's g, H, Δq and energy shares in shared memory where they fit (a static array of at most
+    # 40 KB; lanes exchange every column of the factor and every unknown of the solves through it,
+    # which in global memory costs a round trip through L2 each): 2.8 KB for 24 unknowns in float32
+    SIZE = 4 if dtype == wp.float32 else 8
+    LMAX = 256  # lanes a block at most (Solver checks)
+    shared = lanes and (N * N + 2 * N + LMAX) * SIZE <= 40960
+    if shared:
+        ctype = "float" if dtype == wp.float32 else "double"
+        count = N * N + 2 * N + LMAX
+
+        # on the CPU a static array: a launch runs its blocks one after another on one thread
+        snippet = (f"#if defined(__CUDA_ARCH__)\n__shared__ {ctype} scratch[{count}];\n#else\n"
+                   f"static {ctype} scratch[{count}];\n#endif\nreturn (uint64_t)scratch;\n")  # fmt: skip
+
+        @wp.func_native(snippet)
+        def shared_scratch() -> wp.uint64:
+            ...
 
     @wp.kernel(**options)
-    def newton_tiled(
-        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, threshold: dtype,
-        max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
-        iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
-        converged: wp.array(dtype=wp.int32),
+    def newton_lanes(
+        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
+        g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), L: int,
+        threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
+        status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
+        factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), part: wp.array(dtype=dtype),
     ):  # fmt: skip
-        """Block w solves world w (launched with ``wp.launch_tiled``, one block per world)."""
-        w, lane = wp.tid()
-        B = wp.block_dim()
-        H = wp.tile_zeros(shape=(N, N), dtype=dtype, storage="shared")
-        g = wp.tile_zeros(shape=(N,), dtype=dtype, storage="shared")
-        y = wp.tile_zeros(shape=(N,), dtype=dtype, storage="shared")
-        Hz = wp.tile_zeros(shape=(N, N), dtype=dtype, storage="shared")
-        gz = wp.tile_zeros(shape=(N,), dtype=dtype, storage="shared")
-        solve_world_tiled(q, q_trial, t, H, g, y, Hz, gz, w, lane, B, threshold, max_iterations, max_line_search,
-                          reuse, status, iterations, factorizations, converged)  # fmt: skip
+        """Block w (of L lanes, launched with block_dim L) solves world w.  Its scratch is contiguous,
+        g, H and Δq each from w·n² with unit stride (g and Δq padded to n²): the lanes read across
+        rows of one world's system, so its 2.3 KB (24 unknowns) stay in a few cache lines where the
+        one-thread layout, one column per world, would spread them over n² lines."""
+        c = wp.tid()
+        w = c // L
+        if wp.static(shared):
+            base = shared_scratch()
+            Hs = wp.array(ptr=base, shape=(N * N,), dtype=dtype)
+            gs = wp.array(ptr=base + wp.uint64(N * N * SIZE), shape=(N,), dtype=dtype)
+            ds = wp.array(ptr=base + wp.uint64((N * N + N) * SIZE), shape=(N,), dtype=dtype)
+            ps = wp.array(ptr=base + wp.uint64((N * N + 2 * N) * SIZE), shape=(L,), dtype=dtype)
+            solve_world(q, q_trial, t, gs, Hs, ds, w, 0, 1, w, threshold, max_iterations, max_line_search, reuse,
+                        status, iterations, factorizations, converged, c - w * L, L, ps)  # fmt: skip
+        else:
+            solve_world(q, q_trial, t, g, H, dq, w, w * N * N, 1, w, threshold, max_iterations, max_line_search, reuse,
+                        status, iterations, factorizations, converged, c - w * L, L, part)  # fmt: skip
 
-    return newton_tiled, Terms, None
-
+    return newton_lanes, Terms, assemble_system

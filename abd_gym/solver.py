@@ -38,8 +38,9 @@ class SolverSettings:
     # size; None picks them for the device (default_threads, default_block_dim)
     threads: int | None = None
     block_dim: int | None = None
-    # where the fused step keeps a world's g, H and Δq (fused.py): "global" arrays, one column per
-    # thread, or "tiled": a CUDA block per world, H in shared memory
+    # how the fused step splits the work (fused.py): "global", a thread per world (several worlds in
+    # turn when threads < worlds), or "lanes", a block of block_dim threads per world (default 32; on
+    # the CPU lanes run as cooperative fibers only with wp.config.enable_cpu_blocks, else one)
     scratch: str = "global"
     # CUDA register cap of the fused kernel (0: the compiler's choice) and register spills to shared
     # memory (see bench: occupancy against spills)
@@ -60,6 +61,9 @@ class SolverSettings:
     # CPU only: the fused step's threads split into this many launches run at once on as many
     # cores (Warp runs one launch's threads one after another); None: default_cpu_workers
     cpu_workers: int | None = None
+    # profiling only: the fused step adds each phase's GPU cycles to Solver.phase_cycles
+    # (fused.PHASES; scripts/profile_step.py --phases)
+    phase_clock: bool = False
 
 
 def _flat(a: wp.array) -> wp.array:
@@ -132,23 +136,21 @@ class Solver:
         self.cols = self._columns(physical=False)
         self.report_cols = self._columns(physical=True)
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
-        if settings.scratch not in ("global", "tiled"):
-            raise ValueError(f"scratch must be 'global' or 'tiled', got {settings.scratch!r}")
+        if settings.scratch not in ("global", "lanes"):
+            raise ValueError(f"scratch must be 'global' or 'lanes', got {settings.scratch!r}")
         if settings.scratch != "global" and not settings.fused:
             raise ValueError(f"scratch={settings.scratch!r} needs the fused step (fused=True)")
-        self.tiled = settings.scratch == "tiled"
-        # scratch columns of g, H, Δq: one per world for the staged step; one per thread for the fused
-        # step, whose threads each solve several worlds in turn (memory per world stays O(bodies));
-        # one in all for the tiled step, whose blocks keep their world's system in shared memory
+        self.lanes = settings.scratch == "lanes"
+        # scratch columns of g, H, Δq: one per world for the staged step and the lane-split step; one
+        # per thread for the fused step, whose threads each solve several worlds in turn (memory per
+        # world stays O(bodies))
         workers = 1
         if settings.cpu_workers is not None and not (isinstance(settings.cpu_workers, (int, np.integer))
                                                      and settings.cpu_workers > 0):  # fmt: skip
             raise ValueError(f"cpu_workers must be a positive integer or None, got {settings.cpu_workers!r}")
-        if wp.get_device(dev).is_cpu and settings.fused and not self.tiled:
+        if wp.get_device(dev).is_cpu and settings.fused and not self.lanes:
             workers = default_cpu_workers(W) if settings.cpu_workers is None else int(settings.cpu_workers)
-        if self.tiled:
-            self.threads = 1
-        elif settings.fused:
+        if settings.fused and not self.lanes:
             T = default_threads(wp.get_device(dev), W, workers) if settings.threads is None else settings.threads
             if not (isinstance(T, (int, np.integer)) and T > 0):
                 raise ValueError(f"threads must be a positive integer, got {settings.threads!r}")
@@ -163,8 +165,14 @@ class Solver:
         wb = np.linspace(0, W, chunks + 1).round().astype(int)
         self.newton_launches = [(int(tb[k]), int(tb[k + 1] - tb[k]), int(wb[k]), int(wb[k + 1])) for k in range(chunks)]
         self._chunk_cmds = None
-        self.block_dim = settings.block_dim or (32 if self.tiled else default_block_dim(wp.get_device(dev), T))
-        self.q_trial = wp.zeros((W if self.tiled else T, model.num_bodies), dtype=model.vec12, device=dev)
+        self.block_dim = settings.block_dim or (32 if self.lanes else default_block_dim(wp.get_device(dev), T))
+        if self.lanes and not 1 <= self.block_dim <= 256:
+            raise ValueError(f"scratch='lanes' takes 1 to 256 lanes a world (block_dim), got {self.block_dim!r}")
+        if self.lanes and wp.get_device(dev).is_cpu and not wp.config.enable_cpu_blocks:
+            self.block_dim = 1  # Warp runs a CPU block's threads as one unless cooperative blocks are on
+        self.q_trial = wp.zeros((T, model.num_bodies), dtype=model.vec12, device=dev)
+        # the lane-split step's per-lane energy shares (fused.lane_sum); one unused word otherwise
+        self.lane_part = wp.zeros(W * self.block_dim if self.lanes else 1, dtype=dt_, device=dev)
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)
         self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=dt_, device=dev)
@@ -181,6 +189,8 @@ class Solver:
         # (solver_kernels: one multiply per access instead of three, and no negative-index tests)
         self.g_flat, self.H_flat, self.dq_flat = (_flat(a) for a in (self.g, self.H, self.dq))
         self.L_flat = None if self.L is None else _flat(self.L)
+        if self.lanes:  # the lane-split step keeps each world's g, H, Δq contiguous, n² words apiece
+            self.g_flat, self.dq_flat = (wp.zeros(W * n * n, dtype=dt_, device=dev) for _ in range(2))
         self.chord = wp.zeros(W, dtype=wp.int32, device=dev)
         self.d_prev = wp.zeros(W, dtype=dt_, device=dev)
         self.gdq, self.dq_max, self.alpha, self.g_abs = (wp.zeros(W, dtype=dt_, device=dev) for _ in range(4))
@@ -224,7 +234,7 @@ class Solver:
         the fused step assembles them (global scratch, one thread per world): for checking it
         against the staged kernels' ``hessian()``.  Uses the solver's scratch (g, H)."""
         m = self.model
-        if self.threads != m.num_worlds or self.tiled:
+        if self.threads != m.num_worlds or self.lanes:
             raise RuntimeError("fused_system needs the fused step's global scratch with one thread per world")
         if self._fused is None:
             self._fused = self._build_fused(state)
@@ -303,11 +313,12 @@ class Solver:
         if self._fused is None:
             self._fused = self._build_fused(state)
         kernel, terms, _ = self._fused
-        if self.tiled:
-            wp.launch_tiled(kernel, dim=[m.num_worlds], inputs=[
-                state.q, self.q_trial, terms, m.dtype(s.tol * self.h), s.max_iterations, s.max_line_search,
-                int(self.reuse_factor), state.status, state.iterations, state.factorizations, state.converged],
-                block_dim=self.block_dim, device=m.device)  # fmt: skip
+        if self.lanes:
+            L = self.block_dim
+            wp.launch(kernel, dim=m.num_worlds * L, inputs=[
+                state.q, self.q_trial, terms, self.g_flat, self.H_flat, self.dq_flat, L, m.dtype(s.tol * self.h),
+                s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
+                state.factorizations, state.converged, self.lane_part], block_dim=L, device=m.device)  # fmt: skip
             return
         n = m.num_dofs
 
@@ -319,7 +330,7 @@ class Solver:
                 g, H, dq = (a[start * size:(start + count) * size] for a, size in ((g, n), (H, n * n), (dq, n)))
             return [state.q, self.q_trial, terms, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.h),
                     s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
-                    state.factorizations, state.converged]  # fmt: skip
+                    state.factorizations, state.converged, self.lane_part]  # fmt: skip
 
         if len(self.newton_launches) == 1:
             wp.launch(kernel, dim=self.threads, inputs=inputs(*self.newton_launches[0]), device=m.device,
@@ -353,7 +364,7 @@ class Solver:
         st = self.settings
         kernel, Terms, assemble_system = fused_kernel(m.dtype, *has, scratch=st.scratch, n=m.num_dofs, max_registers=st.max_registers,
                                      smem_spilling=st.smem_spilling, envelope=self.envelope,
-                                     retract=bool(st.retract))  # fmt: skip
+                                     retract=bool(st.retract), phase_clock=bool(st.phase_clock))  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -367,7 +378,41 @@ class Solver:
         t.rlim_lo, t.rlim_up, t.rlim_s = m.limit_params[REVOLUTE]
         t.plim_lo, t.plim_up, t.plim_s = m.limit_params[PRISMATIC]
         t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
+        t.term_kind, t.term_k, t.round_start = (wp.array(a, dtype=wp.int32, device=m.device) for a in self._term_rounds())
+        from .fused import PHASES
+
+        self.phase_cycles = wp.zeros((m.num_worlds if st.phase_clock else 1, len(PHASES)), dtype=wp.int64, device=m.device)
+        t.clock = self.phase_cycles
         return kernel, t, assemble_system
+
+    def _term_rounds(self):
+        """The incremental potential's terms as (kind, index) in rounds that share no free body,
+        for the lane-split step (fused.assemble): kinds and order as fused.assemble's loops (0
+        bodies, 1 revolute, 2 fixed, 3 prismatic joints, 4 revolute, 5 prismatic limits, 6 drives);
+        a term's round is one past the last earlier term that shares a free body with it, so every
+        entry of g and H still receives its terms in that order.  Returns (kinds, indices, round
+        starts)."""
+        from .scene import FIXED, PRISMATIC, REVOLUTE
+
+        m = self.model
+        dof = m.dof.numpy()
+        a, b = m.body_a.numpy(), m.body_b.numpy()
+        free = m.free.numpy()
+        terms = [(0, k, (int(free[k]),)) for k in range(len(free))]
+        pair = lambda j: tuple(int(x) for x in (a[j], b[j]) if dof[x] >= 0)  # noqa: E731
+        for kind, ids in ((1, m.joint_ids[REVOLUTE]), (2, m.joint_ids[FIXED]), (3, m.joint_ids[PRISMATIC]),
+                          (4, m.limit_joint_ids[REVOLUTE]), (5, m.limit_joint_ids[PRISMATIC]), (6, m.drive_joint)):  # fmt: skip
+            terms += [(kind, k, pair(j)) for k, j in enumerate(ids.numpy())]
+        last = {}  # body → round of the last term on it
+        rounds = []
+        for kind, k, bodies in terms:
+            r = 1 + max((last.get(x, -1) for x in bodies), default=-1)
+            rounds.append(r)
+            for x in bodies:
+                last[x] = r
+        order = sorted(range(len(terms)), key=lambda i: (rounds[i], i))
+        starts = np.searchsorted(np.array(rounds)[order], np.arange(max(rounds, default=-1) + 2))
+        return (np.array([terms[i][0] for i in order]), np.array([terms[i][1] for i in order]), starts)
 
     def _newton_iteration(self, state):
         m, k, dev, s = self.model, self.k, self.model.device, self.settings

@@ -264,13 +264,10 @@ def kernels(dtype, envelope=False):
             i -= 4
 
     @wp.func
-    def factored_solve(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int,
-                       n: int, T: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
+    def substitute(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, n: int,
+                   T: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
         """dq = −(L Lᵀ)⁻¹g by two triangular solves (n² multiply-adds, against n³/6 for the factor);
-        flat arrays, column w of T.
-
-        Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when the result is not finite.
-        """
+        flat arrays, column w of T."""
         if wp.static(envelope):
             R = n * T
             for i in range(n):  # L y = −g
@@ -286,6 +283,10 @@ def kernels(dtype, envelope=False):
                     dq[k * T + w] = dq[k * T + w] - L[i * R + k * T + w] * xi
         else:
             solve_dense(L, g, dq, w, n, T)
+
+    @wp.func
+    def reductions(g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, n: int, T: int):
+        """(ok, gᵀdq, ‖dq‖∞, ‖g‖₁) of a Newton direction; ok = 0 when it is not finite."""
         gdq = zero
         dmax = zero
         g_abs = zero
@@ -300,6 +301,16 @@ def kernels(dtype, envelope=False):
         if not wp.isfinite(gdq):
             return 0, zero, zero, zero
         return 1, gdq, dmax, g_abs
+
+    @wp.func
+    def factored_solve(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int,
+                       n: int, T: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
+        """dq = −(L Lᵀ)⁻¹g (substitute), flat arrays, column w of T.
+
+        Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when the result is not finite.
+        """
+        substitute(L, g, dq, w, n, T, first)
+        return reductions(g, dq, w, n, T)
 
     @wp.func
     def cholesky_solve(H: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int,
@@ -539,7 +550,7 @@ def kernels(dtype, envelope=False):
 
     return dict(
         predict=predict, start=start, newton_direction=newton_direction, cholesky_solve=cholesky_solve,
-        factored_solve=factored_solve,
+        factored_solve=factored_solve, reductions=reductions,
         noise_floor=noise_floor, energy_noise=energy_noise, trial=trial, accept=accept, commit=commit,
         converge=converge, finalize=finalize, open_step=open_step,
     )  # fmt: skip

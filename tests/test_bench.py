@@ -44,14 +44,14 @@ def test_bench_threads(tmp_path):
 
 def test_bench_compare_without_mujoco_warp(tmp_path):
     bench.main(["compare", "--cases", "cartpole", "--worlds", "2", "--ours-only", "3", "--steps", "2",
-                "--out", str(tmp_path)])  # fmt: skip
+                "--scratch", "global,lanes", "--out", str(tmp_path)])  # fmt: skip
     rows = _load(tmp_path / "compare.json")["rows"]
-    assert [row["num_worlds"] for row in rows] == [2, 3]
+    assert [(row["num_worlds"], row["scratch"]) for row in rows] == [(2, "global"), (2, "lanes"), (3, "global"), (3, "lanes")]
     for row in rows:
-        assert {"case", "num_worlds", "abd_gym", "mujoco_warp", "ratio", "joint_residual",
+        assert {"case", "num_worlds", "scratch", "abd_gym", "mujoco_warp", "ratio", "joint_residual",
                 "memory_bytes_per_world"} <= set(row)  # fmt: skip
         assert row["abd_gym"] > 0
-    assert math.isnan(rows[1]["mujoco_warp"])  # ours alone
+    assert math.isnan(rows[2]["mujoco_warp"])  # ours alone
 
 
 def test_bench_accuracy(tmp_path):

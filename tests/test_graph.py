@@ -8,9 +8,11 @@ import abd_gym as ag
 from abd_gym import mechanisms
 
 
-def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global", reuse_factor=None, cpu_workers=1):
+def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global", reuse_factor=None, cpu_workers=1,
+         block_dim=None):  # fmt: skip
     sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, use_graph=use_graph, fused=fused, dtype=dtype,
-                       threads=threads, scratch=scratch, reuse_factor=reuse_factor, cpu_workers=cpu_workers)  # fmt: skip
+                       threads=threads, scratch=scratch, reuse_factor=reuse_factor, cpu_workers=cpu_workers,
+                       block_dim=block_dim)  # fmt: skip
     rng = np.random.default_rng(3)
     sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
     out = []
@@ -63,14 +65,36 @@ def test_fewer_threads_than_worlds_is_the_same_step():
     assert sim.failed_worlds().tolist() == [3]
 
 
-def test_tiled_scratch_matches_global_scratch():
-    """One block per world (H in shared memory, tile Cholesky) against global scratch columns: the
-    same solve in another summation order (limits, drives, resets and a failure included)."""
-    ref, _ = _run(True, dtype="float64")
-    out, sim = _run(True, dtype="float64", scratch="tiled")
-    assert sim.solver.settings.scratch == "tiled" and sim.solver.block_dim == 32
+@pytest.fixture
+def cpu_blocks():
+    """Warp's cooperative CPU blocks (a block's threads as fibers that meet at barriers), so the
+    lane-split step runs its lanes on the CPU as it does on a GPU."""
+    import warp as wp
+
+    before = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = True
+    yield
+    wp.config.enable_cpu_blocks = before
+
+
+@pytest.mark.parametrize("lanes", [None, 8])
+def test_lane_split_step_matches_one_thread_per_world(lanes, request):
+    """A block of lanes per world (terms in rounds, the factor a column at a time across lanes)
+    against one thread per world: the same solve in another summation order, with the same
+    iterations and factorisations (limits, drives, resets and a failure included).  On the CPU,
+    lanes=None runs one lane a block; 8 runs eight cooperative fibers."""
+    import warp as wp
+
+    if lanes:
+        request.getfixturevalue("cpu_blocks")
+    ref, sim0 = _run(True, dtype="float64")
+    out, sim = _run(True, dtype="float64", scratch="lanes", block_dim=lanes)
+    expect = lanes or (1 if wp.get_device(sim.device).is_cpu else 32)
+    assert sim.solver.lanes and sim.solver.block_dim == expect
     np.testing.assert_allclose(np.nan_to_num(out), np.nan_to_num(ref), atol=1e-9)
     assert sim.failed_worlds().tolist() == [3]
+    np.testing.assert_array_equal(sim.newton_iterations(), sim0.newton_iterations())
+    np.testing.assert_array_equal(sim.newton_factorizations(), sim0.newton_factorizations())
 
 
 def test_concurrent_cpu_launches_are_the_same_step():
