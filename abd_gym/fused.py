@@ -397,14 +397,20 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return ej
 
     @wp.func
+    def put_limit(g: Any, H: Any, s: int, B: int, derivs: int, t: Terms, j: int, ej: dtype, gi: vec12, gj: vec12,
+                  hii: mat12, hij: mat12, hjj: mat12):  # fmt: skip
+        """A limit of joint j adds its blocks only where it acts (its energy is not zero)."""
+        if derivs != 0 and ej != zero:
+            put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+
+    @wp.func
     def rlim_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
                   H: Any, k: int):  # fmt: skip
         j = t.rlim_ids[k]
         ej, gi, gj, hii, hij, hjj = rlim_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.n_a[w, j], t.b_a[w, j], t.n_b[w, j],
                                               t.b_b[w, j], t.theta0[w, j], t.c_prev[w, j], t.s_prev[w, j], t.rlim_lo[w, k],
                                               t.rlim_up[w, k], t.rlim_s[w, k], derivs)  # fmt: skip
-        if derivs != 0 and ej != zero:
-            put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+        put_limit(g, H, s, B, derivs, t, j, ej, gi, gj, hii, hij, hjj)
         return ej
 
     @wp.func
@@ -413,8 +419,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         j = t.plim_ids[k]
         ej, gi, gj, hii, hij, hjj = plim_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.c_a[w, j], t.c_b[w, j], t.t_a[w, j],
                                               t.plim_lo[w, k], t.plim_up[w, k], t.plim_s[w, k], derivs)  # fmt: skip
-        if derivs != 0 and ej != zero:
-            put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+        put_limit(g, H, s, B, derivs, t, j, ej, gi, gj, hii, hij, hjj)
         return ej
 
     @wp.func
