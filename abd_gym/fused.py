@@ -833,9 +833,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         ctype = "float" if dtype == wp.float32 else "double"
         count = N * N + 2 * N + LMAX
 
-        # on the CPU a static array: a launch runs its blocks one after another on one thread
-        snippet = (f"#if defined(__CUDA_ARCH__)\n__shared__ {ctype} scratch[{count}];\n#else\n"
-                   f"static {ctype} scratch[{count}];\n#endif\nreturn (uint64_t)scratch;\n")  # fmt: skip
+        # 0 on the CPU, which keeps the global scratch (a static array there would be shared by
+        # launches from several threads)
+        snippet = (f"#if defined(__CUDA_ARCH__)\n__shared__ {ctype} scratch[{count}];\nreturn (uint64_t)scratch;\n"
+                   "#else\nreturn 0;\n#endif\n")  # fmt: skip
 
         @wp.func_native(snippet)
         def shared_scratch() -> wp.uint64:
@@ -855,16 +856,16 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         one-thread layout, one column per world, would spread them over n² lines."""
         c = wp.tid()
         w = c // L
+        Hx, gx, dx, px, s0 = H, g, dq, part, w * N * N
         if wp.static(shared):
             base = shared_scratch()
-            Hs = wp.array(ptr=base, shape=(N * N,), dtype=dtype)
-            gs = wp.array(ptr=base + wp.uint64(N * N * SIZE), shape=(N,), dtype=dtype)
-            ds = wp.array(ptr=base + wp.uint64((N * N + N) * SIZE), shape=(N,), dtype=dtype)
-            ps = wp.array(ptr=base + wp.uint64((N * N + 2 * N) * SIZE), shape=(L,), dtype=dtype)
-            solve_world(q, q_trial, t, gs, Hs, ds, w, 0, 1, w, threshold, max_iterations, max_line_search, reuse,
-                        status, iterations, factorizations, converged, c - w * L, L, ps)  # fmt: skip
-        else:
-            solve_world(q, q_trial, t, g, H, dq, w, w * N * N, 1, w, threshold, max_iterations, max_line_search, reuse,
-                        status, iterations, factorizations, converged, c - w * L, L, part)  # fmt: skip
+            if base != wp.uint64(0):
+                Hx = wp.array(ptr=base, shape=(N * N,), dtype=dtype)
+                gx = wp.array(ptr=base + wp.uint64(N * N * SIZE), shape=(N,), dtype=dtype)
+                dx = wp.array(ptr=base + wp.uint64((N * N + N) * SIZE), shape=(N,), dtype=dtype)
+                px = wp.array(ptr=base + wp.uint64((N * N + 2 * N) * SIZE), shape=(L,), dtype=dtype)
+                s0 = 0
+        solve_world(q, q_trial, t, gx, Hx, dx, w, s0, 1, w, threshold, max_iterations, max_line_search, reuse, status,
+                    iterations, factorizations, converged, c - w * L, L, px)  # fmt: skip
 
     return newton_lanes, Terms, assemble_system
