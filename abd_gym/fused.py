@@ -57,7 +57,7 @@ PHASES = ("zero", "assemble", "factor", "solve", "step", "step: energy", "step: 
 
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
-                 max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False):  # fmt: skip
+                 max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False, cuda=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -67,6 +67,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     slower than "global" at every batch size on an H100 and was removed; see results/.)
     ``max_registers`` (0: the compiler's choice) caps registers per thread on CUDA, trading spills
     for occupancy; ``smem_spilling`` lets the compiler spill registers to shared memory.
+    ``cuda``: built for a GPU (the lane-split step then keeps its scratch in shared memory).
     ``phase_clock``: lane 0 adds each phase's cycles (PHASES) to ``Terms.clock`` (profiling only)."""
     # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
     # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
@@ -828,15 +829,12 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     # which in global memory costs a round trip through L2 each): 2.8 KB for 24 unknowns in float32
     SIZE = 4 if dtype == wp.float32 else 8
     LMAX = 256  # lanes a block at most (Solver checks)
-    shared = lanes and (N * N + 2 * N + LMAX) * SIZE <= 40960
+    shared = lanes and cuda and (N * N + 2 * N + LMAX) * SIZE <= 40960  # the CPU keeps the global scratch
     if shared:
         ctype = "float" if dtype == wp.float32 else "double"
         count = N * N + 2 * N + LMAX
 
-        # 0 on the CPU, which keeps the global scratch (a static array there would be shared by
-        # launches from several threads)
-        snippet = (f"#if defined(__CUDA_ARCH__)\n__shared__ {ctype} scratch[{count}];\nreturn (uint64_t)scratch;\n"
-                   "#else\nreturn 0;\n#endif\n")  # fmt: skip
+        snippet = f"__shared__ {ctype} scratch[{count}];\nreturn (uint64_t)scratch;\n"
 
         @wp.func_native(snippet)
         def shared_scratch() -> wp.uint64:
@@ -856,16 +854,16 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         one-thread layout, one column per world, would spread them over n² lines."""
         c = wp.tid()
         w = c // L
-        Hx, gx, dx, px, s0 = H, g, dq, part, w * N * N
         if wp.static(shared):
             base = shared_scratch()
-            if base != wp.uint64(0):
-                Hx = wp.array(ptr=base, shape=(N * N,), dtype=dtype)
-                gx = wp.array(ptr=base + wp.uint64(N * N * SIZE), shape=(N,), dtype=dtype)
-                dx = wp.array(ptr=base + wp.uint64((N * N + N) * SIZE), shape=(N,), dtype=dtype)
-                px = wp.array(ptr=base + wp.uint64((N * N + 2 * N) * SIZE), shape=(L,), dtype=dtype)
-                s0 = 0
-        solve_world(q, q_trial, t, gx, Hx, dx, w, s0, 1, w, threshold, max_iterations, max_line_search, reuse, status,
-                    iterations, factorizations, converged, c - w * L, L, px)  # fmt: skip
+            Hs = wp.array(ptr=base, shape=(N * N,), dtype=dtype)
+            gs = wp.array(ptr=base + wp.uint64(N * N * SIZE), shape=(N,), dtype=dtype)
+            ds = wp.array(ptr=base + wp.uint64((N * N + N) * SIZE), shape=(N,), dtype=dtype)
+            ps = wp.array(ptr=base + wp.uint64((N * N + 2 * N) * SIZE), shape=(L,), dtype=dtype)
+            solve_world(q, q_trial, t, gs, Hs, ds, w, 0, 1, w, threshold, max_iterations, max_line_search, reuse,
+                        status, iterations, factorizations, converged, c - w * L, L, ps)  # fmt: skip
+        else:
+            solve_world(q, q_trial, t, g, H, dq, w, w * N * N, 1, w, threshold, max_iterations, max_line_search, reuse,
+                        status, iterations, factorizations, converged, c - w * L, L, part)  # fmt: skip
 
     return newton_lanes, Terms, assemble_system

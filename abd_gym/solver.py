@@ -364,7 +364,8 @@ class Solver:
         st = self.settings
         kernel, Terms, assemble_system = fused_kernel(m.dtype, *has, scratch=st.scratch, n=m.num_dofs, max_registers=st.max_registers,
                                      smem_spilling=st.smem_spilling, envelope=self.envelope,
-                                     retract=bool(st.retract), phase_clock=bool(st.phase_clock))  # fmt: skip
+                                     retract=bool(st.retract), phase_clock=bool(st.phase_clock),
+                                     cuda=bool(self.lanes and wp.get_device(m.device).is_cuda))  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
