@@ -473,7 +473,7 @@ def kernels(dtype, envelope=False):
         if retry:
             chord[w] = -1  # a reused factor failed: this step factors every iteration from now
         elif was_chord > 0:
-            chord[w] = wp.where(taken != 0 and dq_max[w] <= dtype(0.125) * d_prev[w], 1, 0)
+            chord[w] = wp.where(taken != 0 and dq_max[w] <= dtype(0.125) * d_prev[w], 1, -1)
         elif was_chord == 0:
             chord[w] = wp.where(taken != 0 and alpha[w] == one, reuse, 0)
         d_prev[w] = dq_max[w]

@@ -78,12 +78,15 @@ def test_hard_steps_take_few_iterations(integrator):
 
 
 @INTEGRATORS
-@pytest.mark.parametrize("ratio,bound", [(1.0, 1e-2), (1e2, 1e-4), (1e4, 1e-6), (1e6, 1e-6)])
-def test_strength_ratios_1_to_1e6(ratio, bound, integrator):
+@pytest.mark.parametrize("ratio,bound,dtype", [(1.0, 1e-2, "float32"), (1e2, 1e-4, "float32"), (1e4, 1e-6, "float32"),
+                                               (1e5, 1e-6, "float32"), (1e6, 1e-6, "float64")])  # fmt: skip
+def test_strength_ratios_1_to_1e6(ratio, bound, dtype, integrator):
     """Joint strength ratio over six decades: the residual falls with strength (to float32's floor)
-    and Newton still converges at 1e6."""
+    and Newton converges.  float32 holds to 1e5; at 1e6 its Cholesky factor breaks down in some
+    worlds (256 double pendulums from (2, 1) ± 0.3 rad, 100 steps: 1 world under implicit Euler, 19
+    under BDF2 end FAILED), so 1e6 is a float64 case (none fail there, at most 5 iterations)."""
     _, gain, residual, converged, e0 = _run(mechanisms.double_pendulum(strength_ratio=ratio), [[2.0, 1.0]], 0.01, 100,
-                                            integrator=integrator)  # fmt: skip
+                                            dtype=dtype, integrator=integrator)  # fmt: skip
     assert gain <= 1e-4 * e0
     assert residual < bound
     assert converged
