@@ -139,7 +139,8 @@ def main(argv=None):
     ap.add_argument("--dtype", default="float32")
     ap.add_argument("--tol", default="1e-5", help="comma-separated Newton tolerances ‖Δq‖∞/h [m/s] to time")
     ap.add_argument("--integrator", default="implicit_euler")
-    ap.add_argument("--scratch", default="global", help="comma-separated fused-step layouts: global (a thread per world), lanes (a block per world)")
+    ap.add_argument("--scratch", default="global",
+                    help="comma-separated fused-step layouts: global (a thread per world), lanes (a block per world)")
     ap.add_argument("--block-dim", type=int, default=None, help="CUDA block size (default: per solver)")
     ap.add_argument("--repeat", type=int, default=1, help="time each row this many times and keep the fastest")
     ap.add_argument("--threads", default=None, help="fused-step threads: all (one per world), Nsm (N per SM) or a count")

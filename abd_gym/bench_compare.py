@@ -147,13 +147,15 @@ def main(argv=None):
                 rows.append(dict(case=case, num_worlds=w, scratch=scratch, abd_gym=ours, mujoco_warp=theirs,
                                  ratio=ours / theirs, joint_residual=residual, memory_bytes_per_world=mem))  # fmt: skip
                 print(f"{case:16s} {w:8d} worlds  abd_gym ({scratch}) {ours:14,.0f}  mujoco_warp {theirs:14,.0f} "
-                      f"world-steps/s  ratio {ours / theirs:.3f}  residual {residual:.1e} m  {mem:,.0f} B/world", flush=True)  # fmt: skip
+                      f"world-steps/s  ratio {ours / theirs:.3f}  residual {residual:.1e} m  {mem:,.0f} B/world",
+                      flush=True)  # fmt: skip
     result = dict(device=args.device, device_name=wp.get_device(args.device).name, dt=args.dt, rows=rows)
     lines = [f"Device: {result['device_name']}, dt = {args.dt}", "",
              "| mechanism | worlds | abd_gym step | abd_gym world-steps/s | MuJoCo Warp world-steps/s | ratio "
              "| joint residual [m] | abd_gym memory [B/world] |", "|---|---:|---|---:|---:|---:|---:|---:|"]  # fmt: skip
     for r in rows:
-        lines.append(f"| {r['case']} | {r['num_worlds']} | {r['scratch']} | {r['abd_gym']:,.0f} | {r['mujoco_warp']:,.0f} | {r['ratio']:.3f} "
+        lines.append(f"| {r['case']} | {r['num_worlds']} | {r['scratch']} | {r['abd_gym']:,.0f} | {r['mujoco_warp']:,.0f} "
+                     f"| {r['ratio']:.3f} "
                      f"| {r['joint_residual']:.1e} | {r['memory_bytes_per_world']:,.0f} |")  # fmt: skip
     print("\n".join(lines))
     os.makedirs(args.out, exist_ok=True)

@@ -57,13 +57,15 @@ PHASES = ("zero", "assemble", "factor", "solve", "step", "step: energy", "step: 
 
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
-                 max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False, cuda=False):  # fmt: skip
+                 max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False,
+                 cuda=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
     "lanes": a block of lanes per world, its system contiguous (see the module's docstring).  (The
     "tiled" layout, a block per world repeating every evaluator on all lanes with H in shared memory,
-    measured slower than "global" but for 1,024 double pendulums and was removed; a third layout, g, H and Δq in each thread's local memory, measured
+    measured slower than "global" but for 1,024 double pendulums and was removed; a third layout,
+    g, H and Δq in each thread's local memory, measured
     slower than "global" at every batch size on an H100 and was removed; see results/.)
     ``max_registers`` (0: the compiler's choice) caps registers per thread on CUDA, trading spills
     for occupancy; ``smem_spilling`` lets the compiler spill registers to shared memory.
@@ -173,9 +175,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                             H[p] = H[p] + U[c, d]
 
     @wp.func
-    def put_ksum(H: Any, s: int, B: int, oa: int, ob: int, ua: vec4, ta: vec4, ub: vec4, tb: vec4, Pcc: mat33, Pct: mat33,
-                 Ptc: mat33, Ptt: mat33, U: mat44):  # fmt: skip
-        """Add block (oa, ob) = (ua ubᵀ) ⊗ Pcc + (ua tbᵀ) ⊗ Pct + (ta ubᵀ) ⊗ Ptc + (ta tbᵀ) ⊗ Ptt + U ⊗ I₃
+    def put_ksum(H: Any, s: int, B: int, oa: int, ob: int, ua: vec4, ta: vec4, ub: vec4, tb: vec4, Pcc: mat33,
+                 Pct: mat33, Ptc: mat33, Ptt: mat33, U: mat44):  # fmt: skip
+        """Add block (oa, ob) = (ua ubᵀ) ⊗ Pcc + (ua tbᵀ) ⊗ Pct + (ta ubᵀ) ⊗ Ptc + (ta tbᵀ) ⊗ Ptt
+        + U ⊗ I₃
         (entry (kron_index(α, a), kron_index(β, b)) = Σ u[a] v[b] P[α, β] + δ_αβ U[a, b]), lower
         triangle only as put_block: the Gauss–Newton block of rows J(x)ᵀ-type Kronecker products
         (prismatic_hessian), summed per entry in registers, without a 12 × 12 matrix."""
@@ -372,8 +375,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     def point_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
                    H: Any, j: int, points: int):  # fmt: skip
         """A revolute (2 points) or fixed (4 points) joint j."""
-        ej, gi, gj, uii, uij, ujj = point_eval_kron(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j, points,
-                                                    t.K[w, j], derivs)  # fmt: skip
+        ej, gi, gj, uii, uij, ujj = point_eval_kron(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j,
+                                                    points, t.K[w, j], derivs)  # fmt: skip
         if derivs != 0:
             put_kron_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, uii, uij, ujj)
         return ej
