@@ -104,7 +104,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
     residual = float(sim.joint_violation().max())
     return dict(
         case=case, num_worlds=num_worlds, steps=steps, dt=dt, dtype=dtype, device=str(sim.device),
-        tol=sim.solver.settings.tol, integrator=sim.solver.settings.integrator, scratch=sim.solver.settings.scratch,
+        tol=sim.solver.settings.tol, integrator=sim.solver.settings.integrator, scratch=sim.solver.scratch,
         max_registers=sim.solver.settings.max_registers, smem_spilling=sim.solver.settings.smem_spilling,
         seconds=elapsed, steps_per_second=steps / elapsed, world_steps_per_second=num_worlds * steps / elapsed,
         newton_iterations=float(sim.newton_iterations().mean()),
@@ -139,8 +139,9 @@ def main(argv=None):
     ap.add_argument("--dtype", default="float32")
     ap.add_argument("--tol", default="1e-5", help="comma-separated Newton tolerances ‖Δq‖∞/h [m/s] to time")
     ap.add_argument("--integrator", default="implicit_euler")
-    ap.add_argument("--scratch", default="global",
-                    help="comma-separated fused-step layouts: global (a thread per world), lanes (a block per world)")
+    ap.add_argument("--scratch", default="auto",
+                    help="comma-separated fused-step layouts: auto (the simulator's default), global (a thread per "
+                         "world), shared (a thread per world, its system in shared memory), lanes (a block per world)")
     ap.add_argument("--block-dim", type=int, default=None, help="CUDA block size (default: per solver)")
     ap.add_argument("--repeat", type=int, default=1, help="time each row this many times and keep the fastest")
     ap.add_argument("--threads", default=None, help="fused-step threads: all (one per world), Nsm (N per SM) or a count")
@@ -179,7 +180,7 @@ def main(argv=None):
                     for cw in args.cpu_workers.split(",")]  # fmt: skip
         for (scratch, tol, regs, spill, reuse, env, rt, cw), w in ((v, w) for v in variants for w in worlds):
             runs = [time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol, integrator=args.integrator,
-                               scratch=scratch, block_dim=args.block_dim, max_registers=regs, smem_spilling=spill,
+                               scratch=None if scratch == "auto" else scratch, block_dim=args.block_dim, max_registers=regs, smem_spilling=spill,
                                reuse_factor=reuse, envelope=env, retract=rt, cpu_workers=cw,
                                threads=_thread_count(args.threads, w, args.device))
                     for _ in range(max(args.repeat, 1))]  # fmt: skip
@@ -232,7 +233,7 @@ def sweep_threads(argv=None):
     ap.add_argument("--worlds", default="1024,131072")
     ap.add_argument("--threads", default="all,64sm,128sm,256sm")
     ap.add_argument("--block-dims", default="32,64,128,256")
-    ap.add_argument("--scratch", default="global", help="the fused step's layout: global or lanes")
+    ap.add_argument("--scratch", default="auto", help="the fused step's layout: auto, global, shared or lanes")
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--dt", type=float, default=0.01)
     ap.add_argument("--dtype", default="float32")
@@ -255,7 +256,7 @@ def sweep_threads(argv=None):
                     continue
                 for bd in (int(b) for b in args.block_dims.split(",")):
                     r = time_steps(case, w, args.steps, args.dt, args.dtype, args.device, threads=T, block_dim=bd,
-                                   scratch=args.scratch)  # fmt: skip
+                                   scratch=None if args.scratch == "auto" else args.scratch)  # fmt: skip
                     rows.append(r)
                     print(f"{case:16s} {args.scratch} worlds {w:8d} threads {T:8d} block {bd:4d}  "
                           f"{r['world_steps_per_second']:14,.0f} world-steps/s  iters {r['newton_iterations']:.2f}  "

@@ -98,7 +98,7 @@ def ours_steps_per_second(case, num_worlds, steps, dt, device, dtype="float32", 
     """Throughput: ``steps`` steps launched back to back (a CUDA graph each on a GPU), one
     synchronisation at the end; the best of ``repeat`` such runs (each restarted from the same
     states: a short run on a GPU varies with clocks and whatever ran before it).
-    Returns (world-steps/s, joint residual [m], bytes per world)."""
+    Returns (world-steps/s, joint residual [m], bytes per world, the fused step's scratch layout)."""
     sim = Simulator(CASES[case][1](), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
     x0 = random_states(case, num_worlds)
     sim.set_joint_state(x0)
@@ -112,7 +112,7 @@ def ours_steps_per_second(case, num_worlds, steps, dt, device, dtype="float32", 
         wp.synchronize_device(sim.device)
         best = min(best, time.perf_counter() - t0)
     sps = num_worlds * steps / best
-    return sps, float(sim.joint_violation().max()), sim.memory_bytes()["total"] / num_worlds
+    return sps, float(sim.joint_violation().max()), sim.memory_bytes()["total"] / num_worlds, sim.solver.scratch
 
 
 def main(argv=None):
@@ -124,8 +124,8 @@ def main(argv=None):
     ap.add_argument("--dt", type=float, default=0.01)
     ap.add_argument("--ours-only", default=None, help="world counts run in abd_gym alone (default 1048576 on GPU)")
     ap.add_argument("--cases", default=",".join(CASES))
-    ap.add_argument("--scratch", default="global", help="comma-separated layouts of our fused step: global, lanes "
-                    "(each timed against the same MuJoCo Warp run)")
+    ap.add_argument("--scratch", default="auto", help="comma-separated layouts of our fused step: auto (the "
+                    "simulator's default), global, shared, lanes (each timed against the same MuJoCo Warp run)")
     ap.add_argument("--out", default="bench_out")
     args = ap.parse_args(argv)
     gpu = args.device.startswith("cuda")
@@ -143,7 +143,8 @@ def main(argv=None):
                 except ImportError:
                     pass
             for scratch in args.scratch.split(","):
-                ours, residual, mem = ours_steps_per_second(case, w, steps, args.dt, args.device, scratch=scratch)
+                ours, residual, mem, scratch = ours_steps_per_second(case, w, steps, args.dt, args.device,
+                                                                     scratch=None if scratch == "auto" else scratch)
                 rows.append(dict(case=case, num_worlds=w, scratch=scratch, abd_gym=ours, mujoco_warp=theirs,
                                  ratio=ours / theirs, joint_residual=residual, memory_bytes_per_world=mem))  # fmt: skip
                 print(f"{case:16s} {w:8d} worlds  abd_gym ({scratch}) {ours:14,.0f}  mujoco_warp {theirs:14,.0f} "

@@ -51,6 +51,18 @@ def cycles() -> wp.int64:
     ...
 
 
+def shared_array(dtype, count: int):
+    """A function returning the address of a static shared-memory array of ``count`` ``dtype``
+    words, one per CUDA block (for kernels built for CUDA only)."""
+    ctype = "float" if dtype == wp.float32 else "double"
+
+    @wp.func_native(f"__shared__ {ctype} scratch[{count}];\nreturn (uint64_t)scratch;\n")
+    def shared_scratch() -> wp.uint64:
+        ...
+
+    return shared_scratch
+
+
 # the phases fused_kernel(phase_clock=True) times, columns of Terms.clock (cycles summed per world)
 PHASES = ("zero", "assemble", "factor", "solve", "step", "step: energy", "step: trial")
 
@@ -58,10 +70,13 @@ PHASES = ("zero", "assemble", "factor", "solve", "step", "step: energy", "step: 
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
                  max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False,
-                 cuda=False):  # fmt: skip
+                 cuda=False, block=0):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
+    "shared": a thread per world as "global", H's lower triangle packed (n(n+1)/2 words) and, built
+    for CUDA (``cuda``), the block's ``block`` threads' g, H, Δq in its shared memory, one column
+    per thread (on the CPU the packed columns stay in the global arrays);
     "lanes": a block of lanes per world, its system contiguous (see the module's docstring).  (The
     "tiled" layout, a block per world repeating every evaluator on all lanes with H in shared memory,
     measured slower than "global" but for 1,024 double pendulums and was removed; a third layout,
@@ -80,6 +95,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     if smem_spilling:
         options["enable_cuda_smem_spilling"] = True
     lanes = scratch == "lanes"
+    packed = scratch == "shared"
     N = n  # unknowns per world (12 per free body), a constant of the kernel
     o = ops(dtype)
     vec3, vec4, vec12, mat33, mat12, mat44 = o.vec3, o.vec4, o.vec12, o.mat33, o.mat12, o.mat44
@@ -92,7 +108,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     rlim_eval = revolute_limit.kernel(dtype).eval
     plim_eval = prismatic_limit.kernel(dtype).eval
     drive_eval = drive.kernel(dtype).eval
-    staged = solver_kernels.kernels(dtype, envelope)
+    staged = solver_kernels.kernels(dtype, envelope, packed)
+    h_row = staged["h_row"]
     cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
     reductions = staged["reductions"]
     noise_floor, energy_noise = staged["noise_floor"], staged["energy_noise"]
@@ -100,7 +117,13 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
 
     # the thread's scratch column s of the flat g, H (solver_kernels: entry (i, j) of H at
-    # (i·N + j)·T + s, entry i of g at i·T + s); B is T, the scratch width
+    # (hrow(i) + j)·T + s, hrow(i) = i·N or, packed, i(i+1)/2; entry i of g at i·T + s); B is T, the
+    # scratch width
+
+    @wp.func
+    def hrow(i: int):
+        """Where row i of H starts in a scratch column (solver_kernels.h_row: square or packed)."""
+        return h_row(i, N)
 
     @wp.func
     def put_grad(g: Any, s: int, B: int, o: int, v: vec12):
@@ -117,19 +140,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         if oa >= 0 and ob >= 0:
             if oa == ob:
                 for r in range(12):
-                    p = ((oa + r) * N + ob) * B + s
+                    p = (hrow(oa + r) + ob) * B + s
                     for c in range(r + 1):
                         H[p] = H[p] + m[r, c]
                         p += B
             elif oa > ob:
                 for r in range(12):
-                    p = ((oa + r) * N + ob) * B + s
+                    p = (hrow(oa + r) + ob) * B + s
                     for c in range(12):
                         H[p] = H[p] + m[r, c]
                         p += B
             else:
                 for c in range(12):
-                    p = ((ob + c) * N + oa) * B + s
+                    p = (hrow(ob + c) + oa) * B + s
                     for r in range(12):
                         H[p] = H[p] + m[r, c]
                         p += B
@@ -143,16 +166,16 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         if o >= 0:
             Rp, ata = hessian_parts(qb)
             for r in range(3):
-                p = ((o + r) * N + o + r) * B + s
+                p = (hrow(o + r) + o + r) * B + s
                 H[p] = H[p] + m
                 for a in range(3):
-                    p = ((o + 3 + 3 * r + a) * N + o + r) * B + s
+                    p = (hrow(o + 3 + 3 * r + a) + o + r) * B + s
                     H[p] = H[p] + c[a]
             for kk in range(3):
                 for ll in range(kk + 1):
                     blk = a_block(qb, kk, ll, Rp, ata, ks, S)
                     for a in range(3):
-                        p = ((o + 3 + 3 * kk + a) * N + o + 3 + 3 * ll) * B + s
+                        p = (hrow(o + 3 + 3 * kk + a) + o + 3 + 3 * ll) * B + s
                         for bb in range(3):
                             if kk != ll or bb <= a:
                                 H[p] = H[p] + blk[a, bb]
@@ -168,10 +191,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     for d in range(4):
                         b = kron_index(m, d)
                         if oa > ob or (oa == ob and a >= b):
-                            p = ((oa + a) * N + ob + b) * B + s
+                            p = (hrow(oa + a) + ob + b) * B + s
                             H[p] = H[p] + U[c, d]
                         elif oa < ob:
-                            p = ((ob + b) * N + oa + a) * B + s
+                            p = (hrow(ob + b) + oa + a) * B + s
                             H[p] = H[p] + U[c, d]
 
     @wp.func
@@ -197,10 +220,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                             if al == be:
                                 v += U[a, b]
                             if oa > ob or (oa == ob and ra >= cb):
-                                p = ((oa + ra) * N + ob + cb) * B + s
+                                p = (hrow(oa + ra) + ob + cb) * B + s
                                 H[p] = H[p] + v
                             elif oa < ob:
-                                p = ((ob + cb) * N + oa + ra) * B + s
+                                p = (hrow(ob + cb) + oa + ra) * B + s
                                 H[p] = H[p] + v
 
     @wp.func
@@ -670,7 +693,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     j0 = int(0)
                     if wp.static(envelope or lanes):
                         j0 = t.first[i]
-                    p = (i * N + j0) * T + s
+                    p = (hrow(i) + j0) * T + s
                     for j in range(j0, i + 1):
                         H[p] = zero
                         p += T
@@ -727,6 +750,17 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         w = wp.tid()
         E[w] = assemble(q, w, w, w, q.shape[0], derivs, t, g, H, 0, 1, E)
 
+    SIZE = 4 if dtype == wp.float32 else 8
+    # a thread per world with its g, H, Δq in the block's shared memory (scratch="shared", CUDA): the
+    # factor's and solves' ~n³/6 dependent loads then wait ~30 cycles each instead of an L1 miss's
+    # trip to L2 (131,072 worlds' columns exceed L1); H packed, so a block of 32 float32 threads of
+    # 24 unknowns fits the 48 KB of static shared memory (44.5 KB)
+    in_smem = packed and cuda
+    if in_smem:
+        TRI = N * (N + 1) // 2
+        one_count = (TRI + 2 * N) * block
+        one_scratch = shared_array(dtype, one_count)
+
     if not lanes:
 
         @wp.kernel(**options)
@@ -744,9 +778,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             worlds, so they share no cache lines; s0 + c is the thread's row of q_trial."""
             c = wp.tid()
             s = c + s0
-            for w in range(wa + c, wb, Tw):
-                solve_world(q, q_trial, t, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
-                            reuse, status, iterations, factorizations, converged, 0, 1, part)  # fmt: skip
+            if wp.static(in_smem):
+                k = c % block  # the thread's column of its block's scratch
+                base = one_scratch()
+                Hs = wp.array(ptr=base, shape=(TRI * block,), dtype=dtype)
+                gs = wp.array(ptr=base + wp.uint64(TRI * block * SIZE), shape=(N * block,), dtype=dtype)
+                ds = wp.array(ptr=base + wp.uint64((TRI + N) * block * SIZE), shape=(N * block,), dtype=dtype)
+                for w in range(wa + c, wb, Tw):
+                    solve_world(q, q_trial, t, gs, Hs, ds, w, k, block, s, threshold, max_iterations, max_line_search,
+                                reuse, status, iterations, factorizations, converged, 0, 1, part)  # fmt: skip
+            else:
+                for w in range(wa + c, wb, Tw):
+                    solve_world(q, q_trial, t, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
+                                reuse, status, iterations, factorizations, converged, 0, 1, part)  # fmt: skip
 
         return newton, Terms, assemble_system
 
@@ -833,18 +877,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     # the block's g, H, Δq and energy shares in shared memory where they fit (a static array of at most
     # 40 KB; lanes exchange every column of the factor and every unknown of the solves through it,
     # which in global memory costs a round trip through L2 each): 2.8 KB for 24 unknowns in float32
-    SIZE = 4 if dtype == wp.float32 else 8
     LMAX = 256  # lanes a block at most (Solver checks)
     shared = lanes and cuda and (N * N + 2 * N + LMAX) * SIZE <= 40960  # the CPU keeps the global scratch
     if shared:
-        ctype = "float" if dtype == wp.float32 else "double"
-        count = N * N + 2 * N + LMAX
-
-        snippet = f"__shared__ {ctype} scratch[{count}];\nreturn (uint64_t)scratch;\n"
-
-        @wp.func_native(snippet)
-        def shared_scratch() -> wp.uint64:
-            ...
+        shared_scratch = shared_array(dtype, N * N + 2 * N + LMAX)
 
     @wp.kernel(**options)
     def newton_lanes(

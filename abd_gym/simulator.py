@@ -53,9 +53,11 @@ class Simulator:
     Python launches.  ``fused`` (default on) runs each world's whole Newton solve in one thread of
     one kernel; ``threads`` (that kernel's thread count; each thread solves worlds s, s+T, …) and
     ``block_dim`` (its CUDA block size) default to values measured on an H100.  ``scratch``: where the
-    fused step keeps a world's gradient, Hessian and Newton step: "global" (arrays, one column per
-    thread) or "tiled" (a CUDA block per world, the Hessian in shared memory, factored by
-    ``wp.tile_cholesky``); same arithmetic, same trajectories to rounding.  ``max_registers`` and
+    fused step keeps a world's gradient, Hessian and Newton step (default: "shared" on a GPU where it
+    fits, else "global"): "global" (arrays, one column per thread), "shared" (a thread per world, its system with H packed in its CUDA block's shared
+    memory, where a block's systems fit in 47 KB: up to 32 float32 threads of 24 unknowns) or
+    "lanes" (a CUDA block of ``block_dim`` lanes per world, sharing its terms and its factor); same
+    arithmetic, same trajectories to rounding.  ``max_registers`` and
     ``smem_spilling``: the fused kernel's CUDA register cap and spilling to shared memory.
     ``reuse_factor``: Newton's reuse of a Cholesky factor (default: float32 only).  ``envelope``:
     factor only the Hessian's envelope, the columns from each row's first coupled body on (default:
@@ -70,7 +72,7 @@ class Simulator:
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
                  tol: float = 1e-5, max_iterations: int = 50, max_line_search: int = 12,
                  use_graph: bool | None = None, fused: bool = True, integrator: str = "implicit_euler",
-                 threads: int | None = None, block_dim: int | None = None, scratch: str = "global",
+                 threads: int | None = None, block_dim: int | None = None, scratch: str | None = None,
                  max_registers: int = 0, smem_spilling: bool = False, reuse_factor: bool | None = None,
                  envelope: bool | None = None, retract: bool = True, cpu_workers: int | None = None):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):

@@ -39,9 +39,12 @@ class SolverSettings:
     threads: int | None = None
     block_dim: int | None = None
     # how the fused step splits the work (fused.py): "global", a thread per world (several worlds in
-    # turn when threads < worlds), or "lanes", a block of block_dim threads per world (default 32; on
-    # the CPU lanes run as cooperative fibers only with wp.config.enable_cpu_blocks, else one)
-    scratch: str = "global"
+    # turn when threads < worlds); "shared", a thread per world with its Newton system (H packed) in
+    # its CUDA block's shared memory (default_block_dim_shared; on the CPU the packed system stays in
+    # global memory); or "lanes", a block of block_dim threads per world (default 32; on the CPU
+    # lanes run as cooperative fibers only with wp.config.enable_cpu_blocks, else one); None:
+    # default_scratch
+    scratch: str | None = None
     # CUDA register cap of the fused kernel (0: the compiler's choice) and register spills to shared
     # memory (see bench: occupancy against spills)
     max_registers: int = 0
@@ -117,6 +120,30 @@ def default_block_dim(device, threads: int) -> int:
     return 32 if threads <= 32 * sms else 64 if threads <= 128 * sms else 128
 
 
+SHARED_BLOCK_BYTES = 48 * 1024 - 1024  # static shared memory a block, less Warp's own (its tile base)
+
+
+def shared_bytes_per_thread(n: int, dtype) -> int:
+    """A thread's Newton system in shared memory: H's packed lower triangle, g and Δq [bytes]."""
+    return (n * (n + 1) // 2 + 2 * n) * (4 if dtype == wp.float32 else 8)
+
+
+def default_block_dim_shared(n: int, dtype) -> int:
+    """Threads a block for scratch="shared": 32 (one warp) where their systems fit the block's
+    static shared memory; else as many as fit; 0 when not even one does."""
+    return min(32, SHARED_BLOCK_BYTES // shared_bytes_per_thread(n, dtype))
+
+
+def default_scratch(device, n: int, dtype, fused: bool = True) -> str:
+    """"shared" on a GPU where a block of 32 threads' systems fits its shared memory (float32, up to
+    24 unknowns: a cart-pole, a double pendulum), else "global".  Measured on an H100 (``python -m
+    abd_gym.bench --scratch global,shared``): shared 1.18-1.25x as fast as global on cart-poles and
+    1.25-1.47x on double pendulums, at 1,024 to 131,072 worlds."""
+    if fused and device.is_cuda and default_block_dim_shared(n, dtype) >= 32:
+        return "shared"
+    return "global"
+
+
 class Solver:
     def __init__(self, model, dt: float, settings: SolverSettings):
         self.model, self.settings = model, settings
@@ -136,11 +163,21 @@ class Solver:
         self.cols = self._columns(physical=False)
         self.report_cols = self._columns(physical=True)
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
-        if settings.scratch not in ("global", "lanes"):
-            raise ValueError(f"scratch must be 'global' or 'lanes', got {settings.scratch!r}")
-        if settings.scratch != "global" and not settings.fused:
-            raise ValueError(f"scratch={settings.scratch!r} needs the fused step (fused=True)")
-        self.lanes = settings.scratch == "lanes"
+        cuda = wp.get_device(dev).is_cuda
+        scratch = settings.scratch
+        if scratch is None:
+            scratch = default_scratch(wp.get_device(dev), n, dt_, settings.fused)
+        if scratch not in ("global", "shared", "lanes"):
+            raise ValueError(f"scratch must be 'global', 'shared' or 'lanes', got {scratch!r}")
+        if scratch != "global" and not settings.fused:
+            raise ValueError(f"scratch={scratch!r} needs the fused step (fused=True)")
+        self.scratch = scratch
+        self.lanes = scratch == "lanes"
+        self.shared = scratch == "shared"
+        # scratch="shared" on a GPU: the systems live in shared memory, a block's threads each its own
+        self.in_smem = self.shared and cuda
+        if self.shared and settings.envelope:
+            raise ValueError("scratch='shared' factors densely (H packed): it takes envelope=False or None")
         # scratch columns of g, H, Δq: one per world for the staged step and the lane-split step; one
         # per thread for the fused step, whose threads each solve several worlds in turn (memory per
         # world stays O(bodies))
@@ -152,6 +189,8 @@ class Solver:
             workers = default_cpu_workers(W) if settings.cpu_workers is None else int(settings.cpu_workers)
         if settings.fused and not self.lanes:
             T = default_threads(wp.get_device(dev), W, workers) if settings.threads is None else settings.threads
+            if self.in_smem and settings.threads is None:
+                T = W  # a system in shared memory lives as long as its block: no scratch to keep small
             if not (isinstance(T, (int, np.integer)) and T > 0):
                 raise ValueError(f"threads must be a positive integer, got {settings.threads!r}")
             self.threads = int(min(T, W))
@@ -166,6 +205,14 @@ class Solver:
         self.newton_launches = [(int(tb[k]), int(tb[k + 1] - tb[k]), int(wb[k]), int(wb[k + 1])) for k in range(chunks)]
         self._chunk_cmds = None
         self.block_dim = settings.block_dim or (32 if self.lanes else default_block_dim(wp.get_device(dev), T))
+        if self.in_smem:
+            fit = default_block_dim_shared(n, dt_)
+            self.block_dim = settings.block_dim or fit
+            if not 1 <= self.block_dim <= fit:
+                per = shared_bytes_per_thread(n, dt_)
+                raise ValueError(f"scratch='shared': {self.block_dim or 1} thread(s) of {n} unknowns need "
+                                 f"{max(self.block_dim, 1) * per} B of shared memory a block, more than its "
+                                 f"{SHARED_BLOCK_BYTES} B; at most {fit} fit (block_dim), else use scratch='global'")  # fmt: skip
         if self.lanes and not 1 <= self.block_dim <= 256:
             raise ValueError(f"scratch='lanes' takes 1 to 256 lanes a world (block_dim), got {self.block_dim!r}")
         if self.lanes and wp.get_device(dev).is_cpu and not wp.config.enable_cpu_blocks:
@@ -179,10 +226,12 @@ class Solver:
         if n * n * T >= 2**31:  # the flat scratch is indexed with 32-bit integers
             raise ValueError(f"the Newton scratch of {T} columns of {n} unknowns exceeds 2**31 entries: use the fused "
                              "step (fused=True, its threads reuse their scratch) or fewer worlds")  # fmt: skip
-        # column-minor: thread s reads H[i, j, s] coalesced with its neighbours
-        self.g = wp.zeros((n, T), dtype=dt_, device=dev)
-        self.H = wp.zeros((n, n, T), dtype=dt_, device=dev)
-        self.dq = wp.zeros((n, T), dtype=dt_, device=dev)
+        # column-minor: thread s reads H[i, j, s] coalesced with its neighbours (one unused column when
+        # the systems live in shared memory)
+        Tg = 1 if self.in_smem else T
+        self.g = wp.zeros((n, Tg), dtype=dt_, device=dev)
+        self.H = wp.zeros((n, n, Tg), dtype=dt_, device=dev)
+        self.dq = wp.zeros((n, Tg), dtype=dt_, device=dev)
         # the staged step's Cholesky factors, kept for an iteration that reuses them (H is reassembled)
         self.L = None if settings.fused else wp.zeros((n, n, T), dtype=dt_, device=dev)
         # the same memory as flat 1-D arrays, which the factor, the solves and the fused step index
@@ -199,6 +248,8 @@ class Solver:
         self.remaining = wp.zeros(1, dtype=wp.int32, device=dev)  # loop flags for wp.capture_while
         self.ls_remaining = wp.zeros(1, dtype=wp.int32, device=dev)
         self.envelope = model.envelope if settings.envelope is None else bool(settings.envelope)
+        if self.shared:
+            self.envelope = False
         self.k = solver_kernels(dt_, self.envelope)
         self._fused = None  # (kernel, struct of arrays), built on the first fused step
         self.begin_step, self.coordinates = coordinates.kernels(dt_)
@@ -234,7 +285,7 @@ class Solver:
         the fused step assembles them (global scratch, one thread per world): for checking it
         against the staged kernels' ``hessian()``.  Uses the solver's scratch (g, H)."""
         m = self.model
-        if self.threads != m.num_worlds or self.lanes:
+        if self.threads != m.num_worlds or self.lanes or self.shared:
             raise RuntimeError("fused_system needs the fused step's global scratch with one thread per world")
         if self._fused is None:
             self._fused = self._build_fused(state)
@@ -362,10 +413,11 @@ class Solver:
         has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
                len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
         st = self.settings
-        kernel, Terms, assemble_system = fused_kernel(m.dtype, *has, scratch=st.scratch, n=m.num_dofs, max_registers=st.max_registers,
+        kernel, Terms, assemble_system = fused_kernel(m.dtype, *has, scratch=self.scratch, n=m.num_dofs, max_registers=st.max_registers,
                                      smem_spilling=st.smem_spilling, envelope=self.envelope,
                                      retract=bool(st.retract), phase_clock=bool(st.phase_clock),
-                                     cuda=bool(self.lanes and wp.get_device(m.device).is_cuda))  # fmt: skip
+                                     cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
+                                     block=self.block_dim if self.in_smem else 0)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip

@@ -17,14 +17,26 @@ OK, FAILED = 0, 1
 
 
 @functools.lru_cache(maxsize=None)
-def kernels(dtype, envelope=False):
+def kernels(dtype, envelope=False, packed=False):
     """The per-world Newton kernels for ``dtype``; ``envelope``: the Cholesky factor and solves skip
-    the columns left of each row's first non-zero (``Model.first``), for block-banded scenes."""
+    the columns left of each row's first non-zero (``Model.first``), for block-banded scenes;
+    ``packed``: H's lower triangle stored packed, row i from i(i+1)/2 (n(n+1)/2 words a column
+    instead of n², for a scratch in shared memory; the dense loops only)."""
+    if packed and envelope:
+        raise ValueError("the packed Newton scratch has the dense factor only (envelope=False)")
     o = ops(dtype)
     vec3, vec12 = o.vec3, o.vec12
     zero, one = dtype(0.0), dtype(1.0)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
     retract = affine_body.kernels(dtype).retract
+
+    @wp.func
+    def h_row(i: int, n: int):
+        """Where row i of H starts in a scratch column (entry (i, j) at (h_row(i, n) + j)·T + w): i·n
+        square, i(i+1)/2 packed."""
+        if wp.static(packed):
+            return (i * (i + 1)) >> 1
+        return i * n
 
     @wp.func
     def noise_floor(q: wp.array2d(dtype=vec12), w: int, threshold: dtype):
@@ -126,68 +138,162 @@ def kernels(dtype, envelope=False):
     @wp.func
     def cholesky_dense(H: wp.array(dtype=dtype), w: int, n: int, T: int):
         """H = L Lᵀ in place on H's lower triangle (flat, column w of T); 0 when H is not positive
-        definite.  Left-looking, four rows of a column at a time: each L[j, k] loaded serves four
-        rows, and the four sums are independent, so four loads are in flight where a one-row loop
-        waits for each (GPU threads issue in order)."""
-        R = n * T
-        for j in range(n):
-            rj = j * R + w
-            s0 = H[rj + j * T]
-            s1 = zero
-            s2 = zero
-            s3 = zero
-            p = rj
-            k = int(0)
-            while k + 4 <= j:
-                a0 = H[p]
-                a1 = H[p + T]
-                a2 = H[p + 2 * T]
-                a3 = H[p + 3 * T]
-                s0 -= a0 * a0
-                s1 -= a1 * a1
-                s2 -= a2 * a2
-                s3 -= a3 * a3
-                p += 4 * T
-                k += 4
-            while k < j:
-                a0 = H[p]
-                s0 -= a0 * a0
+        definite.  Left-looking by 4 × 4 tiles (n a multiple of 4: 12 per body): each tile of L is
+        its H tile less Σ_k L[I, k] L[J, k]ᵀ, sixteen sums in registers from eight loads per k (one
+        row at a time loads five values for four products), then divided by the diagonal tile's
+        factor, formed in registers; reciprocals of the diagonal, so a column's n − j divisions are
+        one division and multiplies (a GPU's IEEE division is a call of ~20 instructions)."""
+        J = int(0)
+        while J < n:
+            c = J * T
+            j0 = h_row(J, n) * T + w  # rows J … J + 3
+            j1 = h_row(J + 1, n) * T + w
+            j2 = h_row(J + 2, n) * T + w
+            j3 = h_row(J + 3, n) * T + w
+            a00 = H[j0 + c]
+            a10 = H[j1 + c]
+            a11 = H[j1 + c + T]
+            a20 = H[j2 + c]
+            a21 = H[j2 + c + T]
+            a22 = H[j2 + c + 2 * T]
+            a30 = H[j3 + c]
+            a31 = H[j3 + c + T]
+            a32 = H[j3 + c + 2 * T]
+            a33 = H[j3 + c + 3 * T]
+            p = int(0)
+            for k in range(J):
+                v0 = H[j0 + p]
+                v1 = H[j1 + p]
+                v2 = H[j2 + p]
+                v3 = H[j3 + p]
+                a00 -= v0 * v0
+                a10 -= v1 * v0
+                a11 -= v1 * v1
+                a20 -= v2 * v0
+                a21 -= v2 * v1
+                a22 -= v2 * v2
+                a30 -= v3 * v0
+                a31 -= v3 * v1
+                a32 -= v3 * v2
+                a33 -= v3 * v3
                 p += T
-                k += 1
-            s = (s0 + s1) + (s2 + s3)
-            if not (s > zero) or not wp.isfinite(s):
+            # the diagonal tile's factor, in registers
+            if not (a00 > zero) or not wp.isfinite(a00):
                 return 0
-            d = wp.sqrt(s)
-            H[rj + j * T] = d
-            i = j + 1
-            while i + 4 <= n:
-                r0 = i * R + w
-                t0 = H[r0 + j * T]
-                t1 = H[r0 + R + j * T]
-                t2 = H[r0 + 2 * R + j * T]
-                t3 = H[r0 + 3 * R + j * T]
-                pj = rj
-                p0 = r0
-                for k in range(j):
-                    b = H[pj]
-                    t0 -= H[p0] * b
-                    t1 -= H[p0 + R] * b
-                    t2 -= H[p0 + 2 * R] * b
-                    t3 -= H[p0 + 3 * R] * b
-                    pj += T
-                    p0 += T
-                H[r0 + j * T] = t0 / d
-                H[r0 + R + j * T] = t1 / d
-                H[r0 + 2 * R + j * T] = t2 / d
-                H[r0 + 3 * R + j * T] = t3 / d
-                i += 4
-            while i < n:
-                r0 = i * R + w
-                t0 = H[r0 + j * T]
-                for k in range(j):
-                    t0 -= H[r0 + k * T] * H[rj + k * T]
-                H[r0 + j * T] = t0 / d
-                i += 1
+            d0 = wp.sqrt(a00)
+            i0 = one / d0
+            l10 = a10 * i0
+            l20 = a20 * i0
+            l30 = a30 * i0
+            a11 -= l10 * l10
+            if not (a11 > zero) or not wp.isfinite(a11):
+                return 0
+            d1 = wp.sqrt(a11)
+            i1 = one / d1
+            l21 = (a21 - l20 * l10) * i1
+            l31 = (a31 - l30 * l10) * i1
+            a22 -= l20 * l20 + l21 * l21
+            if not (a22 > zero) or not wp.isfinite(a22):
+                return 0
+            d2 = wp.sqrt(a22)
+            i2 = one / d2
+            l32 = (a32 - l30 * l20 - l31 * l21) * i2
+            a33 -= l30 * l30 + l31 * l31 + l32 * l32
+            if not (a33 > zero) or not wp.isfinite(a33):
+                return 0
+            d3 = wp.sqrt(a33)
+            i3 = one / d3
+            H[j0 + c] = d0
+            H[j1 + c] = l10
+            H[j1 + c + T] = d1
+            H[j2 + c] = l20
+            H[j2 + c + T] = l21
+            H[j2 + c + 2 * T] = d2
+            H[j3 + c] = l30
+            H[j3 + c + T] = l31
+            H[j3 + c + 2 * T] = l32
+            H[j3 + c + 3 * T] = d3
+            # the tiles below it: rows I … I + 3, columns J … J + 3
+            I = J + 4
+            while I < n:
+                r0 = h_row(I, n) * T + w
+                r1 = h_row(I + 1, n) * T + w
+                r2 = h_row(I + 2, n) * T + w
+                r3 = h_row(I + 3, n) * T + w
+                t00 = H[r0 + c]
+                t01 = H[r0 + c + T]
+                t02 = H[r0 + c + 2 * T]
+                t03 = H[r0 + c + 3 * T]
+                t10 = H[r1 + c]
+                t11 = H[r1 + c + T]
+                t12 = H[r1 + c + 2 * T]
+                t13 = H[r1 + c + 3 * T]
+                t20 = H[r2 + c]
+                t21 = H[r2 + c + T]
+                t22 = H[r2 + c + 2 * T]
+                t23 = H[r2 + c + 3 * T]
+                t30 = H[r3 + c]
+                t31 = H[r3 + c + T]
+                t32 = H[r3 + c + 2 * T]
+                t33 = H[r3 + c + 3 * T]
+                p = int(0)
+                for k in range(J):
+                    u0 = H[r0 + p]
+                    u1 = H[r1 + p]
+                    u2 = H[r2 + p]
+                    u3 = H[r3 + p]
+                    v0 = H[j0 + p]
+                    v1 = H[j1 + p]
+                    v2 = H[j2 + p]
+                    v3 = H[j3 + p]
+                    t00 -= u0 * v0
+                    t01 -= u0 * v1
+                    t02 -= u0 * v2
+                    t03 -= u0 * v3
+                    t10 -= u1 * v0
+                    t11 -= u1 * v1
+                    t12 -= u1 * v2
+                    t13 -= u1 * v3
+                    t20 -= u2 * v0
+                    t21 -= u2 * v1
+                    t22 -= u2 * v2
+                    t23 -= u2 * v3
+                    t30 -= u3 * v0
+                    t31 -= u3 * v1
+                    t32 -= u3 * v2
+                    t33 -= u3 * v3
+                    p += T
+                # X L_JJᵀ = T, a row of X at a time (forward substitution along the row)
+                x0 = t00 * i0
+                x1 = (t01 - x0 * l10) * i1
+                x2 = (t02 - x0 * l20 - x1 * l21) * i2
+                H[r0 + c] = x0
+                H[r0 + c + T] = x1
+                H[r0 + c + 2 * T] = x2
+                H[r0 + c + 3 * T] = (t03 - x0 * l30 - x1 * l31 - x2 * l32) * i3
+                x0 = t10 * i0
+                x1 = (t11 - x0 * l10) * i1
+                x2 = (t12 - x0 * l20 - x1 * l21) * i2
+                H[r1 + c] = x0
+                H[r1 + c + T] = x1
+                H[r1 + c + 2 * T] = x2
+                H[r1 + c + 3 * T] = (t13 - x0 * l30 - x1 * l31 - x2 * l32) * i3
+                x0 = t20 * i0
+                x1 = (t21 - x0 * l10) * i1
+                x2 = (t22 - x0 * l20 - x1 * l21) * i2
+                H[r2 + c] = x0
+                H[r2 + c + T] = x1
+                H[r2 + c + 2 * T] = x2
+                H[r2 + c + 3 * T] = (t23 - x0 * l30 - x1 * l31 - x2 * l32) * i3
+                x0 = t30 * i0
+                x1 = (t31 - x0 * l10) * i1
+                x2 = (t32 - x0 * l20 - x1 * l21) * i2
+                H[r3 + c] = x0
+                H[r3 + c + T] = x1
+                H[r3 + c + 2 * T] = x2
+                H[r3 + c + 3 * T] = (t33 - x0 * l30 - x1 * l31 - x2 * l32) * i3
+                I += 4
+            J += 4
         return 1
 
     @wp.func
@@ -204,13 +310,18 @@ def kernels(dtype, envelope=False):
         """dq = −(L Lᵀ)⁻¹g, n a multiple of 4 (12 per body): each substitution runs four rows at a
         time (as cholesky_dense, for loads in flight), the known part first, then the 4 × 4
         triangle of the four rows themselves."""
-        R = n * T
         i = int(0)
         while i < n:  # L y = −g
-            r0 = i * R + w
-            r1 = r0 + R
-            r2 = r1 + R
-            r3 = r2 + R
+            r0 = h_row(i, n) * T + w
+            r1 = h_row(i + 1, n) * T + w
+            r2 = h_row(i + 2, n) * T + w
+            r3 = h_row(i + 3, n) * T + w
+            c = i * T
+            # the diagonal's reciprocals first: divisions that wait on nothing, not on the chain y0 → y3
+            e0 = one / L[r0 + c]
+            e1 = one / L[r1 + c + T]
+            e2 = one / L[r2 + c + 2 * T]
+            e3 = one / L[r3 + c + 3 * T]
             t0 = -g[i * T + w]
             t1 = -g[(i + 1) * T + w]
             t2 = -g[(i + 2) * T + w]
@@ -218,17 +329,16 @@ def kernels(dtype, envelope=False):
             pk = w
             for k in range(i):
                 y = dq[pk]
-                c = k * T
-                t0 -= L[r0 + c] * y
-                t1 -= L[r1 + c] * y
-                t2 -= L[r2 + c] * y
-                t3 -= L[r3 + c] * y
+                ck = k * T
+                t0 -= L[r0 + ck] * y
+                t1 -= L[r1 + ck] * y
+                t2 -= L[r2 + ck] * y
+                t3 -= L[r3 + ck] * y
                 pk += T
-            c = i * T
-            y0 = t0 / L[r0 + c]
-            y1 = (t1 - L[r1 + c] * y0) / L[r1 + c + T]
-            y2 = (t2 - L[r2 + c] * y0 - L[r2 + c + T] * y1) / L[r2 + c + 2 * T]
-            y3 = (t3 - L[r3 + c] * y0 - L[r3 + c + T] * y1 - L[r3 + c + 2 * T] * y2) / L[r3 + c + 3 * T]
+            y0 = t0 * e0
+            y1 = (t1 - L[r1 + c] * y0) * e1
+            y2 = (t2 - L[r2 + c] * y0 - L[r2 + c + T] * y1) * e2
+            y3 = (t3 - L[r3 + c] * y0 - L[r3 + c + T] * y1 - L[r3 + c + 2 * T] * y2) * e3
             dq[c + w] = y0
             dq[c + T + w] = y1
             dq[c + 2 * T + w] = y2
@@ -241,22 +351,25 @@ def kernels(dtype, envelope=False):
             t1 = dq[c + T + w]
             t2 = dq[c + 2 * T + w]
             t3 = dq[c + 3 * T + w]
-            pk = (i + 4) * R + c + w  # L[k, i], k = i + 4, …
+            pk = h_row(i + 4, n) * T + c + w  # L[k, i], k = i + 4, …
             for k in range(i + 4, n):
                 x = dq[k * T + w]
                 t0 -= L[pk] * x
                 t1 -= L[pk + T] * x
                 t2 -= L[pk + 2 * T] * x
                 t3 -= L[pk + 3 * T] * x
-                pk += R
-            r0 = i * R + c + w  # L[i, i]
-            r1 = r0 + R
-            r2 = r1 + R
-            r3 = r2 + R
+                pk += (h_row(k + 1, n) - h_row(k, n)) * T
+            r0 = h_row(i, n) * T + c + w  # L[i, i]
+            r1 = h_row(i + 1, n) * T + c + w
+            r2 = h_row(i + 2, n) * T + c + w
+            r3 = h_row(i + 3, n) * T + c + w
             x3 = t3 / L[r3 + 3 * T]
-            x2 = (t2 - L[r3 + 2 * T] * x3) / L[r2 + 2 * T]
-            x1 = (t1 - L[r2 + T] * x2 - L[r3 + T] * x3) / L[r1 + T]
-            x0 = (t0 - L[r1] * x1 - L[r2] * x2 - L[r3] * x3) / L[r0]
+            e2 = one / L[r2 + 2 * T]
+            e1 = one / L[r1 + T]
+            e0 = one / L[r0]
+            x2 = (t2 - L[r3 + 2 * T] * x3) * e2
+            x1 = (t1 - L[r2 + T] * x2 - L[r3 + T] * x3) * e1
+            x0 = (t0 - L[r1] * x1 - L[r2] * x2 - L[r3] * x3) * e0
             dq[c + w] = x0
             dq[c + T + w] = x1
             dq[c + 2 * T + w] = x2
@@ -549,7 +662,7 @@ def kernels(dtype, envelope=False):
                 status[w] = FAILED
 
     return dict(
-        predict=predict, start=start, newton_direction=newton_direction, cholesky_solve=cholesky_solve,
+        predict=predict, start=start, newton_direction=newton_direction, h_row=h_row, cholesky_solve=cholesky_solve,
         factored_solve=factored_solve, reductions=reductions,
         noise_floor=noise_floor, energy_noise=energy_noise, trial=trial, accept=accept, commit=commit,
         converge=converge, finalize=finalize, open_step=open_step,

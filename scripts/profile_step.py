@@ -27,7 +27,7 @@ def main():
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--case", default="cartpole", choices=sorted(CASES))
     ap.add_argument("--worlds", type=int, default=16384)
-    ap.add_argument("--scratch", default="global")
+    ap.add_argument("--scratch", default="auto", help="auto (the simulator's default), global, shared or lanes")
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--steps", type=int, default=2)
     ap.add_argument("--block-dim", type=int, default=None)
@@ -37,7 +37,8 @@ def main():
     if args.lineinfo:
         wp.config.lineinfo = True
     sim = Simulator(CASES[args.case]["scene"](), num_worlds=args.worlds, dt=0.01, device=args.device,
-                    use_graph=args.phases, scratch=args.scratch, block_dim=args.block_dim)  # fmt: skip
+                    use_graph=args.phases, scratch=None if args.scratch == "auto" else args.scratch,
+                    block_dim=args.block_dim)  # fmt: skip
     sim.solver.settings.phase_clock = args.phases
     sim.set_joint_state(random_states(args.case, args.worlds))
     sim.step(args.warmup)
@@ -52,7 +53,7 @@ def main():
 
         ms = (time.perf_counter() - t0) / args.steps * 1e3
         c = sim.solver.phase_cycles.numpy().sum(0) / (args.worlds * args.steps)
-        print(f"{args.case} {args.scratch}/{sim.solver.block_dim}: {args.worlds} worlds, {ms * 1e3:.1f} us a step "
+        print(f"{args.case} {sim.solver.scratch}/{sim.solver.block_dim}: {args.worlds} worlds, {ms * 1e3:.1f} us a step "
               f"(with the phase clock), cycles per world-step: " + ", ".join(f"{p} {v:,.0f}" for p, v in zip(PHASES, c)))
     print(f"{args.case}: {args.worlds} worlds, threads {sim.solver.threads}, block {sim.solver.block_dim}, "
           f"Newton iterations {sim.newton_iterations().mean():.2f}")

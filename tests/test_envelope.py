@@ -37,12 +37,12 @@ def test_envelope_factor_gives_the_dense_trajectory(fused):
     np.testing.assert_allclose(runs[True], runs[False], rtol=0, atol=1e-11)
 
 
-def _solve_kernel(dtype, envelope):
+def _solve_kernel(dtype, envelope, packed=False):
     import warp as wp
 
     from abd_gym import solver_kernels
 
-    cholesky_solve = solver_kernels.kernels(dtype, envelope)["cholesky_solve"]
+    cholesky_solve = solver_kernels.kernels(dtype, envelope, packed)["cholesky_solve"]
 
     @wp.kernel(module="unique")
     def solve(H: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), n: int,
@@ -57,12 +57,14 @@ def _solve_kernel(dtype, envelope):
     return solve
 
 
-@pytest.mark.parametrize("dtype,envelope", [("float64", False), ("float32", False), ("float64", True)])
-def test_factor_and_solves_match_numpy(dtype, envelope):
-    """The per-world Cholesky solve (four rows at a time when dense; flat world-minor scratch, entry
-    (i, j) of world w at (i·n + j)·W + w) against NumPy on random SPD systems of 12, 24 and 36
-    unknowns (banded by 12 × 12 blocks for the envelope), with the factor left in H's lower
-    triangle; a matrix that is not positive definite reports 0."""
+@pytest.mark.parametrize("dtype,envelope,packed", [("float64", False, False), ("float32", False, False),
+                                                   ("float64", True, False), ("float64", False, True),
+                                                   ("float32", False, True)])  # fmt: skip
+def test_factor_and_solves_match_numpy(dtype, envelope, packed):
+    """The per-world Cholesky solve (4 × 4 tiles when dense; flat world-minor scratch, entry (i, j)
+    of world w at (i·n + j)·W + w, or packed at (i(i+1)/2 + j)·W + w) against NumPy on random SPD
+    systems of 12, 24 and 36 unknowns (banded by 12 × 12 blocks for the envelope), with the factor
+    left in H's lower triangle; a matrix that is not positive definite reports 0."""
     import warp as wp
 
     wdt = getattr(wp, dtype)
@@ -77,14 +79,22 @@ def test_factor_and_solves_match_numpy(dtype, envelope):
             H *= np.abs(np.arange(n)[:, None] // 12 - np.arange(n)[None, :] // 12) <= 1
         H[-1] = -np.eye(n)  # not positive definite
         g = rng.normal(size=(W, n))
-        Hd = wp.array(np.tril(H).transpose(1, 2, 0).reshape(-1), dtype=wdt)
+        rows, cols = np.tril_indices(n)  # row by row: the packed order
+        if packed:
+            Hd = wp.array(H[:, rows, cols].T.reshape(-1), dtype=wdt)
+        else:
+            Hd = wp.array(np.tril(H).transpose(1, 2, 0).reshape(-1), dtype=wdt)
         gd = wp.array(g.T.reshape(-1), dtype=wdt)
         dq = wp.zeros(n * W, dtype=wdt)
         out = wp.zeros((W, 4), dtype=wdt)
-        wp.launch(_solve_kernel(wdt, envelope), dim=W, inputs=[Hd, gd, dq, n, wp.array(first), out])
+        wp.launch(_solve_kernel(wdt, envelope, packed), dim=W, inputs=[Hd, gd, dq, n, wp.array(first), out])
         out = out.numpy()
         x = dq.numpy().reshape(n, W).T
-        L = Hd.numpy().reshape(n, n, W).transpose(2, 0, 1)
+        if packed:
+            L = np.zeros((W, n, n))
+            L[:, rows, cols] = Hd.numpy().reshape(-1, W).T
+        else:
+            L = Hd.numpy().reshape(n, n, W).transpose(2, 0, 1)
         rtol = 1e-10 if dtype == "float64" else 2e-4
         for w in range(W - 1):
             ref = -np.linalg.solve(H[w], g[w])

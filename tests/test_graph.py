@@ -97,6 +97,35 @@ def test_lane_split_step_matches_one_thread_per_world(lanes, request):
     np.testing.assert_array_equal(sim.newton_factorizations(), sim0.newton_factorizations())
 
 
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_shared_scratch_step_matches_global(dtype):
+    """scratch="shared" (H's lower triangle packed, in the CUDA block's shared memory; on the CPU the
+    packed columns in global memory) is the same solve as the square global scratch: the same
+    products in the same order, so the same trajectories bit for bit, iterations and factorisations
+    (limits, drives, resets and a failure included)."""
+    ref, sim0 = _run(True, dtype=dtype)
+    out, sim = _run(True, dtype=dtype, scratch="shared")
+    assert sim.solver.shared and not sim.solver.envelope
+    np.testing.assert_array_equal(np.nan_to_num(out), np.nan_to_num(ref))
+    assert sim.failed_worlds().tolist() == [3]
+    np.testing.assert_array_equal(sim.newton_iterations(), sim0.newton_iterations())
+    np.testing.assert_array_equal(sim.newton_factorizations(), sim0.newton_factorizations())
+
+
+def test_shared_scratch_too_large_is_refused():
+    """A block whose threads' systems exceed the static shared memory is refused, naming the sizes."""
+    import warp as wp
+
+    with pytest.raises(ValueError, match="envelope"):
+        ag.Simulator(mechanisms.cartpole(), num_worlds=2, scratch="shared", envelope=True)
+    if not wp.get_device(ag.Simulator(mechanisms.pendulum(), num_worlds=1).device).is_cuda:
+        pytest.skip("the shared-memory budget applies on CUDA only")
+    with pytest.raises(ValueError, match="scratch='shared'"):
+        ag.Simulator(mechanisms.chain(20), num_worlds=2, scratch="shared")
+    with pytest.raises(ValueError, match="at most 32 fit"):
+        ag.Simulator(mechanisms.cartpole(), num_worlds=2, scratch="shared", block_dim=64)
+
+
 def test_concurrent_cpu_launches_are_the_same_step():
     """cpu_workers=2 (the fused step's 4 threads and 4 worlds as two launches run at once on the
     CPU, between the captured phases before and after them) gives the one-launch, graph-captured
