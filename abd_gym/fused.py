@@ -64,7 +64,8 @@ def shared_array(dtype, count: int):
 
 
 # the phases fused_kernel(phase_clock=True) times, columns of Terms.clock (cycles summed per world)
-PHASES = ("zero", "assemble", "factor", "solve", "step", "step: energy", "step: trial")
+PHASES = ("zero", "assemble", "factor", "solve", "step", "step: energy", "step: trial", "assemble: bodies",
+          "assemble: revolute", "assemble: fixed", "assemble: prismatic", "assemble: limits", "assemble: drives")
 
 
 @functools.lru_cache(maxsize=None)
@@ -98,16 +99,16 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     packed = scratch == "shared"
     N = n  # unknowns per world (12 per free body), a constant of the kernel
     o = ops(dtype)
-    vec3, vec4, vec12, mat33, mat12, mat44 = o.vec3, o.vec4, o.vec12, o.mat33, o.mat12, o.mat44
-    body_eval = affine_body.kernels(dtype).body_eval
+    vec3, vec4, vec12, mat33, mat44 = o.vec3, o.vec4, o.vec12, o.mat33, o.mat44
+    body_grad = affine_body.kernels(dtype).body_grad
     hessian_parts, a_block = affine_body.kernels(dtype).hessian_parts, affine_body.kernels(dtype).a_block
     retract_body = affine_body.kernels(dtype).retract
     point_eval_kron = _point_joint.kernel(dtype).eval_kron
     kron3, kron_index = o.kron3, o.kron_index
-    prismatic_eval = prismatic_joint.kernel(dtype).eval
-    rlim_eval = revolute_limit.kernel(dtype).eval
-    plim_eval = prismatic_limit.kernel(dtype).eval
-    drive_eval = drive.kernel(dtype).eval
+    prismatic_grad = prismatic_joint.kernel(dtype).grad
+    rlim_parts = revolute_limit.kernel(dtype).parts
+    plim_parts = prismatic_limit.kernel(dtype).parts
+    drive_parts = drive.kernel(dtype).parts
     staged = solver_kernels.kernels(dtype, envelope, packed)
     h_row = staged["h_row"]
     cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
@@ -132,30 +133,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             for r in range(12):
                 g[p] = g[p] + v[r]
                 p += B
-
-    @wp.func
-    def put_block(H: Any, s: int, B: int, oa: int, ob: int, m: mat12):
-        """Add block (oa, ob) and its transpose, lower triangle only (all the Cholesky reads):
-        a diagonal block's lower half; (oa, ob) below the diagonal as it is, above it transposed."""
-        if oa >= 0 and ob >= 0:
-            if oa == ob:
-                for r in range(12):
-                    p = (hrow(oa + r) + ob) * B + s
-                    for c in range(r + 1):
-                        H[p] = H[p] + m[r, c]
-                        p += B
-            elif oa > ob:
-                for r in range(12):
-                    p = (hrow(oa + r) + ob) * B + s
-                    for c in range(12):
-                        H[p] = H[p] + m[r, c]
-                        p += B
-            else:
-                for c in range(12):
-                    p = (hrow(ob + c) + oa) * B + s
-                    for r in range(12):
-                        H[p] = H[p] + m[r, c]
-                        p += B
 
     @wp.func
     def put_body(H: Any, s: int, B: int, o: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype):
@@ -203,7 +180,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         """Add block (oa, ob) = (ua ubᵀ) ⊗ Pcc + (ua tbᵀ) ⊗ Pct + (ta ubᵀ) ⊗ Ptc + (ta tbᵀ) ⊗ Ptt
         + U ⊗ I₃
         (entry (kron_index(α, a), kron_index(β, b)) = Σ u[a] v[b] P[α, β] + δ_αβ U[a, b]), lower
-        triangle only as put_block: the Gauss–Newton block of rows J(x)ᵀ-type Kronecker products
+        triangle only as put_outer: the Gauss–Newton block of rows J(x)ᵀ-type Kronecker products
         (prismatic_hessian), summed per entry in registers, without a 12 × 12 matrix."""
         if oa >= 0 and ob >= 0:
             for a in range(4):
@@ -294,14 +271,45 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             put_kron(H, s, B, oj, oj, ujj)
 
     @wp.func
-    def put_pair(g: Any, H: Any, s: int, B: int, derivs: int, oi: int, oj: int, gi: vec12, gj: vec12, hii: mat12,
-                 hij: mat12, hjj: mat12):  # fmt: skip
-        put_grad(g, s, B, oi, gi)
-        put_grad(g, s, B, oj, gj)
-        if derivs == HESSIAN:
-            put_block(H, s, B, oi, oi, hii)
-            put_block(H, s, B, oi, oj, hij)
-            put_block(H, s, B, oj, oj, hjj)
+    def put_outer(H: Any, s: int, B: int, oa: int, ob: int, ga: vec12, gb: vec12, cf: dtype):
+        """Add block (oa, ob) = cf·ga gbᵀ and its transpose, lower triangle only (all the Cholesky
+        reads): a diagonal block's lower half; (oa, ob) below the diagonal as it is, above it
+        transposed.  Each entry is formed as it is added (no 12 × 12 matrix in local memory)."""
+        if oa >= 0 and ob >= 0:
+            if oa == ob:
+                for r in range(12):
+                    p = (hrow(oa + r) + ob) * B + s
+                    v = cf * ga[r]
+                    for c in range(r + 1):
+                        H[p] = H[p] + v * gb[c]
+                        p += B
+            elif oa > ob:
+                for r in range(12):
+                    p = (hrow(oa + r) + ob) * B + s
+                    v = cf * ga[r]
+                    for c in range(12):
+                        H[p] = H[p] + v * gb[c]
+                        p += B
+            else:
+                for c in range(12):
+                    p = (hrow(ob + c) + oa) * B + s
+                    v = cf * gb[c]
+                    for r in range(12):
+                        H[p] = H[p] + ga[r] * v
+                        p += B
+
+    @wp.func
+    def put_rank1(g: Any, H: Any, s: int, B: int, derivs: int, oi: int, oj: int, gi: vec12, gj: vec12, de: dtype,
+                  dde: dtype):  # fmt: skip
+        """A term E(x) of a scalar joint coordinate x (a limit, a drive), ∇x = (gi, gj): its gradient
+        E'∇x and, for HESSIAN where E'' ≠ 0, its Hessian E''∇x∇xᵀ (outer_blocks' blocks)."""
+        if derivs != 0:
+            put_grad(g, s, B, oi, de * gi)
+            put_grad(g, s, B, oj, de * gj)
+            if derivs == HESSIAN and dde != zero:
+                put_outer(H, s, B, oi, oi, gi, gi, dde)
+                put_outer(H, s, B, oi, oj, gi, gj, dde)
+                put_outer(H, s, B, oj, oj, gj, gj, dde)
 
     @wp.struct
     class Terms:
@@ -384,10 +392,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         b = t.free[k]
         qb = q[qr, b]
         ks = t.kv[w, b] * h2
-        d_body = derivs
-        if derivs == HESSIAN:
-            d_body = GRADIENT  # the Hessian goes straight into H (put_body)
-        e_in, e_or, f, hb = body_eval(qb, t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], ks, d_body)
+        # the Hessian goes straight into H (put_body)
+        e_in, e_or, f = body_grad(qb, t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], ks, derivs)
         if derivs != 0:
             put_grad(g, s, B, t.dof[b], f)
             if derivs == HESSIAN:
@@ -412,9 +418,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         oi = t.dof[t.body_a[j]]
         oj = t.dof[t.body_b[j]]
         # the Hessian goes straight into H (prismatic_hessian), so the evaluator builds none
-        ej, gi, gj, hii, hij, hjj = prismatic_eval(qi, qj, t.c_a[w, j], t.c_b[w, j], t.t_a[w, j], t.t_b[w, j], t.n_a[w, j],
-                                                   t.n_b[w, j], t.b_a[w, j], t.b_b[w, j], t.K[w, j], wp.min(derivs, GRADIENT),
-                                                   wp.where(oi >= 0, 1, 0), wp.where(oj >= 0, 1, 0))  # fmt: skip
+        ej, gi, gj = prismatic_grad(qi, qj, t.c_a[w, j], t.c_b[w, j], t.t_a[w, j], t.t_b[w, j], t.n_a[w, j], t.n_b[w, j],
+                                    t.b_a[w, j], t.b_b[w, j], t.K[w, j], derivs)  # fmt: skip
         if derivs != 0:
             put_grad(g, s, B, oi, gi)
             put_grad(g, s, B, oj, gj)
@@ -424,43 +429,40 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return ej
 
     @wp.func
-    def put_limit(g: Any, H: Any, s: int, B: int, derivs: int, t: Terms, j: int, ej: dtype, gi: vec12, gj: vec12,
-                  hii: mat12, hij: mat12, hjj: mat12):  # fmt: skip
-        """A limit of joint j adds its blocks only where it acts (its energy is not zero)."""
-        if derivs != 0 and ej != zero:
-            put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+    def put_limit(g: Any, H: Any, s: int, B: int, derivs: int, t: Terms, j: int, ej: dtype, de: dtype, dde: dtype,
+                  gi: vec12, gj: vec12):  # fmt: skip
+        """A limit of joint j adds its terms only where it acts (its energy is not zero)."""
+        if ej != zero:
+            put_rank1(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, de, dde)
 
     @wp.func
     def rlim_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
                   H: Any, k: int):  # fmt: skip
         j = t.rlim_ids[k]
-        ej, gi, gj, hii, hij, hjj = rlim_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.n_a[w, j], t.b_a[w, j], t.n_b[w, j],
-                                              t.b_b[w, j], t.theta0[w, j], t.c_prev[w, j], t.s_prev[w, j], t.rlim_lo[w, k],
-                                              t.rlim_up[w, k], t.rlim_s[w, k], derivs)  # fmt: skip
-        put_limit(g, H, s, B, derivs, t, j, ej, gi, gj, hii, hij, hjj)
+        ej, de, dde, gi, gj = rlim_parts(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.n_a[w, j], t.b_a[w, j], t.n_b[w, j],
+                                         t.b_b[w, j], t.theta0[w, j], t.c_prev[w, j], t.s_prev[w, j], t.rlim_lo[w, k],
+                                         t.rlim_up[w, k], t.rlim_s[w, k], derivs)  # fmt: skip
+        put_limit(g, H, s, B, derivs, t, j, ej, de, dde, gi, gj)
         return ej
 
     @wp.func
     def plim_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
                   H: Any, k: int):  # fmt: skip
         j = t.plim_ids[k]
-        ej, gi, gj, hii, hij, hjj = plim_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.c_a[w, j], t.c_b[w, j], t.t_a[w, j],
-                                              t.plim_lo[w, k], t.plim_up[w, k], t.plim_s[w, k], derivs)  # fmt: skip
-        put_limit(g, H, s, B, derivs, t, j, ej, gi, gj, hii, hij, hjj)
+        ej, de, dde, gi, gj = plim_parts(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.c_a[w, j], t.c_b[w, j], t.t_a[w, j],
+                                         t.plim_lo[w, k], t.plim_up[w, k], t.plim_s[w, k], derivs)  # fmt: skip
+        put_limit(g, H, s, B, derivs, t, j, ej, de, dde, gi, gj)
         return ej
 
     @wp.func
     def drive_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
                    H: Any, k: int, hw: dtype, h2: dtype):  # fmt: skip
         j = t.drive_joint[k]
-        ej, gi, gj, hii, hij, hjj = drive_eval(q[qr, t.body_a[j]], q[qr, t.body_b[j]], w, k, t.drive_joint, t.joint_kind,
-                                               t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b, t.b_b, t.c_prev, t.s_prev, t.drive_mode, t.kp,
-                                               t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, hw, h2, 0, derivs)  # fmt: skip
-        if derivs != 0 and t.drive_mode[k] == 0:  # an effort drive is linear: gradient only
-            put_grad(g, s, B, t.dof[t.body_a[j]], gi)
-            put_grad(g, s, B, t.dof[t.body_b[j]], gj)
-        elif derivs != 0:
-            put_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, hii, hij, hjj)
+        ej, de, dde, gi, gj = drive_parts(q[qr, t.body_a[j]], q[qr, t.body_b[j]], w, k, t.drive_joint, t.joint_kind,
+                                          t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b, t.b_b, t.c_prev, t.s_prev, t.drive_mode, t.kp,
+                                          t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, hw, h2, 0, derivs)  # fmt: skip
+        # an effort drive (or a clipped PD drive) is linear in x: dde = 0, its gradient only
+        put_rank1(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, de, dde)
         return ej
 
     @wp.func
@@ -513,6 +515,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         e = zero
         hw = t.h_step[w]
         h2 = hw * hw
+        ck = clock_now()  # the terms' cycles by kind (phase_clock, one thread per world)
         if wp.static(lanes):
             if derivs == 0:
                 for c in range(lane, t.term_kind.shape[0], L):
@@ -525,24 +528,30 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             return lane_sum(part, w, lane, L, e)
         for k in range(t.free.shape[0]):
             e += body_term(q, qr, w, s, B, derivs, t, g, H, k, h2)
+        ck = tick(t, w, 0, 7, ck)
         if wp.static(has_rev):
             for k in range(t.rev_ids.shape[0]):
                 e += point_term(q, qr, w, s, B, derivs, t, g, H, t.rev_ids[k], 2)
+            ck = tick(t, w, 0, 8, ck)
         if wp.static(has_fix):
             for k in range(t.fix_ids.shape[0]):
                 e += point_term(q, qr, w, s, B, derivs, t, g, H, t.fix_ids[k], 4)
+            ck = tick(t, w, 0, 9, ck)
         if wp.static(has_pri):
             for k in range(t.pri_ids.shape[0]):
                 e += prismatic_term(q, qr, w, s, B, derivs, t, g, H, t.pri_ids[k])
+            ck = tick(t, w, 0, 10, ck)
         if wp.static(has_rlim):
             for k in range(t.rlim_ids.shape[0]):
                 e += rlim_term(q, qr, w, s, B, derivs, t, g, H, k)
         if wp.static(has_plim):
             for k in range(t.plim_ids.shape[0]):
                 e += plim_term(q, qr, w, s, B, derivs, t, g, H, k)
+        ck = tick(t, w, 0, 11, ck)
         if wp.static(has_drive):
             for k in range(t.drive_joint.shape[0]):
                 e += drive_term(q, qr, w, s, B, derivs, t, g, H, k, hw, h2)
+            ck = tick(t, w, 0, 12, ck)
         return e
 
     @wp.func

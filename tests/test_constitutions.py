@@ -1036,3 +1036,28 @@ def test_prismatic_joint_to_a_fixed_body(rail_first):
     np.testing.assert_allclose(Ef, E_all.sum(axis=1), rtol=1e-12)
     np.testing.assert_allclose(gf, g_all, rtol=1e-11, atol=1e-12 * np.abs(g_all).max())
     np.testing.assert_allclose(Hf, np.tril(H_all), rtol=1e-11, atol=1e-12 * np.abs(H_all).max())
+
+
+@pytest.mark.parametrize("parent_first", [True, False])
+def test_fused_rank_one_terms_between_free_bodies(parent_first):
+    """Limits and PD drives between two free bodies, with the joint's body i before or after body j
+    in the unknowns: the fused step adds their E''∇x∇xᵀ blocks entry by entry (fused.put_outer, each
+    ordering of the pair its own branch) and must match the staged kernels' assembly."""
+    scene = ag.Scene(gravity=(0.0, 0.0, -9.81))
+    base = scene.add_body(ag.Box(half_extents=(0.1, 0.1, 0.1)), fixed=True)
+    a = scene.add_body(ag.Box(half_extents=(0.02, 0.02, 0.25)), mass=1.0, position=(0.0, 0.0, -0.25))
+    b = scene.add_body(ag.Box(half_extents=(0.02, 0.02, 0.25)), mass=0.5, position=(0.0, 0.0, -0.75))
+    scene.add_revolute_joint(base, a, anchor=(0.0, 0.0, 0.0), axis=(0, 1, 0))
+    pair = (a, b) if parent_first else (b, a)
+    hinge = scene.add_revolute_joint(*pair, anchor=(0.0, 0.0, -0.5), axis=(0, 1, 0))
+    scene.add_revolute_limit(hinge, lower=-0.2, upper=0.2, strength=1e3)
+    scene.add_drive(hinge, "position", stiffness=40.0, damping=1.0, max_effort=100.0)
+    sim = ag.Simulator(scene, num_worlds=2, dtype="float64", fused=False)
+    sim.set_joint_state([[0.3, 0.5], [-0.2, -0.45]])  # the limit acts in both worlds, the drive is linear
+    sim.set_controls([[0.1], [-0.1]])
+    E, g, H = assemble(sim)
+    assert E[:, sim.solver.cols["revolute_limit"]].min() > 0
+    Ef, gf, Hf = sim.solver.fused_system(sim.state)
+    np.testing.assert_allclose(Ef, E.sum(axis=1), rtol=1e-12)
+    np.testing.assert_allclose(gf, g, rtol=1e-11, atol=1e-12 * np.abs(g).max())
+    np.testing.assert_allclose(Hf, np.tril(H), rtol=1e-11, atol=1e-12 * np.abs(H).max())

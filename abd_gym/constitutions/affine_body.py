@@ -18,7 +18,7 @@ import numpy as np
 import warp as wp
 
 from .. import affine
-from ..warp_ops import GRADIENT, ops
+from ..warp_ops import HESSIAN, ops
 
 UID = 1
 NAME = "affine_body"
@@ -121,8 +121,9 @@ def kernels(dtype):
         return blk
 
     @wp.func
-    def body_eval(qb: vec12, qt: vec12, m: dtype, c: vec3, s: mat33, ks: dtype, derivs: int):
-        """Inertia and (scaled) orthogonality of one body: energies, gradient, PSD Hessian."""
+    def body_grad(qb: vec12, qt: vec12, m: dtype, c: vec3, s: mat33, ks: dtype, derivs: int):
+        """Inertia and (scaled) orthogonality of one body: (energies, gradient), the gradient for
+        derivs != 0 (the fused step adds the Hessian from its parts, without a 12 × 12 matrix)."""
         d = qb - qt
         # M d: translation m dp + A_d c; row k of A: c dp_k + S da_k
         dp = vec3(d[0], d[1], d[2])
@@ -140,15 +141,21 @@ def kernels(dtype):
         A = wp.matrix_from_rows(row(qb, 0), row(qb, 1), row(qb, 2))
         R = A * wp.transpose(A) - wp.identity(3, dtype)
         e_ortho = ks * wp.ddot(R, R)
-        h = mat12()
         if derivs == 0:
-            return e_inertia, e_ortho, f, h
+            return e_inertia, e_ortho, f
         G = (four * ks) * (R * A)
         for r in range(3):
             f[3 + 3 * r] += G[r, 0]
             f[4 + 3 * r] += G[r, 1]
             f[5 + 3 * r] += G[r, 2]
-        if derivs == GRADIENT:
+        return e_inertia, e_ortho, f
+
+    @wp.func
+    def body_eval(qb: vec12, qt: vec12, m: dtype, c: vec3, s: mat33, ks: dtype, derivs: int):
+        """Inertia and (scaled) orthogonality of one body: energies, gradient, PSD Hessian."""
+        e_inertia, e_ortho, f = body_grad(qb, qt, m, c, s, ks, derivs)
+        h = mat12()
+        if derivs != HESSIAN:
             return e_inertia, e_ortho, f, h
         # Hessian: mass matrix plus the PSD orthogonality blocks
         Rp, ata = hessian_parts(qb)
@@ -248,7 +255,7 @@ def kernels(dtype):
                 out[3 + 3 * r + l] = out[3 + 3 * r + l] + dA[r, l]
         return out
 
-    return SimpleNamespace(body_terms=body_terms, body_report=body_report, body_eval=body_eval, retract=retract,
+    return SimpleNamespace(body_terms=body_terms, body_report=body_report, body_eval=body_eval, body_grad=body_grad, retract=retract,
                            hessian_parts=hessian_parts, a_block=a_block)
 
 

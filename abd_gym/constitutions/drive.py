@@ -54,10 +54,9 @@ def kernel(dtype):
     displacement, displacement_grad = a.displacement, a.displacement_grad
     half = dtype(0.5)
     zero = dtype(0.0)
-    dde_zero = dtype(0.0)
 
     @wp.func
-    def drive_eval(
+    def drive_parts(
         qi: vec12, qj: vec12, w: int, k: int, joint: wp.array(dtype=wp.int32), joint_kind: wp.array(dtype=wp.int32),
         c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
         n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
@@ -67,6 +66,9 @@ def kernel(dtype):
         x_anchor: wp.array2d(dtype=dtype),
         h: dtype, scale: dtype, physical: int, derivs: int,
     ):  # fmt: skip
+        """(E, E'(x), E''(x), ∇_i x, ∇_j x), scaled by ``scale``: the gradient is E'∇x, the Hessian
+        E''∇x∇xᵀ (0 for effort drives and clipped PD drives); ∇x for derivs != 0.  ``physical``:
+        E is the report's spring energy and the rest zero."""
         j = joint[k]
         rev = joint_kind[j] == 0
         xp = x_prev_joint[w, j]  # multi-turn angle / displacement at the start of the step
@@ -88,8 +90,7 @@ def kernel(dtype):
             e_phys = zero
             if md == 1:
                 e_phys = half * kp * (x - u) * (x - u)
-            hii, hij, hjj = outer_blocks(gi, gj, dde_zero, 0)  # zero blocks: the report needs energies only
-            return e_phys, gi, gj, hii, hij, hjj
+            return e_phys, zero, zero, gi, gj
         e = zero
         de = zero
         dde = zero
@@ -119,11 +120,26 @@ def kernel(dtype):
             gi, gj = theta_grad(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], c, s)
         elif derivs != 0:
             gi, gj = displacement_grad(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
-        de = scale * de
-        dde = scale * dde
+        return scale * e, scale * de, scale * dde, gi, gj
+
+    @wp.func
+    def drive_eval(
+        qi: vec12, qj: vec12, w: int, k: int, joint: wp.array(dtype=wp.int32), joint_kind: wp.array(dtype=wp.int32),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
+        n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+        mode: wp.array(dtype=wp.int32), stiffness: wp.array2d(dtype=dtype), damping: wp.array2d(dtype=dtype),
+        max_effort: wp.array2d(dtype=dtype), control: wp.array2d(dtype=dtype), x_prev_joint: wp.array2d(dtype=dtype),
+        x_anchor: wp.array2d(dtype=dtype),
+        h: dtype, scale: dtype, physical: int, derivs: int,
+    ):  # fmt: skip
+        """(E, g_i, g_j, H_ii, H_ij, H_jj) of drive k (drive_parts)."""
+        e, de, dde, gi, gj = drive_parts(qi, qj, w, k, joint, joint_kind, c_a, c_b, t_a, n_a, b_a, n_b, b_b, c_prev,
+                                         s_prev, mode, stiffness, damping, max_effort, control, x_prev_joint, x_anchor,
+                                         h, scale, physical, derivs)  # fmt: skip
         # effort drives and clipped PD drives are linear in x (dde = 0): no Hessian to build
         hii, hij, hjj = outer_blocks(gi, gj, dde, derivs)
-        return scale * e, de * gi, de * gj, hii, hij, hjj
+        return e, de * gi, de * gj, hii, hij, hjj
 
     @wp.kernel(module="unique")
     def drive(
@@ -155,7 +171,7 @@ def kernel(dtype):
         if derivs != 0 and physical == 0:
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
 
-    return SimpleNamespace(kernel=drive, eval=drive_eval)
+    return SimpleNamespace(kernel=drive, eval=drive_eval, parts=drive_parts)
 
 
 def terms(model, physical=False):

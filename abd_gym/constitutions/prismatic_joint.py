@@ -52,13 +52,12 @@ def kernel(dtype):
     one, zero, half = dtype(1.0), dtype(0.0), dtype(0.5)
 
     @wp.func
-    def prismatic_eval(
+    def prismatic_grad(
         qi: vec12, qj: vec12, ci: vec3, cj: vec3, ti: vec3, tj: vec3, ni: vec3, nj: vec3, bi: vec3, bj: vec3,
-        kk: dtype, derivs: int, free_i: int, free_j: int,
+        kk: dtype, derivs: int,
     ):  # fmt: skip
-        """(E, g_i, g_j, H_ii, H_ij, H_jj).  ``free_i`` / ``free_j`` 0: that body has no unknowns
-        (the rail a slider rides on), so its blocks, which nobody reads, are left zero (for a
-        cart on a fixed rail: two thirds of the slide rows' outer products)."""
+        """(E, g_i, g_j), the gradient for derivs != 0 (the fused step adds the Hessian straight into
+        its system, without 12 × 12 blocks)."""
         d = point(qj, cj) - point(qi, ci)
         Ti = direction(qi, ti)
         Tj = direction(qj, tj)
@@ -69,11 +68,8 @@ def kernel(dtype):
         e = half * kk * (wp.dot(C0, C0) + wp.dot(C1, C1) + wp.dot(C2, C2) + wp.dot(C3, C3))
         gi = vec12()
         gj = vec12()
-        hii = mat12()
-        hij = mat12()
-        hjj = mat12()
         if derivs == 0:
-            return e, gi, gj, hii, hij, hjj
+            return e, gi, gj
         # gradient K Σ_m C_m ∇C_m in closed form: row m of ∇(d × T) is J(c)ᵀ([T]×)_m-type terms,
         # and Σ_m v_m ([t]×)_m = [t]×ᵀ v = v × t, so C0's rows sum to J(c_i)ᵀ(C0 × T_i) + J̊(t_i)ᵀ(C0 × d)
         # on body i and −J(c_j)ᵀ(C0 × T_i) on body j (C1 likewise with T_j and −d)
@@ -81,8 +77,25 @@ def kernel(dtype):
         a1 = wp.cross(C1, Tj)
         gi = kk * (JT(ci, a0 - a1, one) + JT(ti, wp.cross(C0, d), zero) + JT(ni, C2, zero) + JT(bi, C3, zero))
         gj = kk * (JT(cj, a1 - a0, one) - JT(tj, wp.cross(C1, d), zero) - JT(nj, C2, zero) - JT(bj, C3, zero))
+        return e, gi, gj
+
+    @wp.func
+    def prismatic_eval(
+        qi: vec12, qj: vec12, ci: vec3, cj: vec3, ti: vec3, tj: vec3, ni: vec3, nj: vec3, bi: vec3, bj: vec3,
+        kk: dtype, derivs: int, free_i: int, free_j: int,
+    ):  # fmt: skip
+        """(E, g_i, g_j, H_ii, H_ij, H_jj).  ``free_i`` / ``free_j`` 0: that body has no unknowns
+        (the rail a slider rides on), so its blocks, which nobody reads, are left zero (for a
+        cart on a fixed rail: two thirds of the slide rows' outer products)."""
+        e, gi, gj = prismatic_grad(qi, qj, ci, cj, ti, tj, ni, nj, bi, bj, kk, derivs)
+        hii = mat12()
+        hij = mat12()
+        hjj = mat12()
         if derivs != HESSIAN:
             return e, gi, gj, hii, hij, hjj
+        d = point(qj, cj) - point(qi, ci)
+        Ti = direction(qi, ti)
+        Tj = direction(qj, tj)
         # C0, C1 (the slide direction): Gauss–Newton rows that mix p and A through cross products,
         # added one by one; C2, C3 (the frames' normal and binormal) are linear in A alone, so their
         # Hessian is K Σ (ũ_i ũ_jᵀ) ⊗ I₃ with ũ = (0, n̄) or (0, b̄), expanded once
@@ -134,7 +147,7 @@ def kernel(dtype):
         if derivs != 0:
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
 
-    return SimpleNamespace(kernel=prismatic_joint, eval=prismatic_eval)
+    return SimpleNamespace(kernel=prismatic_joint, eval=prismatic_eval, grad=prismatic_grad)
 
 
 def terms(model, physical=False):

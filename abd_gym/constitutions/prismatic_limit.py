@@ -52,9 +52,11 @@ def kernel(dtype):
     one, three, six = dtype(1.0), dtype(3.0), dtype(6.0)
 
     @wp.func
-    def prismatic_limit_eval(
+    def prismatic_limit_parts(
         qi: vec12, qj: vec12, ca: vec3, cb: vec3, ta: vec3, lo: dtype, up: dtype, st: dtype, derivs: int,
     ):  # fmt: skip
+        """(E, E'(x), E''(x), ∇_i x, ∇_j x): the gradient is E'∇x, the solver's Hessian E''∇x∇xᵀ
+        (∇x only for derivs != 0 where the limit acts)."""
         x = displacement(qi, qj, ca, cb, ta)
         inv = one
         if up > lo:
@@ -76,6 +78,13 @@ def kernel(dtype):
         gj = vec12()
         if derivs != 0 and de != dtype(0.0):
             gi, gj = displacement_grad(qi, qj, ca, cb, ta)
+        return e, de, dde, gi, gj
+
+    @wp.func
+    def prismatic_limit_eval(
+        qi: vec12, qj: vec12, ca: vec3, cb: vec3, ta: vec3, lo: dtype, up: dtype, st: dtype, derivs: int,
+    ):  # fmt: skip
+        e, de, dde, gi, gj = prismatic_limit_parts(qi, qj, ca, cb, ta, lo, up, st, derivs)
         hii, hij, hjj = outer_blocks(gi, gj, dde, derivs)
         return e, de * gi, de * gj, hii, hij, hjj
 
@@ -100,7 +109,7 @@ def kernel(dtype):
         if derivs != 0 and e != dtype(0.0):
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
 
-    return SimpleNamespace(kernel=prismatic_limit, eval=prismatic_limit_eval)
+    return SimpleNamespace(kernel=prismatic_limit, eval=prismatic_limit_eval, parts=prismatic_limit_parts)
 
 
 def terms(model, physical=False):

@@ -69,10 +69,12 @@ def kernel(dtype):
         return e, de, dde
 
     @wp.func
-    def revolute_limit_eval(
+    def revolute_limit_parts(
         qi: vec12, qj: vec12, na: vec3, ba: vec3, nb: vec3, bb: vec3, theta0: dtype, cp: dtype, sp: dtype,
         lo: dtype, up: dtype, st: dtype, derivs: int,
     ):  # fmt: skip
+        """(E, E'(x), E''(x), ∇_i x, ∇_j x): the gradient is E'∇x, the solver's Hessian E''∇x∇xᵀ
+        (∇x only for derivs != 0 where the limit acts)."""
         c, s = cos_sin(qi, qj, na, ba, nb, bb)
         x = theta0 + delta_theta(c, s, cp, sp)
         e, de, dde = cubic(x, lo, up, st)
@@ -80,6 +82,14 @@ def kernel(dtype):
         gj = vec12()
         if derivs != 0 and de != dtype(0.0):
             gi, gj = theta_grad(qi, qj, na, ba, nb, bb, c, s)
+        return e, de, dde, gi, gj
+
+    @wp.func
+    def revolute_limit_eval(
+        qi: vec12, qj: vec12, na: vec3, ba: vec3, nb: vec3, bb: vec3, theta0: dtype, cp: dtype, sp: dtype,
+        lo: dtype, up: dtype, st: dtype, derivs: int,
+    ):  # fmt: skip
+        e, de, dde, gi, gj = revolute_limit_parts(qi, qj, na, ba, nb, bb, theta0, cp, sp, lo, up, st, derivs)
         hii, hij, hjj = outer_blocks(gi, gj, dde, derivs)
         return e, de * gi, de * gj, hii, hij, hjj
 
@@ -106,7 +116,7 @@ def kernel(dtype):
         if derivs != 0 and e != dtype(0.0):
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
 
-    return SimpleNamespace(kernel=revolute_limit, eval=revolute_limit_eval)
+    return SimpleNamespace(kernel=revolute_limit, eval=revolute_limit_eval, parts=revolute_limit_parts)
 
 
 def terms(model, physical=False):
