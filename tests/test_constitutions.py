@@ -136,6 +136,63 @@ def test_orthogonality_psd_hessian_is_exact_when_R_is_psd():
     check_derivatives(lambda z: affine_body.orthogonality_np(z, 2.0), q)
 
 
+def test_orthogonality_hessian_keeps_the_positive_part_of_R():
+    """R = AAᵀ − I of mixed sign (A stretched along one axis, compressed along another): the solver's
+    Hessian keeps R⁺ (R's positive eigen-part, along its eigenvectors): PSD, and it differs from the
+    exact Hessian by 4κv (R − R⁺) ⊗ I only, so a direction in R's positive eigenspace keeps its
+    exact curvature (dropping all of R lost it: Newton then crawled at dt 0.05, trace_newton.py)."""
+    rng = np.random.default_rng(12)
+    Q, P = random_rotation(rng), random_rotation(rng)
+    A = P @ np.diag([1.01, 0.99, 1.0]) @ Q  # R = P diag(0.0201, −0.0199, 0) Pᵀ
+    q = np.concatenate([rng.normal(size=3), A.ravel()])
+    kv = 2.0
+    _, _, H, Hp = affine_body.orthogonality_np(q, kv)
+    R = A @ A.T - np.eye(3)
+    Rp = (0.0201 * np.outer(P[:, 0], P[:, 0]))
+    assert np.linalg.eigvalsh(H).min() < 0 and min_eig_ok(Hp)
+    D = np.zeros((12, 12))
+    for k in range(3):
+        for m in range(3):
+            D[3 + 3 * k:6 + 3 * k, 3 + 3 * m:6 + 3 * m] = 4 * kv * (R - Rp)[k, m] * np.eye(3)
+    np.testing.assert_allclose(H - Hp, D, atol=1e-12)
+    # the row direction along R's positive eigenvector: dA = P[:, 0] e_jᵀ, exact curvature kept
+    dq = np.zeros(12)
+    dq[3:] = np.outer(P[:, 0], [0.0, 0.0, 1.0]).ravel()
+    assert dq @ Hp @ dq == pytest.approx(dq @ H @ dq, rel=1e-12)
+
+
+@pytest.mark.parametrize("dtype, rtol", [("float64", 1e-9), ("float32", 2e-3)])
+def test_warp_psd_part_matches_eigh(dtype, rtol):
+    """affine_body.psd_part (closed-form eigenvalues, eigenvectors from cross products) against
+    NumPy's eigh on symmetric 3 × 3 matrices with 0 to 3 negative eigenvalues, at the scale of
+    A Aᵀ − I (1e-5) and of order one, a near-repeated pair included."""
+    rng = np.random.default_rng(13)
+    mats = []
+    for scale in (1e-5, 1.0):
+        for signs in ((1, 1, 1), (1, 1, -1), (1, -1, -1), (-1, -1, -1), (1, 0, -1), (1, 1e-3, -1)):
+            V = random_rotation(rng)
+            lam = scale * np.array(signs) * rng.uniform(0.5, 2.0, 3)
+            mats.append((V * lam) @ V.T)
+    V = random_rotation(rng)
+    mats.append((V * np.array([2e-5, 2e-5 * (1 + 1e-6), -1e-5])) @ V.T)  # a near-repeated pair
+    wdt = getattr(wp, dtype)
+    psd_part = affine_body.kernels(wdt).psd_part
+    mat33 = wp.types.matrix(shape=(3, 3), dtype=wdt)
+
+    @wp.kernel(module="unique")
+    def k(R: wp.array(dtype=mat33), out: wp.array(dtype=mat33)):
+        i = wp.tid()
+        out[i] = psd_part(R[i])
+
+    R = wp.array(np.array(mats), dtype=mat33)
+    out = wp.zeros_like(R)
+    wp.launch(k, dim=len(mats), inputs=[R, out])
+    for M, got in zip(mats, out.numpy()):
+        want = affine_body.psd_part_np(M)
+        np.testing.assert_allclose(got, want, rtol=0, atol=rtol * np.abs(M).max())
+        assert np.linalg.eigvalsh(want).min() >= -1e-12 * np.abs(M).max()
+
+
 def _retract_warp(q, d, alpha, m, mc):
     k = affine_body.kernels(wp.float64).retract
     vec12 = wp.types.vector(12, wp.float64)

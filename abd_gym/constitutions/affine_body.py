@@ -5,10 +5,14 @@ built from the mass m [kg], first moment m·c [kg·m] and second moment S [kg·m
 
 Orthogonality: ``V(A) = κ·vol·‖A Aᵀ − I‖²_F`` [J] (κ [Pa]), inside h² in the solve.  With
 ``R = A Aᵀ − I`` and rows a_k: ``∂V/∂a_k = 4κv Σ_l R_kl a_l`` and the exact Hessian block
-``4κv (δ_kl AᵀA + a_l a_kᵀ + R_kl I)``.  The solver keeps the last term only when R ⪰ 0, where the
-Hessian is then exact and PSD, and drops it otherwise (the Gauss–Newton part, PSD): R is tiny near
-orthogonality (|R| ~ 1e-5 in the benchmark scenes), so either choice converges alike, and R's
-positive part by an eigen-decomposition per body per Newton iteration cost 40% of a cart-pole step.
+``4κv (δ_kl AᵀA + a_l a_kᵀ + R_kl I)``.  The first two terms sum to a PSD form (½‖X + Xᵀ‖²,
+X = A dAᵀ); the last is R ⊗ I, indefinite where A is compressed along some direction.  The solver
+uses R⁺, R's positive part (R itself where R ⪰ 0, the Hessian then exact; else from R's
+eigenvalues in closed form, ``psd_part``), so the Hessian stays PSD and is exact in R's positive
+directions.  R is tiny (|R| ~ 1e-5) but 4κv·h²·R is not: along a thin link's slender directions it
+exceeds the inertia's second moments, and dropping the whole R term when one eigenvalue was
+negative (this module's earlier rule) left Newton converging linearly at ~0.92 an iteration on
+double pendulums at dt 0.05 (float64 as float32, 50 iterations unconverged; scripts/trace_newton.py).
 """
 
 import functools
@@ -34,7 +38,7 @@ def orthogonality_np(q, kv):
     g = np.zeros(12)
     g[3:] = (4.0 * kv * R @ A).reshape(-1)
     ata = A.T @ A
-    Rp = R if is_psd3_np(R) else np.zeros((3, 3))
+    Rp = psd_part_np(R)
     H, Hp = np.zeros((12, 12)), np.zeros((12, 12))
     for k in range(3):
         for l in range(3):
@@ -42,6 +46,14 @@ def orthogonality_np(q, kv):
             H[3 + 3 * k : 6 + 3 * k, 3 + 3 * l : 6 + 3 * l] = blk + 4.0 * kv * R[k, l] * np.eye(3)
             Hp[3 + 3 * k : 6 + 3 * k, 3 + 3 * l : 6 + 3 * l] = blk + 4.0 * kv * Rp[k, l] * np.eye(3)
     return V, g, H, Hp
+
+
+def psd_part_np(R):
+    """R⁺: the symmetric R with its negative eigenvalues set to 0."""
+    if is_psd3_np(R):
+        return R
+    lam, V = np.linalg.eigh(0.5 * (R + R.T))
+    return (V * np.maximum(lam, 0.0)) @ V.T
 
 
 def is_psd3_np(R):
@@ -98,15 +110,65 @@ def kernels(dtype):
                 and wp.determinant(R) >= z)  # fmt: skip
 
     @wp.func
+    def null_vector(M: mat33):
+        """A unit vector v with M v ≈ 0 for a symmetric M of rank 2: the largest cross product of
+        two of its rows (each is normal to both, so along the null space)."""
+        c0 = wp.cross(M[0], M[1])
+        c1 = wp.cross(M[0], M[2])
+        c2 = wp.cross(M[1], M[2])
+        n0 = wp.dot(c0, c0)
+        n1 = wp.dot(c1, c1)
+        n2 = wp.dot(c2, c2)
+        v = c0
+        n = n0
+        if n1 > n:
+            v = c1
+            n = n1
+        if n2 > n:
+            v = c2
+            n = n2
+        if n > dtype(0.0):
+            v = v / wp.sqrt(n)
+        return v
+
+    @wp.func
+    def psd_part(R: mat33):
+        """R⁺: symmetric R with its negative eigenvalues set to 0.  Eigenvalues in closed form
+        (the trigonometric solution of the characteristic cubic), then R less its one negative
+        eigen-part, or the one positive eigen-part alone; the eigenvector from cross products of
+        rows of R − λI (a few hundred operations: wp.eig3's iterations cost 27-40% of a CPU step)."""
+        z = dtype(0.0)
+        if is_psd3(R):
+            return R
+        I = wp.identity(3, dtype)
+        q = (R[0, 0] + R[1, 1] + R[2, 2]) / dtype(3.0)
+        d0 = R[0, 0] - q
+        d1 = R[1, 1] - q
+        d2 = R[2, 2] - q
+        p2 = d0 * d0 + d1 * d1 + d2 * d2 + dtype(2.0) * (R[0, 1] * R[0, 1] + R[0, 2] * R[0, 2] + R[1, 2] * R[1, 2])
+        if not (p2 > z):
+            return mat33()  # R = qI, q < 0
+        p = wp.sqrt(p2 / dtype(6.0))
+        r = wp.clamp(wp.determinant((R - q * I) / p) / dtype(2.0), dtype(-1.0), dtype(1.0))
+        phi = wp.acos(r) / dtype(3.0)
+        l1 = q + dtype(2.0) * p * wp.cos(phi)  # the largest
+        l3 = q + dtype(2.0) * p * wp.cos(phi + dtype(2.0943951023931953))  # the smallest (+2π/3)
+        l2 = dtype(3.0) * q - l1 - l3
+        if not (l1 > z):
+            return mat33()
+        if l2 >= z:  # one negative eigenvalue: remove its part
+            v = null_vector(R - l3 * I)
+            return R - l3 * wp.outer(v, v)
+        v = null_vector(R - l1 * I)  # one positive eigenvalue: keep its part
+        return l1 * wp.outer(v, v)
+
+    @wp.func
     def hessian_parts(qb: vec12):
-        """(R⁺, AᵀA) of the orthogonality Hessian: R⁺ = R = AAᵀ − I where R ⪰ 0, else 0 (its
-        Gauss–Newton part, PSD)."""
+        """(R⁺, AᵀA) of the orthogonality Hessian: R⁺ = R = AAᵀ − I where R ⪰ 0, else R with its
+        negative eigenvalues set to 0 (the Hessian's PSD part)."""
         A = wp.matrix_from_rows(row(qb, 0), row(qb, 1), row(qb, 2))
         R = A * wp.transpose(A) - wp.identity(3, dtype)
-        Rp = mat33()
-        if is_psd3(R):
-            Rp = R
-        return Rp, wp.transpose(A) * A
+        return psd_part(R), wp.transpose(A) * A
 
     @wp.func
     def a_block(qb: vec12, kk: int, ll: int, Rp: mat33, ata: mat33, ks: dtype, s: mat33):
@@ -255,7 +317,8 @@ def kernels(dtype):
                 out[3 + 3 * r + l] = out[3 + 3 * r + l] + dA[r, l]
         return out
 
-    return SimpleNamespace(body_terms=body_terms, body_report=body_report, body_eval=body_eval, body_grad=body_grad, retract=retract,
+    return SimpleNamespace(psd_part=psd_part, body_terms=body_terms, body_report=body_report, body_eval=body_eval,
+                           body_grad=body_grad, retract=retract,
                            hessian_parts=hessian_parts, a_block=a_block)
 
 
