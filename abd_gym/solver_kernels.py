@@ -136,6 +136,21 @@ def kernels(dtype, envelope=False, packed=False):
         return 1
 
     @wp.func
+    def tile_row(H: wp.array(dtype=dtype), r: int, c: int, T: int, t0: dtype, t1: dtype, t2: dtype, t3: dtype,
+                 i0: dtype, i1: dtype, i2: dtype, i3: dtype, l10: dtype, l20: dtype, l21: dtype, l30: dtype,
+                 l31: dtype, l32: dtype):  # fmt: skip
+        """Row (t0 … t3) of a tile below the diagonal solved against the diagonal tile's factor
+        (x L_JJᵀ = t: l_ab its entries below the diagonal, i_a the reciprocals of its diagonal),
+        stored from H[r + c] on."""
+        x0 = t0 * i0
+        x1 = (t1 - x0 * l10) * i1
+        x2 = (t2 - x0 * l20 - x1 * l21) * i2
+        H[r + c] = x0
+        H[r + c + T] = x1
+        H[r + c + 2 * T] = x2
+        H[r + c + 3 * T] = (t3 - x0 * l30 - x1 * l31 - x2 * l32) * i3
+
+    @wp.func
     def cholesky_dense(H: wp.array(dtype=dtype), w: int, n: int, T: int):
         """H = L Lᵀ in place on H's lower triangle (flat, column w of T); 0 when H is not positive
         definite.  Left-looking by 4 × 4 tiles (n a multiple of 4: 12 per body): each tile of L is
@@ -264,34 +279,10 @@ def kernels(dtype, envelope=False, packed=False):
                     t33 -= u3 * v3
                     p += T
                 # X L_JJᵀ = T, a row of X at a time (forward substitution along the row)
-                x0 = t00 * i0
-                x1 = (t01 - x0 * l10) * i1
-                x2 = (t02 - x0 * l20 - x1 * l21) * i2
-                H[r0 + c] = x0
-                H[r0 + c + T] = x1
-                H[r0 + c + 2 * T] = x2
-                H[r0 + c + 3 * T] = (t03 - x0 * l30 - x1 * l31 - x2 * l32) * i3
-                x0 = t10 * i0
-                x1 = (t11 - x0 * l10) * i1
-                x2 = (t12 - x0 * l20 - x1 * l21) * i2
-                H[r1 + c] = x0
-                H[r1 + c + T] = x1
-                H[r1 + c + 2 * T] = x2
-                H[r1 + c + 3 * T] = (t13 - x0 * l30 - x1 * l31 - x2 * l32) * i3
-                x0 = t20 * i0
-                x1 = (t21 - x0 * l10) * i1
-                x2 = (t22 - x0 * l20 - x1 * l21) * i2
-                H[r2 + c] = x0
-                H[r2 + c + T] = x1
-                H[r2 + c + 2 * T] = x2
-                H[r2 + c + 3 * T] = (t23 - x0 * l30 - x1 * l31 - x2 * l32) * i3
-                x0 = t30 * i0
-                x1 = (t31 - x0 * l10) * i1
-                x2 = (t32 - x0 * l20 - x1 * l21) * i2
-                H[r3 + c] = x0
-                H[r3 + c + T] = x1
-                H[r3 + c + 2 * T] = x2
-                H[r3 + c + 3 * T] = (t33 - x0 * l30 - x1 * l31 - x2 * l32) * i3
+                tile_row(H, r0, c, T, t00, t01, t02, t03, i0, i1, i2, i3, l10, l20, l21, l30, l31, l32)
+                tile_row(H, r1, c, T, t10, t11, t12, t13, i0, i1, i2, i3, l10, l20, l21, l30, l31, l32)
+                tile_row(H, r2, c, T, t20, t21, t22, t23, i0, i1, i2, i3, l10, l20, l21, l30, l31, l32)
+                tile_row(H, r3, c, T, t30, t31, t32, t33, i0, i1, i2, i3, l10, l20, l21, l30, l31, l32)
                 I += 4
             J += 4
         return 1
