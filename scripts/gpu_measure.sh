@@ -7,7 +7,7 @@
 #     bash scripts/gpu_measure.sh [PART ...]
 #
 # PARTs: bench (simulator and env tables), reuse (Newton's factor reuse on and off), variants
-# (tolerance, lane-split step, the cart-pole without limit / drive), envelope (a 10-link chain with
+# (tolerance, the global / shared / lane-split steps, the cart-pole without limit / drive), envelope (a 10-link chain with
 # the dense and the envelope factor), compare (MuJoCo Warp, up to
 # 131,072 worlds and 1M of ours), accuracy (speed against error, both mechanisms), tests (the test
 # files that build their simulators on the default device, run there with ABD_GYM_DEVICE=$DEVICE,
@@ -35,7 +35,7 @@ for part in $parts; do
     reuse) run reuse python3 -m abd_gym.bench --device "$dev" --worlds "$worlds" --reuse-factor auto,0 \
         --cases cartpole,double_pendulum --out "$out/reuse" ;;
     variants) run variants python3 -m abd_gym.bench --device "$dev" --worlds "$few" --tol 1e-5,1e-3 \
-        --scratch global,lanes --cases cartpole,double_pendulum,cartpole_nolimit,cartpole_bare --out "$out/variants" ;;
+        --scratch global,shared,lanes --cases cartpole,double_pendulum,cartpole_nolimit,cartpole_bare --out "$out/variants" ;;
     envelope) run envelope python3 -m abd_gym.bench --device "$dev" --worlds "$few" --cases chain10 --envelope 0,1 \
         --out "$out/envelope" ;;
     compare) run compare python3 -m abd_gym.bench compare --device "$dev" --worlds "$worlds" --out "$out/compare" ;;
