@@ -180,7 +180,8 @@ def main(argv=None):
                     for cw in args.cpu_workers.split(",")]  # fmt: skip
         for (scratch, tol, regs, spill, reuse, env, rt, cw), w in ((v, w) for v in variants for w in worlds):
             runs = [time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol, integrator=args.integrator,
-                               scratch=None if scratch == "auto" else scratch, block_dim=args.block_dim, max_registers=regs, smem_spilling=spill,
+                               scratch=None if scratch == "auto" else scratch, block_dim=args.block_dim,
+                               max_registers=regs, smem_spilling=spill,
                                reuse_factor=reuse, envelope=env, retract=rt, cpu_workers=cw,
                                threads=_thread_count(args.threads, w, args.device))
                     for _ in range(max(args.repeat, 1))]  # fmt: skip

@@ -418,8 +418,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         oi = t.dof[t.body_a[j]]
         oj = t.dof[t.body_b[j]]
         # the Hessian goes straight into H (prismatic_hessian), so the evaluator builds none
-        ej, gi, gj = prismatic_grad(qi, qj, t.c_a[w, j], t.c_b[w, j], t.t_a[w, j], t.t_b[w, j], t.n_a[w, j], t.n_b[w, j],
-                                    t.b_a[w, j], t.b_b[w, j], t.K[w, j], derivs)  # fmt: skip
+        ej, gi, gj = prismatic_grad(qi, qj, t.c_a[w, j], t.c_b[w, j], t.t_a[w, j], t.t_b[w, j], t.n_a[w, j],
+                                    t.n_b[w, j], t.b_a[w, j], t.b_b[w, j], t.K[w, j], derivs)  # fmt: skip
         if derivs != 0:
             put_grad(g, s, B, oi, gi)
             put_grad(g, s, B, oj, gj)
@@ -459,8 +459,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                    H: Any, k: int, hw: dtype, h2: dtype):  # fmt: skip
         j = t.drive_joint[k]
         ej, de, dde, gi, gj = drive_parts(q[qr, t.body_a[j]], q[qr, t.body_b[j]], w, k, t.drive_joint, t.joint_kind,
-                                          t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b, t.b_b, t.c_prev, t.s_prev, t.drive_mode, t.kp,
-                                          t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, hw, h2, 0, derivs)  # fmt: skip
+                                          t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b, t.b_b, t.c_prev, t.s_prev,
+                                          t.drive_mode, t.kp, t.kd, t.fmax, t.control, t.unwrapped, t.x_anchor, hw,
+                                          h2, 0, derivs)  # fmt: skip
         # an effort drive (or a clipped PD drive) is linear in x: dde = 0, its gradient only
         put_rank1(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, de, dde)
         return ej

@@ -212,7 +212,8 @@ class Solver:
                 per = shared_bytes_per_thread(n, dt_)
                 raise ValueError(f"scratch='shared': {self.block_dim or 1} thread(s) of {n} unknowns need "
                                  f"{max(self.block_dim, 1) * per} B of shared memory a block, more than its "
-                                 f"{SHARED_BLOCK_BYTES} B; at most {fit} fit (block_dim), else use scratch='global'")  # fmt: skip
+                                 f"{SHARED_BLOCK_BYTES} B; at most {fit} fit (block_dim), else use "
+                                 "scratch='global'")  # fmt: skip
         if self.lanes and not 1 <= self.block_dim <= 256:
             raise ValueError(f"scratch='lanes' takes 1 to 256 lanes a world (block_dim), got {self.block_dim!r}")
         if self.lanes and wp.get_device(dev).is_cpu and not wp.config.enable_cpu_blocks:
@@ -413,11 +414,11 @@ class Solver:
         has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
                len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
         st = self.settings
-        kernel, Terms, assemble_system = fused_kernel(m.dtype, *has, scratch=self.scratch, n=m.num_dofs, max_registers=st.max_registers,
-                                     smem_spilling=st.smem_spilling, envelope=self.envelope,
-                                     retract=bool(st.retract), phase_clock=bool(st.phase_clock),
-                                     cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
-                                     block=self.block_dim if self.in_smem else 0)  # fmt: skip
+        kernel, Terms, assemble_system = fused_kernel(
+            m.dtype, *has, scratch=self.scratch, n=m.num_dofs, max_registers=st.max_registers,
+            smem_spilling=st.smem_spilling, envelope=self.envelope, retract=bool(st.retract),
+            phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
+            block=self.block_dim if self.in_smem else 0)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip

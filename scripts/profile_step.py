@@ -53,7 +53,8 @@ def main():
 
         ms = (time.perf_counter() - t0) / args.steps * 1e3
         c = sim.solver.phase_cycles.numpy().sum(0) / (args.worlds * args.steps)
-        print(f"{args.case} {sim.solver.scratch}/{sim.solver.block_dim}: {args.worlds} worlds, {ms * 1e3:.1f} us a step "
+        print(f"{args.case} {sim.solver.scratch}/{sim.solver.block_dim}: {args.worlds} worlds, "
+              f"{ms * 1e3:.1f} us a step "
               f"(with the phase clock), cycles per world-step: " + ", ".join(f"{p} {v:,.0f}" for p, v in zip(PHASES, c)))
     print(f"{args.case}: {args.worlds} worlds, threads {sim.solver.threads}, block {sim.solver.block_dim}, "
           f"Newton iterations {sim.newton_iterations().mean():.2f}")
