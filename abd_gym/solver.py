@@ -248,9 +248,8 @@ class Solver:
         self.all_active = wp.ones(W, dtype=wp.int32, device=dev)
         self.remaining = wp.zeros(1, dtype=wp.int32, device=dev)  # loop flags for wp.capture_while
         self.ls_remaining = wp.zeros(1, dtype=wp.int32, device=dev)
-        self.envelope = model.envelope if settings.envelope is None else bool(settings.envelope)
-        if self.shared:
-            self.envelope = False
+        # the shared scratch packs H and factors it densely (its envelope=True was refused above)
+        self.envelope = not self.shared and (model.envelope if settings.envelope is None else bool(settings.envelope))
         self.k = solver_kernels(dt_, self.envelope)
         self._fused = None  # (kernel, struct of arrays), built on the first fused step
         self.begin_step, self.coordinates = coordinates.kernels(dt_)
