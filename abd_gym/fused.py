@@ -12,12 +12,15 @@ launches, and with the code of absent constitutions compiled out (``wp.static`` 
 has).  ``Solver(fused=True)`` uses it.
 
 ``scratch="lanes"``: a block of L threads (lanes) per world instead of one thread, the world's
-system in a contiguous block of the global scratch.  The lanes share the work that splits:
-terms (one per lane within a round of terms that share no body; Solver._term_rounds), the
-Cholesky factor (a column at a time, lanes on the rows below the diagonal), the bodies' trial
-steps and updates; every lane takes every branch, decided from the same sums in the same order.
-A barrier (``block_sync``, also on the CPU's cooperative blocks) separates the phases.  Meant for
-few worlds, where one thread per world leaves the GPU idle waiting on each thread's chain.
+g, H (packed) and Δq in the block's shared memory on CUDA (else contiguous in the global
+scratch).  Lane l owns the rows i ≡ l (mod L) of g and H: every lane evaluates every term (the
+same energy, in the same order, on each: no reduction) and adds only its rows' entries of the
+term's blocks, so a block's puts, most of a one-thread assembly, run L rows at once without
+atomics; the factor is an L D Lᵀ by rows (``ldl_lanes``) and the substitutions likewise, one
+barrier (``block_sync``, also on the CPU's cooperative blocks) a column; the bodies' trial steps
+and updates are split by body.  Every lane takes every branch, decided from the same numbers.
+Meant for few worlds, where one thread per world leaves most of the GPU idle, waiting on each
+thread's chain of dependent loads.
 """
 import functools
 from typing import Any
@@ -51,6 +54,12 @@ def cycles() -> wp.int64:
     ...
 
 
+@wp.func_native("return WP_TILE_THREAD_IDX;")
+def lane_index() -> int:
+    """The thread's index within its block (a CPU block's fiber, or 0 for a one-thread block)."""
+    ...
+
+
 def shared_array(dtype, count: int):
     """A function returning the address of a static shared-memory array of ``count`` ``dtype``
     words, one per CUDA block (for kernels built for CUDA only)."""
@@ -78,7 +87,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     "shared": a thread per world as "global", H's lower triangle packed (n(n+1)/2 words) and, built
     for CUDA (``cuda``), the block's ``block`` threads' g, H, Δq in its shared memory, one column
     per thread (on the CPU the packed columns stay in the global arrays);
-    "lanes": a block of lanes per world, its system contiguous (see the module's docstring).  (The
+    "lanes": a block of ``block`` lanes per world, its system packed (see the module's docstring).  (The
     "tiled" layout, a block per world repeating every evaluator on all lanes with H in shared memory,
     measured slower than "global" but for 1,024 double pendulums and was removed; a third layout,
     g, H and Δq in each thread's local memory, measured
@@ -96,7 +105,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     if smem_spilling:
         options["enable_cuda_smem_spilling"] = True
     lanes = scratch == "lanes"
-    packed = scratch == "shared"
+    # lanes keep their world's system packed too (in shared memory on CUDA, else contiguous in the
+    # global scratch); LANES threads per world, a constant of the kernel (``block``)
+    packed = scratch in ("shared", "lanes")
+    LANES = max(int(block), 1) if lanes else 1
     N = n  # unknowns per world (12 per free body), a constant of the kernel
     o = ops(dtype)
     vec3, vec4, vec12, mat33, mat44 = o.vec3, o.vec4, o.vec12, o.mat33, o.mat44
@@ -127,19 +139,52 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return h_row(i, N)
 
     @wp.func
+    def own_from(o: int):
+        """The first r ≥ 0 whose row o + r is this thread's: every row for one thread per world; with
+        lanes, lane l owns the rows i ≡ l (mod LANES) of its world's g and H, so the lanes add their
+        shares of a block at once, with no two lanes on one entry (row r, r + LANES, … from here)."""
+        if wp.static(lanes):
+            return (lane_index() - o % LANES + LANES) % LANES
+        return 0
+
+    @wp.func
+    def kron_split(a: int):
+        """(m, c) with kron_index(m, c) = a: component m, factor c of u = (1, x̄)."""
+        if a < 3:
+            return a, 0
+        return (a - 3) // 3, (a - 3) % 3 + 1
+
+    @wp.func
     def put_grad(g: Any, s: int, B: int, o: int, v: vec12):
         if o >= 0:
-            p = o * B + s
-            for r in range(12):
+            for r in range(own_from(o), 12, LANES):
+                p = (o + r) * B + s
                 g[p] = g[p] + v[r]
-                p += B
+
+    @wp.func
+    def body_row(H: Any, s: int, B: int, o: int, r: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype, Rp: mat33,
+                 ata: mat33):  # fmt: skip
+        """Row r of body o's Hessian (put_body's entries of that row, lower triangle), for a lane."""
+        p = hrow(o + r) + o
+        if r < 3:
+            H[(p + r) * B + s] = H[(p + r) * B + s] + m
+        else:
+            kk = (r - 3) // 3
+            a = (r - 3) % 3
+            H[(p + kk) * B + s] = H[(p + kk) * B + s] + c[a]
+            for ll in range(kk + 1):
+                blk = a_block(qb, kk, ll, Rp, ata, ks, S)
+                for bb in range(3):
+                    if kk != ll or bb <= a:
+                        q = (p + 3 + 3 * ll + bb) * B + s
+                        H[q] = H[q] + blk[a, bb]
 
     @wp.func
     def put_body(H: Any, s: int, B: int, o: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype):
         """Body o's Hessian (affine_body.body_eval's h) added to the lower triangle from its parts,
         without building the 12 × 12 matrix in the thread's local memory: m on the translation
         diagonal, the first moments c below it, and the A rows' 3 × 3 blocks (a_block), 57
-        entries where the dense block's lower triangle has 78."""
+        entries where the dense block's lower triangle has 78.  (Lanes add bodies by rows: lane_bodies.)"""
         if o >= 0:
             Rp, ata = hessian_parts(qb)
             for r in range(3):
@@ -159,20 +204,46 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                             p += B
 
     @wp.func
+    def kron_rows(H: Any, s: int, B: int, oa: int, ob: int, U: mat44):
+        """Block (oa, ob), oa ≥ ob, += U ⊗ I₃ (a diagonal block's lower half), this thread's rows:
+        row kron_index(m, c) holds U[c, d] at columns kron_index(m, d)."""
+        for a in range(own_from(oa), 12, LANES):
+            m, c = kron_split(a)
+            for d in range(4):
+                b = kron_index(m, d)
+                if oa > ob or b <= a:
+                    p = (hrow(oa + a) + ob + b) * B + s
+                    H[p] = H[p] + U[c, d]
+
+    @wp.func
     def put_kron(H: Any, s: int, B: int, oa: int, ob: int, U: mat44):
-        """Block (oa, ob) = U ⊗ I₃ (see warp_ops.kron3): its 48 non-zero entries only."""
+        """Block (oa, ob) = U ⊗ I₃ (see warp_ops.kron3): its 48 non-zero entries only; above the
+        diagonal as its transpose below it (lower triangle only, all the factor reads)."""
         if oa >= 0 and ob >= 0:
-            for m in range(3):
-                for c in range(4):
-                    a = kron_index(m, c)
-                    for d in range(4):
-                        b = kron_index(m, d)
-                        if oa > ob or (oa == ob and a >= b):
-                            p = (hrow(oa + a) + ob + b) * B + s
-                            H[p] = H[p] + U[c, d]
-                        elif oa < ob:
-                            p = (hrow(ob + b) + oa + a) * B + s
-                            H[p] = H[p] + U[c, d]
+            if oa < ob:
+                kron_rows(H, s, B, ob, oa, wp.transpose(U))
+            else:
+                kron_rows(H, s, B, oa, ob, U)
+
+    @wp.func
+    def ksum_rows(H: Any, s: int, B: int, oa: int, ob: int, ua: vec4, ta: vec4, ub: vec4, tb: vec4, Pcc: mat33,
+                  Pct: mat33, Ptc: mat33, Ptt: mat33, U: mat44):  # fmt: skip
+        """put_ksum's block (oa, ob), oa ≥ ob, this thread's rows."""
+        for ra in range(own_from(oa), 12, LANES):
+            al, a = kron_split(ra)
+            for b in range(4):
+                cc = ua[a] * ub[b]
+                ct = ua[a] * tb[b]
+                tc = ta[a] * ub[b]
+                tt = ta[a] * tb[b]
+                for be in range(3):
+                    cb = kron_index(be, b)
+                    if oa > ob or cb <= ra:
+                        v = cc * Pcc[al, be] + ct * Pct[al, be] + tc * Ptc[al, be] + tt * Ptt[al, be]
+                        if al == be:
+                            v += U[a, b]
+                        p = (hrow(oa + ra) + ob + cb) * B + s
+                        H[p] = H[p] + v
 
     @wp.func
     def put_ksum(H: Any, s: int, B: int, oa: int, ob: int, ua: vec4, ta: vec4, ub: vec4, tb: vec4, Pcc: mat33,
@@ -181,27 +252,14 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         + U ⊗ I₃
         (entry (kron_index(α, a), kron_index(β, b)) = Σ u[a] v[b] P[α, β] + δ_αβ U[a, b]), lower
         triangle only as put_outer: the Gauss–Newton block of rows J(x)ᵀ-type Kronecker products
-        (prismatic_hessian), summed per entry in registers, without a 12 × 12 matrix."""
+        (prismatic_hessian), summed per entry in registers, without a 12 × 12 matrix.  Above the
+        diagonal as the transpose, (ub uaᵀ) ⊗ Pccᵀ + (ub taᵀ) ⊗ Ptcᵀ + (tb uaᵀ) ⊗ Pctᵀ + …, below it."""
         if oa >= 0 and ob >= 0:
-            for a in range(4):
-                for al in range(3):
-                    ra = kron_index(al, a)
-                    for b in range(4):
-                        cc = ua[a] * ub[b]
-                        ct = ua[a] * tb[b]
-                        tc = ta[a] * ub[b]
-                        tt = ta[a] * tb[b]
-                        for be in range(3):
-                            cb = kron_index(be, b)
-                            v = cc * Pcc[al, be] + ct * Pct[al, be] + tc * Ptc[al, be] + tt * Ptt[al, be]
-                            if al == be:
-                                v += U[a, b]
-                            if oa > ob or (oa == ob and ra >= cb):
-                                p = (hrow(oa + ra) + ob + cb) * B + s
-                                H[p] = H[p] + v
-                            elif oa < ob:
-                                p = (hrow(ob + cb) + oa + ra) * B + s
-                                H[p] = H[p] + v
+            if oa < ob:
+                ksum_rows(H, s, B, ob, oa, ub, tb, ua, ta, wp.transpose(Pcc), wp.transpose(Ptc), wp.transpose(Pct),
+                          wp.transpose(Ptt), wp.transpose(U))  # fmt: skip
+            else:
+                ksum_rows(H, s, B, oa, ob, ua, ta, ub, tb, Pcc, Pct, Ptc, Ptt, U)
 
     @wp.func
     def cross_gram(x: vec3, y: vec3):
@@ -271,32 +329,26 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             put_kron(H, s, B, oj, oj, ujj)
 
     @wp.func
+    def outer_rows(H: Any, s: int, B: int, oa: int, ob: int, ga: vec12, gb: vec12, cf: dtype):
+        """Block (oa, ob), oa ≥ ob, += cf·ga gbᵀ (a diagonal block's lower half), this thread's rows."""
+        for r in range(own_from(oa), 12, LANES):
+            p = (hrow(oa + r) + ob) * B + s
+            v = cf * ga[r]
+            for c in range(12):
+                if oa != ob or c <= r:
+                    H[p] = H[p] + v * gb[c]
+                p += B
+
+    @wp.func
     def put_outer(H: Any, s: int, B: int, oa: int, ob: int, ga: vec12, gb: vec12, cf: dtype):
         """Add block (oa, ob) = cf·ga gbᵀ and its transpose, lower triangle only (all the Cholesky
         reads): a diagonal block's lower half; (oa, ob) below the diagonal as it is, above it
         transposed.  Each entry is formed as it is added (no 12 × 12 matrix in local memory)."""
         if oa >= 0 and ob >= 0:
-            if oa == ob:
-                for r in range(12):
-                    p = (hrow(oa + r) + ob) * B + s
-                    v = cf * ga[r]
-                    for c in range(r + 1):
-                        H[p] = H[p] + v * gb[c]
-                        p += B
-            elif oa > ob:
-                for r in range(12):
-                    p = (hrow(oa + r) + ob) * B + s
-                    v = cf * ga[r]
-                    for c in range(12):
-                        H[p] = H[p] + v * gb[c]
-                        p += B
+            if oa < ob:
+                outer_rows(H, s, B, ob, oa, gb, ga, cf)
             else:
-                for c in range(12):
-                    p = (hrow(ob + c) + oa) * B + s
-                    v = cf * gb[c]
-                    for r in range(12):
-                        H[p] = H[p] + ga[r] * v
-                        p += B
+                outer_rows(H, s, B, oa, ob, ga, gb, cf)
 
     @wp.func
     def put_rank1(g: Any, H: Any, s: int, B: int, derivs: int, oi: int, oj: int, gi: vec12, gj: vec12, de: dtype,
@@ -360,11 +412,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         control: wp.array2d(dtype=dtype)
         unwrapped: wp.array2d(dtype=dtype)
         x_anchor: wp.array2d(dtype=dtype)
-        # every term as (kind, index within its kind), in rounds whose terms share no free body, in
-        # assemble's order (Solver._term_rounds): the lane-split step adds one round at a time
-        term_kind: wp.array(dtype=wp.int32)
-        term_k: wp.array(dtype=wp.int32)
-        round_start: wp.array(dtype=wp.int32)
         clock: wp.array2d(dtype=wp.int64)  # (W, len(PHASES)) with phase_clock, else unused
 
     @wp.func
@@ -466,69 +513,50 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         put_rank1(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, de, dde)
         return ej
 
+    NF = N // 12  # free bodies (12 unknowns each, body k's from 12k: Model.dof)
+
     @wp.func
-    def term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any,
-             kind: int, k: int, hw: dtype, h2: dtype):  # fmt: skip
-        """Term k of kind ``kind`` (0 bodies, 1 revolute, 2 fixed, 3 prismatic, 4 revolute limits,
-        5 prismatic limits, 6 drives: assemble's order), for the lane-split step."""
+    def lane_bodies(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
+                    H: Any, h2: dtype):  # fmt: skip
+        """Lanes: the bodies' terms, each lane evaluating the body of each of its rows and adding that
+        row only (12 lanes on one body at once, the bodies side by side, where every lane evaluating
+        every body would take them one after another).  Body k's energy goes through slot N + k of
+        g (past the gradient) from the lane of its first row; every lane then sums the slots in
+        body order, the one-thread order.  Returns Σ_k E_k."""
+        for rho in range(lane_index(), N, LANES):
+            k = rho // 12
+            b = t.free[k]
+            r = rho - 12 * k
+            qb = q[qr, b]
+            ks = t.kv[w, b] * h2
+            e_in, e_or, f = body_grad(qb, t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], ks, derivs)
+            if derivs != 0:
+                g[rho * B + s] = g[rho * B + s] + f[r]
+                if derivs == HESSIAN:
+                    Rp, ata = hessian_parts(qb)
+                    body_row(H, s, B, 12 * k, r, qb, t.mass[w, b], t.mc[w, b], t.S[w, b], ks, Rp, ata)
+            if r == 0:
+                g[(N + k) * B + s] = e_in + e_or
+        block_sync()
         e = zero
-        if kind == 0:
-            e = body_term(q, qr, w, s, B, derivs, t, g, H, k, h2)
-        if wp.static(has_rev):
-            if kind == 1:
-                e = point_term(q, qr, w, s, B, derivs, t, g, H, t.rev_ids[k], 2)
-        if wp.static(has_fix):
-            if kind == 2:
-                e = point_term(q, qr, w, s, B, derivs, t, g, H, t.fix_ids[k], 4)
-        if wp.static(has_pri):
-            if kind == 3:
-                e = prismatic_term(q, qr, w, s, B, derivs, t, g, H, t.pri_ids[k])
-        if wp.static(has_rlim):
-            if kind == 4:
-                e = rlim_term(q, qr, w, s, B, derivs, t, g, H, k)
-        if wp.static(has_plim):
-            if kind == 5:
-                e = plim_term(q, qr, w, s, B, derivs, t, g, H, k)
-        if wp.static(has_drive):
-            if kind == 6:
-                e = drive_term(q, qr, w, s, B, derivs, t, g, H, k, hw, h2)
+        for k in range(NF):
+            e += g[(N + k) * B + s]
         return e
 
     @wp.func
-    def lane_sum(part: wp.array(dtype=dtype), w: int, lane: int, L: int, e: dtype):
-        """Σ over the block's L lanes of e (each lane's share), the same sum on every lane."""
-        pw = wp.where(part.shape[0] > L, w * L, 0)  # the global shares, or the block's own L in shared memory
-        part[pw + lane] = e
-        block_sync()
-        total = zero
-        for k in range(L):
-            total += part[pw + k]
-        block_sync()  # read before any lane writes its next share
-        return total
-
-    @wp.func
-    def assemble(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any,
-                 lane: int, L: int, part: wp.array(dtype=dtype)):  # fmt: skip
+    def assemble(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any):
         """Total incremental potential of world w at q[qr]; derivs GRADIENT adds its g, HESSIAN its g
-        and H (to scratch column s of B).  Lane-split (L lanes): lane ``lane`` takes every L-th term
-        of a round at a time (a round's terms share no body, so no two lanes add to one entry; the
-        rounds keep each entry's sum in the one-thread order), and the lanes' energies are summed."""
+        and H (to scratch column s of B).  Lanes: every lane evaluates every term (the same energy,
+        in the same order, on each) and adds the entries of its own rows (own_from)."""
         e = zero
         hw = t.h_step[w]
         h2 = hw * hw
-        ck = clock_now()  # the terms' cycles by kind (phase_clock, one thread per world)
+        ck = clock_now()  # the terms' cycles by kind (phase_clock)
         if wp.static(lanes):
-            if derivs == 0:
-                for c in range(lane, t.term_kind.shape[0], L):
-                    e += term(q, qr, w, s, B, derivs, t, g, H, t.term_kind[c], t.term_k[c], hw, h2)
-            else:
-                for r in range(t.round_start.shape[0] - 1):
-                    for c in range(t.round_start[r] + lane, t.round_start[r + 1], L):
-                        e += term(q, qr, w, s, B, derivs, t, g, H, t.term_kind[c], t.term_k[c], hw, h2)
-                    block_sync()
-            return lane_sum(part, w, lane, L, e)
-        for k in range(t.free.shape[0]):
-            e += body_term(q, qr, w, s, B, derivs, t, g, H, k, h2)
+            e = lane_bodies(q, qr, w, s, B, derivs, t, g, H, h2)
+        else:
+            for k in range(t.free.shape[0]):
+                e += body_term(q, qr, w, s, B, derivs, t, g, H, k, h2)
         ck = tick(t, w, 0, 7, ck)
         if wp.static(has_rev):
             for k in range(t.rev_ids.shape[0]):
@@ -583,10 +611,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     @wp.func
     def search(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, skip: int, done: int, chord: int,
-               max_line_search: int, lane: int, L: int, part: wp.array(dtype=dtype)):  # fmt: skip
+               max_line_search: int, lane: int, L: int):  # fmt: skip
         """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
         factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
-        trial points go to row ``row`` of q_trial; s, B, lane, L, part as in assemble."""
+        trial points go to row ``row`` of q_trial; s, B as in assemble, lane of L as in trial."""
         c = clock_now()
         trial(q, q_trial, t, step, w, row, s, B, one, lane, L)
         c = tick(t, w, lane, 6, c)
@@ -597,14 +625,14 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             accepted = 1
             stalled = done
         elif chord > 0:
-            accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H, lane, L, part), one, gdq)
+            accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), one, gdq)
             c = tick(t, w, lane, 5, c)
         else:
             for ls in range(max_line_search):
                 if ls > 0:
                     trial(q, q_trial, t, step, w, row, s, B, alpha, lane, L)
                     c = tick(t, w, lane, 6, c)
-                accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H, lane, L, part), alpha, gdq)
+                accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
                 c = tick(t, w, lane, 5, c)
                 if accepted != 0:
                     break
@@ -656,15 +684,15 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     @wp.func
     def take_step(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                   w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, dmax: dtype, g_abs: dtype, threshold: dtype, chord: int,
-                  reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32), lane: int, L: int,
-                  part: wp.array(dtype=dtype)):  # fmt: skip
+                  reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32), lane: int,
+                  L: int):  # fmt: skip
         """Everything after a Newton direction (both layouts): the stop test, the line search, the
         choice to reuse the factor next, and the update of q.  Returns (1 when the solve is over,
         chord for the next iteration)."""
         floor, rounding = noise_floor(q, w, threshold)
         skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(rounding, g_abs), chord)
         accepted, stalled, alpha = search(q, q_trial, t, step, g, H, w, row, s, B, e0, gdq, skip, done, chord,
-                                          max_line_search, lane, L, part)  # fmt: skip
+                                          max_line_search, lane, L)  # fmt: skip
         retry, chord_next = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
         stop = int(0)
         if retry == 0:
@@ -678,7 +706,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, s: int, T: int, row: int, threshold: dtype,
                     max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
                     iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
-                    converged: wp.array(dtype=wp.int32), lane: int, L: int, part: wp.array(dtype=dtype)):  # fmt: skip
+                    converged: wp.array(dtype=wp.int32), lane: int, L: int):  # fmt: skip
         """World w's whole Newton solve, in scratch column s (of T) of the flat g, H, dq and row
         ``row`` of q_trial; lane ``lane`` of L (one thread per world: 0 of 1).
 
@@ -701,7 +729,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 g[i * T + s] = zero
                 if chord <= 0:
                     j0 = int(0)
-                    if wp.static(envelope or lanes):
+                    if wp.static(envelope):
                         j0 = t.first[i]
                     p = (hrow(i) + j0) * T + s
                     for j in range(j0, i + 1):
@@ -716,18 +744,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             dmax = zero
             g_abs = zero
             if chord > 0:
-                e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H, lane, L, part)
+                e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
             else:
-                e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H, lane, L, part)
+                e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
                 nfact += 1
             c = tick(t, w, lane, 1, c)
             if wp.static(lanes):
+                block_sync()  # the factor and the solves read every lane's rows
                 ok = 1
                 if chord <= 0:
-                    ok = cholesky_lanes(H, s, T, t.first, lane, L)
+                    ok = ldl_lanes(H, s, lane)
                 c = tick(t, w, lane, 2, c)
                 if ok != 0:
-                    ok, gdq, dmax, g_abs = solve_lanes(H, g, dq, s, T, t.first, lane, L)
+                    ok, gdq, dmax, g_abs = solve_lanes(H, g, dq, s, lane)
                 c = tick(t, w, lane, 3, c)
             elif chord > 0:
                 ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, N, T, t.first)
@@ -744,7 +773,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             if lane == 0:
                 iterations[w] = it + 1
             stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord, reuse,
-                                    d_prev, max_line_search, converged, lane, L, part)  # fmt: skip
+                                    d_prev, max_line_search, converged, lane, L)  # fmt: skip
             c = tick(t, w, lane, 4, c)
             if stop != 0:
                 return 0
@@ -756,18 +785,22 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                         H: wp.array(dtype=dtype), E: wp.array(dtype=dtype)):  # fmt: skip
         """The incremental potential of world w and, per ``derivs``, its gradient and Hessian (lower
         triangle) as the fused step assembles them, into scratch column w of the zeroed flat g, H
-        (one column per world): for checking the fused assembly against the staged one."""
-        w = wp.tid()
-        E[w] = assemble(q, w, w, w, q.shape[0], derivs, t, g, H, 0, 1, E)
+        (one column per world): for checking the fused assembly against the staged one.  Lanes:
+        launched as blocks of LANES threads, block w on world w, each lane on its own rows."""
+        c = wp.tid()
+        w = c // LANES
+        e = assemble(q, w, w, w, q.shape[0], derivs, t, g, H)
+        if c % LANES == 0:
+            E[w] = e
 
     SIZE = 4 if dtype == wp.float32 else 8
     # a thread per world with its g, H, Δq in the block's shared memory (scratch="shared", CUDA): the
     # factor's and solves' ~n³/6 dependent loads then wait ~30 cycles each instead of an L1 miss's
     # trip to L2 (131,072 worlds' columns exceed L1); H packed, so a block of 32 float32 threads of
     # 24 unknowns fits the 48 KB of static shared memory (44.5 KB)
-    in_smem = packed and cuda
+    in_smem = packed and cuda and not lanes
+    TRI = N * (N + 1) // 2
     if in_smem:
-        TRI = N * (N + 1) // 2
         one_count = (TRI + 2 * N) * block
         one_scratch = shared_array(dtype, one_count)
 
@@ -779,7 +812,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
             s0: int, Tw: int, wa: int, wb: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
             status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-            factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), part: wp.array(dtype=dtype),
+            factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
         ):  # fmt: skip
             """The launch's Tw threads solve worlds wa … wb − 1, thread c the worlds wa + c, wa + c + Tw,
             …: a thread's scratch is reused world after world, so it stays in cache however many worlds
@@ -796,126 +829,108 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 ds = wp.array(ptr=base + wp.uint64((TRI + N) * block * SIZE), shape=(N * block,), dtype=dtype)
                 for w in range(wa + c, wb, Tw):
                     solve_world(q, q_trial, t, gs, Hs, ds, w, k, block, s, threshold, max_iterations, max_line_search,
-                                reuse, status, iterations, factorizations, converged, 0, 1, part)  # fmt: skip
+                                reuse, status, iterations, factorizations, converged, 0, 1)  # fmt: skip
             else:
                 for w in range(wa + c, wb, Tw):
                     solve_world(q, q_trial, t, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
-                                reuse, status, iterations, factorizations, converged, 0, 1, part)  # fmt: skip
+                                reuse, status, iterations, factorizations, converged, 0, 1)  # fmt: skip
 
         return newton, Terms, assemble_system
 
     @wp.func
-    def cholesky_lanes(H: wp.array(dtype=dtype), s: int, T: int, first: wp.array(dtype=wp.int32), lane: int, L: int):
-        """H = L Lᵀ in place (flat, column s of T, within Model.first's envelope) by the block's L
-        lanes, a column at a time: every lane computes the diagonal (the same sum), lane l the rows
-        j + 1 + l, j + 1 + l + L, … below it; one barrier a column.  The diagonal is stored a column
-        late, once no lane reads it any more.  0 when H is not positive definite (on every lane)."""
-        R = N * T
-        d_prev = zero
+    def ldl_lanes(H: wp.array(dtype=dtype), s: int, lane: int):
+        """H = L D Lᵀ in place (H packed from s), right-looking, lane l on its rows i ≡ l (mod LANES):
+        at column j every lane reads D_j = H[j, j] and updates its rows below it, H[i, k] −=
+        H[i, j] H[k, j] / D_j for j < k ≤ i (four k at a time: independent loads), which reads
+        column j and writes right of it only: one barrier a column.  Left in H: D_j L_ij below the
+        diagonal (no pass to scale it) and 1/D_j on it, stored a column late by the row's owner,
+        once no lane reads D_j.  0 when H is not positive definite (the same test of the same D_j
+        on every lane)."""
+        inv = zero
         for j in range(N):
-            if lane == 0 and j > 0:
-                H[(j - 1) * R + (j - 1) * T + s] = d_prev
-            fj = first[j]
-            rj = j * R + s
-            s0 = H[rj + j * T]
-            s1 = zero
-            k = fj
-            while k + 2 <= j:
-                a0 = H[rj + k * T]
-                a1 = H[rj + (k + 1) * T]
-                s0 -= a0 * a0
-                s1 -= a1 * a1
-                k += 2
-            if k < j:
-                a0 = H[rj + k * T]
-                s0 -= a0 * a0
-            sj = s0 + s1
-            if not (sj > zero) or not wp.isfinite(sj):
+            dj = H[s + hrow(j) + j]
+            if not (dj > zero) or not wp.isfinite(dj):
                 return 0
-            d = wp.sqrt(sj)
-            for i in range(j + 1 + lane, N, L):
-                fi = first[i]
-                if fi <= j:
-                    ri = i * R + s
-                    t0 = H[ri + j * T]
-                    t1 = zero
-                    k = wp.max(fi, fj)
-                    while k + 2 <= j:
-                        t0 -= H[ri + k * T] * H[rj + k * T]
-                        t1 -= H[ri + (k + 1) * T] * H[rj + (k + 1) * T]
-                        k += 2
-                    if k < j:
-                        t0 -= H[ri + k * T] * H[rj + k * T]
-                    H[ri + j * T] = (t0 + t1) / d
-            d_prev = d
+            if j > 0 and (j - 1) % LANES == lane:
+                H[s + hrow(j - 1) + j - 1] = inv
+            inv = one / dj
+            for i in range(j + 1 + own_from(j + 1), N, LANES):
+                ri = s + hrow(i)
+                cj = H[ri + j] * inv
+                k = j + 1
+                while k + 4 <= i + 1:
+                    a0 = H[s + hrow(k) + j]
+                    a1 = H[s + hrow(k + 1) + j]
+                    a2 = H[s + hrow(k + 2) + j]
+                    a3 = H[s + hrow(k + 3) + j]
+                    H[ri + k] = H[ri + k] - cj * a0
+                    H[ri + k + 1] = H[ri + k + 1] - cj * a1
+                    H[ri + k + 2] = H[ri + k + 2] - cj * a2
+                    H[ri + k + 3] = H[ri + k + 3] - cj * a3
+                    k += 4
+                while k <= i:
+                    H[ri + k] = H[ri + k] - cj * H[s + hrow(k) + j]
+                    k += 1
             block_sync()
-        if lane == 0:
-            H[(N - 1) * R + (N - 1) * T + s] = d_prev
+        if (N - 1) % LANES == lane:
+            H[s + hrow(N - 1) + N - 1] = inv
         return 1
 
     @wp.func
-    def solve_lanes(H: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), s: int, T: int,
-                    first: wp.array(dtype=wp.int32), lane: int, L: int):  # fmt: skip
-        """Δq = −(L Lᵀ)⁻¹g from the factor in H by the block's lanes, a column at a time: each
-        unknown once known (every lane divides the same numbers) updates the rows below it (forward)
-        or above it (backward), lanes on the rows, one barrier an unknown; lane 0 stores it.  Then
-        every lane forms (ok, gᵀΔq, ‖Δq‖∞, ‖g‖₁)."""
-        R = N * T
-        for i in range(lane, N, L):
-            dq[i * T + s] = -g[i * T + s]
+    def solve_lanes(H: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), s: int, lane: int):
+        """Δq = −(L D Lᵀ)⁻¹g from ldl_lanes' factor (1/D on the diagonal), each lane on its own rows'
+        entries: forward, L y = −g a column at a time (every lane reads y_j, the rows below it are
+        updated by their owners); backward, Δq_k = (y_k − Σ_{i>k} H[i, k] Δq_i) / D_k from the last
+        row, the same way.
+        One barrier a column; a backward Δq_k is stored after its barrier, once no lane reads y_k.
+        Then every lane forms (ok, gᵀΔq, ‖Δq‖∞, ‖g‖₁)."""
+        for i in range(lane, N, LANES):
+            dq[s + i] = -g[s + i]
         block_sync()
-        for k in range(N):  # L y = −g
-            yk = dq[k * T + s] / H[k * R + k * T + s]
-            for i in range(k + 1 + lane, N, L):
-                if first[i] <= k:
-                    dq[i * T + s] = dq[i * T + s] - H[i * R + k * T + s] * yk
+        for j in range(N):
+            tj = dq[s + j] * H[s + hrow(j) + j]  # y_j / D_j: L_ij y_j = H[i, j] y_j / D_j
+            for i in range(j + 1 + own_from(j + 1), N, LANES):
+                dq[s + i] = dq[s + i] - H[s + hrow(i) + j] * tj
             block_sync()
-            if lane == 0:
-                dq[k * T + s] = yk  # no lane reads y_k again until the backward sweep
-        block_sync()
-        for ii in range(N):  # Lᵀ x = y, by rows of L
-            i = N - 1 - ii
-            xi = dq[i * T + s] / H[i * R + i * T + s]
-            for k in range(first[i] + lane, i, L):
-                dq[k * T + s] = dq[k * T + s] - H[i * R + k * T + s] * xi
+        for kk in range(N):
+            k = N - 1 - kk
+            xk = dq[s + k] * H[s + hrow(k) + k]
+            rk = s + hrow(k)
+            for i in range(lane, k, LANES):
+                dq[s + i] = dq[s + i] - H[rk + i] * xk
             block_sync()
-            if lane == 0:
-                dq[i * T + s] = xi
+            if k % LANES == lane:
+                dq[s + k] = xk
         block_sync()
-        return reductions(g, dq, s, N, T)
+        return reductions(g, dq, s, N, 1)
 
-    # the block's g, H, Δq and energy shares in shared memory where they fit (a static array of at most
-    # 40 KB; lanes exchange every column of the factor and every unknown of the solves through it,
-    # which in global memory costs a round trip through L2 each): 2.8 KB for 24 unknowns in float32
-    LMAX = 256  # lanes a block at most (Solver checks)
-    shared = lanes and cuda and (N * N + 2 * N + LMAX) * SIZE <= 40960  # the CPU keeps the global scratch
-    if shared:
-        shared_scratch = shared_array(dtype, N * N + 2 * N + LMAX)
+    # the world's g, H (packed) and Δq in its block's shared memory on CUDA (1.4 KB for 24 unknowns
+    # in float32): every lane reads every row in the factor and the solves
+    if lanes and cuda:
+        lanes_scratch = shared_array(dtype, TRI + 2 * N + NF)
 
     @wp.kernel(**options)
     def newton_lanes(
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
-        g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), L: int,
+        g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
         threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
         status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-        factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), part: wp.array(dtype=dtype),
+        factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
     ):  # fmt: skip
-        """Block w (of L lanes, launched with block_dim L) solves world w, its g, H, Δq and energy
-        shares in the block's shared memory (``shared``), else contiguous in the global scratch, each
-        from w·n² with unit stride (g and Δq padded to n²): the lanes read across rows of one world's
-        system, which the one-thread layout, one column per world, would spread over n² cache lines."""
+        """Block w (of LANES lanes) solves world w, its g, H (packed) and Δq in the block's shared
+        memory on CUDA, else contiguous in the global scratch from w·n² (g and Δq padded to n²
+        words, g's past n holding lane_bodies' energies)."""
         c = wp.tid()
-        w = c // L
-        if wp.static(shared):
-            base = shared_scratch()
-            Hs = wp.array(ptr=base, shape=(N * N,), dtype=dtype)
-            gs = wp.array(ptr=base + wp.uint64(N * N * SIZE), shape=(N,), dtype=dtype)
-            ds = wp.array(ptr=base + wp.uint64((N * N + N) * SIZE), shape=(N,), dtype=dtype)
-            ps = wp.array(ptr=base + wp.uint64((N * N + 2 * N) * SIZE), shape=(L,), dtype=dtype)
+        w = c // LANES
+        if wp.static(lanes and cuda):
+            base = lanes_scratch()
+            Hs = wp.array(ptr=base, shape=(TRI,), dtype=dtype)
+            gs = wp.array(ptr=base + wp.uint64(TRI * SIZE), shape=(N + NF,), dtype=dtype)  # lane_bodies' slots
+            ds = wp.array(ptr=base + wp.uint64((TRI + N + NF) * SIZE), shape=(N,), dtype=dtype)
             solve_world(q, q_trial, t, gs, Hs, ds, w, 0, 1, w, threshold, max_iterations, max_line_search, reuse,
-                        status, iterations, factorizations, converged, c - w * L, L, ps)  # fmt: skip
+                        status, iterations, factorizations, converged, c - w * LANES, LANES)  # fmt: skip
         else:
             solve_world(q, q_trial, t, g, H, dq, w, w * N * N, 1, w, threshold, max_iterations, max_line_search, reuse,
-                        status, iterations, factorizations, converged, c - w * L, L, part)  # fmt: skip
+                        status, iterations, factorizations, converged, c - w * LANES, LANES)  # fmt: skip
 
     return newton_lanes, Terms, assemble_system

@@ -134,12 +134,22 @@ def default_block_dim_shared(n: int, dtype) -> int:
     return min(32, SHARED_BLOCK_BYTES // shared_bytes_per_thread(n, dtype))
 
 
-def default_scratch(device, n: int, dtype, fused: bool = True) -> str:
-    """"shared" on a GPU where a block of 32 threads' systems fits its shared memory (float32, up to
-    24 unknowns: a cart-pole, a double pendulum), else "global".  Measured on an H100 (``python -m
-    abd_gym.bench --scratch global,shared``): shared 1.18-1.25x as fast as global on cart-poles and
-    1.25-1.47x on double pendulums, at 1,024 to 131,072 worlds."""
-    if fused and device.is_cuda and default_block_dim_shared(n, dtype) >= 32:
+LANES_MAX_WORLDS = 1024  # the default scratch is "lanes" up to this many worlds (default_scratch)
+
+
+def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int = 0) -> str:
+    """On a GPU, for up to 24 unknowns (a cart-pole, a double pendulum): "lanes" up to 1,024 worlds,
+    where one thread per world leaves most SMs idle; else "shared" where a block of 32 threads'
+    systems fits its shared memory (float32); else "global".  Measured on an H100 (``python -m
+    abd_gym.bench --scratch global,shared,lanes``): shared 1.18-1.25x as fast as global on
+    cart-poles and 1.25-1.47x on double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast
+    as shared on both at 1,024 worlds, 0.70x at 2,048 (results/lanes_rows_h100.md).  Larger scenes
+    keep the thread per world: lanes are unmeasured there."""
+    if not (fused and device.is_cuda):
+        return "global"
+    if n <= 24 and 0 < num_worlds <= LANES_MAX_WORLDS:
+        return "lanes"
+    if default_block_dim_shared(n, dtype) >= 32:
         return "shared"
     return "global"
 
@@ -166,7 +176,7 @@ class Solver:
         cuda = wp.get_device(dev).is_cuda
         scratch = settings.scratch
         if scratch is None:
-            scratch = default_scratch(wp.get_device(dev), n, dt_, settings.fused)
+            scratch = default_scratch(wp.get_device(dev), n, dt_, settings.fused, W)
         if scratch not in ("global", "shared", "lanes"):
             raise ValueError(f"scratch must be 'global', 'shared' or 'lanes', got {scratch!r}")
         if scratch != "global" and not settings.fused:
@@ -176,8 +186,8 @@ class Solver:
         self.shared = scratch == "shared"
         # scratch="shared" on a GPU: the systems live in shared memory, a block's threads each its own
         self.in_smem = self.shared and cuda
-        if self.shared and settings.envelope:
-            raise ValueError("scratch='shared' factors densely (H packed): it takes envelope=False or None")
+        if (self.shared or self.lanes) and settings.envelope:
+            raise ValueError(f"scratch={scratch!r} factors densely (H packed): it takes envelope=False or None")
         # scratch columns of g, H, Δq: one per world for the staged step and the lane-split step; one
         # per thread for the fused step, whose threads each solve several worlds in turn (memory per
         # world stays O(bodies))
@@ -187,12 +197,13 @@ class Solver:
             raise ValueError(f"cpu_workers must be a positive integer or None, got {settings.cpu_workers!r}")
         if wp.get_device(dev).is_cpu and settings.fused and not self.lanes:
             workers = default_cpu_workers(W) if settings.cpu_workers is None else int(settings.cpu_workers)
-        if settings.fused and not self.lanes:
+        T = settings.threads
+        if T is not None and not (isinstance(T, (int, np.integer)) and T > 0):
+            raise ValueError(f"threads must be a positive integer, got {settings.threads!r}")
+        if settings.fused and not self.lanes:  # (lanes: a block per world, whatever threads says)
             T = default_threads(wp.get_device(dev), W, workers) if settings.threads is None else settings.threads
             if self.in_smem and settings.threads is None:
                 T = W  # a system in shared memory lives as long as its block: no scratch to keep small
-            if not (isinstance(T, (int, np.integer)) and T > 0):
-                raise ValueError(f"threads must be a positive integer, got {settings.threads!r}")
             self.threads = int(min(T, W))
         else:
             self.threads = W
@@ -219,8 +230,6 @@ class Solver:
         if self.lanes and wp.get_device(dev).is_cpu and not wp.config.enable_cpu_blocks:
             self.block_dim = 1  # Warp runs a CPU block's threads as one unless cooperative blocks are on
         self.q_trial = wp.zeros((T, model.num_bodies), dtype=model.vec12, device=dev)
-        # the lane-split step's per-lane energy shares (fused.lane_sum); one unused word otherwise
-        self.lane_part = wp.zeros(W * self.block_dim if self.lanes else 1, dtype=dt_, device=dev)
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)
         self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=dt_, device=dev)
@@ -229,7 +238,7 @@ class Solver:
                              "step (fused=True, its threads reuse their scratch) or fewer worlds")  # fmt: skip
         # column-minor: thread s reads H[i, j, s] coalesced with its neighbours (one unused column when
         # the systems live in shared memory)
-        Tg = 1 if self.in_smem else T
+        Tg = 1 if self.in_smem or (self.lanes and cuda) else T
         self.g = wp.zeros((n, Tg), dtype=dt_, device=dev)
         self.H = wp.zeros((n, n, Tg), dtype=dt_, device=dev)
         self.dq = wp.zeros((n, Tg), dtype=dt_, device=dev)
@@ -239,7 +248,7 @@ class Solver:
         # (solver_kernels: one multiply per access instead of three, and no negative-index tests)
         self.g_flat, self.H_flat, self.dq_flat = (_flat(a) for a in (self.g, self.H, self.dq))
         self.L_flat = None if self.L is None else _flat(self.L)
-        if self.lanes:  # the lane-split step keeps each world's g, H, Δq contiguous, n² words apiece
+        if self.lanes and not cuda:  # the CPU's lanes keep each world's g, H, Δq contiguous, n² words apiece
             self.g_flat, self.dq_flat = (wp.zeros(W * n * n, dtype=dt_, device=dev) for _ in range(2))
         self.chord = wp.zeros(W, dtype=wp.int32, device=dev)
         self.d_prev = wp.zeros(W, dtype=dt_, device=dev)
@@ -248,8 +257,9 @@ class Solver:
         self.all_active = wp.ones(W, dtype=wp.int32, device=dev)
         self.remaining = wp.zeros(1, dtype=wp.int32, device=dev)  # loop flags for wp.capture_while
         self.ls_remaining = wp.zeros(1, dtype=wp.int32, device=dev)
-        # the shared scratch packs H and factors it densely (its envelope=True was refused above)
-        self.envelope = not self.shared and (model.envelope if settings.envelope is None else bool(settings.envelope))
+        # the shared and lane scratches pack H and factor it densely (their envelope=True was refused above)
+        envelope = model.envelope if settings.envelope is None else bool(settings.envelope)
+        self.envelope = not (self.shared or self.lanes) and envelope
         self.k = solver_kernels(dt_, self.envelope)
         self._fused = None  # (kernel, struct of arrays), built on the first fused step
         self.begin_step, self.coordinates = coordinates.kernels(dt_)
@@ -282,20 +292,32 @@ class Solver:
 
     def fused_system(self, state, derivs: int = HESSIAN):
         """(E (W,), g (W, n), H (W, n, n) lower triangle) of the incremental potential at state.q as
-        the fused step assembles them (global scratch, one thread per world): for checking it
-        against the staged kernels' ``hessian()``.  Uses the solver's scratch (g, H)."""
+        the fused step assembles them (global scratch, one thread per world, or the lane-split
+        step's lanes, each adding its own rows): for checking it against the staged kernels'
+        ``hessian()``.  Uses the solver's scratch (g, H)."""
         m = self.model
-        if self.threads != m.num_worlds or self.lanes or self.shared:
-            raise RuntimeError("fused_system needs the fused step's global scratch with one thread per world")
+        if self.threads != m.num_worlds or self.shared:
+            raise RuntimeError("fused_system needs the fused step's global scratch with one thread per world, or lanes")
         if self._fused is None:
             self._fused = self._build_fused(state)
         _, terms, assemble_system = self._fused
-        self.g.zero_()
-        self.H.zero_()
-        E = wp.zeros(m.num_worlds, dtype=m.dtype, device=m.device)
-        wp.launch(assemble_system, dim=m.num_worlds, inputs=[state.q, terms, int(derivs), self.g_flat, self.H_flat, E],
-                  device=m.device)  # fmt: skip
-        return E.numpy(), self.gradient(), self.hessian()
+        W, n, L = m.num_worlds, m.num_dofs, self.block_dim if self.lanes else 1
+        g, H = self.g, self.H
+        if self.lanes:  # H packed; g's rows past n hold the bodies' energies (fused.lane_bodies)
+            g = wp.zeros((n + n // 12, W), dtype=m.dtype, device=m.device)
+            H = wp.zeros((n * (n + 1) // 2, W), dtype=m.dtype, device=m.device)
+        g.zero_()
+        H.zero_()
+        E = wp.zeros(W, dtype=m.dtype, device=m.device)
+        wp.launch(assemble_system, dim=W * L, inputs=[state.q, terms, int(derivs), _flat(g), _flat(H), E],
+                  block_dim=L, device=m.device)  # fmt: skip
+        if not self.lanes:
+            return E.numpy(), self.gradient(), self.hessian()
+        packed = H.numpy()  # row i from i(i+1)/2
+        full = np.zeros((W, n, n), dtype=packed.dtype)
+        for i in range(n):
+            full[:, i, : i + 1] = packed[i * (i + 1) // 2 : i * (i + 1) // 2 + i + 1].T
+        return E.numpy(), g.numpy()[:n].T.copy(), full
 
     def energies(self, state) -> dict:
         """Each term's own physical energy [J] per world (see Simulator.energies)."""
@@ -367,9 +389,9 @@ class Solver:
         if self.lanes:
             L = self.block_dim
             wp.launch(kernel, dim=m.num_worlds * L, inputs=[
-                state.q, self.q_trial, terms, self.g_flat, self.H_flat, self.dq_flat, L, m.dtype(s.tol * self.h),
+                state.q, self.q_trial, terms, self.g_flat, self.H_flat, self.dq_flat, m.dtype(s.tol * self.h),
                 s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
-                state.factorizations, state.converged, self.lane_part], block_dim=L, device=m.device)  # fmt: skip
+                state.factorizations, state.converged], block_dim=L, device=m.device)  # fmt: skip
             return
         n = m.num_dofs
 
@@ -381,7 +403,7 @@ class Solver:
                 g, H, dq = (a[start * size:(start + count) * size] for a, size in ((g, n), (H, n * n), (dq, n)))
             return [state.q, self.q_trial, terms, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.h),
                     s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
-                    state.factorizations, state.converged, self.lane_part]  # fmt: skip
+                    state.factorizations, state.converged]  # fmt: skip
 
         if len(self.newton_launches) == 1:
             wp.launch(kernel, dim=self.threads, inputs=inputs(*self.newton_launches[0]), device=m.device,
@@ -417,7 +439,7 @@ class Solver:
             m.dtype, *has, scratch=self.scratch, n=m.num_dofs, max_registers=st.max_registers,
             smem_spilling=st.smem_spilling, envelope=self.envelope, retract=bool(st.retract),
             phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
-            block=self.block_dim if self.in_smem else 0)  # fmt: skip
+            block=self.block_dim if self.in_smem or self.lanes else 0)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -431,41 +453,11 @@ class Solver:
         t.rlim_lo, t.rlim_up, t.rlim_s = m.limit_params[REVOLUTE]
         t.plim_lo, t.plim_up, t.plim_s = m.limit_params[PRISMATIC]
         t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
-        t.term_kind, t.term_k, t.round_start = (wp.array(a, dtype=wp.int32, device=m.device) for a in self._term_rounds())
         from .fused import PHASES
 
         self.phase_cycles = wp.zeros((m.num_worlds if st.phase_clock else 1, len(PHASES)), dtype=wp.int64, device=m.device)
         t.clock = self.phase_cycles
         return kernel, t, assemble_system
-
-    def _term_rounds(self):
-        """The incremental potential's terms as (kind, index) in rounds that share no free body,
-        for the lane-split step (fused.assemble): kinds and order as fused.assemble's loops (0
-        bodies, 1 revolute, 2 fixed, 3 prismatic joints, 4 revolute, 5 prismatic limits, 6 drives);
-        a term's round is one past the last earlier term that shares a free body with it, so every
-        entry of g and H still receives its terms in that order.  Returns (kinds, indices, round
-        starts)."""
-        from .scene import FIXED, PRISMATIC, REVOLUTE
-
-        m = self.model
-        dof = m.dof.numpy()
-        a, b = m.body_a.numpy(), m.body_b.numpy()
-        free = m.free.numpy()
-        terms = [(0, k, (int(free[k]),)) for k in range(len(free))]
-        pair = lambda j: tuple(int(x) for x in (a[j], b[j]) if dof[x] >= 0)  # noqa: E731
-        for kind, ids in ((1, m.joint_ids[REVOLUTE]), (2, m.joint_ids[FIXED]), (3, m.joint_ids[PRISMATIC]),
-                          (4, m.limit_joint_ids[REVOLUTE]), (5, m.limit_joint_ids[PRISMATIC]), (6, m.drive_joint)):  # fmt: skip
-            terms += [(kind, k, pair(j)) for k, j in enumerate(ids.numpy())]
-        last = {}  # body → round of the last term on it
-        rounds = []
-        for kind, k, bodies in terms:
-            r = 1 + max((last.get(x, -1) for x in bodies), default=-1)
-            rounds.append(r)
-            for x in bodies:
-                last[x] = r
-        order = sorted(range(len(terms)), key=lambda i: (rounds[i], i))
-        starts = np.searchsorted(np.array(rounds)[order], np.arange(max(rounds, default=-1) + 2))
-        return (np.array([terms[i][0] for i in order]), np.array([terms[i][1] for i in order]), starts)
 
     def _newton_iteration(self, state):
         m, k, dev, s = self.model, self.k, self.model.device, self.settings

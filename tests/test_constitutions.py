@@ -826,7 +826,12 @@ def test_fused_assembly_matches_staged(sims, ref, case_name):
     """The fused step's assembly (its own Hessian puts: a body's block from its parts, point joints'
     4 × 4 Kronecker factors, a fixed body's blocks skipped) gives the staged kernels' energy,
     gradient and lower-triangular Hessian, every constitution with limits and drives active or not."""
-    sim = sims["float64"]
+    check_fused_system(sims["float64"], ref, case_name)
+
+
+def check_fused_system(sim, ref, case_name):
+    """The fused step's energy, gradient and lower-triangular Hessian (sim.solver.fused_system) at a
+    case against the staged kernels' (float64)."""
     case = make_case(ref, np.random.default_rng(36 + sorted(CASES).index(case_name)), **CASES[case_name])
     load(sim, case)
     E, g, H = assemble(sim)
@@ -838,6 +843,25 @@ def test_fused_assembly_matches_staged(sims, ref, case_name):
             np.testing.assert_allclose(Hf, np.tril(H), rtol=1e-11, atol=1e-11 * np.abs(H).max())
         else:
             assert not Hf.any()
+
+
+@pytest.mark.parametrize("lanes", [5, 8])
+def test_lane_split_assembly_matches_staged(scene, ref, lanes):
+    """scratch="lanes": each lane adds only its own rows of every term's blocks (rows i ≡ lane mod
+    lanes; 5 lanes split a 12-row block unevenly), as cooperative CPU fibers, and together they give
+    the staged kernels' energy, gradient and lower-triangular Hessian (H packed in the scratch)."""
+    import warp as wp
+
+    before = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = True
+    try:
+        sim = ag.Simulator(scene, num_worlds=2, dt=0.01, dtype="float64", scratch="lanes", block_dim=lanes,
+                           device="cpu")  # fmt: skip
+        assert sim.solver.block_dim == lanes
+        for case_name in CASES:
+            check_fused_system(sim, ref, case_name)
+    finally:
+        wp.config.enable_cpu_blocks = before
 
 
 def test_gradient_only_assembly(sims, ref):

@@ -158,3 +158,22 @@ def test_scratch_beyond_32_bit_indexing_is_refused():
 
     with pytest.raises(ValueError, match="exceeds 2\\*\\*31"):
         ag.Simulator(mechanisms.chain(40), num_worlds=9400, fused=False)
+
+
+def test_default_scratch_by_device_size_and_batch():
+    """The layout a simulator picks: a thread per world on the CPU; on a GPU lanes for up to 1,024
+    worlds of up to 24 unknowns, the shared scratch above that where 32 systems fit a block, else
+    the global one (the measured crossovers, solver.default_scratch)."""
+    from types import SimpleNamespace
+
+    import warp as wp
+
+    from abd_gym.solver import default_scratch
+
+    gpu, cpu = SimpleNamespace(is_cuda=True), SimpleNamespace(is_cuda=False)
+    assert default_scratch(cpu, 24, wp.float32, True, 16) == "global"
+    assert default_scratch(gpu, 24, wp.float32, True, 1024) == "lanes"
+    assert default_scratch(gpu, 24, wp.float32, True, 1025) == "shared"
+    assert default_scratch(gpu, 36, wp.float32, True, 64) == "global"  # 32 of its systems exceed 47 KB
+    assert default_scratch(gpu, 24, wp.float64, True, 4096) == "global"
+    assert default_scratch(gpu, 24, wp.float32, False, 64) == "global"  # the staged step has one layout
