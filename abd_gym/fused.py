@@ -299,11 +299,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Any, step: Any, w: int, row: int,
-              s: int, T: int, alpha: dtype, lane: int, L: int):  # fmt: skip
+              s: int, T: int, alpha: dtype, lane: int):  # fmt: skip
         """q_trial[row] = q[w] + α Δq along the retraction's path (affine_body.retract), Δq in
-        scratch column s of the flat ``step`` (T columns); lane ``lane`` of L moves bodies lane,
-        lane + L, … (then the block synchronises)."""
-        for b in range(lane, q.shape[1], L):
+        scratch column s of the flat ``step`` (T columns); lane ``lane`` of LANES moves bodies lane,
+        lane + LANES, … (then the block synchronises)."""
+        for b in range(lane, q.shape[1], LANES):
             qb = q[w, b]
             ob = t.dof[b]
             if ob >= 0:
@@ -611,12 +611,12 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     @wp.func
     def search(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, skip: int, done: int, chord: int,
-               max_line_search: int, lane: int, L: int):  # fmt: skip
+               max_line_search: int, lane: int):  # fmt: skip
         """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
         factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
-        trial points go to row ``row`` of q_trial; s, B as in assemble, lane of L as in trial."""
+        trial points go to row ``row`` of q_trial; s, B as in assemble, lane as in trial."""
         c = clock_now()
-        trial(q, q_trial, t, step, w, row, s, B, one, lane, L)
+        trial(q, q_trial, t, step, w, row, s, B, one, lane)
         c = tick(t, w, lane, 6, c)
         alpha = one
         accepted = int(0)
@@ -630,7 +630,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         else:
             for ls in range(max_line_search):
                 if ls > 0:
-                    trial(q, q_trial, t, step, w, row, s, B, alpha, lane, L)
+                    trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
                     c = tick(t, w, lane, 6, c)
                 accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
                 c = tick(t, w, lane, 5, c)
@@ -663,8 +663,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def end_iteration(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), w: int, row: int, accepted: int,
-                      stalled: int, dmax: dtype, floor: dtype, converged: wp.array(dtype=wp.int32), lane: int,
-                      L: int):  # fmt: skip
+                      stalled: int, dmax: dtype, floor: dtype, converged: wp.array(dtype=wp.int32),
+                      lane: int):  # fmt: skip
         """Take the accepted trial point (row of q_trial) as world w's q; 1 when its solve is over.
         A search that ran out takes no step: converged if the step was already near the tolerance.
         (Steps within 10x the noise floor are taken whole, see whole_step.)  Lane-split: each lane
@@ -673,7 +673,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             if dmax < dtype(1000.0) * floor and lane == 0:
                 converged[w] = 1
             return 1
-        for b in range(lane, q.shape[1], L):
+        for b in range(lane, q.shape[1], LANES):
             q[w, b] = q_trial[row, b]
         if dmax < floor or stalled != 0:
             if lane == 0:
@@ -684,19 +684,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     @wp.func
     def take_step(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                   w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, dmax: dtype, g_abs: dtype, threshold: dtype, chord: int,
-                  reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32), lane: int,
-                  L: int):  # fmt: skip
+                  reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32),
+                  lane: int):  # fmt: skip
         """Everything after a Newton direction (both layouts): the stop test, the line search, the
         choice to reuse the factor next, and the update of q.  Returns (1 when the solve is over,
         chord for the next iteration)."""
         floor, rounding = noise_floor(q, w, threshold)
         skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(rounding, g_abs), chord)
         accepted, stalled, alpha = search(q, q_trial, t, step, g, H, w, row, s, B, e0, gdq, skip, done, chord,
-                                          max_line_search, lane, L)  # fmt: skip
+                                          max_line_search, lane)  # fmt: skip
         retry, chord_next = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
         stop = int(0)
         if retry == 0:
-            stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged, lane, L)
+            stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged, lane)
         if wp.static(lanes):
             block_sync()  # q is read whole by the next iteration
         return stop, chord_next
@@ -706,9 +706,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, s: int, T: int, row: int, threshold: dtype,
                     max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
                     iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
-                    converged: wp.array(dtype=wp.int32), lane: int, L: int):  # fmt: skip
+                    converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
         """World w's whole Newton solve, in scratch column s (of T) of the flat g, H, dq and row
-        ``row`` of q_trial; lane ``lane`` of L (one thread per world: 0 of 1).
+        ``row`` of q_trial; lane ``lane`` of LANES (one thread per world: 0 of 1).
 
         With ``reuse``, an iteration after a full step (α = 1) keeps the Cholesky factor it left in H
         and solves only the new gradient against it (a simplified-Newton step; see ``chord_step``).
@@ -725,7 +725,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         nfact = int(0)
         for it in range(max_iterations):
             c = clock_now()
-            for i in range(lane, N, L):
+            for i in range(lane, N, LANES):
                 g[i * T + s] = zero
                 if chord <= 0:
                     j0 = int(0)
@@ -773,7 +773,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             if lane == 0:
                 iterations[w] = it + 1
             stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord, reuse,
-                                    d_prev, max_line_search, converged, lane, L)  # fmt: skip
+                                    d_prev, max_line_search, converged, lane)  # fmt: skip
             c = tick(t, w, lane, 4, c)
             if stop != 0:
                 return 0
@@ -829,11 +829,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 ds = wp.array(ptr=base + wp.uint64((TRI + N) * block * SIZE), shape=(N * block,), dtype=dtype)
                 for w in range(wa + c, wb, Tw):
                     solve_world(q, q_trial, t, gs, Hs, ds, w, k, block, s, threshold, max_iterations, max_line_search,
-                                reuse, status, iterations, factorizations, converged, 0, 1)  # fmt: skip
+                                reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
             else:
                 for w in range(wa + c, wb, Tw):
                     solve_world(q, q_trial, t, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
-                                reuse, status, iterations, factorizations, converged, 0, 1)  # fmt: skip
+                                reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
 
         return newton, Terms, assemble_system
 
@@ -928,9 +928,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             gs = wp.array(ptr=base + wp.uint64(TRI * SIZE), shape=(N + NF,), dtype=dtype)  # lane_bodies' slots
             ds = wp.array(ptr=base + wp.uint64((TRI + N + NF) * SIZE), shape=(N,), dtype=dtype)
             solve_world(q, q_trial, t, gs, Hs, ds, w, 0, 1, w, threshold, max_iterations, max_line_search, reuse,
-                        status, iterations, factorizations, converged, c - w * LANES, LANES)  # fmt: skip
+                        status, iterations, factorizations, converged, c - w * LANES)  # fmt: skip
         else:
             solve_world(q, q_trial, t, g, H, dq, w, w * N * N, 1, w, threshold, max_iterations, max_line_search, reuse,
-                        status, iterations, factorizations, converged, c - w * LANES, LANES)  # fmt: skip
+                        status, iterations, factorizations, converged, c - w * LANES)  # fmt: skip
 
     return newton_lanes, Terms, assemble_system

@@ -143,7 +143,7 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
     systems fits its shared memory (float32); else "global".  Measured on an H100 (``python -m
     abd_gym.bench --scratch global,shared,lanes``): shared 1.18-1.25x as fast as global on
     cart-poles and 1.25-1.47x on double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast
-    as shared on both at 1,024 worlds, 0.70x at 2,048 (results/lanes_rows_h100.md).  Larger scenes
+    as shared on both at 1,024 worlds, 0.70x at 2,048 (results/bench_h100_lanes_rows.*).  Larger scenes
     keep the thread per world: lanes are unmeasured there."""
     if not (fused and device.is_cuda):
         return "global"
@@ -188,8 +188,8 @@ class Solver:
         self.in_smem = self.shared and cuda
         if (self.shared or self.lanes) and settings.envelope:
             raise ValueError(f"scratch={scratch!r} factors densely (H packed): it takes envelope=False or None")
-        # scratch columns of g, H, Δq: one per world for the staged step and the lane-split step; one
-        # per thread for the fused step, whose threads each solve several worlds in turn (memory per
+        # scratch columns of g, H, Δq: one per world for the staged step and the CPU's lane-split step
+        # (on a GPU its systems live in shared memory); one per thread for the fused step, whose threads each solve several worlds in turn (memory per
         # world stays O(bodies))
         workers = 1
         if settings.cpu_workers is not None and not (isinstance(settings.cpu_workers, (int, np.integer))
