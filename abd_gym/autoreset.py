@@ -82,10 +82,13 @@ class NextEpisodes:
             self._top_up()
 
     def _top_up(self):
-        """Draw every world's missing rows (world w: taken + depth − drawn of them) in one upload:
-        round j draws row drawn + j of each world still short, in world order."""
+        """Draw every world's missing rows (world w: taken + depth − 1 − drawn of them) in one upload:
+        round j draws row drawn + j of each world still short, in world order.  A queue holds at
+        most depth − 1 rows ahead: the slot left is the row last taken, so a top-up made while the
+        host counts one row too many for a world (a step the device refused, which the host learns
+        a call late and takes back: vector_env) never overwrites the row the world takes next."""
         W, K = len(self._taken), self.depth
-        short = self._taken + K - self._drawn
+        short = self._taken + K - 1 - self._drawn
         rounds = int(short.max())
         if rounds <= 0:
             return

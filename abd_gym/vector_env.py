@@ -34,28 +34,36 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
 * backends: ``backend="numpy"`` (default) returns NumPy arrays; ``backend="torch"`` returns Torch
   tensors on the simulator's device, computed from zero-copy views of the simulator's arrays, and
   takes actions as tensors (or arrays).  Only the NaN check (one bool), the done mask and, when
-  worlds are done, their reset states cross between host and device.  On a GPU a step waits for
-  the device once, at the NaN check, before its physics is queued: the done mask reaches the host
-  by an asynchronous copy that the next step reads after queuing its own physics, so the host's
-  work on a step's results runs while the device steps (SAME_STEP resets must wait for it).
+  worlds are done, their reset states cross between host and device.  The done mask reaches the
+  host by an asynchronous copy that the next step reads after queuing its own physics, so the
+  host's work on a step's results runs while the device steps (SAME_STEP resets must wait for it).
+  Op by op on a GPU, a step waits for the device once more, at the NaN check, before its physics
+  is queued; the step graph (below) checks on the device and never waits for the step it queues.
 * autoresets on the device and the step as one graph: in NEXT_STEP mode, for a task whose
   episodes start from ``_initial_state`` alone (no ``_reset_task``) and while no parameters are
   randomised, each world's next initial states are drawn ahead into a queue on the device
   (:mod:`abd_gym.autoreset`; from a generator spawned from ``np_random`` at each full reset, so
   the same seed gives the same episodes on every backend and device) and the autoreset is device
-  work only.  With the Torch backend on a GPU the whole step (controls, physics, autoreset,
-  observation, reward, flags) is then captured once as a CUDA graph and replayed on a static
-  action buffer; the returned tensors are copies.  The graph holds the task's Python constants
-  (thresholds, ``max_episode_steps``, reward weights) as they were when it was captured, at the
-  env's second step: set them before stepping.  ``graph=False``
-  launches the same work op by op (the default elsewhere); ``graph=True`` where it cannot apply
-  raises ``ValueError``.
+  work only.  With the Torch backend on a GPU the whole step (action check, controls, physics,
+  autoreset, observation, reward, flags) is then captured once as CUDA graphs (two: the Warp
+  part, whose physics and autoreset are conditional nodes, and the Torch part after it) and
+  replayed on a static action buffer; the returned tensors are copies.  The env's own bookkeeping
+  runs there as a few Warp kernels (:mod:`abd_gym.env_kernels`), between the task's Torch code.
+  The graphs hold the task's Python constants (thresholds, ``max_episode_steps``, reward weights)
+  as they were when captured, at the env's second step: set them before stepping.
+  ``graph=False`` launches the same work op by op (the default elsewhere); ``graph=True`` where it
+  cannot apply raises ``ValueError``.
 * bad actions: actions are clipped to the action space (so out-of-range values and ±inf act as
-  ±1).  An action batch containing NaN raises ``ValueError`` before anything is stepped: no world
-  (and no other world) changes state.  A world whose solve fails (``Simulator.failed_worlds``, or a
-  non-finite observation) is terminated, reported in ``info["sim_failed"]`` (a bool per world,
-  in every step's info) and gets a zero observation and reward; the autoreset (or your masked
-  reset) brings it back.
+  ±1).  An action batch containing NaN raises ``ValueError`` naming the worlds, and no world
+  changes state.  With the step graph (Torch on a GPU) the check runs on the device, so it is
+  reported one call late: the call given the batch returns (its outputs are those of worlds that
+  did not move), the device refuses that step and every step after it, and the next ``step`` or
+  ``reset`` raises, having taken back the host's bookkeeping of both calls (clocks, autoreset
+  queues); the env then goes on as if the batch had never been passed.  Elsewhere the call given
+  the batch raises before anything is stepped.  A world whose solve fails
+  (``Simulator.failed_worlds``, or a non-finite observation) is terminated, reported in
+  ``info["sim_failed"]`` (a bool per world, in every step's info) and gets a zero observation and
+  reward; the autoreset (or your masked reset) brings it back.
 * observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
   and chosen above what the task reaches (rates: ``velocity_bound`` = 100 rad/s or m/s).
 * per-world physical parameters: ``randomize={...}`` (constructor or ``reset`` option, sticky:
@@ -94,6 +102,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from . import env_kernels
 from .autoreset import NextEpisodes
 from .scene import REVOLUTE, Scene
 from .simulator import Simulator
@@ -222,8 +231,16 @@ class ABDVectorEnv(VectorEnv):
             raise ValueError("graph=True needs the Torch backend on a CUDA device and NEXT_STEP autoresets of a task "
                              "without _reset_task")  # fmt: skip
         self._use_graph = cuda_torch and self._next is not None if graph is None else bool(graph)
-        self._graph = None  # (torch.cuda.CUDAGraph, its outputs)
+        self._graph = None  # ((pre graph or None, physics graph, post graph), the post graph's outputs)
         self._device_warm = False
+        # the step graph checks its actions for NaN on the device (a refused batch steps nothing,
+        # and the next call raises): a host check would make the host wait for the device each step
+        self._check_on_device = self._use_graph and wp.is_conditional_graph_supported()
+        self._go = None  # device int32 flag: 1 steps, 0 refuses (sticky until the host reads why)
+        self._unread = False  # a step checked on the device whose verdict the host has not read
+        self._refused = np.zeros(0, dtype=np.int64)  # the worlds with NaN actions in the last such step
+        self._undo = None  # that step's host bookkeeping before it: (clock, rows taken, pending mask)
+        self._replay_stream = None  # Warp's handle of the Torch stream the step graphs are replayed on
 
         # ---- per-world physical parameters (host copies of what the simulator holds)
         scene = self.scene
@@ -372,7 +389,9 @@ class ABDVectorEnv(VectorEnv):
         return self.sim._out(self.sim.state.status, "torch") != 0
 
     # ================================================================== actions
-    def _prepare_actions(self, actions):
+    def _prepare_actions(self, actions, check: bool = True):
+        """The action batch as a clipped float32 backend array (N, action_dim); with ``check``, a
+        batch with NaN raises here (which, for a Torch tensor on a GPU, waits for the device)."""
         N, d = self.num_envs, self.action_dim
         xp = self.xp
         if xp is np:
@@ -385,6 +404,8 @@ class ABDVectorEnv(VectorEnv):
                 a = a.reshape(N, 1)
             else:
                 raise ValueError(f"actions must have shape ({N}, {d}), got {tuple(a.shape)}")
+        if not check:
+            return a  # checked and clipped on the device
         nan = xp.isnan(a)
         if bool(nan.any()):
             worlds = np.flatnonzero(_to_numpy(nan).any(axis=1))
@@ -480,6 +501,8 @@ class ABDVectorEnv(VectorEnv):
         ``options``: ``reset_mask`` (bool array (num_envs,)), ``randomize`` (see the module
         docstring) and the task's own keys (``reset_option_keys``).
         """
+        if self._unread:
+            self._pending_now()  # raises, having taken it back, if the device refused the last step
         super().reset(seed=seed)
         options = dict(options or {})
         mask = options.pop("reset_mask", None)
@@ -535,23 +558,33 @@ class ABDVectorEnv(VectorEnv):
         if self._pending_in_flight:
             host, event = self._pinned
             event.synchronize()
-            self._pending = host.numpy().copy()
+            self._pending = host[0].numpy().copy()
+            if self._unread:
+                self._refused = np.flatnonzero(host[1].numpy())
             self._pending_in_flight = False
+        if self._unread:  # the verdict of a step checked on the device
+            self._unread = False
+            if len(self._refused):
+                self._take_back()
         return self._pending
 
-    def _defer_pending(self, done):
-        """Keep ``done`` as the next step's pending mask without waiting for the device: a
-        non-blocking copy to pinned host memory and an event the next step waits on after it has
-        launched its physics (so the host's work on this step's results overlaps the device's work
-        on the next one)."""
+    def _defer_pending(self, flags, checked: bool = False):
+        """Keep the done mask ``flags`` (with ``checked``, the rows done and bad: the worlds whose NaN
+        actions made the device refuse the step) as the next step's pending mask without waiting for
+        the device: a non-blocking copy to pinned host memory and an event the next step waits on
+        after it has launched its physics (so the host's work on this step's results overlaps the
+        device's work on the next one)."""
         if self.xp is np or self._torch_device.type != "cuda":
-            self._pending = _to_numpy(done).copy()
+            rows = _to_numpy(flags)
+            self._pending = (rows[0] if checked else rows).copy()
+            if checked:
+                self._refused = np.flatnonzero(rows[1])
             return
         torch = self.xp
         if self._pinned is None:
-            self._pinned = (torch.empty(self.num_envs, dtype=torch.bool, pin_memory=True), torch.cuda.Event())
+            self._pinned = (torch.zeros((2, self.num_envs), dtype=torch.bool, pin_memory=True), torch.cuda.Event())
         host, event = self._pinned
-        host.copy_(done, non_blocking=True)
+        (host if checked else host[0]).copy_(flags, non_blocking=True)
         event.record()
         self._pending_in_flight = True
 
@@ -559,8 +592,11 @@ class ABDVectorEnv(VectorEnv):
         if not self._has_reset:
             raise RuntimeError("call reset() before step()")
         xp, N = self.xp, self.num_envs
-        a = self._prepare_actions(actions)
-        if self._next is not None and self._randomize is None and not self._randomized:
+        on_device = self._next is not None and self._randomize is None and not self._randomized
+        if self._unread and not on_device:
+            self._pending_now()  # the verdict of the last step, checked on the device, before this one
+        a = self._prepare_actions(actions, check=not (on_device and self._check_on_device))
+        if on_device:
             if self._next_rng is None:  # no full reset yet (only masked ones): the queues start now
                 self._restart_next_episodes()
             return self._step_on_device(a)
@@ -623,40 +659,117 @@ class ABDVectorEnv(VectorEnv):
         return obs, reward, terminated, truncated, failed, info_values
 
     # ================================================================== step with autoresets on the device
-    def _device_step(self, a, capturing: bool):
-        """One env step as device work only (no host reads, no host-dependent branches), so that a
-        CUDA graph can hold it: controls, physics, the autoreset of last step's ended worlds
-        (autoreset.py), then observation, reward and flags, those of the reset worlds replaced as
-        in ``step`` (reward 0, both flags False) and the ended worlds marked for the next step."""
-        xp = self.xp
-        self.sim.set_controls(self._controls(a))
-        if capturing:
-            self.sim.launch_step(self.frame_skip)  # the env's graph holds the step; the clock ticks at replay
-        else:
-            self.sim.step(self.frame_skip)
-        pend = self._next.mask(xp)
-        # on the CPU the mask is host memory: the autoreset's five launches only when a world is
-        # pending (on a GPU, reading it would wait for the device; a graph holds them anyway)
-        if capturing or not self.device.is_cpu or bool(pend.any()):
-            self._next.apply()
-        self._elapsed += 1
-        if xp is np:
-            self._elapsed[pend] = 0
-        else:
-            self._elapsed.masked_fill_(pend, 0)
-        obs, reward, terminated, truncated, failed, info_values = self._outcome(a, pend)
-        done = terminated | truncated
-        self._next.set_pending(done)
-        return obs, reward, terminated, truncated, failed, info_values, done
+    def _device_buffers(self):
+        """The Torch device path's arrays, made once (Torch tensors and Warp views of them): the go
+        flag, the flag of any pending autoreset, and the step's outputs packed in one byte buffer:
+        observations and rewards (float32, the observations' rows then the rewards), then the flags'
+        rows terminated, truncated, failed, done and bad (a NaN action)."""
+        if self._go is not None:
+            return
+        torch = self.xp
+        N, d = self.num_envs, self.single_observation_space.shape[0]
+        dev = self._torch_device
+        self._go = wp.ones(1, dtype=wp.int32, device=self.device)
+        self._go_t = wp.to_torch(self._go)
+        self._any_pending = wp.ones(1, dtype=wp.int32, device=self.device)  # 1 may be stale: then a no-op autoreset
+        # one byte buffer, so that one clone copies the observations, rewards and the three flags returned
+        F = 4 * N * (d + 1)
+        self._out_raw = torch.zeros(F + 5 * N, dtype=torch.uint8, device=dev)
+        self._out_f = self._out_raw[:F].view(torch.float32)
+        self._out_b = self._out_raw[F:].view(torch.bool).view(5, N)
+        self._wp = dict(effort=wp.from_torch(self._effort),
+                        obs=wp.from_torch(self._out_f[: N * d].view(N, d)), reward=wp.from_torch(self._out_f[N * d:]),
+                        flags=wp.from_torch(self._out_b), bad=wp.from_torch(self._out_b[4]),
+                        elapsed=wp.from_torch(self._elapsed))  # fmt: skip
 
-    def _capture(self):
-        """The CUDA graph of ``_device_step`` on a static action buffer: Torch's capture on a side
-        stream, Warp's launches on the same stream (told the capture is external), the simulator's
-        kernels launched directly (``Simulator.launch_step``)."""
+    def _pre(self, a, checked: bool):
+        """The controls of the actions ``a``.  ``checked`` (on the device; ``a`` not yet clipped, and
+        clipped in place, NaN as 0): each world's NaN flag, and the go flag cleared by any of them
+        (and left cleared, refusing every later step, until the host has read why: ``_take_back``).
+        The controls are set either way: a refused batch's (NaN as 0) stay in the simulator's
+        control array, an input that the next step sets again, not a world's state."""
+        if not checked:
+            self.sim.set_controls(self._controls(a))
+            return
+        scaled = type(self)._controls is ABDVectorEnv._controls
+        k = self._wp
+        wp.launch(env_kernels.check_actions(self.sim.model.dtype, scaled), dim=self.num_envs,
+                  inputs=[wp.from_torch(a), k["effort"], k["bad"], self._go, self.sim.state.control],
+                  device=self.device)  # fmt: skip
+        if not scaled:
+            self.sim.set_controls(self._controls(a))
+
+    def _physics(self, capturing: bool, checked: bool):
+        """The simulator's step, then the autoreset of last step's ended worlds (autoreset.py);
+        ``checked``: only where the go flag is set (a conditional node of the step graph, which the
+        device decides)."""
+        sim = self.sim
+
+        def run():
+            if capturing:
+                sim.launch_step(self.frame_skip)  # the env's graph holds the step; the clock ticks at replay
+            else:
+                sim.step(self.frame_skip)
+            # the autoreset's five launches only when a world is pending: checked, as a conditional
+            # node on the flag finish_step sets (most steps of a task whose episodes end together have
+            # none); else on the CPU from the mask in host memory (on a GPU, reading it would wait
+            # for the device)
+            if checked:
+                wp.capture_if(self._any_pending, on_true=self._next.apply)
+            elif capturing or not self.device.is_cpu or self._next.mask(np).any():
+                self._next.apply()
+
+        if checked:
+            wp.capture_if(self._go, on_true=run)
+        else:
+            run()
+
+    def _post(self, a):
+        """Observation, reward and flags of the step, those of the worlds reset in it replaced as in
+        ``step`` (reward 0, both flags False), the ended worlds marked for the next step.  With
+        Torch, in env_kernels' two launches around the task's own operations (a step the device
+        refused changes no clock and no pending mask), into the packed outputs; returns (the
+        outputs, info values, the flags' rows done and bad)."""
+        xp = self.xp
+        if xp is np:
+            pend = self._next.mask(xp)
+            self._elapsed += 1
+            self._elapsed[pend] = 0
+            obs, reward, terminated, truncated, failed, info_values = self._outcome(a, pend)
+            done = terminated | truncated
+            self._next.set_pending(done)
+            return (obs, reward, terminated, truncated, failed), info_values, done
+        k, dev, N = self._wp, self.device, self.num_envs
+        pending = self._next.pending
+        wp.launch(env_kernels.tick_clocks, dim=N, inputs=[self._go, pending, k["elapsed"], self._any_pending],
+                  device=dev)  # fmt: skip
+        obs = self._observe_safe()
+        reward = self._f32(self._reward(obs, a))
+        term = self._terminated(obs)
+        info_values = self._info(obs)
+        steps = -1 if self.max_episode_steps is None else self.max_episode_steps
+        wp.launch(env_kernels.finish_step, dim=N,
+                  inputs=[wp.from_torch(obs), wp.from_torch(reward.contiguous()), wp.from_torch(term.contiguous()),
+                          self.sim.state.status, self._go, pending, k["elapsed"], steps, k["obs"], k["reward"],
+                          k["flags"], self._any_pending], device=dev)  # fmt: skip
+        d = obs.shape[1]
+        out = (self._out_f[: N * d].view(N, d), self._out_f[N * d:], self._out_b[0], self._out_b[1], self._out_b[2])
+        return out, info_values, self._out_b[3:5]
+
+    def _device_step(self, a):
+        """One env step as device work only (no host reads, no host-dependent branches on a GPU), so
+        that CUDA graphs can hold it: controls, physics with the autoreset, outcome."""
+        checked = self._check_on_device
+        self._pre(a, checked)
+        self._physics(False, checked)
+        return self._post(a)
+
+    def _torch_graph(self, fn):
+        """A CUDA graph of ``fn()`` and its outputs: Torch's capture on a side stream, Warp's launches
+        on the same stream (told the capture is external)."""
         import torch
 
         dev = self._torch_device
-        self._action_buf = torch.zeros((self.num_envs, self.action_dim), dtype=torch.float32, device=dev)
         graph = torch.cuda.CUDAGraph()
         stream = torch.cuda.Stream(device=dev)
         stream.wait_stream(torch.cuda.current_stream(dev))
@@ -665,41 +778,114 @@ class ABDVectorEnv(VectorEnv):
             with wp.ScopedStream(ws, sync_enter=False):
                 wp.capture_begin(stream=ws, external=True)
                 try:
-                    outputs = self._device_step(self._action_buf, capturing=True)
+                    outputs = fn()
                 finally:
                     wp.capture_end(stream=ws)
         torch.cuda.current_stream(dev).wait_stream(stream)
         return graph, outputs
 
+    def _capture(self):
+        """The step as graphs on a static action buffer: before the physics and after it (Torch), the
+        physics between them (Warp's own capture: its conditional node on the go flag must not end a
+        Torch capture, whose allocations are tied to the capture's id)."""
+        import torch
+
+        self._action_buf = torch.zeros((self.num_envs, self.action_dim), dtype=torch.float32, device=self._torch_device)
+        checked = self._check_on_device
+        # the check (one Warp launch, with the default controls) heads the physics' graph: one graph
+        # launch less; Torch operations (a task's own controls, the host-checked path's copy) need
+        # Torch's capture
+        warp_only = checked and type(self)._controls is ABDVectorEnv._controls
+        pre = None
+        if not warp_only:
+            pre, _ = self._torch_graph(lambda: self._pre(self._action_buf, checked))
+        with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+            if warp_only:
+                self._pre(self._action_buf, checked)
+            self._physics(True, checked)
+        post, outputs = self._torch_graph(lambda: self._post(self._action_buf))
+        return (pre, capture.graph, post), outputs
+
+    def _replay(self, a):
+        """The step graphs replayed on Torch's current stream (the physics' too) with the actions ``a``."""
+        import torch
+
+        (pre, physics, post), outputs = self._graph
+        ts = torch.cuda.current_stream(self._torch_device)
+        if self._replay_stream is None or self._replay_stream._torch_stream != ts:
+            self._replay_stream = wp.stream_from_torch(ts)
+        self._action_buf.copy_(a)
+        if pre is not None:
+            pre.replay()
+        wp.capture_launch(physics, stream=self._replay_stream)
+        post.replay()
+        return outputs
+
     def _step_on_device(self, a):
-        """``step`` with NEXT_STEP autoresets on the device: one graph replay on a GPU with Torch (after
-        one step of plain launches, which loads every kernel), else the same work launched."""
-        if self._use_graph and self._device_warm:
+        """``step`` with NEXT_STEP autoresets on the device: on a GPU with Torch, graph replays (after one
+        step of plain launches, which loads every kernel), else the same work launched.  With the
+        check on the device, the host learns a call late whether a step ran, and keeps what it needs
+        to take its bookkeeping of a refused one back (``_take_back``)."""
+        checked = self._check_on_device
+        if self.xp is not np:
+            self._device_buffers()
+        if checked:
+            before = (self.sim.state.time.copy(), self._next._taken.copy())
+        replayed = self._use_graph and self._device_warm
+        if replayed:
             if self._graph is None:
                 self._graph = self._capture()
-            graph, outputs = self._graph
-            self._action_buf.copy_(a)
-            graph.replay()
-            self.sim.tick(self.frame_skip)
-            # the graph's outputs are rewritten by the next replay: the caller gets its own copies
-            obs, reward, terminated, truncated, failed = (t.clone() for t in outputs[:5])
-            info_values = {k: v.clone() for k, v in outputs[5].items()}
-            done = outputs[6]  # read by the copy below before the next replay rewrites it (one stream)
+            out, info_values, flags = self._replay(a)
         else:
-            obs, reward, terminated, truncated, failed, info_values, done = self._device_step(a, capturing=False)
+            if checked:
+                a = a.clone()  # clipped in place by the check
+            out, info_values, flags = self._device_step(a)
             self._device_warm = True
+        if self.xp is not np:
+            # the step's outputs are rewritten by the next step: the caller gets its own copies (one
+            # clone of the packed bytes)
+            N, d = self.num_envs, out[0].shape[1]
+            F = 4 * N * (d + 1)
+            raw = self._out_raw[: F + 3 * N].clone()
+            f, b = raw[:F].view(self.xp.float32), raw[F:].view(self.xp.bool).view(3, N)
+            out = (f[: N * d].view(N, d), f[N * d:], b[0], b[1], b[2])
+            info_values = {k: v.clone() for k, v in info_values.items()}
+        obs, reward, terminated, truncated, failed = out
         # the worlds the device just reset (last step's ended ones, known on the host now): their
-        # info is a reset's (none), their clock restarts, they took a row of their queues
-        pending = np.flatnonzero(self._pending_now())
+        # info is a reset's (none), their clock restarts, they took a row of their queues; this
+        # read raises if the device refused the last step
+        mask = self._pending_now()
+        if replayed:
+            self.sim.tick(self.frame_skip)
+        pending = np.flatnonzero(mask)
+        if checked:
+            self._undo = before + (mask.copy(),)
         has_info = np.ones(self.num_envs, dtype=bool)
         if len(pending):
             has_info[pending] = False
             self.sim.state.time[pending] = 0.0
             self._next.took(pending)
             self._pending[pending] = False
-        self._defer_pending(done)
+        if not checked and flags.ndim == 2:
+            flags = flags[0]  # the done row
+        self._defer_pending(flags, checked)
+        self._unread = checked
         info_values = dict(info_values, sim_failed=failed)
         return obs, reward, terminated, truncated, self._batch_info(info_values, has_info)
+
+    def _take_back(self):
+        """The device refused the last step (NaN actions) and every step since: the host's
+        bookkeeping of that step is taken back (clocks, queue rows, pending mask), the go flag set
+        again, and the refusal raised."""
+        clock, taken, pending = self._undo
+        self.sim.state.time[...] = clock
+        self._next._taken[...] = taken
+        self._pending = pending
+        self._go.fill_(1)
+        worlds, self._refused = self._refused, np.zeros(0, dtype=np.int64)
+        raise ValueError(f"the actions of the last step contained NaN in worlds {worlds.tolist()[:10]}; no world "
+                         "was stepped by that call or this one (on the device the check reports a call late; replace "
+                         "or mask NaN actions before calling step)")  # fmt: skip
 
     # ================================================================== render / close
     def render(self):

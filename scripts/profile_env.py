@@ -4,8 +4,11 @@ makes the host wait for the device (``torch.cuda.set_sync_debug_mode``).
 
     python scripts/profile_env.py [--task CartPole-v0] [--envs 1024] [--steps 200] [--device cuda:0]
 
-A phase that waits for the device shows the device's time in its row; with the step's syncs
-removed, only the NaN check at the start of ``step`` should (see abd_gym/vector_env.py).
+A phase that waits for the device shows the device's time in its row: with the step graph, only
+``_pending_now`` should (it waits for the last step while this one runs; see abd_gym/vector_env.py).
+With the step graph, the device's time per step is split too, by CUDA events: the actions' copy and
+the graph before the physics, the physics graph, the graph after it, the returned copies, and the
+gap to the next step (where the device waits for the host).
 """
 import argparse
 import collections
@@ -20,6 +23,50 @@ import abd_gym  # noqa: F401 -- registers the ids
 
 PHASES = ("_prepare_actions", "_controls", "_pending_now", "_reset_worlds", "_observe_safe", "_reward", "_terminated",
           "_info", "_defer_pending", "_failed", "_step_on_device", "_device_step", "_capture")  # fmt: skip
+
+
+def device_phases(env, actions, steps):
+    """Device time of each part of the graph step, from CUDA events recorded around them."""
+    import torch
+
+    u = env.unwrapped
+    (pre, physics, post), outputs = u._graph
+    marks = []
+
+    def replay(a):
+        e = marks[-1]
+        u._action_buf.copy_(a)
+        if pre is not None:
+            pre.replay()
+        e[1].record()
+        wp.capture_launch(physics, stream=u._replay_stream)
+        e[2].record()
+        post.replay()
+        e[3].record()
+        return outputs
+
+    inner = u._replay
+    u._replay = replay
+    wp.synchronize_device(u.device)
+    t0 = time.perf_counter()
+    for k in range(steps):
+        marks.append([torch.cuda.Event(enable_timing=True) for _ in range(5)])
+        marks[-1][0].record()
+        env.step(actions[k % len(actions)])
+        marks[-1][4].record()
+    torch.cuda.synchronize()
+    wall = time.perf_counter() - t0
+    u._replay = inner
+    names = ("actions (and pre graph)", "physics graph", "post graph", "copies returned", "gap to the next step")
+    sums = [0.0] * 5
+    for k, e in enumerate(marks):
+        for j in range(4):
+            sums[j] += e[j].elapsed_time(e[j + 1])
+        if k + 1 < len(marks):
+            sums[4] += e[4].elapsed_time(marks[k + 1][0])
+    print(f"device time per step (CUDA events, {steps} steps; wall {wall / steps * 1e6:.0f} us/step):")
+    for name, v in zip(names, sums):
+        print(f"  {name:24s} {v / steps * 1e3:8.1f} us/step")
 
 
 def main(argv=None):
@@ -77,6 +124,8 @@ def main(argv=None):
     print(f"step: {host / args.steps * 1e6:.0f} us on the host, {total / args.steps * 1e6:.0f} us with the device drained")
     for name, s in sorted(spent.items(), key=lambda kv: -kv[1]):
         print(f"  {name:20s} {s / args.steps * 1e6:8.1f} us/step  ({calls[name]} calls)")
+    if u._graph is not None:
+        device_phases(env, actions, args.steps)
     if wp.get_device(u.device).is_cuda:
         torch.cuda.set_sync_debug_mode("warn")
         with warnings.catch_warnings(record=True) as caught:

@@ -334,7 +334,10 @@ def test_torch_backend_matches_numpy_and_stays_on_device(mode, device):
     assert ended
     bad = torch.zeros(N, 1, device=to.device)
     bad[0, 0] = float("nan")
-    with pytest.raises(ValueError, match="NaN"):
+    if tenv._check_on_device:  # the GPU's step graph: refused on the device, raised by the next call
+        tenv.step(bad)
+        bad = torch.zeros_like(bad)
+    with pytest.raises(ValueError, match=r"NaN in worlds \[0\]"):
         tenv.step(bad)
     tenv.close()
     nenv.close()
@@ -348,16 +351,18 @@ class _FixedStartCartPole(CartPoleVectorEnv):
         return np.tile([0.0, 0.15], (n, 1)), np.tile([0.0, 0.5], (n, 1))
 
 
-@pytest.mark.parametrize("backend", ["numpy", "torch"])
+@pytest.mark.parametrize("backend", ["numpy", "torch", "torch-checked"])
 def test_device_autoreset_matches_the_host_reset(backend):
     """NEXT_STEP autoresets on the device (autoreset.py: next episodes drawn ahead, applied by the
     device mask of last step's ended worlds) against the same env resetting on the host: same
-    observations, rewards, flags, info masks and clocks through terminations and truncations."""
-    if backend == "torch":
+    observations, rewards, flags, info masks and clocks through terminations and truncations.
+    torch-checked: with the GPU graph's checks and conditional launches (run directly on the CPU)."""
+    if backend != "numpy":
         pytest.importorskip("torch")
-    dev, host = (_FixedStartCartPole(N, max_episode_steps=9, backend=backend) for _ in range(2))
+    dev, host = (_FixedStartCartPole(N, max_episode_steps=9, backend=backend.split("-")[0]) for _ in range(2))
     host._next = None  # the host path: _reset_worlds in the step
     assert dev._next is not None and not dev._use_graph  # on the CPU: the same launches, no graph
+    dev._check_on_device = backend == "torch-checked"
     for env in (dev, host):
         env.reset(seed=2)
     actions = np.random.default_rng(4).uniform(-1, 1, size=(40, N, 1)).astype(np.float32)
@@ -373,6 +378,61 @@ def test_device_autoreset_matches_the_host_reset(backend):
         ends += int(np.asarray(out_h[2]).sum())
         truncs += int(np.asarray(out_h[3]).sum())
     assert ends > 0 and truncs > 0
+
+
+def _snapshot(env):
+    sim = env.unwrapped.sim
+    return [np.array(x) for x in (sim.body_q(), sim.joint_velocities(), sim.joint_coordinates(), sim.state.time,
+                                  env._elapsed.cpu().numpy(), env._next.pending.numpy(), env._next.taken.numpy(),
+                                  env._next._taken)]  # fmt: skip
+
+
+@pytest.mark.parametrize("device", ["cpu", "cuda:0"])
+def test_nan_actions_checked_on_the_device_are_taken_back(device):
+    """The check on the device (the GPU step graph's; forced here on the CPU): a batch with NaN steps
+    no world, the next call raises naming the worlds and steps nothing either, and afterwards the
+    env goes on as one that never saw the batch (autoresets, queues and clocks included); a reset
+    after such a batch raises once, then resets."""
+    torch = pytest.importorskip("torch")
+    _cuda_or_skip(device)
+    env, ref = (make(max_episode_steps=9, backend="torch", device=device) for _ in range(2))
+    if device == "cpu":
+        env._check_on_device = True  # ref keeps the host check: checked on the device, the same stream
+    assert env._check_on_device
+    actions = torch.as_tensor(np.random.default_rng(5).uniform(-1, 1, size=(30, N, 1)).astype(np.float32),
+                              device=env._torch_device)  # fmt: skip
+    env.reset(seed=3)
+    ref.reset(seed=3)
+    for a in actions[:9]:  # the 9th step truncates every world: the next one resets them all
+        env.step(a)
+        ref.step(a)
+    before = _snapshot(env)
+    bad = actions[9].clone()
+    bad[2, 0] = float("nan")
+    env.step(bad)
+    after = _snapshot(env)
+    for k in (0, 1, 2, 4, 5, 6):  # the device's state (the host's clocks and counts wait for the verdict)
+        np.testing.assert_array_equal(after[k], before[k])
+    with pytest.raises(ValueError, match=r"NaN in worlds \[2\]; no world was stepped"):
+        env.step(actions[9])
+    for x, y in zip(_snapshot(env), before):
+        np.testing.assert_array_equal(x, y)
+    for a in actions[9:]:
+        out, want = env.step(a), ref.step(a)
+        for x, y in zip(out[:4], want[:4]):
+            np.testing.assert_array_equal(x.cpu().numpy(), y.cpu().numpy())
+        for k in want[4]:
+            np.testing.assert_array_equal(np.asarray(out[4][k].cpu() if torch.is_tensor(out[4][k]) else out[4][k]),
+                                          np.asarray(want[4][k].cpu() if torch.is_tensor(want[4][k]) else want[4][k]))
+        np.testing.assert_array_equal(env.sim.state.time, ref.sim.state.time)
+    env.step(bad)
+    with pytest.raises(ValueError, match=r"NaN in worlds \[2\]"):
+        env.reset(seed=1)
+    o1, _ = env.reset(seed=1)
+    o2, _ = ref.reset(seed=1)
+    np.testing.assert_array_equal(o1.cpu().numpy(), o2.cpu().numpy())
+    env.close()
+    ref.close()
 
 
 def test_device_autoreset_draws_fresh_episodes():
