@@ -672,15 +672,23 @@ class ABDVectorEnv(VectorEnv):
         self._go = wp.ones(1, dtype=wp.int32, device=self.device)
         self._go_t = wp.to_torch(self._go)
         self._any_pending = wp.ones(1, dtype=wp.int32, device=self.device)  # 1 may be stale: then a no-op autoreset
-        # one byte buffer, so that one clone copies the observations, rewards and the three flags returned
-        F = 4 * N * (d + 1)
-        self._out_raw = torch.zeros(F + 5 * N, dtype=torch.uint8, device=dev)
-        self._out_f = self._out_raw[:F].view(torch.float32)
-        self._out_b = self._out_raw[F:].view(torch.bool).view(5, N)
-        self._wp = dict(effort=wp.from_torch(self._effort),
-                        obs=wp.from_torch(self._out_f[: N * d].view(N, d)), reward=wp.from_torch(self._out_f[N * d:]),
+        # one byte buffer, so that one clone of its head copies the observations, rewards and the three
+        # flags returned
+        self._out_raw = torch.zeros(4 * N * (d + 1) + 5 * N, dtype=torch.uint8, device=dev)
+        self._out_head = 4 * N * (d + 1) + 3 * N
+        obs, reward, self._out_b = self._unpack(self._out_raw)
+        self._wp = dict(effort=wp.from_torch(self._effort), obs=wp.from_torch(obs), reward=wp.from_torch(reward),
                         flags=wp.from_torch(self._out_b), bad=wp.from_torch(self._out_b[4]),
                         elapsed=wp.from_torch(self._elapsed))  # fmt: skip
+
+    def _unpack(self, raw):
+        """Views of the packed outputs ``raw`` (the buffer, or a copy of its head): observations
+        (N, d), rewards (N,) and the flag rows it holds (terminated, truncated, failed[, done, bad])."""
+        torch = self.xp
+        N, d = self.num_envs, self.single_observation_space.shape[0]
+        F = 4 * N * (d + 1)
+        f = raw[:F].view(torch.float32)
+        return f[: N * d].view(N, d), f[N * d:], raw[F:].view(torch.bool).view(-1, N)
 
     def _pre(self, a, checked: bool):
         """The controls of the actions ``a``.  ``checked`` (on the device; ``a`` not yet clipped, and
@@ -752,9 +760,8 @@ class ABDVectorEnv(VectorEnv):
                   inputs=[wp.from_torch(obs), wp.from_torch(reward.contiguous()), wp.from_torch(term.contiguous()),
                           self.sim.state.status, self._go, pending, k["elapsed"], steps, k["obs"], k["reward"],
                           k["flags"], self._any_pending], device=dev)  # fmt: skip
-        d = obs.shape[1]
-        out = (self._out_f[: N * d].view(N, d), self._out_f[N * d:], self._out_b[0], self._out_b[1], self._out_b[2])
-        return out, info_values, self._out_b[3:5]
+        obs, reward, b = self._unpack(self._out_raw)
+        return (obs, reward, b[0], b[1], b[2]), info_values, b[3:5]
 
     def _device_step(self, a):
         """One env step as device work only (no host reads, no host-dependent branches on a GPU), so
@@ -844,11 +851,8 @@ class ABDVectorEnv(VectorEnv):
         if self.xp is not np:
             # the step's outputs are rewritten by the next step: the caller gets its own copies (one
             # clone of the packed bytes)
-            N, d = self.num_envs, out[0].shape[1]
-            F = 4 * N * (d + 1)
-            raw = self._out_raw[: F + 3 * N].clone()
-            f, b = raw[:F].view(self.xp.float32), raw[F:].view(self.xp.bool).view(3, N)
-            out = (f[: N * d].view(N, d), f[N * d:], b[0], b[1], b[2])
+            obs, reward, b = self._unpack(self._out_raw[: self._out_head].clone())
+            out = (obs, reward, b[0], b[1], b[2])
             info_values = {k: v.clone() for k, v in info_values.items()}
         obs, reward, terminated, truncated, failed = out
         # the worlds the device just reset (last step's ended ones, known on the host now): their
