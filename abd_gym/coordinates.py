@@ -16,27 +16,36 @@ REVOLUTE_CODE, PRISMATIC_CODE, FIXED_CODE = 0, 1, 2
 
 @functools.lru_cache(maxsize=None)
 def kernels(dtype):
+    """(begin_step, coordinates): the kernels; funcs(dtype): their per-joint functions."""
+    return _build(dtype)[:2]
+
+
+@functools.lru_cache(maxsize=None)
+def funcs(dtype):
+    """(begin_joint, joint_coordinates): one joint of one world each (for the fused step)."""
+    return _build(dtype)[2:]
+
+
+@functools.lru_cache(maxsize=None)
+def _build(dtype):
     o = ops(dtype)
     a = angle_ops(dtype)
     vec3, vec12 = o.vec3, o.vec12
     cos_sin, delta_theta, displacement = a.cos_sin, a.delta_theta, a.displacement
     theta_grad, displacement_grad = a.theta_grad, a.displacement_grad
 
-    @wp.kernel(module="unique")
-    def begin_step(
+    @wp.func
+    def begin_joint(
         q: wp.array2d(dtype=vec12), body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32),
         kind: wp.array(dtype=wp.int32),
         n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
         c_ref: wp.array2d(dtype=dtype), s_ref: wp.array2d(dtype=dtype),
         theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
-        mask: wp.array(dtype=wp.int32), unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype),
-        h_step: wp.array(dtype=dtype), h: dtype, x_anchor: wp.array2d(dtype=dtype),
+        unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype),
+        h_step: wp.array(dtype=dtype), h: dtype, x_anchor: wp.array2d(dtype=dtype), w: int, j: int,
     ):  # fmt: skip
         """θ0 and cos/sin θ of q^{t−1} (the state at the start of the step), and the drives' anchor
-        coordinate: xⁿ, or x̂ = (4xⁿ − xⁿ⁻¹)/3 for a BDF2 step (h_step[w] = 2h/3 < h)."""
-        w, j = wp.tid()
-        if mask[w] == 0:
-            return
+        coordinate: xⁿ, or x̂ = (4xⁿ − xⁿ⁻¹)/3 for a BDF2 step (h_step[w] = 2h/3 < h); joint j of world w."""
         x_anchor[w, j] = unwrapped[w, j]
         if h_step[w] < h:
             x_anchor[w, j] = unwrapped[w, j] + (unwrapped[w, j] - x_hist[w, j]) / dtype(3.0)
@@ -48,24 +57,39 @@ def kernels(dtype):
         theta0[w, j] = delta_theta(c, s, c_ref[w, j], s_ref[w, j])
 
     @wp.kernel(module="unique")
-    def coordinates(
+    def begin_step(
+        q: wp.array2d(dtype=vec12), body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32),
+        kind: wp.array(dtype=wp.int32),
+        n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        c_ref: wp.array2d(dtype=dtype), s_ref: wp.array2d(dtype=dtype),
+        theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+        mask: wp.array(dtype=wp.int32), unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype),
+        h_step: wp.array(dtype=dtype), h: dtype, x_anchor: wp.array2d(dtype=dtype),
+    ):  # fmt: skip
+        """begin_joint of joint j of each world w in mask."""
+        w, j = wp.tid()
+        if mask[w] == 0:
+            return
+        begin_joint(q, body_a, body_b, kind, n_a, b_a, n_b, b_b, c_ref, s_ref, theta0, c_prev, s_prev, unwrapped, x_hist,
+                    h_step, h, x_anchor, w, j)  # fmt: skip
+
+    @wp.func
+    def joint_coordinates(
         q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
         body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), kind: wp.array(dtype=wp.int32),
         c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
         n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
         theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
-        h: dtype, status: wp.array(dtype=wp.int32), mask: wp.array(dtype=wp.int32), accumulate: int, rate_from_qd: int,
+        h: dtype, accumulate: int, rate_from_qd: int,
         coord: wp.array2d(dtype=dtype), velocity: wp.array2d(dtype=dtype), unwrapped: wp.array2d(dtype=dtype),
         x_hist: wp.array2d(dtype=dtype),
+        w: int, j: int,
     ):  # fmt: skip
         """x = θ0 + ΔΘ(q, q^{t−1}) (seed), its rate δ/h, and the multi-turn angle; displacement.
 
         ``rate_from_qd``: after a state is set there is no step to take a rate over, so the rate is
         the instantaneous ∇x·q̇.
         """
-        w, j = wp.tid()
-        if status[w] != 0 or mask[w] == 0:
-            return
         qi = q[w, body_a[j]]
         qj = q[w, body_b[j]]
         if kind[j] == REVOLUTE_CODE:
@@ -91,4 +115,22 @@ def kernels(dtype):
                 x_hist[w, j] = unwrapped[w, j]
                 unwrapped[w, j] = x
 
-    return begin_step, coordinates
+    @wp.kernel(module="unique")
+    def coordinates(
+        q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
+        body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), kind: wp.array(dtype=wp.int32),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
+        n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+        h: dtype, status: wp.array(dtype=wp.int32), mask: wp.array(dtype=wp.int32), accumulate: int, rate_from_qd: int,
+        coord: wp.array2d(dtype=dtype), velocity: wp.array2d(dtype=dtype), unwrapped: wp.array2d(dtype=dtype),
+        x_hist: wp.array2d(dtype=dtype),
+    ):  # fmt: skip
+        """joint_coordinates of joint j of each healthy world w in mask."""
+        w, j = wp.tid()
+        if status[w] != 0 or mask[w] == 0:
+            return
+        joint_coordinates(q, q_prev, qd, body_a, body_b, kind, c_a, c_b, t_a, n_a, b_a, n_b, b_b, theta0, c_prev, s_prev, h,
+                          accumulate, rate_from_qd, coord, velocity, unwrapped, x_hist, w, j)  # fmt: skip
+
+    return begin_step, coordinates, begin_joint, joint_coordinates

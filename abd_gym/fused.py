@@ -17,10 +17,16 @@ scratch).  Lane l owns the rows i ≡ l (mod L) of g and H: every lane evaluates
 same energy, in the same order, on each: no reduction) and adds only its rows' entries of the
 term's blocks, so a block's puts, most of a one-thread assembly, run L rows at once without
 atomics; the factor is an L D Lᵀ by rows (``ldl_lanes``) and the substitutions likewise, one
-barrier (``block_sync``, also on the CPU's cooperative blocks) a column; the bodies' trial steps
-and updates are split by body.  Every lane takes every branch, decided from the same numbers.
-Meant for few worlds, where one thread per world leaves most of the GPU idle, waiting on each
-thread's chain of dependent loads.
+barrier (``block_sync``, also on the CPU's cooperative blocks) a column; on a GPU with 32 lanes
+(one warp) and up to 32 unknowns the same factor and substitutions run with each lane's row in
+registers, the pivots and columns passed by warp shuffles (``warp_ldl_solve``, no barrier); the
+bodies' trial steps and updates are split by body.  Every lane takes every branch, decided from
+the same numbers.  Meant for few worlds, where one thread per world leaves most of the GPU idle,
+waiting on each thread's chain of dependent loads.
+
+``bracket`` (``Solver.one_launch``): the kernel also opens and closes each world's step (the
+kernels of ``Solver._open`` and ``_close`` as functions, a body or a joint per lane), so a step is
+one launch.
 """
 import functools
 from typing import Any
@@ -28,7 +34,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from . import solver_kernels
+from . import coordinates, solver_kernels
 from .constitutions import _point_joint, affine_body, drive, prismatic_joint, prismatic_limit, revolute_limit
 from .warp_ops import ENERGY, GRADIENT, HESSIAN, ops
 
@@ -72,15 +78,110 @@ def shared_array(dtype, count: int):
     return shared_scratch
 
 
+@functools.lru_cache(maxsize=None)
+def warp_ldl_solve(dtype, n: int):
+    """A native CUDA function: the lane-split step's L D Lᵀ factor and substitutions for one world
+    of ``n`` ≤ 32 unknowns, solved by the 32 lanes of one warp with the system in registers.
+
+    ``regs_ldl_solve(H, g, dq, lane, factor) -> ok``.  Lane i loads row i of the packed H (shared
+    memory) into registers.  With ``factor``, column j of the right-looking factor takes
+    D_j = H[j, j] and each H[k, j] from their lanes by shuffles, and lane i updates its row in
+    place, H[i, k] −= H[i, j] H[k, j] / D_j (j < k ≤ i): the arithmetic of ``ldl_lanes``, in the
+    same order, without its barrier and shared-memory round trip a column.  The factor goes back to
+    H as ldl_lanes leaves it (D_j L_ij below the diagonal, 1/D_j on it), so a later iteration can
+    reuse it (``factor`` 0 loads it).  Then Δq = −(L D Lᵀ)⁻¹g: forward, y_i −= H[i, j] y_j / D_j
+    with y_j / D_j shuffled from lane j; backward from the last row, with lane i holding column i
+    of H (loaded once the factor is in H), so lane k's x_k is shuffled to the rows above it.  Δq
+    goes to dq.  ok: 0 when a pivot is not positive and finite (the same broadcast pivot decides it
+    on every lane).  Every loop is unrolled over the compile-time n, so the rows stay in registers.
+    CUDA only (the CPU's lanes use ldl_lanes and solve_lanes)."""
+    ctype = "float" if dtype == wp.float32 else "double"
+    snippet = f"""
+#if defined(__CUDA_ARCH__)
+typedef {ctype} T;
+const int N = {int(n)};
+const unsigned FULL = 0xffffffffu;
+T* Hs = H.data;
+const int i = lane;
+const bool own = i < N;
+const int ri = (i * (i + 1)) >> 1;
+T h[N];
+#pragma unroll
+for (int k = 0; k < N; ++k) {{
+    h[k] = T(0);
+    if (own && k <= i) h[k] = Hs[ri + k];
+}}
+T dinv = own ? Hs[ri + i] : T(0);  // 1/D_i, where a reused factor holds it
+int ok = 1;
+if (factor) {{
+    dinv = T(0);
+#pragma unroll
+    for (int j = 0; j < N; ++j) {{
+        const T dj = __shfl_sync(FULL, h[j], j);
+        if (!(dj > T(0)) || !isfinite(dj)) ok = 0;
+        const T inv = T(1) / dj;
+        if (i == j) dinv = inv;
+        const T cj = h[j] * inv;
+#pragma unroll
+        for (int k = j + 1; k < N; ++k) {{
+            const T hk = __shfl_sync(FULL, h[j], k);
+            if (i >= k) h[k] -= cj * hk;
+        }}
+    }}
+    if (!ok) return 0;
+    if (own) {{
+#pragma unroll
+        for (int k = 0; k < N; ++k) {{
+            if (k < i) Hs[ri + k] = h[k];
+        }}
+        Hs[ri + i] = dinv;
+    }}
+    __syncwarp();
+}}
+T c[N];
+#pragma unroll
+for (int k = 0; k < N; ++k) {{
+    c[k] = T(0);
+    if (own && k > i) c[k] = Hs[((k * (k + 1)) >> 1) + i];
+}}
+T y = own ? -g.data[i] : T(0);
+#pragma unroll
+for (int j = 0; j < N; ++j) {{
+    const T tj = __shfl_sync(FULL, y * dinv, j);
+    if (i > j) y -= h[j] * tj;
+}}
+#pragma unroll
+for (int k = N - 1; k >= 0; --k) {{
+    const T xk = __shfl_sync(FULL, y * dinv, k);
+    if (i < k) y -= c[k] * xk;
+}}
+if (own) dq.data[i] = y * dinv;
+__syncwarp();
+return ok;
+#else
+return 0;
+#endif
+"""
+
+    @wp.func_native(snippet)
+    def regs_ldl_solve(H: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), lane: int,
+                       factor: int) -> int:  # fmt: skip
+        ...
+
+    return regs_ldl_solve
+
+
 # the phases fused_kernel(phase_clock=True) times, columns of Terms.clock (cycles summed per world)
 PHASES = ("zero", "assemble", "factor", "solve", "step", "step: energy", "step: trial", "assemble: bodies",
-          "assemble: revolute", "assemble: fixed", "assemble: prismatic", "assemble: limits", "assemble: drives")
+          "assemble: revolute", "assemble: fixed", "assemble: prismatic", "assemble: limits", "assemble: drives",
+          "open", "close")
+WORLD_PHASES = (0, 1, 2, 3, 4, 13, 14)  # the phases that partition a world's step (the rest split these)
 
 
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
                  max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False,
-                 cuda=False, block=0):  # fmt: skip
+                 cuda=False, block=0, bracket=True):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -95,7 +196,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     ``max_registers`` (0: the compiler's choice) caps registers per thread on CUDA, trading spills
     for occupancy; ``smem_spilling`` lets the compiler spill registers to shared memory.
     ``cuda``: built for a GPU (the lane-split step then keeps its scratch in shared memory).
-    ``phase_clock``: lane 0 adds each phase's cycles (PHASES) to ``Terms.clock`` (profiling only)."""
+    ``phase_clock``: lane 0 adds each phase's cycles (PHASES) to ``Terms.clock`` (profiling only).
+    ``bracket``: the kernel also opens each world's step before its solve (the finite check, the
+    joints' references, the prediction q̃ and the initial guess) and closes it after (velocities,
+    histories, joint coordinates), so a step is one launch; else those run as kernels of their own
+    (``Solver._open``, ``Solver._close``)."""
     # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
     # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
     # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
@@ -109,6 +214,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     # global scratch); LANES threads per world, a constant of the kernel (``block``)
     packed = scratch in ("shared", "lanes")
     LANES = max(int(block), 1) if lanes else 1
+    # on a GPU, a world of up to 32 unknowns on one warp of lanes factors and solves in registers
+    warp_regs = lanes and cuda and LANES == 32 and n <= 32
+    regs_ldl_solve = warp_ldl_solve(dtype, n) if warp_regs else None
     N = n  # unknowns per world (12 per free body), a constant of the kernel
     o = ops(dtype)
     vec3, vec4, vec12, mat33, mat44 = o.vec3, o.vec4, o.vec12, o.mat33, o.mat44
@@ -126,6 +234,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
     reductions = staged["reductions"]
     noise_floor, energy_noise = staged["noise_floor"], staged["energy_noise"]
+    open_body, predict_body, finalize_body = staged["open_body"], staged["predict_body"], staged["finalize_body"]
+    begin_joint, joint_coordinates = coordinates.funcs(dtype)
     zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
 
@@ -413,6 +523,25 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         unwrapped: wp.array2d(dtype=dtype)
         x_anchor: wp.array2d(dtype=dtype)
         clock: wp.array2d(dtype=wp.int64)  # (W, len(PHASES)) with phase_clock, else unused
+
+    @wp.struct
+    class Bracket:
+        """What opening and closing a world's step reads and writes besides Terms (bracket=True)."""
+
+        qd: wp.array2d(dtype=vec12)
+        q_prev: wp.array2d(dtype=vec12)
+        q_hist: wp.array2d(dtype=vec12)
+        qd_hist: wp.array2d(dtype=vec12)
+        fresh: wp.array(dtype=wp.int32)
+        c_ref: wp.array2d(dtype=dtype)
+        s_ref: wp.array2d(dtype=dtype)
+        x_hist: wp.array2d(dtype=dtype)
+        coord: wp.array2d(dtype=dtype)
+        velocity: wp.array2d(dtype=dtype)
+        gravity: vec3
+        h: dtype
+        bdf2: int
+        bend: int
 
     @wp.func
     def clock_now():
@@ -749,7 +878,14 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
                 nfact += 1
             c = tick(t, w, lane, 1, c)
-            if wp.static(lanes):
+            if wp.static(warp_regs):
+                block_sync()  # the factor reads every lane's rows
+                ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
+                c = tick(t, w, lane, 2, c)  # (the factor and the substitutions)
+                if ok != 0:
+                    ok, gdq, dmax, g_abs = reductions(g, dq, s, N, 1)
+                c = tick(t, w, lane, 3, c)
+            elif wp.static(lanes):
                 block_sync()  # the factor and the solves read every lane's rows
                 ok = 1
                 if chord <= 0:
@@ -780,6 +916,64 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             d_prev = dmax
         return 0
 
+    @wp.func
+    def open_world(q: wp.array2d(dtype=vec12), t: Terms, k: Bracket, status: wp.array(dtype=wp.int32), w: int,
+                   lane: int):  # fmt: skip
+        """Solver._open's kernels for world w (bracket=True): open_step, begin_step and predict, a body
+        or joint per lane (all of them for one thread per world), with a barrier after each: the
+        references read q before the initial guess moves it, and the prediction reads the world's
+        status and step."""
+        nb = q.shape[1]
+        for b in range(lane, nb, LANES):
+            open_body(q, k.qd, status, k.fresh, k.h, k.bdf2, t.h_step, w, b)
+        if wp.static(lanes):
+            block_sync()
+        for j in range(lane, t.joint_kind.shape[0], LANES):
+            begin_joint(q, t.body_a, t.body_b, t.joint_kind, t.n_a, t.b_a, t.n_b, t.b_b, k.c_ref, k.s_ref, t.theta0,
+                        t.c_prev, t.s_prev, t.unwrapped, k.x_hist, t.h_step, k.h, t.x_anchor, w, j)  # fmt: skip
+        if wp.static(lanes):
+            block_sync()
+        for b in range(lane, nb, LANES):
+            predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, t.q_tilde, t.dof, t.mass, t.mc, k.gravity, k.h, t.h_step,
+                         status, k.bend, w, b)  # fmt: skip
+        if wp.static(lanes):
+            block_sync()
+
+    @wp.func
+    def close_world(q: wp.array2d(dtype=vec12), t: Terms, k: Bracket, status: wp.array(dtype=wp.int32), w: int,
+                    lane: int):  # fmt: skip
+        """Solver._close's kernels for world w (bracket=True): finalize a body per lane, then, once
+        the world's q is final, its joints' coordinates (a healthy world's only)."""
+        if wp.static(lanes):
+            block_sync()
+        for b in range(lane, q.shape[1], LANES):
+            finalize_body(q, k.q_prev, k.qd, k.q_hist, k.qd_hist, t.dof, k.h, t.h_step, status, w, b)
+        if wp.static(lanes):
+            block_sync()
+        if status[w] == OK:
+            for j in range(lane, t.joint_kind.shape[0], LANES):
+                joint_coordinates(q, k.q_prev, k.qd, t.body_a, t.body_b, t.joint_kind, t.c_a, t.c_b, t.t_a, t.n_a, t.b_a,
+                                  t.n_b, t.b_b, t.theta0, t.c_prev, t.s_prev, k.h, 1, 0, k.coord, k.velocity,
+                                  t.unwrapped, k.x_hist, w, j)  # fmt: skip
+
+    @wp.func
+    def step_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, k: Bracket,
+                   g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, s: int, T: int,
+                   row: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
+                   status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
+                   factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
+        """World w's step: its solve (solve_world), opened and closed here when ``bracket``."""
+        if wp.static(bracket):
+            c = clock_now()
+            open_world(q, t, k, status, w, lane)
+            tick(t, w, lane, 13, c)
+        solve_world(q, q_trial, t, g, H, dq, w, s, T, row, threshold, max_iterations, max_line_search, reuse, status,
+                    iterations, factorizations, converged, lane)  # fmt: skip
+        if wp.static(bracket):
+            c = clock_now()
+            close_world(q, t, k, status, w, lane)
+            tick(t, w, lane, 14, c)
+
     @wp.kernel(**options)
     def assemble_system(q: wp.array2d(dtype=vec12), t: Terms, derivs: int, g: wp.array(dtype=dtype),
                         H: wp.array(dtype=dtype), E: wp.array(dtype=dtype)):  # fmt: skip
@@ -808,7 +1002,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
         @wp.kernel(**options)
         def newton(
-            q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
+            q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, k: Bracket,
             g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
             s0: int, Tw: int, wa: int, wb: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
             status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
@@ -822,20 +1016,20 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             c = wp.tid()
             s = c + s0
             if wp.static(in_smem):
-                k = c % block  # the thread's column of its block's scratch
+                col = c % block  # the thread's column of its block's scratch
                 base = one_scratch()
                 Hs = wp.array(ptr=base, shape=(TRI * block,), dtype=dtype)
                 gs = wp.array(ptr=base + wp.uint64(TRI * block * SIZE), shape=(N * block,), dtype=dtype)
                 ds = wp.array(ptr=base + wp.uint64((TRI + N) * block * SIZE), shape=(N * block,), dtype=dtype)
                 for w in range(wa + c, wb, Tw):
-                    solve_world(q, q_trial, t, gs, Hs, ds, w, k, block, s, threshold, max_iterations, max_line_search,
-                                reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
+                    step_world(q, q_trial, t, k, gs, Hs, ds, w, col, block, s, threshold, max_iterations,
+                               max_line_search, reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
             else:
                 for w in range(wa + c, wb, Tw):
-                    solve_world(q, q_trial, t, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
-                                reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
+                    step_world(q, q_trial, t, k, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
+                               reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
 
-        return newton, Terms, assemble_system
+        return newton, Terms, Bracket, assemble_system
 
     @wp.func
     def ldl_lanes(H: wp.array(dtype=dtype), s: int, lane: int):
@@ -911,7 +1105,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.kernel(**options)
     def newton_lanes(
-        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms,
+        q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, k: Bracket,
         g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
         threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
         status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
@@ -927,10 +1121,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             Hs = wp.array(ptr=base, shape=(TRI,), dtype=dtype)
             gs = wp.array(ptr=base + wp.uint64(TRI * SIZE), shape=(N + NF,), dtype=dtype)  # lane_bodies' slots
             ds = wp.array(ptr=base + wp.uint64((TRI + N + NF) * SIZE), shape=(N,), dtype=dtype)
-            solve_world(q, q_trial, t, gs, Hs, ds, w, 0, 1, w, threshold, max_iterations, max_line_search, reuse,
-                        status, iterations, factorizations, converged, c - w * LANES)  # fmt: skip
+            step_world(q, q_trial, t, k, gs, Hs, ds, w, 0, 1, w, threshold, max_iterations, max_line_search, reuse,
+                       status, iterations, factorizations, converged, c - w * LANES)  # fmt: skip
         else:
-            solve_world(q, q_trial, t, g, H, dq, w, w * N * N, 1, w, threshold, max_iterations, max_line_search, reuse,
-                        status, iterations, factorizations, converged, c - w * LANES)  # fmt: skip
+            step_world(q, q_trial, t, k, g, H, dq, w, w * N * N, 1, w, threshold, max_iterations, max_line_search, reuse,
+                       status, iterations, factorizations, converged, c - w * LANES)  # fmt: skip
 
-    return newton_lanes, Terms, assemble_system
+    return newton_lanes, Terms, Bracket, assemble_system

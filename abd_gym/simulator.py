@@ -66,7 +66,9 @@ class Simulator:
     (``affine_body.retract``) instead of a straight line; False is the ablation.  ``cpu_workers``
     (CPU only; default: one per core, each with at least 64 worlds): the fused step's threads run as
     that many concurrent launches (Warp runs a launch's threads one after another), between the
-    step's captured phases before and after them.
+    step's captured phases before and after them.  ``one_launch``: the fused kernel also opens and
+    closes each world's step (prediction, velocities, joint coordinates), so a step is one launch;
+    False launches those as kernels of their own; default: with the lane-split step (measured).
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
@@ -74,7 +76,8 @@ class Simulator:
                  use_graph: bool | None = None, fused: bool = True, integrator: str = "implicit_euler",
                  threads: int | None = None, block_dim: int | None = None, scratch: str | None = None,
                  max_registers: int = 0, smem_spilling: bool = False, reuse_factor: bool | None = None,
-                 envelope: bool | None = None, retract: bool = True, cpu_workers: int | None = None):  # fmt: skip
+                 envelope: bool | None = None, retract: bool = True, cpu_workers: int | None = None,
+                 one_launch: bool | None = None):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
@@ -86,7 +89,7 @@ class Simulator:
         self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search), bool(fused), integrator,
                                                            threads, block_dim, scratch, int(max_registers),
                                                            bool(smem_spilling), reuse_factor, envelope,
-                                                           bool(retract), cpu_workers))  # fmt: skip
+                                                           bool(retract), cpu_workers, one_launch))  # fmt: skip
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device

@@ -64,6 +64,15 @@ class SolverSettings:
     # CPU only: the fused step's threads split into this many launches run at once on as many
     # cores (Warp runs one launch's threads one after another); None: default_cpu_workers
     cpu_workers: int | None = None
+    # the fused step's kernel also opens and closes each world's step (the finite check, the joints'
+    # references, the prediction; velocities and coordinates), so a step is one launch; False: those
+    # as five kernels of their own around it.  None: with the lane-split step only.  On an H100
+    # (scripts/profile_step.py --split, device time) the five kernels took 27 us of an 80 us step of
+    # 1,024 cart-poles (lanes), which one launch cut to 61 us (double pendulums 56 -> 39 us); with a
+    # thread per world (16,384 worlds, "shared") one launch was no faster on cart-poles (209 us
+    # both) and slower on double pendulums (143 -> 155 us): each thread then walks its world's bodies
+    # and joints in turn, where the separate kernels spread them over threads
+    one_launch: bool | None = None
     # profiling only: the fused step adds each phase's GPU cycles to Solver.phase_cycles
     # (fused.PHASES; scripts/profile_step.py --phases)
     phase_clock: bool = False
@@ -183,6 +192,8 @@ class Solver:
             raise ValueError(f"scratch={scratch!r} needs the fused step (fused=True)")
         self.scratch = scratch
         self.lanes = scratch == "lanes"
+        one = settings.one_launch
+        self.one_launch = bool(settings.fused and (self.lanes if one is None else one))
         self.shared = scratch == "shared"
         # scratch="shared" on a GPU: the systems live in shared memory, a block's threads each its own
         self.in_smem = self.shared and cuda
@@ -300,7 +311,7 @@ class Solver:
             raise RuntimeError("fused_system needs the fused step's global scratch with one thread per world, or lanes")
         if self._fused is None:
             self._fused = self._build_fused(state)
-        _, terms, assemble_system = self._fused
+        _, terms, _, assemble_system = self._fused
         W, n, L = m.num_worlds, m.num_dofs, self.block_dim if self.lanes else 1
         g, H = self.g, self.H
         if self.lanes:  # H packed; g's rows past n hold the bodies' energies (fused.lane_bodies)
@@ -337,6 +348,8 @@ class Solver:
         """The step as (part, capturable) pairs to run in turn: the whole step, or, with the CPU's
         concurrent Newton launches, before / the launches / after, since a captured graph cannot
         hold launches that run at once."""
+        if self.one_launch:
+            return [(self._fused_newton, self.capturable)]
         if self.capturable:
             return [(self._whole_step, True)]
         return [(self._open, True), (self._newton, False), (self._close, True)]
@@ -385,11 +398,11 @@ class Solver:
         m, s = self.model, self.settings
         if self._fused is None:
             self._fused = self._build_fused(state)
-        kernel, terms, _ = self._fused
+        kernel, terms, bracket, _ = self._fused
         if self.lanes:
             L = self.block_dim
             wp.launch(kernel, dim=m.num_worlds * L, inputs=[
-                state.q, self.q_trial, terms, self.g_flat, self.H_flat, self.dq_flat, m.dtype(s.tol * self.h),
+                state.q, self.q_trial, terms, bracket, self.g_flat, self.H_flat, self.dq_flat, m.dtype(s.tol * self.h),
                 s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
                 state.factorizations, state.converged], block_dim=L, device=m.device)  # fmt: skip
             return
@@ -401,7 +414,7 @@ class Solver:
             g, H, dq = self.g_flat, self.H_flat, self.dq_flat
             if count != self.threads:
                 g, H, dq = (a[start * size:(start + count) * size] for a, size in ((g, n), (H, n * n), (dq, n)))
-            return [state.q, self.q_trial, terms, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.h),
+            return [state.q, self.q_trial, terms, bracket, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.h),
                     s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
                     state.factorizations, state.converged]  # fmt: skip
 
@@ -435,11 +448,11 @@ class Solver:
         has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
                len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
         st = self.settings
-        kernel, Terms, assemble_system = fused_kernel(
+        kernel, Terms, Bracket, assemble_system = fused_kernel(
             m.dtype, *has, scratch=self.scratch, n=m.num_dofs, max_registers=st.max_registers,
             smem_spilling=st.smem_spilling, envelope=self.envelope, retract=bool(st.retract),
             phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
-            block=self.block_dim if self.in_smem or self.lanes else 0)  # fmt: skip
+            block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -457,7 +470,13 @@ class Solver:
 
         self.phase_cycles = wp.zeros((m.num_worlds if st.phase_clock else 1, len(PHASES)), dtype=wp.int64, device=m.device)
         t.clock = self.phase_cycles
-        return kernel, t, assemble_system
+        k = Bracket()  # what opening and closing a world's step reads besides t (fused.open_world, close_world)
+        for name in ("qd", "q_prev", "q_hist", "qd_hist", "fresh", "x_hist", "coord"):
+            setattr(k, name, getattr(state, name))
+        k.velocity = state.coord_vel
+        k.c_ref, k.s_ref = m.c_ref, m.s_ref
+        k.gravity, k.h, k.bdf2, k.bend = m.gravity, m.dtype(self.h), self.bdf2, int(st.retract)
+        return kernel, t, k, assemble_system
 
     def _newton_iteration(self, state):
         m, k, dev, s = self.model, self.k, self.model.device, self.settings

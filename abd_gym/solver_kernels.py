@@ -59,13 +59,13 @@ def kernels(dtype, envelope=False, packed=False):
         pendulums at dt 0.002 and 0.005 spent up to 15 iterations at α = 1/32 on such steps)."""
         return rounding * g_abs
 
-    @wp.kernel(module="unique")
-    def predict(
+    @wp.func
+    def predict_body(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
         q_tilde: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
         mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype, h_step: wp.array(dtype=dtype),
-        status: wp.array(dtype=wp.int32), bend: int,
+        status: wp.array(dtype=wp.int32), bend: int, w: int, b: int,
     ):  # fmt: skip
         """Implicit Euler: q̃ = qⁿ + h q̇ⁿ + h² (g, 0)  (M⁻¹f_g = (g, 0) exactly: gravity moves p only).
         BDF2 (ĥ = h_step[w] = 2h/3): q̃ = q̂ + ĥ v̂ + ĥ² (g, 0), q̂ = (4qⁿ − qⁿ⁻¹)/3, v̂ = (4q̇ⁿ − q̇ⁿ⁻¹)/3.
@@ -75,7 +75,6 @@ def kernels(dtype, envelope=False, packed=False):
         (a first Newton step of ~1e-3 m at dt 0.01, against ~1e-5 m from the extrapolation; float32
         cart-poles and double pendulums converge in 2.0 iterations instead of 2.7–2.9).  After a
         reset q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ."""
-        w, b = wp.tid()
         qb = q[w, b]
         q_prev[w, b] = qb
         if dof[b] < 0 or status[w] != OK:
@@ -99,6 +98,18 @@ def kernels(dtype, envelope=False, packed=False):
         # 3.14 Newton iterations a step instead of 4.54 (float64, tests/test_hard_cases.py)
         d = h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
         q[w, b] = wp.where(bend != 0, retract(qb, d, one, mass[w, b], mc[w, b], 1), qb + d)
+
+    @wp.kernel(module="unique")
+    def predict(
+        q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
+        q_tilde: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
+        mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype, h_step: wp.array(dtype=dtype),
+        status: wp.array(dtype=wp.int32), bend: int,
+    ):  # fmt: skip
+        """predict_body of body b of world w."""
+        w, b = wp.tid()
+        predict_body(q, qd, q_prev, q_hist, qd_hist, q_tilde, dof, mass, mc, gravity, h, h_step, status, bend, w, b)
 
     # The Newton scratch of a world (or of a fused thread) is column w of n × n and n × 1 arrays with
     # one column per world or thread, stored flat: H's entry (i, j) at (i·n + j)·T + w, g's entry i
@@ -610,15 +621,15 @@ def kernels(dtype, envelope=False, packed=False):
         take[w] = 0
         chord[w] = 0
 
-    @wp.kernel(module="unique")
-    def finalize(
+    @wp.func
+    def finalize_body(
         q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
         dof: wp.array(dtype=wp.int32), h: dtype, h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32),
+        w: int, b: int,
     ):  # fmt: skip
         """q̇ⁿ⁺¹ = (qⁿ⁺¹ − qⁿ)/h, or (3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹)/(2h) for a BDF2 step; the history shifts.
         A failed world keeps its last good state."""
-        w, b = wp.tid()
         if status[w] != OK:
             q[w, b] = q_prev[w, b]
             return
@@ -632,16 +643,25 @@ def kernels(dtype, envelope=False, packed=False):
         q_hist[w, b] = q_prev[w, b]
 
     @wp.kernel(module="unique")
-    def open_step(
+    def finalize(
+        q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
+        dof: wp.array(dtype=wp.int32), h: dtype, h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """finalize_body of body b of world w."""
+        w, b = wp.tid()
+        finalize_body(q, q_prev, qd, q_hist, qd_hist, dof, h, h_step, status, w, b)
+
+    @wp.func
+    def open_body(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
-        fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype),
+        fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype), w: int, b: int,
     ):  # fmt: skip
         """A world with a non-finite q or q̇ fails; each world's effective step: ĥ = 2h/3 for BDF2,
         but h (an implicit Euler step) for a world without a past step (``fresh``).  BDF2 started
         from a past invented as "the velocity was constant" takes a first velocity of (2/3)h·a for
         h·a, an O(h) error it never loses (measured: first-order global error); an implicit Euler
-        first step is O(h²) accurate, which keeps BDF2 second order."""
-        w, b = wp.tid()
+        first step is O(h²) accurate, which keeps BDF2 second order.  (Body 0 sets the world's.)"""
         if b == 0:
             he = h
             if bdf2 != 0 and fresh[w] == 0:
@@ -652,9 +672,19 @@ def kernels(dtype, envelope=False, packed=False):
             if not (wp.isfinite(q[w, b][r]) and wp.isfinite(qd[w, b][r])):
                 status[w] = FAILED
 
+    @wp.kernel(module="unique")
+    def open_step(
+        q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
+        fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype),
+    ):  # fmt: skip
+        """open_body of body b of world w."""
+        w, b = wp.tid()
+        open_body(q, qd, status, fresh, h, bdf2, h_step, w, b)
+
     return dict(
         predict=predict, start=start, newton_direction=newton_direction, h_row=h_row, cholesky_solve=cholesky_solve,
         factored_solve=factored_solve, reductions=reductions,
         noise_floor=noise_floor, energy_noise=energy_noise, trial=trial, accept=accept, commit=commit,
-        converge=converge, finalize=finalize, open_step=open_step,
+        converge=converge, finalize=finalize, open_step=open_step, open_body=open_body, predict_body=predict_body,
+        finalize_body=finalize_body,
     )  # fmt: skip

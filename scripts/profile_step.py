@@ -33,12 +33,20 @@ def main():
     ap.add_argument("--block-dim", type=int, default=None)
     ap.add_argument("--lineinfo", action="store_true", help="compile with line information (source-level profiles)")
     ap.add_argument("--phases", action="store_true", help="time the fused step's phases with the GPU's cycle counter")
+    ap.add_argument("--split", action="store_true",
+                    help="device time of the captured step, and of the kernels that open and close a step when they "
+                         "run on their own (one_launch=False)")
+    ap.add_argument("--two-launch", action="store_true",
+                    help="one_launch=False: the step opened and closed by kernels of their own around the fused one "
+                         "(the default with lanes is one launch)")
     args = ap.parse_args()
+    if args.split and not wp.get_device(args.device).is_cuda:
+        ap.error("--split times the device with CUDA events: give a CUDA --device")
     if args.lineinfo:
         wp.config.lineinfo = True
     sim = Simulator(CASES[args.case]["scene"](), num_worlds=args.worlds, dt=0.01, device=args.device,
-                    use_graph=args.phases, scratch=None if args.scratch == "auto" else args.scratch,
-                    block_dim=args.block_dim)  # fmt: skip
+                    use_graph=args.phases or args.split, scratch=None if args.scratch == "auto" else args.scratch,
+                    block_dim=args.block_dim, one_launch=False if args.two_launch else None)  # fmt: skip
     sim.solver.settings.phase_clock = args.phases
     sim.set_joint_state(random_states(args.case, args.worlds))
     sim.step(args.warmup)
@@ -56,8 +64,50 @@ def main():
         print(f"{args.case} {sim.solver.scratch}/{sim.solver.block_dim}: {args.worlds} worlds, "
               f"{ms * 1e3:.1f} us a step "
               f"(with the phase clock), cycles per world-step: " + ", ".join(f"{p} {v:,.0f}" for p, v in zip(PHASES, c)))
+    if args.phases:
+        # a launch lasts as long as its slowest world: the busiest world's cycles a step
+        from abd_gym.fused import WORLD_PHASES
+
+        per_world = sim.solver.phase_cycles.numpy()[:, list(WORLD_PHASES)].sum(1) / args.steps
+        print(f"cycles a step per world (open, zero … step, close): mean {per_world.mean():,.0f}, "
+              f"max {per_world.max():,.0f}")
+    if args.split:
+        split(sim, args.steps)
     print(f"{args.case}: {args.worlds} worlds, threads {sim.solver.threads}, block {sim.solver.block_dim}, "
           f"Newton iterations {sim.newton_iterations().mean():.2f}")
+
+
+def split(sim, steps: int, copies: int = 20):
+    """Device time of the captured step, and of the kernels that open and close a step when they run
+    as launches of their own (Solver._open, _close; with one_launch the fused kernel does their
+    work): each captured ``copies`` times in one graph, so a replay's host cost is spread over
+    ``copies`` steps, and timed by CUDA events over ``steps`` steps."""
+    solver, state, dev = sim.solver, sim.state, sim.device
+
+    def around():
+        solver._open(state)
+        solver._close(state)
+
+    graphs = {}
+    for name, part in (("step", lambda: solver.step(state)), ("around", around)):
+        with wp.ScopedCapture(device=dev) as cap:
+            for _ in range(copies):
+                part()
+        graphs[name] = cap.graph
+    us = {}
+    for name, graph in graphs.items():
+        wp.capture_launch(graph)
+        start, end = wp.Event(dev, enable_timing=True), wp.Event(dev, enable_timing=True)
+        reps = max(steps // copies, 1)
+        wp.record_event(start)
+        for _ in range(reps):
+            wp.capture_launch(graph)
+        wp.record_event(end)
+        wp.synchronize_device(dev)
+        us[name] = wp.get_event_elapsed_time(start, end) * 1e3 / (reps * copies)
+    launches = "one launch" if sim.solver.one_launch else "open and close launched around Newton"
+    print(f"split (device time, {copies} steps a graph): step ({launches}) {us['step']:.1f} us; the open and close "
+          f"kernels on their own {us['around']:.1f} us")
 
 
 if __name__ == "__main__":

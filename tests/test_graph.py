@@ -9,10 +9,10 @@ from abd_gym import mechanisms
 
 
 def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global", reuse_factor=None, cpu_workers=1,
-         block_dim=None):  # fmt: skip
+         block_dim=None, one_launch=None, integrator="implicit_euler"):  # fmt: skip
     sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, use_graph=use_graph, fused=fused, dtype=dtype,
                        threads=threads, scratch=scratch, reuse_factor=reuse_factor, cpu_workers=cpu_workers,
-                       block_dim=block_dim)  # fmt: skip
+                       block_dim=block_dim, one_launch=one_launch, integrator=integrator)  # fmt: skip
     rng = np.random.default_rng(3)
     sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
     out = []
@@ -126,20 +126,45 @@ def test_shared_scratch_too_large_is_refused():
         ag.Simulator(mechanisms.cartpole(), num_worlds=2, scratch="shared", block_dim=64)
 
 
-def test_concurrent_cpu_launches_are_the_same_step():
+@pytest.mark.parametrize("one_launch", [True, False])
+def test_concurrent_cpu_launches_are_the_same_step(one_launch):
     """cpu_workers=2 (the fused step's 4 threads and 4 worlds as two launches run at once on the
-    CPU, between the captured phases before and after them) gives the one-launch, graph-captured
-    step bit for bit, through the same events."""
-    one, sim1 = _run(True, cpu_workers=1)
-    two, sim2 = _run(True, cpu_workers=2)
+    CPU; with one_launch=False between the captured phases before and after them) gives the
+    one-launch, graph-captured step bit for bit, through the same events.  (one_launch is the
+    default with lanes only; here the thread-per-world step both ways.)"""
+    one, sim1 = _run(True, cpu_workers=1, one_launch=one_launch)
+    two, sim2 = _run(True, cpu_workers=2, one_launch=one_launch)
     graphs = [g for _, g in sim1._graph]
     assert sim1.solver.capturable and len(graphs) == 1 and graphs[0] is not None
-    if sim2.device.is_cpu:  # the phases around the concurrent launches are captured, the launches not
+    if sim2.device.is_cpu:  # the concurrent launches are not captured (phases around them are)
         assert sim2.solver.newton_launches == [(0, 2, 0, 2), (2, 2, 2, 4)] and not sim2.solver.capturable
         graphs = [g for _, g in sim2._graph]
-        assert graphs[0] is not None and graphs[1] is None and graphs[2] is not None
+        if one_launch:  # each launch opens and closes its own worlds' steps
+            assert graphs == [None]
+        else:
+            assert graphs[0] is not None and graphs[1] is None and graphs[2] is not None
     np.testing.assert_array_equal(np.nan_to_num(two), np.nan_to_num(one))
     assert sim2.failed_worlds().tolist() == [3]
+
+
+@pytest.mark.parametrize("scratch,dtype,integrator", [("global", "float32", "implicit_euler"),
+                                                      ("global", "float64", "bdf2"),
+                                                      ("shared", "float32", "bdf2"),
+                                                      ("lanes", "float32", "implicit_euler")])  # fmt: skip
+def test_one_launch_step_is_the_bracketed_step(scratch, dtype, integrator, cpu_blocks):
+    """one_launch (the fused kernel opens and closes each world's step: finite check, references,
+    prediction, velocities, coordinates) against the same kernels launched around it: the same
+    functions in the same order per world, so the same trajectories, joint coordinates and rates
+    bit for bit, through controls, limits, a reset and a failure; BDF2 included (its step sizes
+    and anchors); with lanes on eight CPU fibers, split a body or a joint per lane."""
+    block = 8 if scratch == "lanes" else None
+    one, sim1 = _run(True, dtype=dtype, scratch=scratch, one_launch=True, integrator=integrator, block_dim=block)
+    two, sim2 = _run(True, dtype=dtype, scratch=scratch, one_launch=False, integrator=integrator, block_dim=block)
+    assert len(sim1._graph) == 1 and sim1.solver.one_launch and not sim2.solver.one_launch
+    np.testing.assert_array_equal(np.nan_to_num(one), np.nan_to_num(two))
+    np.testing.assert_array_equal(sim1.joint_velocities(), sim2.joint_velocities())
+    assert sim1.failed_worlds().tolist() == [3] == sim2.failed_worlds().tolist()
+    np.testing.assert_array_equal(sim1.newton_iterations(), sim2.newton_iterations())
 
 
 def test_threads_must_be_positive():
