@@ -7,7 +7,8 @@
 #     bash scripts/gpu_measure.sh [PART ...]
 #
 # PARTs: bench (simulator and env tables), reuse (Newton's factor reuse on and off), variants
-# (tolerance, the global / shared / lane-split steps, the cart-pole without limit / drive), envelope (a 10-link chain with
+# (tolerance, the global / shared / lane-split steps, the cart-pole without limit / drive), split (the step's device time
+# in one launch and with its open and close kernels launched around Newton), envelope (a 10-link chain with
 # the dense and the envelope factor), compare (MuJoCo Warp, up to
 # 131,072 worlds and 1M of ours), accuracy (speed against error, both mechanisms), tests (the test
 # files that build their simulators on the default device, run there with ABD_GYM_DEVICE=$DEVICE,
@@ -38,6 +39,12 @@ for part in $parts; do
         --scratch global,shared,lanes --cases cartpole,double_pendulum,cartpole_nolimit,cartpole_bare --out "$out/variants" ;;
     envelope) run envelope python3 -m abd_gym.bench --device "$dev" --worlds "$few" --cases chain10 --envelope 0,1 \
         --out "$out/envelope" ;;
+    split) for c in cartpole double_pendulum; do for w in $(echo "${WORLDS:-1024,16384}" | tr , ' '); do
+            for launch in one two; do
+                run "split_${c}_${w}_$launch" python3 scripts/profile_step.py --device "$dev" --case "$c" --worlds "$w" \
+                    --split --steps 400 --launch $launch
+            done
+        done; done ;;
     compare) run compare python3 -m abd_gym.bench compare --device "$dev" --worlds "$worlds" --out "$out/compare" ;;
     accuracy) run accuracy python3 -m abd_gym.bench accuracy --device "$dev" --worlds "${WORLDS:-4096}" \
         --dtypes float32 --tols 1e-5 --reuse-factors auto,0 --cases "${CASES:-double_pendulum,cartpole}" \
@@ -48,7 +55,7 @@ for part in $parts; do
         "tests/test_vector_env.py::test_torch_backend_matches_numpy_and_stays_on_device" \
         "tests/test_vector_env.py::test_graph_step_matches_launched_step" \
         "tests/test_vector_env.py::test_nan_actions_checked_on_the_device_are_taken_back" -k "not cpu" ;;
-    *) echo "unknown part $part (bench, reuse, variants, envelope, compare, accuracy, tests)" >&2; exit 2 ;;
+    *) echo "unknown part $part (bench, reuse, variants, split, envelope, compare, accuracy, tests)" >&2; exit 2 ;;
     esac
 done
 tmp=$(mktemp -d)

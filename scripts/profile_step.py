@@ -36,9 +36,9 @@ def main():
     ap.add_argument("--split", action="store_true",
                     help="device time of the captured step, and of the kernels that open and close a step when they "
                          "run on their own (one_launch=False)")
-    ap.add_argument("--two-launch", action="store_true",
-                    help="one_launch=False: the step opened and closed by kernels of their own around the fused one "
-                         "(the default with lanes is one launch)")
+    ap.add_argument("--launch", choices=("default", "one", "two"), default="default",
+                    help="one: the fused kernel opens and closes each world's step (one_launch=True); two: kernels "
+                         "of their own do, around it (one_launch=False); default: the simulator's (one with lanes)")
     args = ap.parse_args()
     if args.split and not wp.get_device(args.device).is_cuda:
         ap.error("--split times the device with CUDA events: give a CUDA --device")
@@ -46,7 +46,7 @@ def main():
         wp.config.lineinfo = True
     sim = Simulator(CASES[args.case]["scene"](), num_worlds=args.worlds, dt=0.01, device=args.device,
                     use_graph=args.phases or args.split, scratch=None if args.scratch == "auto" else args.scratch,
-                    block_dim=args.block_dim, one_launch=False if args.two_launch else None)  # fmt: skip
+                    block_dim=args.block_dim, one_launch={"default": None, "one": True, "two": False}[args.launch])  # fmt: skip
     sim.solver.settings.phase_clock = args.phases
     sim.set_joint_state(random_states(args.case, args.worlds))
     sim.step(args.warmup)
