@@ -4,9 +4,9 @@ A NEXT_STEP autoreset (a world that ended in step t starts its next episode in s
 the new episode's initial state in step t+1.  Drawn then on the host, it costs NumPy draws,
 uploads and a dozen launches per step (~400 µs of host time at 1,024 CartPole worlds on an H100,
 a third of the env step).  Here each world keeps a queue of its next ``depth`` initial states on
-the device, and the autoreset is a fixed launch sequence on device arrays (the mask of last
-step's ended worlds, the queues, each world's count of episodes taken), which needs nothing from
-the host and which a graph can hold.  The host follows the counts from the ended-world masks it
+the device, and the autoreset is two launches on device arrays (the mask of last step's ended
+worlds, the queues, each world's count of episodes taken), which need nothing from the host and
+which a graph can hold.  The host follows the counts from the ended-world masks it
 reads anyway (one step late: the step in which the device takes the row) and tops the queues up
 in one upload when a world has used half its queue: an autoreset step returns neither flag, so
 a world takes at most one row every two steps, and a queue never runs dry between top-ups.
@@ -29,10 +29,14 @@ from .coordinates import FIXED_CODE
 def _take(dtype):
     @wp.kernel
     def take(pending: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32), queue: wp.array3d(dtype=dtype),
-             xx: wp.array3d(dtype=dtype)):  # fmt: skip
+             xx: wp.array3d(dtype=dtype), elapsed: wp.array(dtype=wp.int64), tick: int):  # fmt: skip
         """A pending world w's next initial state, row taken[w] mod depth of its queue (queue row
-        slot·W + w), into xx[w]; one more taken."""
+        slot·W + w), into xx[w]; one more taken.  With ``tick``, every world's episode clock
+        (elapsed, env steps) too: restarted at 0 where the world is reset, else one step on (the
+        Torch backend's clocks, on the device: one launch less a step)."""
         w = wp.tid()
+        if tick != 0:
+            elapsed[w] = wp.where(pending[w] != 0, wp.int64(0), elapsed[w] + wp.int64(1))
         if pending[w] == 0:
             return
         W = pending.shape[0]
@@ -66,6 +70,7 @@ class NextEpisodes:
         self._taken = np.zeros(W, dtype=np.int64)  # the host's count, from the masks it reads
         self._drawn = np.zeros(W, dtype=np.int64)
         self._fixed = m.joint_kind_np == FIXED_CODE
+        self._no_clock = None  # apply's stand-in clock array, when the host keeps the clocks
 
     def restart(self):
         """Fresh queues for every world (after a full reset, from the env's new generator)."""
@@ -120,10 +125,17 @@ class NextEpisodes:
             wp.launch(rows.fill_int, dim=len(idx), inputs=[self.pending, rows.indices(idx, self.sim._stage, "clear_idx"), 0],
                       device=self.sim.device)  # fmt: skip
 
-    def apply(self):
-        """Start the pending worlds' next episodes (device launches only)."""
+    def apply(self, elapsed: wp.array | None = None):
+        """Start the pending worlds' next episodes: two launches on device arrays, for every world
+        whether pending or not (a graph holds them with no condition: a conditional node and the
+        launches it guarded cost more than these two do on the worlds with nothing to do).
+        ``elapsed``: the episode clocks (int64 (W,)) to tick in the same launch."""
         sim = self.sim
-        sim._replay("queue_take", _take(sim.model.dtype), sim.num_worlds, [self.pending, self.taken, self.queue, self.xx])
+        if elapsed is None and self._no_clock is None:
+            self._no_clock = wp.zeros(1, dtype=wp.int64, device=sim.device)
+        sim._replay("queue_take", _take(sim.model.dtype), sim.num_worlds,
+                    [self.pending, self.taken, self.queue, self.xx, self._no_clock if elapsed is None else elapsed,
+                     int(elapsed is not None)])  # fmt: skip
         sim.set_joint_state_where(self.pending, self.xx)
 
     def mask(self, xp):

@@ -1,5 +1,5 @@
-"""The vector env's per-step bookkeeping on the device as three Warp kernels (the device path of
-``vector_env`` with Torch).
+"""The vector env's per-step bookkeeping on the device as two Warp kernels (the device path of
+``vector_env`` with Torch); the episode clocks tick in the autoreset's first launch (autoreset.py).
 
 Each replaces a run of one-line Torch operations whose launches, not their arithmetic, are what
 an env step costs beside the physics: on an H100 with 1,024 CartPole worlds, about 35 small
@@ -39,34 +39,15 @@ def check_actions(control_dtype, scaled: bool):
 
 
 @wp.kernel
-def tick_clocks(go: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32), elapsed: wp.array(dtype=wp.int64),
-                any_pending: wp.array(dtype=wp.int32)):  # fmt: skip
-    """A stepped world's episode clock (env steps) advances, or restarts at 0 where the step reset
-    it (pending); a refused step (go 0) changes none.  any_pending is cleared, for finish_step to
-    set again where a world ends."""
-    w = wp.tid()
-    if go[0] == 0:
-        return
-    if w == 0:
-        any_pending[0] = 0
-    if pending[w] != 0:
-        elapsed[w] = wp.int64(0)
-    else:
-        elapsed[w] = elapsed[w] + wp.int64(1)
-
-
-@wp.kernel
 def finish_step(obs: wp.array2d(dtype=wp.float32), reward: wp.array(dtype=wp.float32), term: wp.array(dtype=wp.bool),
                 status: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32),
                 elapsed: wp.array(dtype=wp.int64), max_steps: wp.int64, out_obs: wp.array2d(dtype=wp.float32),
-                out_reward: wp.array(dtype=wp.float32), flags: wp.array2d(dtype=wp.bool),
-                any_pending: wp.array(dtype=wp.int32)):  # fmt: skip
+                out_reward: wp.array(dtype=wp.float32), flags: wp.array2d(dtype=wp.bool)):  # fmt: skip
     """World w's outcome from the task's observation, reward and termination: failed where its
     solve failed or an observation is not finite (zero observation and reward, terminated); a world
     reset in this step (pending, when the step ran) has reward 0 and neither flag; truncated at
     ``max_steps`` env steps (none when negative).  flags rows: terminated, truncated, failed, done;
-    done becomes the next step's pending mask unless the step was refused, and any done world sets
-    any_pending (the next step's autoreset runs only then)."""
+    done becomes the next step's pending mask unless the step was refused."""
     w = wp.tid()
     failed = bool(status[w] != 0)
     for j in range(obs.shape[1]):
@@ -92,5 +73,3 @@ def finish_step(obs: wp.array2d(dtype=wp.float32), reward: wp.array(dtype=wp.flo
     flags[3, w] = done
     if ran:
         pending[w] = wp.where(done, 1, 0)
-        if done:
-            any_pending[0] = 1

@@ -6,8 +6,10 @@ axis through its anchor, a prismatic child slides by x along the axis, a fixed c
 scene pose relative to its parent; rates add ω = ẋ t (revolute) or v = ẋ t (prismatic) to the
 parent's rigid motion.  Bodies no tree joint reaches keep their scene pose at rest; a joint between
 two placed bodies closes a loop and is left to the solver.  One kernel does every listed world
-and writes q, q̇ and the restart history (``rows.restart_q``), so a reset costs one launch, not a
-host computation and a transfer of every body's state.
+and writes q, q̇, the restart history (``rows.restart_q``) and the joints' coordinates and angle
+history, so a reset costs one launch, not a host computation and a transfer of every body's state
+(nor, on a GPU, the launches of a step's bracketing kernels: the vector env's autoreset runs it
+in each step).
 """
 
 import functools
@@ -17,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from .coordinates import PRISMATIC_CODE, REVOLUTE_CODE
+from .coordinates import funcs as coordinate_funcs
 from .rows import world_of
 from .warp_ops import ops
 
@@ -103,8 +106,10 @@ def kernels(dtype):
         K = wp.skew(t)
         return wp.identity(3, dtype) + wp.sin(x) * K + (one - wp.cos(x)) * (K * K)
 
+    begin_joint, joint_coordinates = coordinate_funcs(dtype)
+
     @wp.kernel
-    def place(
+    def restart(
         idx: wp.array(dtype=wp.int32), xx: wp.array3d(dtype=dtype),
         steps: wp.array2d(dtype=wp.int32), sign: wp.array(dtype=dtype), R_rel0: wp.array(dtype=mat33),
         p_rel0: wp.array(dtype=vec3), t_loc: wp.array(dtype=vec3), c_loc: wp.array(dtype=vec3),
@@ -112,11 +117,22 @@ def kernels(dtype):
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
         fresh: wp.array(dtype=wp.int32), mask: wp.array(dtype=wp.int32), masked: int,
+        num_joints: int, body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32),
+        kind: wp.array(dtype=wp.int32), c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3),
+        t_a: wp.array2d(dtype=vec3), n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3),
+        n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3), c_ref: wp.array2d(dtype=dtype),
+        s_ref: wp.array2d(dtype=dtype), theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype),
+        s_prev: wp.array2d(dtype=dtype), unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype),
+        h_step: wp.array(dtype=dtype), h: dtype, x_anchor: wp.array2d(dtype=dtype), coord: wp.array2d(dtype=dtype),
+        coord_vel: wp.array2d(dtype=dtype),
     ):  # fmt: skip
-        """World idx[i] at joint coordinates xx[i, 0] and rates xx[i, 1]; its restart history as
-        rows.restart_q (no past: q^{n−1} = q − dt q̇, q̇^{n−1} = q̇, fresh) and status OK.  ``omega``
-        holds each body's angular velocity while the tree is walked.  ``masked``: thread i is world
-        i, placed from xx[i] where mask[i] != 0 (idx unused)."""
+        """World idx[i] at joint coordinates xx[i, 0] and rates xx[i, 1], its whole restart in one
+        thread: the bodies placed (below), their restart history as rows.restart_q (no past:
+        q^{n−1} = q − dt q̇, q̇^{n−1} = q̇, fresh) and status OK; then, as a step's bracket does, each
+        joint's angle history (coordinates.begin_joint, from q^{t−1} = q), its coordinate and its
+        rate ∇x·q̇ (joint_coordinates), and its multi-turn coordinate xx[i, 0, j] with the BDF2
+        history x^{n−1} = x − dt ẋ.  ``omega`` holds each body's angular velocity while the tree is
+        walked.  ``masked``: thread i is world i, placed from xx[i] where mask[i] != 0 (idx unused)."""
         i = wp.tid()
         k = world_of(i, idx, mask, masked)
         if k < 0:
@@ -129,7 +145,7 @@ def kernels(dtype):
             j = steps[s, 0]
             par = steps[s, 1]
             ch = steps[s, 2]
-            kind = steps[s, 3]
+            step_kind = steps[s, 3]
             xs = sign[s] * xx[i, 0, j]
             vs = sign[s] * xx[i, 1, j]
             qp = q[k, par]
@@ -140,22 +156,22 @@ def kernels(dtype):
             wpar = omega[k, par]
             R_rel = R_rel0[s]
             p_rel = p_rel0[s]
-            if kind == REVOLUTE_CODE:
+            if step_kind == REVOLUTE_CODE:
                 G = axis_rotation(t_loc[s], xs)
                 R_rel = G * R_rel
                 p_rel = c_loc[s] + G * (p_rel - c_loc[s])
-            elif kind == PRISMATIC_CODE:
+            elif step_kind == PRISMATIC_CODE:
                 p_rel = p_rel + xs * t_loc[s]
             Rc = Rp * R_rel
             pc = pp + Rp * p_rel
             t_world = Rp * t_loc[s]
             vc = vp + wp.cross(wpar, pc - pp)
             wc = wpar
-            if kind == REVOLUTE_CODE:
+            if step_kind == REVOLUTE_CODE:
                 anchor = pp + Rp * c_loc[s]
                 wc = wc + vs * t_world
                 vc = vc + wp.cross(vs * t_world, pc - anchor)
-            elif kind == PRISMATIC_CODE:
+            elif step_kind == PRISMATIC_CODE:
                 vc = vc + vs * t_world
             q[k, ch] = pack(pc, Rc)
             qd[k, ch] = pack(vc, wp.skew(wc) * Rc)
@@ -168,18 +184,31 @@ def kernels(dtype):
             qd_hist[k, b] = vb
         status[k] = 0
         fresh[k] = 1
+        for j in range(num_joints):
+            begin_joint(q, body_a, body_b, kind, n_a, b_a, n_b, b_b, c_ref, s_ref, theta0, c_prev, s_prev, unwrapped,
+                        x_hist, h_step, h, x_anchor, k, j)  # fmt: skip
+        for j in range(num_joints):
+            joint_coordinates(q, q_prev, qd, body_a, body_b, kind, c_a, c_b, t_a, n_a, b_a, n_b, b_b, theta0, c_prev,
+                              s_prev, h, 0, 1, coord, coord_vel, unwrapped, x_hist, k, j)  # fmt: skip
+        for j in range(num_joints):
+            u = xx[i, 0, j]
+            unwrapped[k, j] = u
+            x_hist[k, j] = u - dt * coord_vel[k, j]
 
-    return place
+    return restart
 
 
-def place_launch(plan: TreePlan, omega: wp.array, state, model, idx: wp.array, xx: wp.array, N: int, dt: float,
-                 mask: wp.array | None = None):  # fmt: skip
-    """(kernel, dim, inputs) that set the worlds idx[:N] to joint coordinates xx[:N, 0] and rates
-    xx[:N, 1] (device arrays; xx (≥N, 2, max(joints, 1))), for the caller to launch or replay.
-    With ``mask`` (int32 (W,)): every world w with mask[w] != 0, from xx[w] (N = W, idx unused).
-    ``omega``: the (W, bodies) angular velocities the walk keeps."""
-    masked = mask is not None
+def restart_launch(plan: TreePlan, omega: wp.array, state, model, solver, idx: wp.array, xx: wp.array, N: int,
+                   dt: float, mask: wp.array | None = None):  # fmt: skip
+    """(kernel, dim, inputs) that restart the worlds idx[:N] at joint coordinates xx[:N, 0] and rates
+    xx[:N, 1] (device arrays; xx (≥N, 2, max(joints, 1))), bodies and joints (see ``restart``), for
+    the caller to launch or replay.  With ``mask`` (int32 (W,)): every world w with mask[w] != 0,
+    from xx[w] (N = W, idx unused).  ``omega``: the (W, bodies) angular velocities the walk keeps;
+    ``solver``: its step length h and per-world h_step (the joints' drive anchors)."""
+    masked, m, st = mask is not None, model, state
     return kernels(model.dtype), N, [
         idx, xx, plan.steps, plan.sign, plan.R_rel0, plan.p_rel0, plan.t_loc, plan.c_loc, plan.R0, plan.p0, float(dt),
-        omega, state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist, state.status, state.fresh,
-        mask if masked else idx, int(masked)]
+        omega, st.q, st.qd, st.q_prev, st.q_hist, st.qd_hist, st.status, st.fresh, mask if masked else idx, int(masked),
+        m.num_joints, m.body_a, m.body_b, m.joint_kind, m.c_a, m.c_b, m.t_a, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
+        st.theta0, st.c_prev, st.s_prev, st.unwrapped, st.x_hist, solver.h_step, float(solver.h), st.x_anchor, st.coord,
+        st.coord_vel]

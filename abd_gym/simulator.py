@@ -354,20 +354,19 @@ class Simulator:
             rows.restart(self.state, idx_dev, q, qd, self.dt, self.model, self._stage)
             self._restarted(idx, idx_dev)
 
-    def _restarted(self, idx, idx_dev, given=None):
-        """After the worlds idx got new body states: their clocks, joint histories and coordinates
-        (the multi-turn angles ``given[:, 0]``, a device array (≥N, 2, joints), or else the principal
-        ones).  idx_dev: the indices on the device (its first len(idx) rows)."""
+    def _restarted(self, idx, idx_dev):
+        """After the worlds idx got new body states: their clocks, joint histories, coordinates and
+        (principal) multi-turn angles.  idx_dev: the indices on the device (its first len(idx) rows)."""
         st, m = self.state, self.model
         N = len(idx)
         st.time[idx] = 0.0
         self.solver.restart_joints(st, self._mask(idx_dev, N))
         if m.num_joints:
-            if given is None and self._no_given is None:
+            if self._no_given is None:
                 self._no_given = wp.zeros((1, 1, 1), dtype=m.dtype, device=self.device)
             self._replay("unwrapped", rows.kernels(m.dtype)["restart_unwrapped"], (N, m.num_joints),
-                         [idx_dev, st.coord, st.coord_vel, self._no_given if given is None else given,
-                          int(given is not None), float(self.dt), st.unwrapped, st.x_hist, idx_dev, 0])  # fmt: skip
+                         [idx_dev, st.coord, st.coord_vel, self._no_given, 0, float(self.dt), st.unwrapped, st.x_hist,
+                          idx_dev, 0])  # fmt: skip
 
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
         """Forward kinematics for tree mechanisms (kinematics.py, on the device): joint coordinates
@@ -385,8 +384,9 @@ class Simulator:
         # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
         xx = np.stack([np.where(m.joint_kind_np[None, :] == FIXED_CODE, 0.0, x), xd], axis=1) if nj else np.zeros((N, 2, 1))
         xx = self._stage("xx", xx, m.dtype)
-        self._replay("place", *kinematics.place_launch(*self._tree(), self.state, m, idx_dev, xx, N, self.dt))
-        self._restarted(idx, idx_dev, given=xx)
+        self._replay("restart", *kinematics.restart_launch(*self._tree(), self.state, m, self.solver, idx_dev, xx, N,
+                                                           self.dt))  # fmt: skip
+        self.state.time[idx] = 0.0
 
     def _tree(self):
         """(forward kinematics' plan, its per-world angular-velocity scratch), made on first use."""
@@ -399,8 +399,8 @@ class Simulator:
     def set_joint_state_where(self, mask: wp.array, xx: wp.array):
         """``set_joint_state`` of the worlds w with mask[w] != 0 (a device int32 (num_worlds,) array)
         from xx[w, 0] (coordinates) and xx[w, 1] (rates) (a device (num_worlds, 2, max(joints, 1))
-        array of the model's dtype), with no host work on the worlds: a fixed launch sequence on
-        device arrays that a graph can hold (the vector env's autoreset).  The host clock
+        array of the model's dtype), with no host work on the worlds: one launch on device arrays
+        that a graph can hold (the vector env's autoreset).  The host clock
         (``state.time``) of those worlds is left to the caller, who learns which they are later."""
         m, W = self.model, self.num_worlds
         if tuple(mask.shape) != (W,) or mask.dtype != wp.int32:
@@ -408,12 +408,8 @@ class Simulator:
         if tuple(xx.shape) != (W, 2, max(m.num_joints, 1)) or xx.dtype != m.dtype:
             raise ValueError(f"xx must have shape ({W}, 2, {max(m.num_joints, 1)}) and the model's dtype, "
                              f"got {xx.dtype} {tuple(xx.shape)}")  # fmt: skip
-        self._replay("place_where", *kinematics.place_launch(*self._tree(), self.state, m, mask, xx, W, self.dt, mask=mask))
-        if m.num_joints:
-            st = self.state
-            self.solver.restart_joints(st, mask)
-            self._replay("unwrapped_where", rows.kernels(m.dtype)["restart_unwrapped"], (W, m.num_joints),
-                         [mask, st.coord, st.coord_vel, xx, 1, float(self.dt), st.unwrapped, st.x_hist, mask, 1])  # fmt: skip
+        self._replay("restart_where", *kinematics.restart_launch(*self._tree(), self.state, m, self.solver, mask, xx, W,
+                                                                 self.dt, mask=mask))  # fmt: skip
 
     def reset(self, worlds=None):
         """Back to the scene's initial state (all worlds, or those listed); clears failure flags

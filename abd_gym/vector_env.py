@@ -45,10 +45,13 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   (:mod:`abd_gym.autoreset`; from a generator spawned from ``np_random`` at each full reset, so
   the same seed gives the same episodes on every backend and device) and the autoreset is device
   work only.  With the Torch backend on a GPU the whole step (action check, controls, physics,
-  autoreset, observation, reward, flags) is then captured once as CUDA graphs (two: the Warp
-  part, whose physics and autoreset are conditional nodes, and the Torch part after it) and
-  replayed on a static action buffer; the returned tensors are copies.  The env's own bookkeeping
-  runs there as a few Warp kernels (:mod:`abd_gym.env_kernels`), between the task's Torch code.
+  autoreset, observation, reward, flags) is then captured once as one CUDA graph (the Warp part,
+  whose physics and autoreset sit in a conditional node, with the Torch graph of what follows
+  nested in it as a child graph) and replayed on a static action buffer; the returned tensors
+  are copies.  The env's own bookkeeping runs there as a few Warp kernels
+  (:mod:`abd_gym.env_kernels`) after the task's Torch code, which torch.compile fuses into a few
+  kernels where Triton is installed (``compile_outcome``, default on with the step graph; the
+  first step then takes seconds more).
   The graphs hold the task's Python constants (thresholds, ``max_episode_steps``, reward weights)
   as they were when captured, at the env's second step: set them before stepping.
   ``graph=False`` launches the same work op by op (the default elsewhere); ``graph=True`` where it
@@ -92,6 +95,7 @@ optionally ``_terminated``, ``_initial_state``, ``_reset_task``, ``_info``, ``_c
 """
 from __future__ import annotations
 
+import ctypes
 import math
 from typing import Any
 
@@ -122,6 +126,29 @@ def _to_numpy(x) -> np.ndarray:
     if _is_torch(x):
         return x.detach().cpu().numpy()
     return np.asarray(x)
+
+
+def _insert_child_graph(device, raw) -> bool:
+    """Add the CUDA graph ``raw`` (a cudaGraph_t) as a child node of the capture under way on the
+    device's current stream, by the call Warp's own capture_if makes for a Graph branch (internal
+    to Warp: False where this Warp lacks it or it fails)."""
+    try:
+        from warp._src.context import runtime
+
+        insert = runtime.core.wp_cuda_graph_insert_child_graph
+    except (ImportError, AttributeError):
+        return False
+    return bool(insert(device.context, device.stream.cuda_stream, ctypes.c_void_p(raw)))
+
+
+def _can_compile() -> bool:
+    """Whether torch.compile can make GPU kernels here (Inductor's Triton backend)."""
+    try:
+        from torch.utils._triton import has_triton
+
+        return bool(has_triton())
+    except ImportError:
+        return False
 
 
 def _autoreset_mode(mode) -> AutoresetMode:
@@ -164,7 +191,8 @@ class ABDVectorEnv(VectorEnv):
     def __init__(self, num_envs: int = 1, *, device=None, backend: str = "numpy",
                  autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, max_episode_steps: int | None = None,
                  render_mode: str | None = None, render_worlds=None, randomize: dict | None = None,
-                 dtype: str = "float32", integrator: str | None = None, graph: bool | None = None):  # fmt: skip
+                 dtype: str = "float32", integrator: str | None = None, graph: bool | None = None,
+                 compile_outcome: bool | None = None):  # fmt: skip
         if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if backend not in BACKENDS:
@@ -202,6 +230,7 @@ class ABDVectorEnv(VectorEnv):
             raise ValueError(f"observation bounds must be positive and finite, got {high}")
         self.single_observation_space = spaces.Box(-high, high, dtype=np.float32)
         self._obs_high = self._asarray(high)
+        self._obs_low = -self._obs_high  # kept: negating it in each step is a launch
         self.action_space = batch_space(self.single_action_space, N)
         self.observation_space = batch_space(self.single_observation_space, N)
         self._max_effort = np.array([d.max_effort for d in self.scene.drives], dtype=np.float32)
@@ -236,11 +265,21 @@ class ABDVectorEnv(VectorEnv):
         # the step graph checks its actions for NaN on the device (a refused batch steps nothing,
         # and the next call raises): a host check would make the host wait for the device each step
         self._check_on_device = self._use_graph and wp.is_conditional_graph_supported()
+        # the task's observation, reward and termination (a dozen one-line Torch operations, each a
+        # kernel of the step graph) compiled by torch.compile into a few fused kernels; by default
+        # with the step graph only (the compile takes seconds; op by op the host's launches, not
+        # the device's kernels, are what a step waits for)
+        if compile_outcome and backend != "torch":
+            raise ValueError("compile_outcome=True needs the Torch backend")
+        self._compile_outcome = self._use_graph and _can_compile() if compile_outcome is None else bool(compile_outcome)
+        self._outcome_fn = None
         self._go = None  # device int32 flag: 1 steps, 0 refuses (sticky until the host reads why)
         self._unread = False  # a step checked on the device whose verdict the host has not read
         self._refused = np.zeros(0, dtype=np.int64)  # the worlds with NaN actions in the last such step
         self._undo = None  # that step's host bookkeeping before it: (clock, rows taken, pending mask)
         self._replay_stream = None  # Warp's handle of the Torch stream the step graphs are replayed on
+        self._stream_id = self._torch_stream = None  # that stream's id and Torch object
+        self._post_graph = None  # the Torch graph nested in the step graph (kept: its memory)
 
         # ---- per-world physical parameters (host copies of what the simulator holds)
         scene = self.scene
@@ -534,7 +573,7 @@ class ABDVectorEnv(VectorEnv):
     def _observe_safe(self):
         """The task's observation as float32, clipped to the observation space."""
         obs = self._f32(self._observe())
-        return self.xp.clip(obs, -self._obs_high, self._obs_high)
+        return self.xp.clip(obs, self._obs_low, self._obs_high)
 
     @staticmethod
     def _batch_info(values: dict, mask: np.ndarray) -> dict:
@@ -585,7 +624,7 @@ class ABDVectorEnv(VectorEnv):
             self._pinned = (torch.zeros((2, self.num_envs), dtype=torch.bool, pin_memory=True), torch.cuda.Event())
         host, event = self._pinned
         (host if checked else host[0]).copy_(flags, non_blocking=True)
-        event.record()
+        event.record(self._torch_stream)  # (None: the current stream, which record looks up)
         self._pending_in_flight = True
 
     def step(self, actions):
@@ -671,7 +710,6 @@ class ABDVectorEnv(VectorEnv):
         dev = self._torch_device
         self._go = wp.ones(1, dtype=wp.int32, device=self.device)
         self._go_t = wp.to_torch(self._go)
-        self._any_pending = wp.ones(1, dtype=wp.int32, device=self.device)  # 1 may be stale: then a no-op autoreset
         # one byte buffer, so that one clone of its head copies the observations, rewards and the three
         # flags returned
         self._out_raw = torch.zeros(4 * N * (d + 1) + 5 * N, dtype=torch.uint8, device=dev)
@@ -718,12 +756,12 @@ class ABDVectorEnv(VectorEnv):
                 sim.launch_step(self.frame_skip)  # the env's graph holds the step; the clock ticks at replay
             else:
                 sim.step(self.frame_skip)
-            # the autoreset's five launches only when a world is pending: checked, as a conditional
-            # node on the flag finish_step sets (most steps of a task whose episodes end together have
-            # none); else on the CPU from the mask in host memory (on a GPU, reading it would wait
-            # for the device)
-            if checked:
-                wp.capture_if(self._any_pending, on_true=self._next.apply)
+            # the autoreset: two launches for every world (no condition on whether any world is
+            # pending: in a graph a conditional node cost more than the launches it spared), the
+            # first of which ticks the episode clocks with Torch; with NumPy the host keeps the
+            # clocks and, on the CPU, skips the launches when its mask has no pending world
+            if self.xp is not np:
+                self._next.apply(self._wp["elapsed"])
             elif capturing or not self.device.is_cpu or self._next.mask(np).any():
                 self._next.apply()
 
@@ -735,8 +773,8 @@ class ABDVectorEnv(VectorEnv):
     def _post(self, a):
         """Observation, reward and flags of the step, those of the worlds reset in it replaced as in
         ``step`` (reward 0, both flags False), the ended worlds marked for the next step.  With
-        Torch, in env_kernels' two launches around the task's own operations (a step the device
-        refused changes no clock and no pending mask), into the packed outputs; returns (the
+        Torch, in env_kernels' launch after the task's own operations (a step the device refused
+        changes no pending mask), into the packed outputs; returns (the
         outputs, info values, the flags' rows done and bad)."""
         xp = self.xp
         if xp is np:
@@ -749,19 +787,26 @@ class ABDVectorEnv(VectorEnv):
             return (obs, reward, terminated, truncated, failed), info_values, done
         k, dev, N = self._wp, self.device, self.num_envs
         pending = self._next.pending
-        wp.launch(env_kernels.tick_clocks, dim=N, inputs=[self._go, pending, k["elapsed"], self._any_pending],
-                  device=dev)  # fmt: skip
-        obs = self._observe_safe()
-        reward = self._f32(self._reward(obs, a))
-        term = self._terminated(obs)
-        info_values = self._info(obs)
+        if self._outcome_fn is None:
+            import torch
+
+            fn = self._task_outcome
+            self._outcome_fn = torch.compile(fn, dynamic=False) if self._compile_outcome else fn
+        obs, reward, term, info_values = self._outcome_fn(a)
         steps = -1 if self.max_episode_steps is None else self.max_episode_steps
         wp.launch(env_kernels.finish_step, dim=N,
-                  inputs=[wp.from_torch(obs), wp.from_torch(reward.contiguous()), wp.from_torch(term.contiguous()),
+                  inputs=[wp.from_torch(obs), wp.from_torch(reward), wp.from_torch(term),
                           self.sim.state.status, self._go, pending, k["elapsed"], steps, k["obs"], k["reward"],
-                          k["flags"], self._any_pending], device=dev)  # fmt: skip
+                          k["flags"]], device=dev)  # fmt: skip
         obs, reward, b = self._unpack(self._out_raw)
         return (obs, reward, b[0], b[1], b[2]), info_values, b[3:5]
+
+    def _task_outcome(self, a):
+        """The task's observation (float32, clipped to the space), reward (float32), termination and
+        info values after a step with the clipped actions ``a`` (Torch; what torch.compile fuses)."""
+        obs = self._observe_safe()
+        reward = self._f32(self._reward(obs, a)).contiguous()
+        return obs, reward, self._terminated(obs).contiguous(), self._info(obs)
 
     def _device_step(self, a):
         """One env step as device work only (no host reads, no host-dependent branches on a GPU), so
@@ -771,13 +816,14 @@ class ABDVectorEnv(VectorEnv):
         self._physics(False, checked)
         return self._post(a)
 
-    def _torch_graph(self, fn):
+    def _torch_graph(self, fn, keep: bool = False):
         """A CUDA graph of ``fn()`` and its outputs: Torch's capture on a side stream, Warp's launches
-        on the same stream (told the capture is external)."""
+        on the same stream (told the capture is external).  ``keep``: the graph keeps its CUDA graph
+        (``raw_cuda_graph``), for nesting in another, and is instantiated only if replayed."""
         import torch
 
         dev = self._torch_device
-        graph = torch.cuda.CUDAGraph()
+        graph = torch.cuda.CUDAGraph(keep_graph=True) if keep else torch.cuda.CUDAGraph()
         stream = torch.cuda.Stream(device=dev)
         stream.wait_stream(torch.cuda.current_stream(dev))
         ws = wp.stream_from_torch(stream)
@@ -792,9 +838,11 @@ class ABDVectorEnv(VectorEnv):
         return graph, outputs
 
     def _capture(self):
-        """The step as graphs on a static action buffer: before the physics and after it (Torch), the
-        physics between them (Warp's own capture: its conditional node on the go flag must not end a
-        Torch capture, whose allocations are tied to the capture's id)."""
+        """The step as graphs on a static action buffer: the physics (Warp's own capture: its
+        conditional node on the go flag must not end a Torch capture, whose allocations are tied to
+        the capture's id) and, nested in it as a child graph, the Torch graph of what follows it
+        (captured first), so that a step is one graph launch; where this Torch or Warp cannot nest
+        it, that graph is replayed after the physics'."""
         import torch
 
         self._action_buf = torch.zeros((self.num_envs, self.action_dim), dtype=torch.float32, device=self._torch_device)
@@ -806,26 +854,39 @@ class ABDVectorEnv(VectorEnv):
         pre = None
         if not warp_only:
             pre, _ = self._torch_graph(lambda: self._pre(self._action_buf, checked))
+        try:
+            post, outputs = self._torch_graph(lambda: self._post(self._action_buf), keep=True)
+            raw = post.raw_cuda_graph()
+        except (TypeError, AttributeError, RuntimeError):  # a Torch without keep_graph / raw_cuda_graph
+            post, outputs = self._torch_graph(lambda: self._post(self._action_buf))
+            raw = None
+        self._post_graph = post  # the nested graph's memory (Torch's pool) lives as long as this
         with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
             if warp_only:
                 self._pre(self._action_buf, checked)
             self._physics(True, checked)
-        post, outputs = self._torch_graph(lambda: self._post(self._action_buf))
-        return (pre, capture.graph, post), outputs
+            nested = raw is not None and _insert_child_graph(self.device, raw)
+        if raw is not None and not nested:
+            post.instantiate()
+        return (pre, capture.graph, None if nested else post), outputs
 
     def _replay(self, a):
-        """The step graphs replayed on Torch's current stream (the physics' too) with the actions ``a``."""
+        """The step graphs replayed on Torch's current stream with the actions ``a``."""
         import torch
 
         (pre, physics, post), outputs = self._graph
-        ts = torch.cuda.current_stream(self._torch_device)
-        if self._replay_stream is None or self._replay_stream._torch_stream != ts:
-            self._replay_stream = wp.stream_from_torch(ts)
+        # the current stream's id by Torch's own query: torch.cuda.current_stream() builds a Stream
+        # and resolves the device each call, which a step's host time notices
+        sid = torch._C._cuda_getCurrentStream(self._torch_device.index or 0)[0]
+        if self._replay_stream is None or self._stream_id != sid:
+            ts = torch.cuda.current_stream(self._torch_device)
+            self._replay_stream, self._stream_id, self._torch_stream = wp.stream_from_torch(ts), sid, ts
         self._action_buf.copy_(a)
         if pre is not None:
             pre.replay()
         wp.capture_launch(physics, stream=self._replay_stream)
-        post.replay()
+        if post is not None:
+            post.replay()
         return outputs
 
     def _step_on_device(self, a):

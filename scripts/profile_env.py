@@ -8,7 +8,8 @@ A phase that waits for the device shows the device's time in its row: with the s
 ``_pending_now`` should (it waits for the last step while this one runs; see abd_gym/vector_env.py).
 With the step graph, the device's time per step is split too, by CUDA events: the actions' copy and
 the graph before the physics, the physics graph, the graph after it, the returned copies, and the
-gap to the next step (where the device waits for the host).
+gap to the next step (where the device waits for the host); and each part replayed on its own, back
+to back, which the host cannot slow.
 """
 import argparse
 import collections
@@ -41,7 +42,8 @@ def device_phases(env, actions, steps):
         e[1].record()
         wp.capture_launch(physics, stream=u._replay_stream)
         e[2].record()
-        post.replay()
+        if post is not None:
+            post.replay()
         e[3].record()
         return outputs
 
@@ -57,7 +59,8 @@ def device_phases(env, actions, steps):
     torch.cuda.synchronize()
     wall = time.perf_counter() - t0
     u._replay = inner
-    names = ("actions (and pre graph)", "physics graph", "post graph", "copies returned", "gap to the next step")
+    names = ("actions (and pre graph)", "physics graph" + (" (post nested)" if post is None else ""), "post graph",
+             "copies returned", "gap to the next step")  # fmt: skip
     sums = [0.0] * 5
     for k, e in enumerate(marks):
         for j in range(4):
@@ -67,6 +70,56 @@ def device_phases(env, actions, steps):
     print(f"device time per step (CUDA events, {steps} steps; wall {wall / steps * 1e6:.0f} us/step):")
     for name, v in zip(names, sums):
         print(f"  {name:24s} {v / steps * 1e3:8.1f} us/step")
+
+
+def device_parts(env, actions, steps):
+    """Device time of each part of the graph step replayed ``steps`` times back to back (no host
+    bookkeeping between replays, so no gap where the device waits for the host), by two CUDA
+    events around each run: what the device itself spends on each part of an env step."""
+    import torch
+
+    u = env.unwrapped
+    (pre, physics, post), _ = u._graph
+    stream = wp.stream_from_torch(torch.cuda.current_stream(u._torch_device))
+    with wp.ScopedCapture(device=u.device, force_module_load=False) as cap:
+        u.sim.launch_step(u.frame_skip)
+    alone = cap.graph
+    host, _ = u._pinned
+    flags = u._out_b[3:5]
+
+    def copy_actions(k):
+        u._action_buf.copy_(actions[k % len(actions)])
+
+    def returned(k):
+        u._out_raw[: u._out_head].clone()
+        host.copy_(flags, non_blocking=True)
+
+    def whole(k):
+        copy_actions(k)
+        if pre is not None:
+            pre.replay()
+        wp.capture_launch(physics, stream=stream)
+        if post is not None:
+            post.replay()
+        returned(k)
+
+    step_graph = "physics graph (check, step, autoreset" + (", post nested)" if post is None else ")")
+    parts = (("actions' copy", copy_actions), (step_graph, lambda k: wp.capture_launch(physics, stream=stream)),
+             ("simulator's step alone (its graph)", lambda k: wp.capture_launch(alone, stream=stream)))
+    if post is not None:
+        parts += (("post graph", lambda k: post.replay()),)
+    parts += (("returned copies (outputs, flags to host)", returned), ("whole env step, device work only", whole))
+    print(f"device time of each part replayed {steps} times back to back (CUDA events):")
+    for name, fn in parts:
+        fn(0)
+        a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        torch.cuda.synchronize()
+        a.record()
+        for k in range(steps):
+            fn(k)
+        b.record()
+        torch.cuda.synchronize()
+        print(f"  {name:42s} {a.elapsed_time(b) / steps * 1e3:8.1f} us/step")
 
 
 def main(argv=None):
@@ -107,8 +160,12 @@ def main(argv=None):
 
         return run
 
+    # the task's outcome, compiled by torch.compile, guards on these methods: wrapping them would
+    # recompile it (inside the step graph's capture)
+    task_code = ("_observe_safe", "_reward", "_terminated", "_info") if u._compile_outcome else ()
     for name in PHASES:
-        setattr(u, name, timed(name, getattr(u, name)))
+        if name not in task_code:
+            setattr(u, name, timed(name, getattr(u, name)))
     if u._next is not None:
         u._next.took = timed("_next.took", u._next.took)
         u._next._top_up = timed("_next._top_up", u._next._top_up)
@@ -126,6 +183,7 @@ def main(argv=None):
         print(f"  {name:20s} {s / args.steps * 1e6:8.1f} us/step  ({calls[name]} calls)")
     if u._graph is not None:
         device_phases(env, actions, args.steps)
+        device_parts(env, actions, args.steps)
     if wp.get_device(u.device).is_cuda:
         torch.cuda.set_sync_debug_mode("warn")
         with warnings.catch_warnings(record=True) as caught:

@@ -455,7 +455,9 @@ def test_device_autoreset_draws_fresh_episodes():
 @pytest.mark.parametrize("task", ["CartPole-v0", "Pendulum-v0"])
 def test_graph_step_matches_launched_step(task):
     """On a GPU with Torch: the env step replayed as one CUDA graph (graph=True, the default there)
-    gives the stream of the same step launched op by op (graph=False)."""
+    gives the stream of the same step launched op by op (graph=False): the same physics, and the
+    task's outcome to float32 rounding (the graph's is compiled by torch.compile where Triton is
+    installed, whose sin and cos may differ from Torch's by an ulp)."""
     torch = pytest.importorskip("torch")
     _cuda_or_skip("cuda:0")
     kw = dict(num_envs=64, vectorization_mode="vector_entry_point", device="cuda:0", backend="torch")
@@ -469,13 +471,45 @@ def test_graph_step_matches_launched_step(task):
     for a in actions:
         out_g, out_p = g.step(a), plain.step(a)
         for x, y in zip(out_g[:4], out_p[:4]):
-            torch.testing.assert_close(x, y, rtol=0, atol=1e-6)
+            torch.testing.assert_close(x, y, rtol=1e-6, atol=1e-6)
         torch.testing.assert_close(out_g[4]["sim_failed"], out_p[4]["sim_failed"])
         ends += int((out_g[2] | out_g[3]).sum())
     assert g.unwrapped._graph is not None
     assert ends > 0 or task == "Pendulum-v0"
     g.close()
     plain.close()
+
+
+@pytest.mark.parametrize("task", ["CartPole-v0", "Pendulum-v0"])
+def test_compiled_outcome_matches_eager(task):
+    """compile_outcome=True (torch.compile of the task's observation, reward and termination; the
+    default with the step graph on a GPU) gives the eager outcome: here on the CPU's Torch backend
+    (Inductor's C++ kernels), to float32 rounding, the flags exactly; needs a C++ compiler."""
+    torch = pytest.importorskip("torch")
+    import shutil
+
+    if shutil.which("g++") is None and shutil.which("c++") is None:
+        pytest.skip("torch.compile on the CPU needs a C++ compiler")
+    kw = dict(num_envs=8, vectorization_mode="vector_entry_point", device="cpu", backend="torch")
+    envs = [gym.make_vec(f"abd_gym/{task}", compile_outcome=c, **kw) for c in (True, False)]
+    assert envs[0].unwrapped._compile_outcome and not envs[1].unwrapped._compile_outcome
+    for e in envs:
+        e.reset(seed=4)
+    actions = torch.rand((30, 8, envs[0].unwrapped.action_dim), generator=torch.Generator().manual_seed(1)) * 2 - 1
+    ends = 0
+    for a in actions:
+        (oc, rc, tc, trc, _), (oe, re, te, tre, _) = (e.step(a) for e in envs)
+        torch.testing.assert_close(oc, oe, rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(rc, re, rtol=1e-6, atol=1e-6)
+        assert torch.equal(tc, te) and torch.equal(trc, tre)
+        ends += int(tc.sum())
+    assert ends > 0 or task == "Pendulum-v0"
+    assert hasattr(envs[0].unwrapped._outcome_fn, "_torchdynamo_orig_callable")  # the compiled one ran
+    assert envs[1].unwrapped._outcome_fn == envs[1].unwrapped._task_outcome
+    for e in envs:
+        e.close()
+    with pytest.raises(ValueError, match="compile_outcome=True needs the Torch backend"):
+        CartPoleVectorEnv(2, compile_outcome=True)
 
 
 # ----------------------------------------------------------------------------- registration
