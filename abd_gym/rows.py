@@ -30,18 +30,14 @@ def kernels(dtype):
 
     @wp.kernel
     def restart_unwrapped(idx: wp.array(dtype=wp.int32), coord: wp.array2d(dtype=dtype),
-                          coord_vel: wp.array2d(dtype=dtype), given: wp.array3d(dtype=dtype), has_given: int, dt: dtype,
-                          unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype),
-                          mask: wp.array(dtype=wp.int32), masked: int):  # fmt: skip
-        """A set state's multi-turn coordinate (given[i, 0], else the principal one) and its BDF2
-        history x^{n−1} = x − dt·ẋ; world idx[i], or with ``masked`` world i where mask[i] != 0."""
+                          coord_vel: wp.array2d(dtype=dtype), dt: dtype, unwrapped: wp.array2d(dtype=dtype),
+                          x_hist: wp.array2d(dtype=dtype)):  # fmt: skip
+        """World idx[i] after its body states were set: its multi-turn coordinate restarts at the
+        principal one, with the BDF2 history x^{n−1} = x − dt·ẋ (a joint state set by coordinates
+        does this in kinematics.restart, from the given ones)."""
         i, j = wp.tid()
-        k = world_of(i, idx, mask, masked)
-        if k < 0:
-            return
+        k = idx[i]
         u = coord[k, j]
-        if has_given != 0:
-            u = given[i, 0, j]
         unwrapped[k, j] = u
         x_hist[k, j] = u - dt * coord_vel[k, j]
 

@@ -103,7 +103,6 @@ class Simulator:
         self._plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
         self._torch_views = {}
         self._host_views = {}
-        self._no_given = None  # a stand-in for _restarted's given
         self._cmds = {}  # recorded launches of the reset path, replayed with changed arguments (_replay)
         self._stage = rows.Staging(self.device)  # host rows to the device without waiting for the device
         self._graph = None
@@ -362,11 +361,8 @@ class Simulator:
         st.time[idx] = 0.0
         self.solver.restart_joints(st, self._mask(idx_dev, N))
         if m.num_joints:
-            if self._no_given is None:
-                self._no_given = wp.zeros((1, 1, 1), dtype=m.dtype, device=self.device)
             self._replay("unwrapped", rows.kernels(m.dtype)["restart_unwrapped"], (N, m.num_joints),
-                         [idx_dev, st.coord, st.coord_vel, self._no_given, 0, float(self.dt), st.unwrapped, st.x_hist,
-                          idx_dev, 0])  # fmt: skip
+                         [idx_dev, st.coord, st.coord_vel, float(self.dt), st.unwrapped, st.x_hist])  # fmt: skip
 
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
         """Forward kinematics for tree mechanisms (kinematics.py, on the device): joint coordinates
