@@ -4,6 +4,14 @@
 Each replaces a run of one-line Torch operations whose launches, not their arithmetic, are what
 an env step costs beside the physics: on an H100 with 1,024 CartPole worlds, about 35 small
 kernels took ~100 µs of device time a step against ~260 µs of physics.  One thread per world.
+
+``mailed`` variants serve the step graph, whose kernel arguments are fixed at capture: they find
+the caller's action batch and the step's fresh output buffer by pointers the host writes, before
+each replay, into ``mail[slot]`` (page-locked host memory, which a kernel reads directly under
+CUDA's unified addressing), and write the done and bad rows straight to page-locked host memory
+(``host_flags[slot]``), so that a step is the graph alone: no copy of the actions in, of the
+outputs out or of the flags to the host as stream operations of their own.  ``slot`` alternates
+between two graphs: the host reads step t's flags while step t + 1 (the other slot) runs.
 """
 import functools
 
@@ -11,19 +19,24 @@ import warp as wp
 
 
 @functools.lru_cache(maxsize=None)
-def check_actions(control_dtype, scaled: bool):
+def check_actions(control_dtype, scaled: bool, mailed: bool = False):
     """The kernel that checks, clips and (with ``scaled``) scales world w's actions."""
 
-    @wp.kernel
+    @wp.kernel(module="unique")  # a variant made later must not reload the others (in a graph)
     def check(a: wp.array2d(dtype=wp.float32), effort: wp.array(dtype=wp.float32), bad: wp.array(dtype=wp.bool),
-              go: wp.array(dtype=wp.int32), controls: wp.array2d(dtype=control_dtype)):  # fmt: skip
+              go: wp.array(dtype=wp.int32), controls: wp.array2d(dtype=control_dtype), mail: wp.array2d(dtype=wp.uint64),
+              slot: int):  # fmt: skip
         """A NaN action flags its world (bad[w]) and clears the go flag, which only the host sets
         again; the actions clipped to [−1, 1] in place (NaN as 0); with ``scaled``, the controls
-        a × max effort [N, N·m]."""
+        a × max effort [N, N·m].  ``mailed``: the actions read from the caller's float32 (N, A)
+        batch at mail[slot, 0], clipped into ``a`` (else ``mail`` is unused)."""
         w = wp.tid()
         b = bool(False)
+        src = a
+        if wp.static(mailed):
+            src = wp.array(ptr=mail[slot, 0], shape=(a.shape[0], a.shape[1]), dtype=wp.float32)
         for j in range(a.shape[1]):
-            x = a[w, j]
+            x = src[w, j]
             if wp.isnan(x):
                 b = True
                 x = 0.0
@@ -38,38 +51,63 @@ def check_actions(control_dtype, scaled: bool):
     return check
 
 
-@wp.kernel
-def finish_step(obs: wp.array2d(dtype=wp.float32), reward: wp.array(dtype=wp.float32), term: wp.array(dtype=wp.bool),
-                status: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32),
-                elapsed: wp.array(dtype=wp.int64), max_steps: wp.int64, out_obs: wp.array2d(dtype=wp.float32),
-                out_reward: wp.array(dtype=wp.float32), flags: wp.array2d(dtype=wp.bool)):  # fmt: skip
-    """World w's outcome from the task's observation, reward and termination: failed where its
-    solve failed or an observation is not finite (zero observation and reward, terminated); a world
-    reset in this step (pending, when the step ran) has reward 0 and neither flag; truncated at
-    ``max_steps`` env steps (none when negative).  flags rows: terminated, truncated, failed, done;
-    done becomes the next step's pending mask unless the step was refused."""
-    w = wp.tid()
-    failed = bool(status[w] != 0)
-    for j in range(obs.shape[1]):
-        if not wp.isfinite(obs[w, j]):
-            failed = True
-    ran = go[0] != 0
-    reset = ran and pending[w] != 0
-    terminated = (term[w] or failed) and not reset
-    truncated = max_steps >= wp.int64(0) and elapsed[w] >= max_steps and not reset
-    for j in range(obs.shape[1]):
-        x = obs[w, j]
-        if failed:
-            x = 0.0
-        out_obs[w, j] = x
-    r = reward[w]
-    if failed or reset:
-        r = 0.0
-    out_reward[w] = r
-    done = terminated or truncated
-    flags[0, w] = terminated
-    flags[1, w] = truncated
-    flags[2, w] = failed
-    flags[3, w] = done
-    if ran:
-        pending[w] = wp.where(done, 1, 0)
+@functools.lru_cache(maxsize=None)
+def finish_step(mailed: bool = False):
+    """The kernel that ends world w's env step (below); ``mailed``: its outputs go to the step's
+    fresh buffer at mail[slot, 1] and its done and bad rows to host_flags[slot] (else to ``out_obs``,
+    ``out_reward`` and ``flags``; ``mail`` and ``host_flags`` unused)."""
+
+    @wp.kernel(module="unique")  # a variant made later must not reload the others (in a graph)
+    def finish(obs: wp.array2d(dtype=wp.float32), reward: wp.array(dtype=wp.float32), term: wp.array(dtype=wp.bool),
+               status: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32),
+               elapsed: wp.array(dtype=wp.int64), max_steps: wp.int64, out_obs: wp.array2d(dtype=wp.float32),
+               out_reward: wp.array(dtype=wp.float32), flags: wp.array2d(dtype=wp.bool),
+               mail: wp.array2d(dtype=wp.uint64), slot: int, host_flags: wp.array3d(dtype=wp.bool)):  # fmt: skip
+        """World w's outcome from the task's observation, reward and termination: failed where its
+        solve failed or an observation is not finite (zero observation and reward, terminated); a
+        world reset in this step (pending, when the step ran) has reward 0 and neither flag;
+        truncated at ``max_steps`` env steps (none when negative).  flags rows: terminated,
+        truncated, failed, done (and bad, the check's); done becomes the next step's pending mask
+        unless the step was refused.  Mailed, the buffer holds the observations (N, d) and rewards
+        (float32), then the rows terminated, truncated, failed (bytes): ``ABDVectorEnv._unpack``."""
+        w = wp.tid()
+        n = obs.shape[0]
+        d = obs.shape[1]
+        o = out_obs
+        r_out = out_reward
+        f_out = flags
+        if wp.static(mailed):
+            p = mail[slot, 1]
+            o = wp.array(ptr=p, shape=(n, d), dtype=wp.float32)
+            r_out = wp.array(ptr=p + wp.uint64(4 * n * d), shape=(n,), dtype=wp.float32)
+            f_out = wp.array(ptr=p + wp.uint64(4 * n * (d + 1)), shape=(3, n), dtype=wp.bool)
+        failed = bool(status[w] != 0)
+        for j in range(d):
+            if not wp.isfinite(obs[w, j]):
+                failed = True
+        ran = go[0] != 0
+        reset = ran and pending[w] != 0
+        terminated = (term[w] or failed) and not reset
+        truncated = max_steps >= wp.int64(0) and elapsed[w] >= max_steps and not reset
+        for j in range(d):
+            x = obs[w, j]
+            if failed:
+                x = 0.0
+            o[w, j] = x
+        r = reward[w]
+        if failed or reset:
+            r = 0.0
+        r_out[w] = r
+        done = terminated or truncated
+        f_out[0, w] = terminated
+        f_out[1, w] = truncated
+        f_out[2, w] = failed
+        if wp.static(mailed):
+            host_flags[slot, 0, w] = done
+            host_flags[slot, 1, w] = flags[4, w]
+        else:
+            flags[3, w] = done
+        if ran:
+            pending[w] = wp.where(done, 1, 0)
+
+    return finish

@@ -47,8 +47,10 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   work only.  With the Torch backend on a GPU the whole step (action check, controls, physics,
   autoreset, observation, reward, flags) is then captured once as one CUDA graph (the Warp part,
   whose physics and autoreset sit in a conditional node, with the Torch graph of what follows
-  nested in it as a child graph) and replayed on a static action buffer; the returned tensors
-  are copies.  The env's own bookkeeping runs there as a few Warp kernels
+  nested in it as a child graph) and replayed, two such graphs in turn: the graph reads the
+  caller's action batch and writes the step's outputs to a fresh buffer (the caller's to keep) by
+  pointers the host leaves in page-locked memory, and writes the done mask there for the host,
+  so a step is one graph launch and no copy.  The env's own bookkeeping runs there as a few Warp kernels
   (:mod:`abd_gym.env_kernels`) after the task's Torch code, which torch.compile fuses into a few
   kernels where Triton is installed (``compile_outcome``, default on with the step graph; the
   first step then takes seconds more).
@@ -245,7 +247,8 @@ class ABDVectorEnv(VectorEnv):
         # without terminations
         self._no_flags = self._zeros(N, dtype="bool")
         self._pending = np.zeros(N, dtype=bool)  # NEXT_STEP: worlds to reset at the next step
-        self._pinned = None  # GPU: (pinned host mask, event) that the next pending mask is copied through
+        self._pinned = None  # GPU: (pinned host flags' slots, event) the next pending mask comes through
+        self._pinned_slot = 2  # the slot of those flags that the event's step writes
         self._pending_in_flight = False
         self._has_reset = False
         # NEXT_STEP autoresets on the device (autoreset.py), for tasks whose episodes start from
@@ -260,7 +263,7 @@ class ABDVectorEnv(VectorEnv):
             raise ValueError("graph=True needs the Torch backend on a CUDA device and NEXT_STEP autoresets of a task "
                              "without _reset_task")  # fmt: skip
         self._use_graph = cuda_torch and self._next is not None if graph is None else bool(graph)
-        self._graph = None  # ((pre graph or None, physics graph, post graph), the post graph's outputs)
+        self._graph = None  # ((pre, physics graphs, post graphs), post outputs, mailed): _capture
         self._device_warm = False
         # the step graph checks its actions for NaN on the device (a refused batch steps nothing,
         # and the next call raises): a host check would make the host wait for the device each step
@@ -279,7 +282,9 @@ class ABDVectorEnv(VectorEnv):
         self._undo = None  # that step's host bookkeeping before it: (clock, rows taken, pending mask)
         self._replay_stream = None  # Warp's handle of the Torch stream the step graphs are replayed on
         self._stream_id = self._torch_stream = None  # that stream's id and Torch object
-        self._post_graph = None  # the Torch graph nested in the step graph (kept: its memory)
+        self._post_graphs = []  # the Torch graphs nested in the step graphs (kept: their memory)
+        self._slot = 0  # the step graph (and mailbox and host flags slot) replayed next
+        self._mailed = None  # the action batch the last step graph reads (kept until it has)
 
         # ---- per-world physical parameters (host copies of what the simulator holds)
         scene = self.scene
@@ -597,9 +602,10 @@ class ABDVectorEnv(VectorEnv):
         if self._pending_in_flight:
             host, event = self._pinned
             event.synchronize()
-            self._pending = host[0].numpy().copy()
+            rows = host[self._pinned_slot]
+            self._pending = rows[0].copy()
             if self._unread:
-                self._refused = np.flatnonzero(host[1].numpy())
+                self._refused = np.flatnonzero(rows[1])
             self._pending_in_flight = False
         if self._unread:  # the verdict of a step checked on the device
             self._unread = False
@@ -607,25 +613,50 @@ class ABDVectorEnv(VectorEnv):
                 self._take_back()
         return self._pending
 
-    def _defer_pending(self, flags, checked: bool = False):
+    def _defer_pending(self, flags, checked: bool = False, slot: int | None = None):
         """Keep the done mask ``flags`` (with ``checked``, the rows done and bad: the worlds whose NaN
         actions made the device refuse the step) as the next step's pending mask without waiting for
         the device: a non-blocking copy to pinned host memory and an event the next step waits on
         after it has launched its physics (so the host's work on this step's results overlaps the
-        device's work on the next one)."""
+        device's work on the next one).  ``slot``: the step graph of that slot writes both rows to
+        the pinned memory itself (``flags`` unused); the copy goes to slot 2, which no graph writes
+        (the first graph step is queued before the host reads the copy of the step before it)."""
         if self.xp is np or self._torch_device.type != "cuda":
             rows = _to_numpy(flags)
             self._pending = (rows[0] if checked else rows).copy()
             if checked:
                 self._refused = np.flatnonzero(rows[1])
             return
-        torch = self.xp
-        if self._pinned is None:
-            self._pinned = (torch.zeros((2, self.num_envs), dtype=torch.bool, pin_memory=True), torch.cuda.Event())
+        self._host_buffers()
         host, event = self._pinned
-        (host if checked else host[0]).copy_(flags, non_blocking=True)
+        if slot is None:
+            slot = 2
+            rows = self._host_flags_t[slot]
+            (rows if checked else rows[0]).copy_(flags, non_blocking=True)
         event.record(self._torch_stream)  # (None: the current stream, which record looks up)
+        self._pinned_slot = slot
         self._pending_in_flight = True
+
+    def _host_buffers(self):
+        """The page-locked host memory a GPU step talks to the host through, made once (Torch's
+        pinned tensors, each with a NumPy view and a Warp array on the GPU over the same memory:
+        under CUDA's unified addressing a kernel reads and writes page-locked host memory by its
+        host pointer): the flags' slots (3, 2, N), rows done and bad of a step, slots 0 and 1 written
+        by the step graphs (env_kernels' mailed finish_step), slot 2 by a copy; and the mailbox
+        (2, 2) of the graphs' slots: the device pointers of the actions and of the fresh outputs."""
+        if self._pinned is not None:
+            return
+        import torch
+
+        N, dev = self.num_envs, self.device
+        flags = torch.zeros((3, 2, N), dtype=torch.bool, pin_memory=True)
+        mail = torch.zeros((2, 2), dtype=torch.int64, pin_memory=True)
+        self._pinned = (flags.numpy(), torch.cuda.Event())
+        self._host_flags_t = flags
+        self._mail_np = mail.numpy().view(np.uint64)
+        self._mail_t = mail  # (the owner of the memory the mailbox views alias)
+        self._host_flags_dev = wp.array(ptr=flags.data_ptr(), dtype=wp.bool, shape=tuple(flags.shape), device=dev)
+        self._mail_dev = wp.array(ptr=mail.data_ptr(), dtype=wp.uint64, shape=tuple(mail.shape), device=dev)
 
     def step(self, actions):
         if not self._has_reset:
@@ -728,19 +759,23 @@ class ABDVectorEnv(VectorEnv):
         f = raw[:F].view(torch.float32)
         return f[: N * d].view(N, d), f[N * d:], raw[F:].view(torch.bool).view(-1, N)
 
-    def _pre(self, a, checked: bool):
+    def _pre(self, a, checked: bool, slot: int | None = None):
         """The controls of the actions ``a``.  ``checked`` (on the device; ``a`` not yet clipped, and
         clipped in place, NaN as 0): each world's NaN flag, and the go flag cleared by any of them
         (and left cleared, refusing every later step, until the host has read why: ``_take_back``).
         The controls are set either way: a refused batch's (NaN as 0) stay in the simulator's
-        control array, an input that the next step sets again, not a world's state."""
+        control array, an input that the next step sets again, not a world's state.  ``slot`` (a
+        step graph's, checked): the actions are read from the batch mailed in that slot and
+        clipped into ``a``."""
         if not checked:
             self.sim.set_controls(self._controls(a))
             return
         scaled = type(self)._controls is ABDVectorEnv._controls
         k = self._wp
-        wp.launch(env_kernels.check_actions(self.sim.model.dtype, scaled), dim=self.num_envs,
-                  inputs=[wp.from_torch(a), k["effort"], k["bad"], self._go, self.sim.state.control],
+        mailed = slot is not None
+        wp.launch(env_kernels.check_actions(self.sim.model.dtype, scaled, mailed), dim=self.num_envs,
+                  inputs=[wp.from_torch(a), k["effort"], k["bad"], self._go, self.sim.state.control,
+                          self._mail_dev if mailed else None, slot or 0],
                   device=self.device)  # fmt: skip
         if not scaled:
             self.sim.set_controls(self._controls(a))
@@ -770,12 +805,14 @@ class ABDVectorEnv(VectorEnv):
         else:
             run()
 
-    def _post(self, a):
+    def _post(self, a, slot: int | None = None):
         """Observation, reward and flags of the step, those of the worlds reset in it replaced as in
         ``step`` (reward 0, both flags False), the ended worlds marked for the next step.  With
         Torch, in env_kernels' launch after the task's own operations (a step the device refused
         changes no pending mask), into the packed outputs; returns (the
-        outputs, info values, the flags' rows done and bad)."""
+        outputs, info values, the flags' rows done and bad).  ``slot`` (a step graph's): the
+        outputs go to the buffer mailed in that slot and the rows done and bad to its pinned host
+        flags (the packed outputs are not written)."""
         xp = self.xp
         if xp is np:
             pend = self._next.mask(xp)
@@ -794,10 +831,12 @@ class ABDVectorEnv(VectorEnv):
             self._outcome_fn = torch.compile(fn, dynamic=False) if self._compile_outcome else fn
         obs, reward, term, info_values = self._outcome_fn(a)
         steps = -1 if self.max_episode_steps is None else self.max_episode_steps
-        wp.launch(env_kernels.finish_step, dim=N,
+        mailed = slot is not None
+        wp.launch(env_kernels.finish_step(mailed), dim=N,
                   inputs=[wp.from_torch(obs), wp.from_torch(reward), wp.from_torch(term),
                           self.sim.state.status, self._go, pending, k["elapsed"], steps, k["obs"], k["reward"],
-                          k["flags"]], device=dev)  # fmt: skip
+                          k["flags"], self._mail_dev if mailed else None, slot or 0,
+                          self._host_flags_dev if mailed else None], device=dev)  # fmt: skip
         obs, reward, b = self._unpack(self._out_raw)
         return (obs, reward, b[0], b[1], b[2]), info_values, b[3:5]
 
@@ -838,56 +877,89 @@ class ABDVectorEnv(VectorEnv):
         return graph, outputs
 
     def _capture(self):
-        """The step as graphs on a static action buffer: the physics (Warp's own capture: its
-        conditional node on the go flag must not end a Torch capture, whose allocations are tied to
-        the capture's id) and, nested in it as a child graph, the Torch graph of what follows it
-        (captured first), so that a step is one graph launch; where this Torch or Warp cannot nest
-        it, that graph is replayed after the physics'."""
+        """The step as graphs, two of them (slots 0 and 1, replayed in turn), each: the physics
+        (Warp's own capture: its conditional node on the go flag must not end a Torch capture, whose
+        allocations are tied to the capture's id) and, nested in it as a child graph, the Torch
+        graph of what follows it (captured first), so that a step is one graph launch; where this
+        Torch or Warp cannot nest it, that graph is replayed after the physics'.  A graph finds the
+        caller's actions and its fresh outputs by pointers mailed in its slot, and writes its done
+        and bad rows to its slot of pinned host memory (env_kernels): the host reads step t's rows
+        while step t + 1 runs, which therefore writes elsewhere.  Returns
+        ((pre graph or None, the slots' physics graphs, their post graphs where not nested), the
+        slots' post outputs, whether the actions are mailed)."""
         import torch
 
+        self._host_buffers()
         self._action_buf = torch.zeros((self.num_envs, self.action_dim), dtype=torch.float32, device=self._torch_device)
         checked = self._check_on_device
-        # the check (one Warp launch, with the default controls) heads the physics' graph: one graph
-        # launch less; Torch operations (a task's own controls, the host-checked path's copy) need
-        # Torch's capture
+        # the check (one Warp launch, with the default controls) heads the physics' graph and reads
+        # the mailed actions: one graph launch and one copy less; Torch operations (a task's own
+        # controls, the host-checked path's copy) need Torch's capture, on the actions' copy
         warp_only = checked and type(self)._controls is ABDVectorEnv._controls
         pre = None
         if not warp_only:
             pre, _ = self._torch_graph(lambda: self._pre(self._action_buf, checked))
-        try:
-            post, outputs = self._torch_graph(lambda: self._post(self._action_buf), keep=True)
-            raw = post.raw_cuda_graph()
-        except (TypeError, AttributeError, RuntimeError):  # a Torch without keep_graph / raw_cuda_graph
-            post, outputs = self._torch_graph(lambda: self._post(self._action_buf))
-            raw = None
-        self._post_graph = post  # the nested graph's memory (Torch's pool) lives as long as this
-        with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
-            if warp_only:
-                self._pre(self._action_buf, checked)
-            self._physics(True, checked)
-            nested = raw is not None and _insert_child_graph(self.device, raw)
-        if raw is not None and not nested:
-            post.instantiate()
-        return (pre, capture.graph, None if nested else post), outputs
+        # the mailed kernels, which no launched step has run, loaded before the capture (a module
+        # load is no graph node)
+        mailed = [env_kernels.finish_step(True)]
+        if warp_only:
+            mailed.append(env_kernels.check_actions(self.sim.model.dtype, True, True))
+        for kernel in mailed:
+            kernel.module.load(self.device)
+        physics, posts, outputs = [], [], []
+        for slot in (0, 1):
+            try:
+                post, out = self._torch_graph(lambda: self._post(self._action_buf, slot), keep=True)
+                raw = post.raw_cuda_graph()
+            except (TypeError, AttributeError, RuntimeError):  # a Torch without keep_graph / raw_cuda_graph
+                post, out = self._torch_graph(lambda: self._post(self._action_buf, slot))
+                raw = None
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                if warp_only:
+                    self._pre(self._action_buf, checked, slot)
+                self._physics(True, checked)
+                nested = raw is not None and _insert_child_graph(self.device, raw)
+            if raw is not None and not nested:
+                post.instantiate()
+            # the nested graph's memory (Torch's pool) lives as long as its Torch graph: kept
+            self._post_graphs.append(post)
+            physics.append(capture.graph)
+            posts.append(None if nested else post)
+            outputs.append(out)
+        return (pre, physics, posts), outputs, warp_only
 
     def _replay(self, a):
-        """The step graphs replayed on Torch's current stream with the actions ``a``."""
+        """The next slot's step graph replayed on Torch's current stream with the actions ``a``;
+        returns (the step's fresh packed outputs, that slot's post outputs, the slot)."""
         import torch
 
-        (pre, physics, post), outputs = self._graph
+        (pre, physics, posts), outputs, mailed = self._graph
+        slot = self._slot
+        self._slot ^= 1
         # the current stream's id by Torch's own query: torch.cuda.current_stream() builds a Stream
         # and resolves the device each call, which a step's host time notices
         sid = torch._C._cuda_getCurrentStream(self._torch_device.index or 0)[0]
         if self._replay_stream is None or self._stream_id != sid:
             ts = torch.cuda.current_stream(self._torch_device)
             self._replay_stream, self._stream_id, self._torch_stream = wp.stream_from_torch(ts), sid, ts
-        self._action_buf.copy_(a)
+        # the outputs' buffer: fresh from Torch's allocator each step (stream-ordered, as a clone's
+        # would be), which the caller keeps
+        raw = torch.empty(self._out_head, dtype=torch.uint8, device=self._torch_device)
+        mail = self._mail_np[slot]
+        mail[1] = raw.data_ptr()
+        if mailed:
+            # read by the graph's first kernel: the batch must live until then (kept one call)
+            a = a.contiguous()
+            mail[0] = a.data_ptr()
+            self._mailed = a
+        else:
+            self._action_buf.copy_(a)
         if pre is not None:
             pre.replay()
-        wp.capture_launch(physics, stream=self._replay_stream)
-        if post is not None:
-            post.replay()
-        return outputs
+        wp.capture_launch(physics[slot], stream=self._replay_stream)
+        if posts[slot] is not None:
+            posts[slot].replay()
+        return raw, outputs[slot], slot
 
     def _step_on_device(self, a):
         """``step`` with NEXT_STEP autoresets on the device: on a GPU with Torch, graph replays (after one
@@ -900,19 +972,23 @@ class ABDVectorEnv(VectorEnv):
         if checked:
             before = (self.sim.state.time.copy(), self._next._taken.copy())
         replayed = self._use_graph and self._device_warm
+        slot = None
         if replayed:
             if self._graph is None:
                 self._graph = self._capture()
-            out, info_values, flags = self._replay(a)
+            raw, (_, info_values, flags), slot = self._replay(a)
+            out = self._unpack(raw)
         else:
             if checked:
                 a = a.clone()  # clipped in place by the check
             out, info_values, flags = self._device_step(a)
             self._device_warm = True
+            if self.xp is not np:
+                # the step's outputs are rewritten by the next step: the caller gets its own copies
+                # (one clone of the packed bytes)
+                out = self._unpack(self._out_raw[: self._out_head].clone())
         if self.xp is not np:
-            # the step's outputs are rewritten by the next step: the caller gets its own copies (one
-            # clone of the packed bytes)
-            obs, reward, b = self._unpack(self._out_raw[: self._out_head].clone())
+            obs, reward, b = out
             out = (obs, reward, b[0], b[1], b[2])
             info_values = {k: v.clone() for k, v in info_values.items()}
         obs, reward, terminated, truncated, failed = out
@@ -933,7 +1009,7 @@ class ABDVectorEnv(VectorEnv):
             self._pending[pending] = False
         if not checked and flags.ndim == 2:
             flags = flags[0]  # the done row
-        self._defer_pending(flags, checked)
+        self._defer_pending(flags, checked, slot)
         self._unread = checked
         info_values = dict(info_values, sim_failed=failed)
         return obs, reward, terminated, truncated, self._batch_info(info_values, has_info)

@@ -6,10 +6,10 @@ makes the host wait for the device (``torch.cuda.set_sync_debug_mode``).
 
 A phase that waits for the device shows the device's time in its row: with the step graph, only
 ``_pending_now`` should (it waits for the last step while this one runs; see abd_gym/vector_env.py).
-With the step graph, the device's time per step is split too, by CUDA events: the actions' copy and
-the graph before the physics, the physics graph, the graph after it, the returned copies, and the
-gap to the next step (where the device waits for the host); and each part replayed on its own, back
-to back, which the host cannot slow.
+With the step graph, the device's time per step is split too, by CUDA events: the replay (the step
+graph, and the actions' copy and the graphs before and after it where the step needs them), the
+info copies after it, and the gap to the next step (where the device waits for the host); and each
+part replayed on its own, back to back, which the host cannot slow.
 """
 import argparse
 import collections
@@ -31,45 +31,40 @@ def device_phases(env, actions, steps):
     import torch
 
     u = env.unwrapped
-    (pre, physics, post), outputs = u._graph
     marks = []
+    inner = u._replay
 
     def replay(a):
-        e = marks[-1]
-        u._action_buf.copy_(a)
-        if pre is not None:
-            pre.replay()
-        e[1].record()
-        wp.capture_launch(physics, stream=u._replay_stream)
-        e[2].record()
-        if post is not None:
-            post.replay()
-        e[3].record()
-        return outputs
+        marks[-1][1].record()
+        out = inner(a)
+        marks[-1][2].record()
+        return out
 
-    inner = u._replay
     u._replay = replay
     wp.synchronize_device(u.device)
     t0 = time.perf_counter()
     for k in range(steps):
-        marks.append([torch.cuda.Event(enable_timing=True) for _ in range(5)])
+        marks.append([torch.cuda.Event(enable_timing=True) for _ in range(4)])
         marks[-1][0].record()
         env.step(actions[k % len(actions)])
-        marks[-1][4].record()
+        marks[-1][3].record()
     torch.cuda.synchronize()
     wall = time.perf_counter() - t0
     u._replay = inner
-    names = ("actions (and pre graph)", "physics graph" + (" (post nested)" if post is None else ""), "post graph",
-             "copies returned", "gap to the next step")  # fmt: skip
-    sums = [0.0] * 5
+    (pre, _, posts), _, mailed = u._graph
+    names = ("before the replay", "the replay (" + ("actions' copy, " if not mailed else "")
+             + ("pre graph, " if pre is not None else "") + "step graph"
+             + (", post graph" if posts[0] is not None else "") + ")", "after it (info copies)",
+             "gap to the next step")  # fmt: skip
+    sums = [0.0] * 4
     for k, e in enumerate(marks):
-        for j in range(4):
+        for j in range(3):
             sums[j] += e[j].elapsed_time(e[j + 1])
         if k + 1 < len(marks):
-            sums[4] += e[4].elapsed_time(marks[k + 1][0])
+            sums[3] += e[3].elapsed_time(marks[k + 1][0])
     print(f"device time per step (CUDA events, {steps} steps; wall {wall / steps * 1e6:.0f} us/step):")
     for name, v in zip(names, sums):
-        print(f"  {name:24s} {v / steps * 1e3:8.1f} us/step")
+        print(f"  {name:60s} {v / steps * 1e3:8.1f} us/step")
 
 
 def device_parts(env, actions, steps):
@@ -79,36 +74,25 @@ def device_parts(env, actions, steps):
     import torch
 
     u = env.unwrapped
-    (pre, physics, post), _ = u._graph
+    (pre, physics, posts), _, mailed = u._graph
     stream = wp.stream_from_torch(torch.cuda.current_stream(u._torch_device))
     with wp.ScopedCapture(device=u.device, force_module_load=False) as cap:
         u.sim.launch_step(u.frame_skip)
     alone = cap.graph
-    host, _ = u._pinned
-    flags = u._out_b[3:5]
+    # the graphs alone write where their mail slots point: a buffer that outlives them
+    raw = torch.empty(u._out_head, dtype=torch.uint8, device=u._torch_device)
+    a0 = actions[0].contiguous()
+    for slot in (0, 1):
+        u._mail_np[slot] = (a0.data_ptr(), raw.data_ptr())
 
-    def copy_actions(k):
-        u._action_buf.copy_(actions[k % len(actions)])
+    def graph(k):
+        wp.capture_launch(physics[k % 2], stream=stream)
+        if posts[k % 2] is not None:
+            posts[k % 2].replay()
 
-    def returned(k):
-        u._out_raw[: u._out_head].clone()
-        host.copy_(flags, non_blocking=True)
-
-    def whole(k):
-        copy_actions(k)
-        if pre is not None:
-            pre.replay()
-        wp.capture_launch(physics, stream=stream)
-        if post is not None:
-            post.replay()
-        returned(k)
-
-    step_graph = "physics graph (check, step, autoreset" + (", post nested)" if post is None else ")")
-    parts = (("actions' copy", copy_actions), (step_graph, lambda k: wp.capture_launch(physics, stream=stream)),
-             ("simulator's step alone (its graph)", lambda k: wp.capture_launch(alone, stream=stream)))
-    if post is not None:
-        parts += (("post graph", lambda k: post.replay()),)
-    parts += (("returned copies (outputs, flags to host)", returned), ("whole env step, device work only", whole))
+    parts = (("step graphs alone (check, physics, autoreset, outcome)", graph),
+             ("simulator's step alone (its graph)", lambda k: wp.capture_launch(alone, stream=stream)),
+             ("whole env step, device work only (_replay)", lambda k: u._replay(actions[k % len(actions)])))
     print(f"device time of each part replayed {steps} times back to back (CUDA events):")
     for name, fn in parts:
         fn(0)
@@ -119,7 +103,8 @@ def device_parts(env, actions, steps):
             fn(k)
         b.record()
         torch.cuda.synchronize()
-        print(f"  {name:42s} {a.elapsed_time(b) / steps * 1e3:8.1f} us/step")
+        print(f"  {name:56s} {a.elapsed_time(b) / steps * 1e3:8.1f} us/step")
+    del raw
 
 
 def main(argv=None):

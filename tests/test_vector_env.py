@@ -435,6 +435,69 @@ def test_nan_actions_checked_on_the_device_are_taken_back(device):
     ref.close()
 
 
+def test_mailed_env_kernels_match_plain_ones():
+    """The step graph's mailed kernels (env_kernels, run here on the CPU with host pointers): the
+    check reads the caller's batch by the pointer in its mail slot (left unchanged) and clips it
+    into the graph's buffer, and the finish writes the outputs packed into the buffer mailed in its
+    slot and the rows done and bad into its slot of the host flags: the same values the plain
+    kernels write to their own arrays."""
+    import warp as wp
+
+    from abd_gym import env_kernels
+
+    n, d, na, slot = 5, 3, 2, 1
+    rng = np.random.default_rng(0)
+    user = rng.uniform(-2, 2, size=(n, na)).astype(np.float32)
+    user[3, 1] = np.nan
+    kept = user.copy()
+    mail = wp.zeros((2, 2), dtype=wp.uint64, device="cpu")
+    effort = wp.array([3.0, 0.5], dtype=wp.float32, device="cpu")
+
+    def check(mailed):
+        a = wp.zeros((n, na), dtype=wp.float32, device="cpu") if mailed else wp.array(user, device="cpu")
+        bad, go = wp.zeros(n, dtype=wp.bool, device="cpu"), wp.ones(1, dtype=wp.int32, device="cpu")
+        controls = wp.zeros((n, na), dtype=wp.float32, device="cpu")
+        if mailed:
+            mail.numpy()[slot, 0] = user.ctypes.data
+        wp.launch(env_kernels.check_actions(wp.float32, True, mailed), dim=n,
+                  inputs=[a, effort, bad, go, controls, mail if mailed else None, slot], device="cpu")  # fmt: skip
+        return [x.numpy().copy() for x in (a, bad, go, controls)]
+
+    for x, y in zip(check(True), check(False)):
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_array_equal(user, kept)
+
+    obs = rng.normal(size=(n, d)).astype(np.float32)
+    obs[2, 0] = np.inf
+    ins = dict(obs=obs, reward=rng.normal(size=n).astype(np.float32), term=np.array([1, 0, 0, 1, 0], bool),
+               status=np.array([0, 0, 0, 0, 1], np.int32), go=np.ones(1, np.int32),
+               pending=np.array([1, 0, 0, 0, 0], np.int32), elapsed=np.array([1, 9, 3, 9, 2], np.int64))
+    out = np.zeros(4 * n * (d + 1) + 3 * n, dtype=np.uint8)
+
+    def finish(mailed):
+        arrays = {k: wp.array(v, device="cpu") for k, v in ins.items()}
+        o, r = wp.zeros((n, d), dtype=wp.float32, device="cpu"), wp.zeros(n, dtype=wp.float32, device="cpu")
+        flags = wp.array(np.eye(5, n, dtype=bool), device="cpu")  # row 4 (bad): the check's
+        host = wp.zeros((3, 2, n), dtype=wp.bool, device="cpu")
+        if mailed:
+            mail.numpy()[slot, 1] = out.ctypes.data
+        wp.launch(env_kernels.finish_step(mailed), dim=n,
+                  inputs=[*arrays.values(), wp.int64(8), o, r, flags, mail if mailed else None, slot,
+                          host if mailed else None], device="cpu")  # fmt: skip
+        if mailed:
+            f = out[: 4 * n * (d + 1)].view(np.float32)
+            rows = out[4 * n * (d + 1):].view(bool).reshape(3, n)
+            assert not host.numpy()[[0, 2]].any()
+            return f[: n * d].reshape(n, d), f[n * d:], rows, host.numpy()[slot], arrays["pending"].numpy()
+        fl = flags.numpy()
+        return o.numpy(), r.numpy(), fl[:3], fl[3:5], arrays["pending"].numpy()
+
+    mailed, plain = finish(True), finish(False)
+    for x, y in zip(mailed, plain):
+        np.testing.assert_array_equal(x, y)
+    assert plain[2][2, 2] and plain[2][2, 4] and plain[3][0].any()  # failures seen; some world done
+
+
 def test_device_autoreset_draws_fresh_episodes():
     """Autoreset episodes come from the task's reset distribution, each world its own draw: the
     reset step's observation is the drawn state itself (its physics step is discarded)."""
@@ -468,13 +531,23 @@ def test_graph_step_matches_launched_step(task):
     d = g.unwrapped.action_dim
     actions = torch.rand((80, 64, d), device="cuda:0", generator=torch.Generator("cuda:0").manual_seed(0)) * 2 - 1
     ends = 0
+    returned, copies = [], []
     for a in actions:
-        out_g, out_p = g.step(a), plain.step(a)
+        mine = a.clone()
+        out_g, out_p = g.step(mine), plain.step(a)
+        # the graph reads the caller's batch in stream order: a later write to it (here NaN, which
+        # the graph would refuse) is not seen by the step it was given to
+        mine.fill_(float("nan"))
         for x, y in zip(out_g[:4], out_p[:4]):
             torch.testing.assert_close(x, y, rtol=1e-6, atol=1e-6)
         torch.testing.assert_close(out_g[4]["sim_failed"], out_p[4]["sim_failed"])
         ends += int((out_g[2] | out_g[3]).sum())
+        returned.append(out_g[:4])
+        copies.append([x.clone() for x in out_g[:4]])
     assert g.unwrapped._graph is not None
+    for out, kept in zip(returned, copies):  # each step's outputs are the caller's (no later step writes them)
+        for x, y in zip(out, kept):
+            torch.testing.assert_close(x, y, rtol=0, atol=0)
     assert ends > 0 or task == "Pendulum-v0"
     g.close()
     plain.close()
