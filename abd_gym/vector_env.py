@@ -628,7 +628,7 @@ class ABDVectorEnv(VectorEnv):
                 self._refused = np.flatnonzero(rows[1])
             return
         self._host_buffers()
-        host, event = self._pinned
+        event = self._pinned[1]
         if slot is None:
             slot = 2
             rows = self._host_flags_t[slot]

@@ -104,7 +104,6 @@ def device_parts(env, actions, steps):
         b.record()
         torch.cuda.synchronize()
         print(f"  {name:56s} {a.elapsed_time(b) / steps * 1e3:8.1f} us/step")
-    del raw
 
 
 def main(argv=None):
