@@ -94,11 +94,15 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
     if case.startswith("cartpole"):
         x0 = np.stack([rng.uniform(-0.5, 0.5, num_worlds), rng.uniform(-0.3, 0.3, num_worlds)], 1)
     sim.set_joint_state(x0)
+    # sim.step(k) calls of k steps each (k = steps_per_launch where a launch can take several)
+    k = sim.solver.steps_per_launch if sim.solver.multi_step else 1
+    steps = -(-steps // k) * k
     sim.step(3)  # compile and warm up
+    sim.step(k)  # (and capture the k-step launch)
     wp.synchronize_device(sim.device)
     t0 = time.perf_counter()
-    for _ in range(steps):
-        sim.step()
+    for _ in range(steps // k):
+        sim.step(k)
     wp.synchronize_device(sim.device)
     elapsed = time.perf_counter() - t0
     residual = float(sim.joint_violation().max())
@@ -112,6 +116,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
         reuse_factor=sim.solver.reuse_factor, envelope=sim.solver.envelope, retract=sim.solver.settings.retract,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
         threads=sim.solver.threads, block_dim=sim.solver.block_dim, cpu_workers=len(sim.solver.newton_launches),
+        lane_groups=sim.solver.lane_groups, steps_per_launch=k,
         memory_bytes_per_world=sim.memory_bytes()["total"] / num_worlds,
         unknowns=sim.model.num_dofs, constitutions=[c.NAME for c in sim.solver.parts],
     )  # fmt: skip
@@ -156,6 +161,10 @@ def main(argv=None):
                     help="comma-separated 0/1: Newton's guess and trial points turn A along rotations (1) or lines (0)")
     ap.add_argument("--cpu-workers", default="auto",
                     help="comma-separated auto/N: concurrent launches of the fused step on the CPU (auto: one per core)")
+    ap.add_argument("--lane-groups", default="auto",
+                    help="comma-separated lane groups a world for scratch=lanes (auto: the solver's default)")
+    ap.add_argument("--steps-per-launch", default="1",
+                    help="comma-separated steps a launch where a step is one launch (sim.step(k) calls of k steps)")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--out", default="bench_out")
     ap.add_argument("--envs", action="store_true", help="also time each task's vector env")
@@ -173,16 +182,18 @@ def main(argv=None):
                                  period_error=period_error(case, args.dt, args.dtype, args.device)))  # fmt: skip
         reuse_choice = {"auto": None, "0": False, "1": True}
         variants = [(k, float(t), int(r), bool(int(sp)), reuse_choice[ru], reuse_choice[en], bool(int(rt)),
-                     None if cw == "auto" else int(cw))
+                     None if cw == "auto" else int(cw), None if lg == "auto" else int(lg), int(spl))
                     for k in args.scratch.split(",") for t in args.tol.split(",") for r in args.max_registers.split(",")
                     for sp in args.smem_spilling.split(",") for ru in args.reuse_factor.split(",")
                     for en in args.envelope.split(",") for rt in args.retract.split(",")
-                    for cw in args.cpu_workers.split(",")]  # fmt: skip
-        for (scratch, tol, regs, spill, reuse, env, rt, cw), w in ((v, w) for v in variants for w in worlds):
+                    for cw in args.cpu_workers.split(",")
+                    for lg in args.lane_groups.split(",") for spl in args.steps_per_launch.split(",")]  # fmt: skip
+        for (scratch, tol, regs, spill, reuse, env, rt, cw, lg, spl), w in ((v, w) for v in variants for w in worlds):
             runs = [time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol, integrator=args.integrator,
                                scratch=None if scratch == "auto" else scratch, block_dim=args.block_dim,
                                max_registers=regs, smem_spilling=spill,
-                               reuse_factor=reuse, envelope=env, retract=rt, cpu_workers=cw,
+                               reuse_factor=reuse, envelope=env, retract=rt, cpu_workers=cw, lane_groups=lg,
+                               steps_per_launch=spl,
                                threads=_thread_count(args.threads, w, args.device))
                     for _ in range(max(args.repeat, 1))]  # fmt: skip
             rows.append(max(runs, key=lambda r: r["world_steps_per_second"]))
@@ -287,6 +298,8 @@ def _solver(r) -> str:
     extra += " envelope" if r.get("envelope", False) else ""
     extra += "" if r.get("retract", True) else " straight"  # trial points on lines (older results: all)
     extra += f" W{r['cpu_workers']}" if r.get("cpu_workers", 1) > 1 else ""  # concurrent CPU launches
+    extra += f" G{r['lane_groups']}" if r.get("lane_groups", 1) > 1 else ""  # lane groups a world
+    extra += f" S{r['steps_per_launch']}" if r.get("steps_per_launch", 1) > 1 else ""  # steps a launch
     return f"{scratch}/{r['block_dim']}{extra} T{r['threads']}"
 
 

@@ -39,6 +39,8 @@ from .constitutions import _point_joint, affine_body, drive, prismatic_joint, pr
 from .warp_ops import ENERGY, GRADIENT, HESSIAN, ops
 
 OK, FAILED = 0, 1
+# the kinds of Terms.work's items (a lane group's joints, limits and drives)
+WORK_REVOLUTE, WORK_FIXED, WORK_PRISMATIC, WORK_REVOLUTE_LIMIT, WORK_PRISMATIC_LIMIT, WORK_DRIVE = 1, 2, 3, 4, 5, 6
 
 
 @wp.func_native("WP_TILE_SYNC();")
@@ -181,7 +183,7 @@ WORLD_PHASES = (0, 1, 2, 3, 4, 13, 14)  # the phases that partition a world's st
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
                  max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False,
-                 cuda=False, block=0, bracket=True):  # fmt: skip
+                 cuda=False, block=0, bracket=True, groups=1):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -200,7 +202,13 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     ``bracket``: the kernel also opens each world's step before its solve (the finite check, the
     joints' references, the prediction q̃ and the initial guess) and closes it after (velocities,
     histories, joint coordinates), so a step is one launch; else those run as kernels of their own
-    (``Solver._open``, ``Solver._close``)."""
+    (``Solver._open``, ``Solver._close``).
+    ``groups`` (lanes only): the world's ``block`` lanes split into this many groups of
+    block/groups lanes (a warp each on a GPU), each group evaluating its own share of the terms
+    (``Terms.work``: the bodies on group 0, each joint, limit and drive on one group, balanced by
+    the host, ``Solver.lane_work``) into its own copy of g and H, which are then summed (one
+    barrier); the factor and everything after it as with one group.  A world's chain of dependent
+    evaluations, one warp evaluating every term in turn, is cut to its busiest group's share."""
     # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
     # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
     # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
@@ -214,10 +222,17 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     # global scratch); LANES threads per world, a constant of the kernel (``block``)
     packed = scratch in ("shared", "lanes")
     LANES = max(int(block), 1) if lanes else 1
+    # lane groups (a warp each on a GPU): RL lanes share a copy of g and H, each owning its rows
+    G = max(int(groups), 1) if lanes else 1
+    if LANES % G:
+        raise ValueError(f"{LANES} lanes a world do not split into {G} equal groups")
+    RL = LANES // G
     # on a GPU, a world of up to 32 unknowns on one warp of lanes factors and solves in registers
-    warp_regs = lanes and cuda and LANES == 32 and n <= 32
+    # (the first group's warp, when there are several)
+    warp_regs = lanes and cuda and RL == 32 and n <= 32
     regs_ldl_solve = warp_ldl_solve(dtype, n) if warp_regs else None
     N = n  # unknowns per world (12 per free body), a constant of the kernel
+    TRI = N * (N + 1) // 2  # H's packed lower triangle (and, lanes, the stride of the groups' copies)
     o = ops(dtype)
     vec3, vec4, vec12, mat33, mat44 = o.vec3, o.vec4, o.vec12, o.mat33, o.mat44
     body_grad = affine_body.kernels(dtype).body_grad
@@ -250,12 +265,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def own_from(o: int):
-        """The first r ≥ 0 whose row o + r is this thread's: every row for one thread per world; with
-        lanes, lane l owns the rows i ≡ l (mod LANES) of its world's g and H, so the lanes add their
-        shares of a block at once, with no two lanes on one entry (row r, r + LANES, … from here)."""
+        """The first r ≥ 0 whose row o + r is this thread's in an assembly: every row for one thread
+        per world; with lanes, lane l of its group owns the rows i ≡ l (mod RL) of the group's copy
+        of g and H, so the lanes add their shares of a block at once, with no two lanes on one
+        entry (row r, r + RL, … from here)."""
         if wp.static(lanes):
-            return (lane_index() - o % LANES + LANES) % LANES
+            return (lane_index() % RL - o % RL + RL) % RL
         return 0
+
+    @wp.func
+    def own_all(o: int, lane: int):
+        """As own_from for the factor and the solves, which every lane of the world splits: lane l
+        owns the rows i ≡ l (mod LANES) (row r, r + LANES, … from here)."""
+        return (lane - o % LANES + LANES) % LANES
 
     @wp.func
     def kron_split(a: int):
@@ -267,7 +289,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     @wp.func
     def put_grad(g: Any, s: int, B: int, o: int, v: vec12):
         if o >= 0:
-            for r in range(own_from(o), 12, LANES):
+            for r in range(own_from(o), 12, RL):
                 p = (o + r) * B + s
                 g[p] = g[p] + v[r]
 
@@ -317,7 +339,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     def kron_rows(H: Any, s: int, B: int, oa: int, ob: int, U: mat44):
         """Block (oa, ob), oa ≥ ob, += U ⊗ I₃ (a diagonal block's lower half), this thread's rows:
         row kron_index(m, c) holds U[c, d] at columns kron_index(m, d)."""
-        for a in range(own_from(oa), 12, LANES):
+        for a in range(own_from(oa), 12, RL):
             m, c = kron_split(a)
             for d in range(4):
                 b = kron_index(m, d)
@@ -330,16 +352,14 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         """Block (oa, ob) = U ⊗ I₃ (see warp_ops.kron3): its 48 non-zero entries only; above the
         diagonal as its transpose below it (lower triangle only, all the factor reads)."""
         if oa >= 0 and ob >= 0:
-            if oa < ob:
-                kron_rows(H, s, B, ob, oa, wp.transpose(U))
-            else:
-                kron_rows(H, s, B, oa, ob, U)
+            sw = oa < ob  # (selects, not branches: one inlined kron_rows, see blocks_of_pair)
+            kron_rows(H, s, B, wp.max(oa, ob), wp.min(oa, ob), wp.where(sw, wp.transpose(U), U))
 
     @wp.func
     def ksum_rows(H: Any, s: int, B: int, oa: int, ob: int, ua: vec4, ta: vec4, ub: vec4, tb: vec4, Pcc: mat33,
                   Pct: mat33, Ptc: mat33, Ptt: mat33, U: mat44):  # fmt: skip
         """put_ksum's block (oa, ob), oa ≥ ob, this thread's rows."""
-        for ra in range(own_from(oa), 12, LANES):
+        for ra in range(own_from(oa), 12, RL):
             al, a = kron_split(ra)
             for b in range(4):
                 cc = ua[a] * ub[b]
@@ -365,11 +385,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         (prismatic_hessian), summed per entry in registers, without a 12 × 12 matrix.  Above the
         diagonal as the transpose, (ub uaᵀ) ⊗ Pccᵀ + (ub taᵀ) ⊗ Ptcᵀ + (tb uaᵀ) ⊗ Pctᵀ + …, below it."""
         if oa >= 0 and ob >= 0:
-            if oa < ob:
-                ksum_rows(H, s, B, ob, oa, ub, tb, ua, ta, wp.transpose(Pcc), wp.transpose(Ptc), wp.transpose(Pct),
-                          wp.transpose(Ptt), wp.transpose(U))  # fmt: skip
-            else:
-                ksum_rows(H, s, B, oa, ob, ua, ta, ub, tb, Pcc, Pct, Ptc, Ptt, U)
+            sw = oa < ob  # (selects, not branches: one inlined ksum_rows)
+            ksum_rows(H, s, B, wp.max(oa, ob), wp.min(oa, ob), wp.where(sw, ub, ua), wp.where(sw, tb, ta),
+                      wp.where(sw, ua, ub), wp.where(sw, ta, tb), wp.where(sw, wp.transpose(Pcc), Pcc),
+                      wp.where(sw, wp.transpose(Ptc), Pct), wp.where(sw, wp.transpose(Pct), Ptc),
+                      wp.where(sw, wp.transpose(Ptt), Ptt), wp.where(sw, wp.transpose(U), U))  # fmt: skip
 
     @wp.func
     def cross_gram(x: vec3, y: vec3):
@@ -397,15 +417,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         ubj = vec4(zero, bj[0], bj[1], bj[2])
         PT = kk * (cross_gram(Ti, Ti) + cross_gram(Tj, Tj))
         Pdd = kk * cross_gram(d, d)
-        if oi >= 0:
-            put_ksum(H, s, B, oi, oi, uci, uti, uci, uti, PT, kk * cross_gram(Ti, d), kk * cross_gram(d, Ti), Pdd,
-                     kk * (wp.outer(uni, uni) + wp.outer(ubi, ubi)))  # fmt: skip
-        if oj >= 0:
-            put_ksum(H, s, B, oj, oj, ucj, utj, ucj, utj, PT, -kk * cross_gram(Tj, d), -kk * cross_gram(d, Tj), Pdd,
-                     kk * (wp.outer(unj, unj) + wp.outer(ubj, ubj)))  # fmt: skip
-        if oi >= 0 and oj >= 0:
-            put_ksum(H, s, B, oi, oj, uci, uti, ucj, utj, -PT, kk * cross_gram(Tj, d), -kk * cross_gram(d, Ti), mat33(),
-                     -kk * (wp.outer(uni, unj) + wp.outer(ubi, ubj)))  # fmt: skip
+        # blocks (i, i), (j, j), (i, j) in a loop of selected arguments: one inlined put_ksum where
+        # three calls inlined three (put_ksum skips a block of a fixed body, oi or oj < 0)
+        for blk in range(3):
+            ra = blk != 1  # the block's rows are body i's (else j's); its columns body i's for blk 0
+            cb = blk == 0
+            Pct = kk * cross_gram(wp.where(blk == 0, Ti, Tj), d)
+            Ptc = kk * cross_gram(d, wp.where(blk == 1, Tj, Ti))
+            U = wp.outer(wp.where(ra, uni, unj), wp.where(cb, uni, unj)) + wp.outer(wp.where(ra, ubi, ubj),
+                                                                                   wp.where(cb, ubi, ubj))  # fmt: skip
+            put_ksum(H, s, B, wp.where(ra, oi, oj), wp.where(cb, oi, oj), wp.where(ra, uci, ucj),
+                     wp.where(ra, uti, utj), wp.where(cb, uci, ucj), wp.where(cb, uti, utj),
+                     wp.where(blk == 2, -PT, PT), wp.where(blk == 1, -Pct, Pct), wp.where(blk == 0, Ptc, -Ptc),
+                     wp.where(blk == 2, mat33(), Pdd), wp.where(blk == 2, -kk * U, kk * U))  # fmt: skip
 
     @wp.func
     def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Any, step: Any, w: int, row: int,
@@ -434,14 +458,14 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         put_grad(g, s, B, oi, gi)
         put_grad(g, s, B, oj, gj)
         if derivs == HESSIAN:
-            put_kron(H, s, B, oi, oi, uii)
-            put_kron(H, s, B, oi, oj, uij)
-            put_kron(H, s, B, oj, oj, ujj)
+            for blk in range(3):  # (i, i), (i, j), (j, j): a loop, so one inlined put_kron
+                put_kron(H, s, B, wp.where(blk < 2, oi, oj), wp.where(blk == 0, oi, oj),
+                         wp.where(blk == 0, uii, wp.where(blk == 1, uij, ujj)))  # fmt: skip
 
     @wp.func
     def outer_rows(H: Any, s: int, B: int, oa: int, ob: int, ga: vec12, gb: vec12, cf: dtype):
         """Block (oa, ob), oa ≥ ob, += cf·ga gbᵀ (a diagonal block's lower half), this thread's rows."""
-        for r in range(own_from(oa), 12, LANES):
+        for r in range(own_from(oa), 12, RL):
             p = (hrow(oa + r) + ob) * B + s
             v = cf * ga[r]
             for c in range(12):
@@ -455,10 +479,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         reads): a diagonal block's lower half; (oa, ob) below the diagonal as it is, above it
         transposed.  Each entry is formed as it is added (no 12 × 12 matrix in local memory)."""
         if oa >= 0 and ob >= 0:
-            if oa < ob:
-                outer_rows(H, s, B, ob, oa, gb, ga, cf)
-            else:
-                outer_rows(H, s, B, oa, ob, ga, gb, cf)
+            sw = oa < ob  # (selects, not branches: one inlined outer_rows)
+            outer_rows(H, s, B, wp.max(oa, ob), wp.min(oa, ob), wp.where(sw, gb, ga), wp.where(sw, ga, gb), cf)
 
     @wp.func
     def put_rank1(g: Any, H: Any, s: int, B: int, derivs: int, oi: int, oj: int, gi: vec12, gj: vec12, de: dtype,
@@ -469,9 +491,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             put_grad(g, s, B, oi, de * gi)
             put_grad(g, s, B, oj, de * gj)
             if derivs == HESSIAN and dde != zero:
-                put_outer(H, s, B, oi, oi, gi, gi, dde)
-                put_outer(H, s, B, oi, oj, gi, gj, dde)
-                put_outer(H, s, B, oj, oj, gj, gj, dde)
+                for blk in range(3):  # (i, i), (i, j), (j, j): a loop, so one inlined put_outer
+                    put_outer(H, s, B, wp.where(blk < 2, oi, oj), wp.where(blk == 0, oi, oj), wp.where(blk < 2, gi, gj),
+                              wp.where(blk == 0, gi, gj), dde)  # fmt: skip
 
     @wp.struct
     class Terms:
@@ -523,6 +545,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         unwrapped: wp.array2d(dtype=dtype)
         x_anchor: wp.array2d(dtype=dtype)
         clock: wp.array2d(dtype=wp.int64)  # (W, len(PHASES)) with phase_clock, else unused
+        # lane groups: group c's joints, limits and drives, (kind WORK_*, index in its kind) for
+        # it < work_n[c] (Solver.lane_work); unused with one group
+        work_kind: wp.array2d(dtype=wp.int32)
+        work_idx: wp.array2d(dtype=wp.int32)
+        work_n: wp.array(dtype=wp.int32)
 
     @wp.struct
     class Bracket:
@@ -645,14 +672,12 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     NF = N // 12  # free bodies (12 unknowns each, body k's from 12k: Model.dof)
 
     @wp.func
-    def lane_bodies(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
-                    H: Any, h2: dtype):  # fmt: skip
-        """Lanes: the bodies' terms, each lane evaluating the body of each of its rows and adding that
-        row only (12 lanes on one body at once, the bodies side by side, where every lane evaluating
-        every body would take them one after another).  Body k's energy goes through slot N + k of
-        g (past the gradient) from the lane of its first row; every lane then sums the slots in
-        body order, the one-thread order.  Returns Σ_k E_k."""
-        for rho in range(lane_index(), N, LANES):
+    def body_rows(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
+                  H: Any, h2: dtype, first: int, stride: int):  # fmt: skip
+        """The bodies' terms by rows: the lane evaluates the body of each of its rows ρ = first,
+        first + stride, … and adds that row only; body k's energy to slot N + k of g (past the
+        gradient) from the lane of its first row."""
+        for rho in range(first, N, stride):
             k = rho // 12
             b = t.free[k]
             r = rho - 12 * k
@@ -666,6 +691,15 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     body_row(H, s, B, 12 * k, r, qb, t.mass[w, b], t.mc[w, b], t.S[w, b], ks, Rp, ata)
             if r == 0:
                 g[(N + k) * B + s] = e_in + e_or
+
+    @wp.func
+    def lane_bodies(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
+                    H: Any, h2: dtype):  # fmt: skip
+        """Lanes: the bodies' terms, each lane evaluating the body of each of its rows and adding that
+        row only (12 lanes on one body at once, the bodies side by side, where every lane evaluating
+        every body would take them one after another; body_rows).  Every lane then sums the bodies'
+        energies from their slots in body order, the one-thread order.  Returns Σ_k E_k."""
+        body_rows(q, qr, w, s, B, derivs, t, g, H, h2, lane_index(), LANES)
         block_sync()
         e = zero
         for k in range(NF):
@@ -673,10 +707,81 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return e
 
     @wp.func
+    def group_terms(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
+                    H: Any, grp: int, hw: dtype, h2: dtype):  # fmt: skip
+        """Lane groups: group grp's joints, limits and drives (its row of Terms.work, in order) into
+        the group's copy of g and H (at s); their energy."""
+        e = zero
+        for it in range(t.work_n[grp]):
+            kind = t.work_kind[grp, it]
+            k = t.work_idx[grp, it]
+            if wp.static(has_rev):
+                if kind == WORK_REVOLUTE:
+                    e += point_term(q, qr, w, s, B, derivs, t, g, H, t.rev_ids[k], 2)
+            if wp.static(has_fix):
+                if kind == WORK_FIXED:
+                    e += point_term(q, qr, w, s, B, derivs, t, g, H, t.fix_ids[k], 4)
+            if wp.static(has_pri):
+                if kind == WORK_PRISMATIC:
+                    e += prismatic_term(q, qr, w, s, B, derivs, t, g, H, t.pri_ids[k])
+            if wp.static(has_rlim):
+                if kind == WORK_REVOLUTE_LIMIT:
+                    e += rlim_term(q, qr, w, s, B, derivs, t, g, H, k)
+            if wp.static(has_plim):
+                if kind == WORK_PRISMATIC_LIMIT:
+                    e += plim_term(q, qr, w, s, B, derivs, t, g, H, k)
+            if wp.static(has_drive):
+                if kind == WORK_DRIVE:
+                    e += drive_term(q, qr, w, s, B, derivs, t, g, H, k, hw, h2)
+        return e
+
+    @wp.func
+    def assemble_groups(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
+                        H: Any):  # fmt: skip
+        """assemble with lane groups (B = 1): group c adds its terms to its copy of g and H at
+        s + c·TRI (group 0: the bodies, body_rows, and its work), then, after a barrier, every lane
+        sums its share of the copies' entries into copy 0 (g's for GRADIENT, H's too for HESSIAN,
+        copies in group order) and the energy: the bodies' slots in body order, then the groups'
+        (slot N + NF + c of copy 0) in group order.  A barrier after, so the sums are whole."""
+        hw = t.h_step[w]
+        h2 = hw * hw
+        lane = lane_index()
+        grp = lane // RL
+        ck = clock_now()
+        if grp == 0:
+            body_rows(q, qr, w, s, B, derivs, t, g, H, h2, lane, RL)
+            ck = tick(t, w, lane, 7, ck)
+        e = group_terms(q, qr, w, s + grp * TRI, B, derivs, t, g, H, grp, hw, h2)
+        if lane == grp * RL:
+            g[(N + NF + grp) * B + s] = e
+        block_sync()
+        if derivs != 0:
+            for i in range(lane, N, LANES):
+                v = g[i * B + s]
+                for c in range(1, G):
+                    v += g[(i + c * TRI) * B + s]
+                g[i * B + s] = v
+            if derivs == HESSIAN:
+                for p in range(lane, TRI, LANES):
+                    v = H[p * B + s]
+                    for c in range(1, G):
+                        v += H[(p + c * TRI) * B + s]
+                    H[p * B + s] = v
+        e = zero
+        for k in range(NF):
+            e += g[(N + k) * B + s]
+        for c in range(G):
+            e += g[(N + NF + c) * B + s]
+        block_sync()
+        return e
+
+    @wp.func
     def assemble(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any):
         """Total incremental potential of world w at q[qr]; derivs GRADIENT adds its g, HESSIAN its g
         and H (to scratch column s of B).  Lanes: every lane evaluates every term (the same energy,
         in the same order, on each) and adds the entries of its own rows (own_from)."""
+        if wp.static(G > 1):
+            return assemble_groups(q, qr, w, s, B, derivs, t, g, H)
         e = zero
         hw = t.h_step[w]
         h2 = hw * hw
@@ -744,28 +849,26 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
         factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
         trial points go to row ``row`` of q_trial; s, B as in assemble, lane as in trial."""
+        # one trial and one energy in the code (a loop of tries, not a first try and a loop): each
+        # inlined copy of assemble costs ~26 KB of SASS in a cart-pole's kernel, whose ~400 KB
+        # already overflow the SM's instruction caches
         c = clock_now()
-        trial(q, q_trial, t, step, w, row, s, B, one, lane)
-        c = tick(t, w, lane, 6, c)
         alpha = one
         accepted = int(0)
         stalled = int(0)
-        if skip != 0:
-            accepted = 1
-            stalled = done
-        elif chord > 0:
-            accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), one, gdq)
+        tries = wp.where(skip != 0 or chord > 0, 1, max_line_search)
+        for _ls in range(tries):
+            trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
+            c = tick(t, w, lane, 6, c)
+            if skip != 0:
+                accepted = 1
+                stalled = done
+                break
+            accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
             c = tick(t, w, lane, 5, c)
-        else:
-            for ls in range(max_line_search):
-                if ls > 0:
-                    trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
-                    c = tick(t, w, lane, 6, c)
-                accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
-                c = tick(t, w, lane, 5, c)
-                if accepted != 0:
-                    break
-                alpha = alpha * half
+            if accepted != 0:
+                break
+            alpha = alpha * half  # (a rejected reused-factor step's α is not used: chord_step retries)
         return accepted, stalled, alpha
 
     @wp.func
@@ -854,16 +957,24 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         nfact = int(0)
         for it in range(max_iterations):
             c = clock_now()
-            for i in range(lane, N, LANES):
-                g[i * T + s] = zero
-                if chord <= 0:
-                    j0 = int(0)
-                    if wp.static(envelope):
-                        j0 = t.first[i]
-                    p = (hrow(i) + j0) * T + s
-                    for j in range(j0, i + 1):
-                        H[p] = zero
-                        p += T
+            if wp.static(G > 1):  # every group's copy (lanes: T = 1)
+                for cp in range(G):
+                    for i in range(lane, N, LANES):
+                        g[s + cp * TRI + i] = zero
+                    if chord <= 0:
+                        for p in range(lane, TRI, LANES):
+                            H[s + cp * TRI + p] = zero
+            else:
+                for i in range(lane, N, LANES):
+                    g[i * T + s] = zero
+                    if chord <= 0:
+                        j0 = int(0)
+                        if wp.static(envelope):
+                            j0 = t.first[i]
+                        p = (hrow(i) + j0) * T + s
+                        for j in range(j0, i + 1):
+                            H[p] = zero
+                            p += T
             if wp.static(lanes):
                 block_sync()
             c = tick(t, w, lane, 0, c)
@@ -872,16 +983,29 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             gdq = zero
             dmax = zero
             g_abs = zero
-            if chord > 0:
-                e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
-            else:
-                e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
+            # one call with the derivatives chosen at run time: a second inlined assemble (gradient
+            # only) would add ~54 KB of code (see search)
+            e0 = assemble(q, w, w, s, T, wp.where(chord > 0, GRADIENT, HESSIAN), t, g, H)
+            if chord <= 0:
                 nfact += 1
             c = tick(t, w, lane, 1, c)
-            if wp.static(warp_regs):
+            if wp.static(warp_regs and G == 1):
                 block_sync()  # the factor reads every lane's rows
                 ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
                 c = tick(t, w, lane, 2, c)  # (the factor and the substitutions)
+                if ok != 0:
+                    ok, gdq, dmax, g_abs = reductions(g, dq, s, N, 1)
+                c = tick(t, w, lane, 3, c)
+            elif wp.static(warp_regs):
+                # lane groups: the first group's warp factors and solves (assemble_groups ended with a
+                # barrier), and passes ok to the others through slot N + NF + G of g
+                if lane < 32:
+                    ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
+                    if lane == 0:
+                        g[s + N + NF + G] = wp.where(ok != 0, one, zero)
+                block_sync()
+                ok = wp.where(g[s + N + NF + G] != zero, 1, 0)
+                c = tick(t, w, lane, 2, c)
                 if ok != 0:
                     ok, gdq, dmax, g_abs = reductions(g, dq, s, N, 1)
                 c = tick(t, w, lane, 3, c)
@@ -980,10 +1104,15 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         """The incremental potential of world w and, per ``derivs``, its gradient and Hessian (lower
         triangle) as the fused step assembles them, into scratch column w of the zeroed flat g, H
         (one column per world): for checking the fused assembly against the staged one.  Lanes:
-        launched as blocks of LANES threads, block w on world w, each lane on its own rows."""
+        launched as blocks of LANES threads, block w on world w, each lane on its own rows, world
+        w's g and H (packed, and the groups' copies) contiguous from w·G·TRI, as newton_lanes'
+        on the CPU."""
         c = wp.tid()
         w = c // LANES
-        e = assemble(q, w, w, w, q.shape[0], derivs, t, g, H)
+        if wp.static(lanes):
+            e = assemble(q, w, w, w * G * TRI, 1, derivs, t, g, H)
+        else:
+            e = assemble(q, w, w, w, q.shape[0], derivs, t, g, H)
         if c % LANES == 0:
             E[w] = e
 
@@ -993,7 +1122,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     # trip to L2 (131,072 worlds' columns exceed L1); H packed, so a block of 32 float32 threads of
     # 24 unknowns fits the 48 KB of static shared memory (44.5 KB)
     in_smem = packed and cuda and not lanes
-    TRI = N * (N + 1) // 2
     if in_smem:
         one_count = (TRI + 2 * N) * block
         one_scratch = shared_array(dtype, one_count)
@@ -1006,13 +1134,14 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
             s0: int, Tw: int, wa: int, wb: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
             status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-            factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
+            factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), steps: int,
         ):  # fmt: skip
             """The launch's Tw threads solve worlds wa … wb − 1, thread c the worlds wa + c, wa + c + Tw,
             …: a thread's scratch is reused world after world, so it stays in cache however many worlds
             there are.  On a GPU one launch runs every world; on the CPU ranges of threads and worlds run
             as concurrent launches, each with its own scratch (g, H, dq: Tw columns) and its own run of
-            worlds, so they share no cache lines; s0 + c is the thread's row of q_trial."""
+            worlds, so they share no cache lines; s0 + c is the thread's row of q_trial.  ``steps``
+            steps of each world in turn (more than one only with ``bracket``, see newton_lanes)."""
             c = wp.tid()
             s = c + s0
             if wp.static(in_smem):
@@ -1022,12 +1151,14 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 gs = wp.array(ptr=base + wp.uint64(TRI * block * SIZE), shape=(N * block,), dtype=dtype)
                 ds = wp.array(ptr=base + wp.uint64((TRI + N) * block * SIZE), shape=(N * block,), dtype=dtype)
                 for w in range(wa + c, wb, Tw):
-                    step_world(q, q_trial, t, k, gs, Hs, ds, w, col, block, s, threshold, max_iterations,
-                               max_line_search, reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
+                    for _st in range(steps):
+                        step_world(q, q_trial, t, k, gs, Hs, ds, w, col, block, s, threshold, max_iterations,
+                                   max_line_search, reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
             else:
                 for w in range(wa + c, wb, Tw):
-                    step_world(q, q_trial, t, k, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
-                               reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
+                    for _st in range(steps):
+                        step_world(q, q_trial, t, k, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
+                                   reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
 
         return newton, Terms, Bracket, assemble_system
 
@@ -1048,7 +1179,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             if j > 0 and (j - 1) % LANES == lane:
                 H[s + hrow(j - 1) + j - 1] = inv
             inv = one / dj
-            for i in range(j + 1 + own_from(j + 1), N, LANES):
+            for i in range(j + 1 + own_all(j + 1, lane), N, LANES):
                 ri = s + hrow(i)
                 cj = H[ri + j] * inv
                 k = j + 1
@@ -1083,7 +1214,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         block_sync()
         for j in range(N):
             tj = dq[s + j] * H[s + hrow(j) + j]  # y_j / D_j: L_ij y_j = H[i, j] y_j / D_j
-            for i in range(j + 1 + own_from(j + 1), N, LANES):
+            for i in range(j + 1 + own_all(j + 1, lane), N, LANES):
                 dq[s + i] = dq[s + i] - H[s + hrow(i) + j] * tj
             block_sync()
         for kk in range(N):
@@ -1100,8 +1231,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     # the world's g, H (packed) and Δq in its block's shared memory on CUDA (1.4 KB for 24 unknowns
     # in float32): every lane reads every row in the factor and the solves
+    # with lane groups, G copies of H and of g (copy c from c·TRI; copy 0's g holds past N the
+    # bodies' energies, the groups' energies and the factor's ok, assemble_groups and solve_world)
+    GLEN = N + NF if G == 1 else (G - 1) * TRI + N + NF + G + 1
     if lanes and cuda:
-        lanes_scratch = shared_array(dtype, TRI + 2 * N + NF)
+        lanes_scratch = shared_array(dtype, G * TRI + GLEN + N)
 
     @wp.kernel(**options)
     def newton_lanes(
@@ -1109,22 +1243,32 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
         threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
         status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-        factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
+        factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), steps: int,
     ):  # fmt: skip
-        """Block w (of LANES lanes) solves world w, its g, H (packed) and Δq in the block's shared
-        memory on CUDA, else contiguous in the global scratch from w·n² (g and Δq padded to n²
-        words, g's past n holding lane_bodies' energies)."""
+        """Block w (of LANES lanes) solves world w, its g, H (packed; G copies each) and Δq in the
+        block's shared memory on CUDA, else contiguous in the global scratch from w·G·TRI (G·TRI
+        words a world in each of g, H and dq).  ``steps`` > 1 (with ``bracket`` only): the world's
+        next steps follow in the same launch (worlds are independent; the controls stay), its
+        state, model and controls then read from the SM's L1 cache instead of L2, with no launch
+        between steps."""
         c = wp.tid()
         w = c // LANES
         if wp.static(lanes and cuda):
             base = lanes_scratch()
-            Hs = wp.array(ptr=base, shape=(TRI,), dtype=dtype)
-            gs = wp.array(ptr=base + wp.uint64(TRI * SIZE), shape=(N + NF,), dtype=dtype)  # lane_bodies' slots
-            ds = wp.array(ptr=base + wp.uint64((TRI + N + NF) * SIZE), shape=(N,), dtype=dtype)
-            step_world(q, q_trial, t, k, gs, Hs, ds, w, 0, 1, w, threshold, max_iterations, max_line_search, reuse,
-                       status, iterations, factorizations, converged, c - w * LANES)  # fmt: skip
+            Hs = wp.array(ptr=base, shape=(G * TRI,), dtype=dtype)
+            gs = wp.array(ptr=base + wp.uint64(G * TRI * SIZE), shape=(GLEN,), dtype=dtype)
+            ds = wp.array(ptr=base + wp.uint64((G * TRI + GLEN) * SIZE), shape=(N,), dtype=dtype)
+            for st in range(steps):
+                if st > 0:
+                    block_sync()  # the last step's coordinates and histories, by other lanes
+                step_world(q, q_trial, t, k, gs, Hs, ds, w, 0, 1, w, threshold, max_iterations, max_line_search,
+                           reuse, status, iterations, factorizations, converged, c - w * LANES)  # fmt: skip
         else:
-            step_world(q, q_trial, t, k, g, H, dq, w, w * N * N, 1, w, threshold, max_iterations, max_line_search, reuse,
-                       status, iterations, factorizations, converged, c - w * LANES)  # fmt: skip
+            for st in range(steps):
+                if st > 0:
+                    block_sync()
+                step_world(q, q_trial, t, k, g, H, dq, w, w * G * TRI, 1, w, threshold, max_iterations,
+                           max_line_search, reuse, status, iterations, factorizations, converged,
+                           c - w * LANES)  # fmt: skip
 
     return newton_lanes, Terms, Bracket, assemble_system

@@ -69,6 +69,11 @@ class Simulator:
     step's captured phases before and after them.  ``one_launch``: the fused kernel also opens and
     closes each world's step (prediction, velocities, joint coordinates), so a step is one launch;
     False launches those as kernels of their own; default: with the lane-split step (measured).
+    ``lane_groups`` (``scratch="lanes"``): a world's lanes split into this many groups (a warp each
+    on a GPU, 32 lanes a group by default), each evaluating a share of the joints, limits and
+    drives into its own copy of the Newton system, summed before the factor.
+    ``steps_per_launch``: where a step is one launch (``one_launch``), ``step(n)`` takes up to this
+    many steps a launch, each world's steps in turn in its block.
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
@@ -77,7 +82,8 @@ class Simulator:
                  threads: int | None = None, block_dim: int | None = None, scratch: str | None = None,
                  max_registers: int = 0, smem_spilling: bool = False, reuse_factor: bool | None = None,
                  envelope: bool | None = None, retract: bool = True, cpu_workers: int | None = None,
-                 one_launch: bool | None = None):  # fmt: skip
+                 one_launch: bool | None = None, lane_groups: int | None = None,
+                 steps_per_launch: int | None = None):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
@@ -89,7 +95,9 @@ class Simulator:
         self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search), bool(fused), integrator,
                                                            threads, block_dim, scratch, int(max_registers),
                                                            bool(smem_spilling), reuse_factor, envelope,
-                                                           bool(retract), cpu_workers, one_launch))  # fmt: skip
+                                                           bool(retract), cpu_workers, one_launch,
+                                                           lane_groups=lane_groups,
+                                                           steps_per_launch=steps_per_launch))  # fmt: skip
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device
@@ -105,37 +113,42 @@ class Simulator:
         self._host_views = {}
         self._cmds = {}  # recorded launches of the reset path, replayed with changed arguments (_replay)
         self._stage = rows.Staging(self.device)  # host rows to the device without waiting for the device
-        self._graph = None
+        self._graph = {}  # steps a launch -> the captured step: [(phase, graph or None)]
         self._warm = False
         self.reset()
 
     # ------------------------------------------------------------------ stepping
     def step(self, num_steps: int = 1):
-        """Advance every world ``num_steps`` steps of ``dt``."""
-        for _ in range(int(num_steps)):
-            if self._graph is None and self.use_graph and self._warm:
-                # capture after one plain step, so every kernel is compiled and loaded; with the CPU's
-                # concurrent Newton launches (which a graph cannot hold), the phases around them
-                self._graph = [(phase, self._capture(phase) if capturable else None)
-                               for phase, capturable in self.solver.phases()]  # fmt: skip
-            if self._graph is not None:
-                for phase, graph in self._graph:
+        """Advance every world ``num_steps`` steps of ``dt`` (where a step is one launch, up to the
+        solver's ``steps_per_launch`` a launch)."""
+        for k in self._chunks(num_steps):
+            if self.use_graph and self._warm:
+                if k not in self._graph:
+                    # capture after one plain step, so every kernel is compiled and loaded; with the
+                    # CPU's concurrent Newton launches (which a graph cannot hold), the phases around them
+                    self._graph[k] = [(phase, self._capture(phase) if capturable else None)
+                                      for phase, capturable in self.solver.step_phases(k)]  # fmt: skip
+                for phase, graph in self._graph[k]:
                     if graph is None:
                         phase(self.state)
                     else:
                         wp.capture_launch(graph)
             else:
-                self.solver.step(self.state)
+                self.solver.step(self.state, k)
                 self._warm = True
-            self.state.time += self.dt
+            self.state.time += k * self.dt
+
+    def _chunks(self, num_steps: int) -> list:
+        """The steps of each launch (or run of a step's phases) for ``num_steps`` steps."""
+        n = int(num_steps)
+        return self.solver.launch_chunks(n) if self.solver.multi_step else [1] * n
 
     def launch_step(self, num_steps: int = 1):
         """``num_steps`` steps as direct launches of the step's kernels, without the simulator's own
         graphs and without advancing the host clock ``state.time``: for a caller that captures the
         step in a graph of its own (the vector env's), and advances the clock (``tick``) at each
         replay.  The same step as ``step``."""
-        for _ in range(int(num_steps)):
-            self.solver.step(self.state)
+        self.solver.step(self.state, num_steps)
 
     def tick(self, num_steps: int = 1):
         """Advance the host clock ``state.time`` by ``num_steps`` steps (see ``launch_step``)."""

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -76,6 +77,14 @@ class SolverSettings:
     # profiling only: the fused step adds each phase's GPU cycles to Solver.phase_cycles
     # (fused.PHASES; scripts/profile_step.py --phases)
     phase_clock: bool = False
+    # scratch="lanes": the world's lanes split into this many groups (a warp each on a GPU), each
+    # evaluating its share of the joints, limits and drives into its own copy of g and H, summed
+    # before the factor (fused.assemble_groups; Solver.lane_work balances the shares); block_dim
+    # then defaults to 32 lanes a group.  None: default_lane_groups
+    lane_groups: int | None = None
+    # where a step is one launch (one_launch, a single launch), Simulator.step(n) takes up to this
+    # many steps a launch (fused.newton_lanes' ``steps``); None: default_steps_per_launch
+    steps_per_launch: int | None = None
 
 
 def _flat(a: wp.array) -> wp.array:
@@ -141,6 +150,50 @@ def default_block_dim_shared(n: int, dtype) -> int:
     """Threads a block for scratch="shared": 32 (one warp) where their systems fit the block's
     static shared memory; else as many as fit; 0 when not even one does."""
     return min(32, SHARED_BLOCK_BYTES // shared_bytes_per_thread(n, dtype))
+
+
+def default_steps_per_launch() -> int:
+    """Steps a launch where a step is one launch: 1 (each step its own launch)."""
+    return 1
+
+
+def default_lane_groups(device, scratch: str) -> int:
+    """Lane groups a world of the lane-split step: 1 (one warp evaluates every term in turn)."""
+    return 1
+
+
+# relative cost of a term in an assembly (thousands of cycles a world-step, the cart-pole's phase
+# clock on an H100, the baseline of results/trial_gradient_h100_dropped.md): the bodies' by rows
+WORK_COST = {"bodies": 14.0, "revolute": 9.0, "fixed": 13.0, "prismatic": 13.0, "revolute_limit": 6.0,
+             "prismatic_limit": 6.0, "drive": 10.0}  # fmt: skip
+
+
+def lane_work(counts: dict, groups: int, row_lanes: int, num_dofs: int):
+    """Each lane group's terms: (kinds (groups, M), indices (groups, M), counts (groups,)), int32,
+    kinds as fused.WORK_*.  The bodies go to group 0 (by rows, ceil(n / row_lanes) passes); each
+    term, costliest first (WORK_COST), to the group with the least cost so far (ties: the lowest
+    group), so the busiest group's chain is short; a group's terms in kind order, then index."""
+    from . import fused
+
+    kinds = {"revolute": fused.WORK_REVOLUTE, "fixed": fused.WORK_FIXED, "prismatic": fused.WORK_PRISMATIC,
+             "revolute_limit": fused.WORK_REVOLUTE_LIMIT, "prismatic_limit": fused.WORK_PRISMATIC_LIMIT,
+             "drive": fused.WORK_DRIVE}  # fmt: skip
+    load = [0.0] * groups
+    load[0] = WORK_COST["bodies"] * -(-num_dofs // max(row_lanes, 1))
+    items = sorted(((WORK_COST[name], kinds[name], i) for name in kinds for i in range(counts.get(name, 0))),
+                   key=lambda it: (-it[0], it[1], it[2]))  # fmt: skip
+    share = [[] for _ in range(groups)]
+    for cost, kind, i in items:
+        c = min(range(groups), key=lambda c: (load[c], c))
+        load[c] += cost
+        share[c].append((kind, i))
+    width = max(1, max(len(x) for x in share))
+    out_k = np.zeros((groups, width), dtype=np.int32)
+    out_i = np.zeros((groups, width), dtype=np.int32)
+    for c, x in enumerate(sorted(x) for x in share):
+        for it, (kind, i) in enumerate(x):
+            out_k[c, it], out_i[c, it] = kind, i
+    return out_k, out_i, np.array([len(x) for x in share], dtype=np.int32)
 
 
 LANES_MAX_WORLDS = 1024  # the default scratch is "lanes" up to this many worlds (default_scratch)
@@ -226,7 +279,18 @@ class Solver:
         wb = np.linspace(0, W, chunks + 1).round().astype(int)
         self.newton_launches = [(int(tb[k]), int(tb[k + 1] - tb[k]), int(wb[k]), int(wb[k + 1])) for k in range(chunks)]
         self._chunk_cmds = None
-        self.block_dim = settings.block_dim or (32 if self.lanes else default_block_dim(wp.get_device(dev), T))
+        groups = settings.lane_groups
+        if groups is not None and not (isinstance(groups, (int, np.integer)) and groups > 0):
+            raise ValueError(f"lane_groups must be a positive integer or None, got {groups!r}")
+        if groups not in (None, 1) and not self.lanes:
+            raise ValueError(f"lane_groups={groups!r} needs scratch='lanes'")
+        spl = settings.steps_per_launch
+        if spl is not None and not (isinstance(spl, (int, np.integer)) and spl > 0):
+            raise ValueError(f"steps_per_launch must be a positive integer or None, got {spl!r}")
+        self.steps_per_launch = int(spl or default_steps_per_launch())
+        self.lane_groups = int(groups or (default_lane_groups(wp.get_device(dev), scratch) if self.lanes else 1))
+        self.block_dim = settings.block_dim or (32 * self.lane_groups if self.lanes
+                                                else default_block_dim(wp.get_device(dev), T))  # fmt: skip
         if self.in_smem:
             fit = default_block_dim_shared(n, dt_)
             self.block_dim = settings.block_dim or fit
@@ -240,6 +304,10 @@ class Solver:
             raise ValueError(f"scratch='lanes' takes 1 to 256 lanes a world (block_dim), got {self.block_dim!r}")
         if self.lanes and wp.get_device(dev).is_cpu and not wp.config.enable_cpu_blocks:
             self.block_dim = 1  # Warp runs a CPU block's threads as one unless cooperative blocks are on
+            self.lane_groups = 1
+        if self.lanes and self.block_dim % self.lane_groups:
+            raise ValueError(f"scratch='lanes': {self.block_dim} lanes a world (block_dim) do not split into "
+                             f"{self.lane_groups} equal groups (lane_groups)")  # fmt: skip
         self.q_trial = wp.zeros((T, model.num_bodies), dtype=model.vec12, device=dev)
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)
@@ -259,8 +327,12 @@ class Solver:
         # (solver_kernels: one multiply per access instead of three, and no negative-index tests)
         self.g_flat, self.H_flat, self.dq_flat = (_flat(a) for a in (self.g, self.H, self.dq))
         self.L_flat = None if self.L is None else _flat(self.L)
-        if self.lanes and not cuda:  # the CPU's lanes keep each world's g, H, Δq contiguous, n² words apiece
-            self.g_flat, self.dq_flat = (wp.zeros(W * n * n, dtype=dt_, device=dev) for _ in range(2))
+        # the CPU's lanes keep each world's g, H, Δq contiguous: H packed, a copy per lane group
+        # (fused.newton_lanes), G·n(n+1)/2 words apiece
+        self.lane_stride = self.lane_groups * (n * (n + 1) // 2)
+        if self.lanes and not cuda:
+            self.g_flat, self.H_flat, self.dq_flat = (wp.zeros(W * self.lane_stride, dtype=dt_, device=dev)
+                                                      for _ in range(3))  # fmt: skip
         self.chord = wp.zeros(W, dtype=wp.int32, device=dev)
         self.d_prev = wp.zeros(W, dtype=dt_, device=dev)
         self.gdq, self.dq_max, self.alpha, self.g_abs = (wp.zeros(W, dtype=dt_, device=dev) for _ in range(4))
@@ -314,9 +386,8 @@ class Solver:
         _, terms, _, assemble_system = self._fused
         W, n, L = m.num_worlds, m.num_dofs, self.block_dim if self.lanes else 1
         g, H = self.g, self.H
-        if self.lanes:  # H packed; g's rows past n hold the bodies' energies (fused.lane_bodies)
-            g = wp.zeros((n + n // 12, W), dtype=m.dtype, device=m.device)
-            H = wp.zeros((n * (n + 1) // 2, W), dtype=m.dtype, device=m.device)
+        if self.lanes:  # world w's g and H (packed, a copy per lane group) from w·lane_stride
+            g, H = (wp.zeros((W, self.lane_stride), dtype=m.dtype, device=m.device) for _ in range(2))
         g.zero_()
         H.zero_()
         E = wp.zeros(W, dtype=m.dtype, device=m.device)
@@ -327,8 +398,8 @@ class Solver:
         packed = H.numpy()  # row i from i(i+1)/2
         full = np.zeros((W, n, n), dtype=packed.dtype)
         for i in range(n):
-            full[:, i, : i + 1] = packed[i * (i + 1) // 2 : i * (i + 1) // 2 + i + 1].T
-        return E.numpy(), g.numpy()[:n].T.copy(), full
+            full[:, i, : i + 1] = packed[:, i * (i + 1) // 2 : i * (i + 1) // 2 + i + 1]
+        return E.numpy(), g.numpy()[:, :n].copy(), full
 
     def energies(self, state) -> dict:
         """Each term's own physical energy [J] per world (see Simulator.energies)."""
@@ -338,11 +409,28 @@ class Solver:
         return {t: e[:, i].astype(np.float64) for t, i in self.report_cols.items() if t != "scratch"}
 
     # ------------------------------------------------------------------ step
-    def step(self, state):
-        """One implicit Euler step of every world.  No host synchronisation: the loops run as
-        ``wp.capture_while`` on device flags, so the whole step can be captured in a CUDA graph."""
-        for phase, _ in self.phases():
-            phase(state)
+    def step(self, state, num_steps: int = 1):
+        """``num_steps`` implicit Euler steps of every world.  No host synchronisation: the loops run
+        as ``wp.capture_while`` on device flags, so the whole step can be captured in a CUDA graph.
+        Where a step is one launch (``multi_step``), up to ``steps_per_launch`` steps a launch."""
+        if self.multi_step:
+            for k in self.launch_chunks(num_steps):
+                self._fused_newton(state, k)
+            return
+        for _ in range(int(num_steps)):
+            for phase, _ in self.phases():
+                phase(state)
+
+    @property
+    def multi_step(self) -> bool:
+        """Whether one launch can take several steps: the fused kernel opens and closes each step
+        (``one_launch``) and runs as a single launch."""
+        return self.one_launch and self.capturable
+
+    def launch_chunks(self, num_steps: int) -> list:
+        """``num_steps`` as the step counts of successive launches (at most steps_per_launch each)."""
+        n, k = int(num_steps), self.steps_per_launch
+        return [k] * (n // k) + ([n % k] if n % k else [])
 
     def phases(self) -> list:
         """The step as (part, capturable) pairs to run in turn: the whole step, or, with the CPU's
@@ -353,6 +441,15 @@ class Solver:
         if self.capturable:
             return [(self._whole_step, True)]
         return [(self._open, True), (self._newton, False), (self._close, True)]
+
+    def step_phases(self, steps: int = 1) -> list:
+        """(part, capturable) pairs for ``steps`` steps: the one launch of multi_step, else (steps 1)
+        phases()."""
+        if self.multi_step:
+            return [(functools.partial(self._fused_newton, steps=int(steps)), self.capturable)]
+        if steps != 1:
+            raise ValueError(f"{steps} steps in one go need the one-launch step (multi_step)")
+        return self.phases()
 
     def _whole_step(self, state):
         self._open(state)
@@ -394,17 +491,21 @@ class Solver:
                                                       m.dof, dt(self.h), self.h_step, state.status], device=dev)  # fmt: skip
         self.update_coordinates(state, accumulate=True)
 
-    def _fused_newton(self, state):
+    def _fused_newton(self, state, steps: int = 1):
+        """The fused kernel: Newton for every world; with one_launch, the whole step, ``steps`` of
+        them in turn (a single launch only: ``multi_step``)."""
         m, s = self.model, self.settings
         if self._fused is None:
             self._fused = self._build_fused(state)
         kernel, terms, bracket, _ = self._fused
+        if steps != 1 and not self.multi_step:
+            raise ValueError(f"{steps} steps in one launch need the one-launch step (one_launch) in a single launch")
         if self.lanes:
             L = self.block_dim
             wp.launch(kernel, dim=m.num_worlds * L, inputs=[
                 state.q, self.q_trial, terms, bracket, self.g_flat, self.H_flat, self.dq_flat, m.dtype(s.tol * self.h),
                 s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
-                state.factorizations, state.converged], block_dim=L, device=m.device)  # fmt: skip
+                state.factorizations, state.converged, int(steps)], block_dim=L, device=m.device)  # fmt: skip
             return
         n = m.num_dofs
 
@@ -416,7 +517,7 @@ class Solver:
                 g, H, dq = (a[start * size:(start + count) * size] for a, size in ((g, n), (H, n * n), (dq, n)))
             return [state.q, self.q_trial, terms, bracket, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.h),
                     s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
-                    state.factorizations, state.converged]  # fmt: skip
+                    state.factorizations, state.converged, int(steps)]  # fmt: skip
 
         if len(self.newton_launches) == 1:
             wp.launch(kernel, dim=self.threads, inputs=inputs(*self.newton_launches[0]), device=m.device,
@@ -452,7 +553,8 @@ class Solver:
             m.dtype, *has, scratch=self.scratch, n=m.num_dofs, max_registers=st.max_registers,
             smem_spilling=st.smem_spilling, envelope=self.envelope, retract=bool(st.retract),
             phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
-            block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch)  # fmt: skip
+            block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
+            groups=self.lane_groups)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -466,6 +568,13 @@ class Solver:
         t.rlim_lo, t.rlim_up, t.rlim_s = m.limit_params[REVOLUTE]
         t.plim_lo, t.plim_up, t.plim_s = m.limit_params[PRISMATIC]
         t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
+        counts = {"revolute": m.joint_count[REVOLUTE], "fixed": m.joint_count[FIXED],
+                  "prismatic": m.joint_count[PRISMATIC], "revolute_limit": len(m.limit_joints[REVOLUTE]),
+                  "prismatic_limit": len(m.limit_joints[PRISMATIC]), "drive": m.num_drives}  # fmt: skip
+        G = self.lane_groups
+        none = (np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), np.zeros(1, np.int32))  # (unused)
+        self.work = lane_work(counts, G, self.block_dim // G, m.num_dofs) if G > 1 else none
+        t.work_kind, t.work_idx, t.work_n = (wp.array(a, dtype=wp.int32, device=m.device) for a in self.work)
         from .fused import PHASES
 
         self.phase_cycles = wp.zeros((m.num_worlds if st.phase_clock else 1, len(PHASES)), dtype=wp.int64, device=m.device)

@@ -847,19 +847,26 @@ def check_fused_system(sim, ref, case_name):
             assert not Hf.any()
 
 
-@pytest.mark.parametrize("lanes", [5, 8])
-def test_lane_split_assembly_matches_staged(scene, ref, lanes):
+@pytest.mark.parametrize("lanes, groups", [(8, 1), (15, 3)])
+def test_lane_split_assembly_matches_staged(scene, ref, lanes, groups):
     """scratch="lanes": each lane adds only its own rows of every term's blocks (rows i ≡ lane mod
-    lanes; 5 lanes split a 12-row block unevenly), as cooperative CPU fibers, and together they give
-    the staged kernels' energy, gradient and lower-triangular Hessian (H packed in the scratch)."""
+    lanes), as cooperative CPU fibers, and together they give the staged kernels' energy, gradient
+    and lower-triangular Hessian (H packed in the scratch).  15 lanes in 3 groups: each group of 5
+    (which split a 12-row block unevenly) adds its share of the terms to its own copy (the bodies
+    on the first, the joints, limits and drives, of every kind, on the other two), and the copies'
+    sum is the whole system."""
     import warp as wp
 
     before = wp.config.enable_cpu_blocks
     wp.config.enable_cpu_blocks = True
     try:
         sim = ag.Simulator(scene, num_worlds=2, dt=0.01, dtype="float64", scratch="lanes", block_dim=lanes,
-                           device="cpu")  # fmt: skip
-        assert sim.solver.block_dim == lanes
+                           device="cpu", lane_groups=groups)  # fmt: skip
+        assert sim.solver.block_dim == lanes and sim.solver.lane_groups == groups
+        sim.solver.fused_system(sim.state)  # builds the kernel and the groups' shares
+        if groups > 1:
+            kinds, _, counts = sim.solver.work
+            assert (counts[1:] > 0).all() and len({int(k) for c in range(groups) for k in kinds[c, : counts[c]]}) == 6
         for case_name in CASES:
             check_fused_system(sim, ref, case_name)
     finally:

@@ -9,10 +9,11 @@ from abd_gym import mechanisms
 
 
 def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global", reuse_factor=None, cpu_workers=1,
-         block_dim=None, one_launch=None, integrator="implicit_euler"):  # fmt: skip
+         block_dim=None, one_launch=None, integrator="implicit_euler", lane_groups=None):  # fmt: skip
     sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, use_graph=use_graph, fused=fused, dtype=dtype,
                        threads=threads, scratch=scratch, reuse_factor=reuse_factor, cpu_workers=cpu_workers,
-                       block_dim=block_dim, one_launch=one_launch, integrator=integrator)  # fmt: skip
+                       block_dim=block_dim, one_launch=one_launch, integrator=integrator,
+                       lane_groups=lane_groups)  # fmt: skip
     rng = np.random.default_rng(3)
     sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
     out = []
@@ -35,7 +36,7 @@ def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global",
 def test_graph_step_matches_plain_step():
     plain, _ = _run(False)
     graph, sim = _run(True)
-    assert sim._graph is not None
+    assert sim._graph
     np.testing.assert_array_equal(np.nan_to_num(graph), np.nan_to_num(plain))
     assert sim.failed_worlds().tolist() == [3]
     assert np.abs(graph[-1, 1, -2]) < 0.5 + 0.05  # the narrowed limit acts in the replayed graph
@@ -77,24 +78,76 @@ def cpu_blocks():
     wp.config.enable_cpu_blocks = before
 
 
-@pytest.mark.parametrize("lanes", [None, 8])
-def test_lane_split_step_matches_one_thread_per_world(lanes, request):
+@pytest.mark.parametrize("lanes, groups", [(None, None), (8, None), (16, 2), (None, 2)])
+def test_lane_split_step_matches_one_thread_per_world(lanes, groups, request):
     """A block of lanes per world (terms in rounds, the factor a column at a time across lanes)
     against one thread per world: the same solve in another summation order, with the same
     iterations and factorisations (limits, drives, resets and a failure included).  On the CPU,
-    lanes=None runs one lane a block; 8 runs eight cooperative fibers."""
+    lanes=None runs one lane a block; 8 runs eight cooperative fibers; 16 in 2 groups, two groups
+    of eight, each with its share of the cart-pole's joints, limit and drive (Solver.lane_work) in
+    its own copy of the system.  On a GPU, (None, 2) runs two warps a world (the first factoring
+    in registers); on the CPU it is the one-lane case again."""
     import warp as wp
 
     if lanes:
         request.getfixturevalue("cpu_blocks")
     ref, sim0 = _run(True, dtype="float64")
-    out, sim = _run(True, dtype="float64", scratch="lanes", block_dim=lanes)
-    expect = lanes or (1 if wp.get_device(sim.device).is_cpu else 32)
+    out, sim = _run(True, dtype="float64", scratch="lanes", block_dim=lanes, lane_groups=groups)
+    cpu = wp.get_device(sim.device).is_cpu
+    expect = lanes or (1 if cpu else 32 * (groups or 1))
     assert sim.solver.lanes and sim.solver.block_dim == expect
+    assert sim.solver.lane_groups == (1 if expect == 1 else groups or 1)
+    if sim.solver.lane_groups > 1:  # every group has terms to evaluate
+        assert (sim.solver.work[2] > 0).sum() >= sim.solver.lane_groups - 1
     np.testing.assert_allclose(np.nan_to_num(out), np.nan_to_num(ref), atol=1e-9)
     assert sim.failed_worlds().tolist() == [3]
     np.testing.assert_array_equal(sim.newton_iterations(), sim0.newton_iterations())
     np.testing.assert_array_equal(sim.newton_factorizations(), sim0.newton_factorizations())
+
+
+@pytest.mark.parametrize("scratch", ["lanes", "global"])
+def test_steps_in_one_launch_are_the_steps_one_by_one(scratch):
+    """steps_per_launch: a world's steps in turn in one launch of the one-launch step (sim.step(n)
+    in launches of up to 3 steps: 3 + 3 + 1, then 2) are the steps launched one by one, bit for bit
+    (with controls, a narrowed limit and a failed world), and the clock advances by every step."""
+    import warp as wp
+
+    def run(spl):
+        sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, scratch=scratch, one_launch=True,
+                           steps_per_launch=spl)  # fmt: skip
+        rng = np.random.default_rng(3)
+        sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
+        out = []
+        for n in (7, 2, 7):
+            sim.set_controls(rng.uniform(-10, 10, (4, 1)))
+            sim.step(n)
+            out.append(np.concatenate([sim.body_q().reshape(4, -1), sim.joint_coordinates(),
+                                       sim.joint_velocities()], axis=1))  # fmt: skip
+            if n == 2:
+                sim.set_limit(0, lower=-0.2, upper=0.2, worlds=[1])
+                q = sim.state.q.numpy()
+                q[3, 1, 0] = np.nan
+                sim.state.q.assign(q)
+        return np.array(out), sim
+
+    ref, sim1 = run(1)
+    out, sim = run(3)
+    assert sim.solver.multi_step and sim.solver.launch_chunks(7) == [3, 3, 1]
+    if wp.get_device(sim.device).is_cuda:
+        assert sorted(sim._graph) == [1, 2, 3]  # a captured launch per step count
+    np.testing.assert_array_equal(np.nan_to_num(out), np.nan_to_num(ref))
+    np.testing.assert_allclose(np.asarray(sim.state.time), np.asarray(sim1.state.time))
+    np.testing.assert_allclose(np.asarray(sim.state.time), 0.16)
+    assert sim.failed_worlds().tolist() == [3]
+
+
+def test_steps_per_launch_must_be_positive():
+    with pytest.raises(ValueError, match="steps_per_launch"):
+        ag.Simulator(mechanisms.pendulum(), num_worlds=1, steps_per_launch=0)
+    with pytest.raises(ValueError, match="lane_groups"):
+        ag.Simulator(mechanisms.pendulum(), num_worlds=1, scratch="global", lane_groups=2)
+    with pytest.raises(ValueError, match="lane_groups"):
+        ag.Simulator(mechanisms.pendulum(), num_worlds=1, scratch="lanes", lane_groups=-1)
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
@@ -134,11 +187,11 @@ def test_concurrent_cpu_launches_are_the_same_step(one_launch):
     default with lanes only; here the thread-per-world step both ways.)"""
     one, sim1 = _run(True, cpu_workers=1, one_launch=one_launch)
     two, sim2 = _run(True, cpu_workers=2, one_launch=one_launch)
-    graphs = [g for _, g in sim1._graph]
+    graphs = [g for _, g in sim1._graph[1]]
     assert sim1.solver.capturable and len(graphs) == 1 and graphs[0] is not None
     if sim2.device.is_cpu:  # the concurrent launches are not captured (phases around them are)
         assert sim2.solver.newton_launches == [(0, 2, 0, 2), (2, 2, 2, 4)] and not sim2.solver.capturable
-        graphs = [g for _, g in sim2._graph]
+        graphs = [g for _, g in sim2._graph[1]]
         if one_launch:  # each launch opens and closes its own worlds' steps
             assert graphs == [None]
         else:
