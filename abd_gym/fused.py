@@ -230,6 +230,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     # on a GPU, a world of up to 32 unknowns on one warp of lanes factors and solves in registers
     # (the first group's warp, when there are several)
     warp_regs = lanes and cuda and RL == 32 and n <= 32
+    # compact code where a world's step is a latency-bound chain (lanes): blocks of a term in loops
+    # of selected arguments, one inlined assemble per mode (cart-pole's kernel 414 KB of SASS ->
+    # 291 KB, 1,024 worlds 5% faster on an H100, results/code_size_h100.md); a thread per world
+    # (throughput-bound) keeps the branches, whose selects cost it 1-5% there
+    compact = lanes
     regs_ldl_solve = warp_ldl_solve(dtype, n) if warp_regs else None
     N = n  # unknowns per world (12 per free body), a constant of the kernel
     TRI = N * (N + 1) // 2  # H's packed lower triangle (and, lanes, the stride of the groups' copies)
@@ -352,8 +357,13 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         """Block (oa, ob) = U ⊗ I₃ (see warp_ops.kron3): its 48 non-zero entries only; above the
         diagonal as its transpose below it (lower triangle only, all the factor reads)."""
         if oa >= 0 and ob >= 0:
-            sw = oa < ob  # (selects, not branches: one inlined kron_rows, see blocks_of_pair)
-            kron_rows(H, s, B, wp.max(oa, ob), wp.min(oa, ob), wp.where(sw, wp.transpose(U), U))
+            if wp.static(compact):  # selects, not branches: one inlined kron_rows
+                sw = oa < ob
+                kron_rows(H, s, B, wp.max(oa, ob), wp.min(oa, ob), wp.where(sw, wp.transpose(U), U))
+            elif oa < ob:
+                kron_rows(H, s, B, ob, oa, wp.transpose(U))
+            else:
+                kron_rows(H, s, B, oa, ob, U)
 
     @wp.func
     def ksum_rows(H: Any, s: int, B: int, oa: int, ob: int, ua: vec4, ta: vec4, ub: vec4, tb: vec4, Pcc: mat33,
@@ -385,11 +395,17 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         (prismatic_hessian), summed per entry in registers, without a 12 × 12 matrix.  Above the
         diagonal as the transpose, (ub uaᵀ) ⊗ Pccᵀ + (ub taᵀ) ⊗ Ptcᵀ + (tb uaᵀ) ⊗ Pctᵀ + …, below it."""
         if oa >= 0 and ob >= 0:
-            sw = oa < ob  # (selects, not branches: one inlined ksum_rows)
-            ksum_rows(H, s, B, wp.max(oa, ob), wp.min(oa, ob), wp.where(sw, ub, ua), wp.where(sw, tb, ta),
-                      wp.where(sw, ua, ub), wp.where(sw, ta, tb), wp.where(sw, wp.transpose(Pcc), Pcc),
-                      wp.where(sw, wp.transpose(Ptc), Pct), wp.where(sw, wp.transpose(Pct), Ptc),
-                      wp.where(sw, wp.transpose(Ptt), Ptt), wp.where(sw, wp.transpose(U), U))  # fmt: skip
+            if wp.static(compact):  # selects, not branches: one inlined ksum_rows
+                sw = oa < ob
+                ksum_rows(H, s, B, wp.max(oa, ob), wp.min(oa, ob), wp.where(sw, ub, ua), wp.where(sw, tb, ta),
+                          wp.where(sw, ua, ub), wp.where(sw, ta, tb), wp.where(sw, wp.transpose(Pcc), Pcc),
+                          wp.where(sw, wp.transpose(Ptc), Pct), wp.where(sw, wp.transpose(Pct), Ptc),
+                          wp.where(sw, wp.transpose(Ptt), Ptt), wp.where(sw, wp.transpose(U), U))  # fmt: skip
+            elif oa < ob:
+                ksum_rows(H, s, B, ob, oa, ub, tb, ua, ta, wp.transpose(Pcc), wp.transpose(Ptc), wp.transpose(Pct),
+                          wp.transpose(Ptt), wp.transpose(U))  # fmt: skip
+            else:
+                ksum_rows(H, s, B, oa, ob, ua, ta, ub, tb, Pcc, Pct, Ptc, Ptt, U)
 
     @wp.func
     def cross_gram(x: vec3, y: vec3):
@@ -417,19 +433,30 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         ubj = vec4(zero, bj[0], bj[1], bj[2])
         PT = kk * (cross_gram(Ti, Ti) + cross_gram(Tj, Tj))
         Pdd = kk * cross_gram(d, d)
-        # blocks (i, i), (j, j), (i, j) in a loop of selected arguments: one inlined put_ksum where
-        # three calls inlined three (put_ksum skips a block of a fixed body, oi or oj < 0)
-        for blk in range(3):
-            ra = blk != 1  # the block's rows are body i's (else j's); its columns body i's for blk 0
-            cb = blk == 0
-            Pct = kk * cross_gram(wp.where(blk == 0, Ti, Tj), d)
-            Ptc = kk * cross_gram(d, wp.where(blk == 1, Tj, Ti))
-            U = wp.outer(wp.where(ra, uni, unj), wp.where(cb, uni, unj)) + wp.outer(wp.where(ra, ubi, ubj),
-                                                                                   wp.where(cb, ubi, ubj))  # fmt: skip
-            put_ksum(H, s, B, wp.where(ra, oi, oj), wp.where(cb, oi, oj), wp.where(ra, uci, ucj),
-                     wp.where(ra, uti, utj), wp.where(cb, uci, ucj), wp.where(cb, uti, utj),
-                     wp.where(blk == 2, -PT, PT), wp.where(blk == 1, -Pct, Pct), wp.where(blk == 0, Ptc, -Ptc),
-                     wp.where(blk == 2, mat33(), Pdd), wp.where(blk == 2, -kk * U, kk * U))  # fmt: skip
+        if wp.static(compact):
+            # blocks (i, i), (j, j), (i, j) in a loop of selected arguments: one inlined put_ksum
+            # where three calls inlined three (put_ksum skips a block of a fixed body, oi or oj < 0)
+            for blk in range(3):
+                ra = blk != 1  # the block's rows are body i's (else j's); its columns body i's for blk 0
+                cb = blk == 0
+                Pct = kk * cross_gram(wp.where(blk == 0, Ti, Tj), d)
+                Ptc = kk * cross_gram(d, wp.where(blk == 1, Tj, Ti))
+                U = wp.outer(wp.where(ra, uni, unj), wp.where(cb, uni, unj)) + wp.outer(wp.where(ra, ubi, ubj),
+                                                                                       wp.where(cb, ubi, ubj))  # fmt: skip
+                put_ksum(H, s, B, wp.where(ra, oi, oj), wp.where(cb, oi, oj), wp.where(ra, uci, ucj),
+                         wp.where(ra, uti, utj), wp.where(cb, uci, ucj), wp.where(cb, uti, utj),
+                         wp.where(blk == 2, -PT, PT), wp.where(blk == 1, -Pct, Pct), wp.where(blk == 0, Ptc, -Ptc),
+                         wp.where(blk == 2, mat33(), Pdd), wp.where(blk == 2, -kk * U, kk * U))  # fmt: skip
+        else:
+            if oi >= 0:
+                put_ksum(H, s, B, oi, oi, uci, uti, uci, uti, PT, kk * cross_gram(Ti, d), kk * cross_gram(d, Ti), Pdd,
+                         kk * (wp.outer(uni, uni) + wp.outer(ubi, ubi)))  # fmt: skip
+            if oj >= 0:
+                put_ksum(H, s, B, oj, oj, ucj, utj, ucj, utj, PT, -kk * cross_gram(Tj, d), -kk * cross_gram(d, Tj), Pdd,
+                         kk * (wp.outer(unj, unj) + wp.outer(ubj, ubj)))  # fmt: skip
+            if oi >= 0 and oj >= 0:
+                put_ksum(H, s, B, oi, oj, uci, uti, ucj, utj, -PT, kk * cross_gram(Tj, d), -kk * cross_gram(d, Ti),
+                         mat33(), -kk * (wp.outer(uni, unj) + wp.outer(ubi, ubj)))  # fmt: skip
 
     @wp.func
     def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Any, step: Any, w: int, row: int,
@@ -458,9 +485,14 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         put_grad(g, s, B, oi, gi)
         put_grad(g, s, B, oj, gj)
         if derivs == HESSIAN:
-            for blk in range(3):  # (i, i), (i, j), (j, j): a loop, so one inlined put_kron
-                put_kron(H, s, B, wp.where(blk < 2, oi, oj), wp.where(blk == 0, oi, oj),
-                         wp.where(blk == 0, uii, wp.where(blk == 1, uij, ujj)))  # fmt: skip
+            if wp.static(compact):
+                for blk in range(3):  # (i, i), (i, j), (j, j): a loop, so one inlined put_kron
+                    put_kron(H, s, B, wp.where(blk < 2, oi, oj), wp.where(blk == 0, oi, oj),
+                             wp.where(blk == 0, uii, wp.where(blk == 1, uij, ujj)))  # fmt: skip
+            else:
+                put_kron(H, s, B, oi, oi, uii)
+                put_kron(H, s, B, oi, oj, uij)
+                put_kron(H, s, B, oj, oj, ujj)
 
     @wp.func
     def outer_rows(H: Any, s: int, B: int, oa: int, ob: int, ga: vec12, gb: vec12, cf: dtype):
@@ -479,8 +511,13 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         reads): a diagonal block's lower half; (oa, ob) below the diagonal as it is, above it
         transposed.  Each entry is formed as it is added (no 12 × 12 matrix in local memory)."""
         if oa >= 0 and ob >= 0:
-            sw = oa < ob  # (selects, not branches: one inlined outer_rows)
-            outer_rows(H, s, B, wp.max(oa, ob), wp.min(oa, ob), wp.where(sw, gb, ga), wp.where(sw, ga, gb), cf)
+            if wp.static(compact):  # selects, not branches: one inlined outer_rows
+                sw = oa < ob
+                outer_rows(H, s, B, wp.max(oa, ob), wp.min(oa, ob), wp.where(sw, gb, ga), wp.where(sw, ga, gb), cf)
+            elif oa < ob:
+                outer_rows(H, s, B, ob, oa, gb, ga, cf)
+            else:
+                outer_rows(H, s, B, oa, ob, ga, gb, cf)
 
     @wp.func
     def put_rank1(g: Any, H: Any, s: int, B: int, derivs: int, oi: int, oj: int, gi: vec12, gj: vec12, de: dtype,
@@ -491,9 +528,14 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             put_grad(g, s, B, oi, de * gi)
             put_grad(g, s, B, oj, de * gj)
             if derivs == HESSIAN and dde != zero:
-                for blk in range(3):  # (i, i), (i, j), (j, j): a loop, so one inlined put_outer
-                    put_outer(H, s, B, wp.where(blk < 2, oi, oj), wp.where(blk == 0, oi, oj), wp.where(blk < 2, gi, gj),
-                              wp.where(blk == 0, gi, gj), dde)  # fmt: skip
+                if wp.static(compact):
+                    for blk in range(3):  # (i, i), (i, j), (j, j): a loop, so one inlined put_outer
+                        put_outer(H, s, B, wp.where(blk < 2, oi, oj), wp.where(blk == 0, oi, oj),
+                                  wp.where(blk < 2, gi, gj), wp.where(blk == 0, gi, gj), dde)  # fmt: skip
+                else:
+                    put_outer(H, s, B, oi, oi, gi, gi, dde)
+                    put_outer(H, s, B, oi, oj, gi, gj, dde)
+                    put_outer(H, s, B, oj, oj, gj, gj, dde)
 
     @wp.struct
     class Terms:
@@ -849,26 +891,45 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
         factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
         trial points go to row ``row`` of q_trial; s, B as in assemble, lane as in trial."""
-        # one trial and one energy in the code (a loop of tries, not a first try and a loop): each
-        # inlined copy of assemble costs ~26 KB of SASS in a cart-pole's kernel, whose ~400 KB
-        # already overflow the SM's instruction caches
         c = clock_now()
         alpha = one
         accepted = int(0)
         stalled = int(0)
-        tries = wp.where(skip != 0 or chord > 0, 1, max_line_search)
-        for _ls in range(tries):
-            trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
+        if wp.static(compact):
+            # one trial and one energy in the code (a loop of tries, not a first try and a loop):
+            # each inlined copy of assemble's energy costs ~28 KB of a cart-pole kernel's SASS
+            tries = wp.where(skip != 0 or chord > 0, 1, max_line_search)
+            for _ls in range(tries):
+                trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
+                c = tick(t, w, lane, 6, c)
+                if skip != 0:
+                    accepted = 1
+                    stalled = done
+                    break
+                accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
+                c = tick(t, w, lane, 5, c)
+                if accepted != 0:
+                    break
+                alpha = alpha * half  # (a rejected reused-factor step's α is unused: chord_step retries)
+        else:
+            trial(q, q_trial, t, step, w, row, s, B, one, lane)
             c = tick(t, w, lane, 6, c)
             if skip != 0:
                 accepted = 1
                 stalled = done
-                break
-            accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
-            c = tick(t, w, lane, 5, c)
-            if accepted != 0:
-                break
-            alpha = alpha * half  # (a rejected reused-factor step's α is not used: chord_step retries)
+            elif chord > 0:
+                accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), one, gdq)
+                c = tick(t, w, lane, 5, c)
+            else:
+                for ls in range(max_line_search):
+                    if ls > 0:
+                        trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
+                        c = tick(t, w, lane, 6, c)
+                    accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
+                    c = tick(t, w, lane, 5, c)
+                    if accepted != 0:
+                        break
+                    alpha = alpha * half
         return accepted, stalled, alpha
 
     @wp.func
@@ -983,10 +1044,16 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             gdq = zero
             dmax = zero
             g_abs = zero
-            # one call with the derivatives chosen at run time: a second inlined assemble (gradient
-            # only) would add ~54 KB of code (see search)
-            e0 = assemble(q, w, w, s, T, wp.where(chord > 0, GRADIENT, HESSIAN), t, g, H)
-            if chord <= 0:
+            if wp.static(compact):
+                # one call with the derivatives chosen at run time: a second inlined assemble
+                # (gradient only) would add ~54 KB of code
+                e0 = assemble(q, w, w, s, T, wp.where(chord > 0, GRADIENT, HESSIAN), t, g, H)
+                if chord <= 0:
+                    nfact += 1
+            elif chord > 0:
+                e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
+            else:
+                e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
                 nfact += 1
             c = tick(t, w, lane, 1, c)
             if wp.static(warp_regs and G == 1):
@@ -1134,14 +1201,15 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
             s0: int, Tw: int, wa: int, wb: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
             status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-            factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), steps: int,
+            factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
         ):  # fmt: skip
             """The launch's Tw threads solve worlds wa … wb − 1, thread c the worlds wa + c, wa + c + Tw,
             …: a thread's scratch is reused world after world, so it stays in cache however many worlds
             there are.  On a GPU one launch runs every world; on the CPU ranges of threads and worlds run
             as concurrent launches, each with its own scratch (g, H, dq: Tw columns) and its own run of
-            worlds, so they share no cache lines; s0 + c is the thread's row of q_trial.  ``steps``
-            steps of each world in turn (more than one only with ``bracket``, see newton_lanes)."""
+            worlds, so they share no cache lines; s0 + c is the thread's row of q_trial.  (One step a
+            launch: a loop of steps around step_world cost 12% at 16,384 and 131,072 cart-poles on an
+            H100, results/steps_per_launch_h100.md.)"""
             c = wp.tid()
             s = c + s0
             if wp.static(in_smem):
@@ -1151,14 +1219,12 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 gs = wp.array(ptr=base + wp.uint64(TRI * block * SIZE), shape=(N * block,), dtype=dtype)
                 ds = wp.array(ptr=base + wp.uint64((TRI + N) * block * SIZE), shape=(N * block,), dtype=dtype)
                 for w in range(wa + c, wb, Tw):
-                    for _st in range(steps):
-                        step_world(q, q_trial, t, k, gs, Hs, ds, w, col, block, s, threshold, max_iterations,
-                                   max_line_search, reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
+                    step_world(q, q_trial, t, k, gs, Hs, ds, w, col, block, s, threshold, max_iterations,
+                               max_line_search, reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
             else:
                 for w in range(wa + c, wb, Tw):
-                    for _st in range(steps):
-                        step_world(q, q_trial, t, k, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
-                                   reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
+                    step_world(q, q_trial, t, k, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
+                               reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
 
         return newton, Terms, Bracket, assemble_system
 

@@ -153,13 +153,27 @@ def default_block_dim_shared(n: int, dtype) -> int:
 
 
 def default_steps_per_launch() -> int:
-    """Steps a launch where a step is one launch: 1 (each step its own launch)."""
-    return 1
+    """Steps a launch where a step is one launch: 2.  Measured on an H100 at 1,024 worlds
+    (results/steps_per_launch_h100.md): 2 steps a launch 1.06x as fast as 1 on cart-poles and
+    1.11x on double pendulums; 3 no better, 10 slower than 1 (0.88-0.9x: a block's warps drift
+    apart in the ~300 KB kernel, and the SM's instruction caches miss more)."""
+    return 2
 
 
-def default_lane_groups(device, scratch: str) -> int:
-    """Lane groups a world of the lane-split step: 1 (one warp evaluates every term in turn)."""
-    return 1
+# warps of the lane-split kernel an SM holds at once: its threads take ~255 registers (65,536 a SM)
+LANE_WARPS_PER_SM = 8
+
+
+def default_lane_groups(device, scratch: str, num_worlds: int) -> int:
+    """Lane groups a world of the lane-split step on a GPU: the most of 4, 2, 1 whose warps (a
+    group each) all fit on the GPU at once (LANE_WARPS_PER_SM), else the launch runs in two waves.
+    Measured on an H100 (results/lane_groups_h100.md), cart-poles / double pendulums: 4 groups at
+    128 and 256 worlds 1.22x / 1.05x and 1.19x / 1.06x as fast as 1; 2 groups at 512 worlds 1.08x /
+    1.02x; at 1,024 worlds 2 groups run in two waves, 0.61x.  The CPU: 1."""
+    if scratch != "lanes" or not getattr(device, "is_cuda", False):
+        return 1
+    room = LANE_WARPS_PER_SM * device.sm_count
+    return next(g for g in (4, 2, 1) if g == 1 or num_worlds * g <= room)
 
 
 # relative cost of a term in an assembly (thousands of cycles a world-step, the cart-pole's phase
@@ -288,7 +302,7 @@ class Solver:
         if spl is not None and not (isinstance(spl, (int, np.integer)) and spl > 0):
             raise ValueError(f"steps_per_launch must be a positive integer or None, got {spl!r}")
         self.steps_per_launch = int(spl or default_steps_per_launch())
-        self.lane_groups = int(groups or (default_lane_groups(wp.get_device(dev), scratch) if self.lanes else 1))
+        self.lane_groups = int(groups or default_lane_groups(wp.get_device(dev), scratch, W))
         self.block_dim = settings.block_dim or (32 * self.lane_groups if self.lanes
                                                 else default_block_dim(wp.get_device(dev), T))  # fmt: skip
         if self.in_smem:
@@ -423,9 +437,9 @@ class Solver:
 
     @property
     def multi_step(self) -> bool:
-        """Whether one launch can take several steps: the fused kernel opens and closes each step
-        (``one_launch``) and runs as a single launch."""
-        return self.one_launch and self.capturable
+        """Whether one launch can take several steps: the lane-split kernel opens and closes each
+        step (``one_launch``) and runs as a single launch."""
+        return self.one_launch and self.capturable and self.lanes
 
     def launch_chunks(self, num_steps: int) -> list:
         """``num_steps`` as the step counts of successive launches (at most steps_per_launch each)."""
@@ -517,7 +531,7 @@ class Solver:
                 g, H, dq = (a[start * size:(start + count) * size] for a, size in ((g, n), (H, n * n), (dq, n)))
             return [state.q, self.q_trial, terms, bracket, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.h),
                     s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
-                    state.factorizations, state.converged, int(steps)]  # fmt: skip
+                    state.factorizations, state.converged]  # fmt: skip
 
         if len(self.newton_launches) == 1:
             wp.launch(kernel, dim=self.threads, inputs=inputs(*self.newton_launches[0]), device=m.device,

@@ -93,10 +93,12 @@ def test_lane_split_step_matches_one_thread_per_world(lanes, groups, request):
         request.getfixturevalue("cpu_blocks")
     ref, sim0 = _run(True, dtype="float64")
     out, sim = _run(True, dtype="float64", scratch="lanes", block_dim=lanes, lane_groups=groups)
+    from abd_gym.solver import default_lane_groups
+
     cpu = wp.get_device(sim.device).is_cpu
-    expect = lanes or (1 if cpu else 32 * (groups or 1))
-    assert sim.solver.lanes and sim.solver.block_dim == expect
-    assert sim.solver.lane_groups == (1 if expect == 1 else groups or 1)
+    g = 1 if cpu and not lanes else groups or default_lane_groups(wp.get_device(sim.device), "lanes", 4)
+    expect = lanes or (1 if cpu else 32 * g)
+    assert sim.solver.lanes and sim.solver.block_dim == expect and sim.solver.lane_groups == g
     if sim.solver.lane_groups > 1:  # every group has terms to evaluate
         assert (sim.solver.work[2] > 0).sum() >= sim.solver.lane_groups - 1
     np.testing.assert_allclose(np.nan_to_num(out), np.nan_to_num(ref), atol=1e-9)
@@ -105,7 +107,7 @@ def test_lane_split_step_matches_one_thread_per_world(lanes, groups, request):
     np.testing.assert_array_equal(sim.newton_factorizations(), sim0.newton_factorizations())
 
 
-@pytest.mark.parametrize("scratch", ["lanes", "global"])
+@pytest.mark.parametrize("scratch", ["lanes"])
 def test_steps_in_one_launch_are_the_steps_one_by_one(scratch):
     """steps_per_launch: a world's steps in turn in one launch of the one-launch step (sim.step(n)
     in launches of up to 3 steps: 3 + 3 + 1, then 2) are the steps launched one by one, bit for bit
@@ -139,6 +141,18 @@ def test_steps_in_one_launch_are_the_steps_one_by_one(scratch):
     np.testing.assert_allclose(np.asarray(sim.state.time), np.asarray(sim1.state.time))
     np.testing.assert_allclose(np.asarray(sim.state.time), 0.16)
     assert sim.failed_worlds().tolist() == [3]
+
+
+def test_default_lane_groups_fill_the_gpu_once():
+    """Lane groups a world by default: on a GPU the most of 4, 2, 1 whose warps all fit at once
+    (8 a streaming multiprocessor); 1 on the CPU and for the other layouts."""
+    from types import SimpleNamespace
+
+    from abd_gym.solver import default_lane_groups
+
+    gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False)
+    assert [default_lane_groups(gpu, "lanes", w) for w in (1, 264, 265, 528, 529, 1024)] == [4, 4, 2, 2, 1, 1]
+    assert default_lane_groups(cpu, "lanes", 16) == 1 and default_lane_groups(gpu, "shared", 16) == 1
 
 
 def test_steps_per_launch_must_be_positive():
