@@ -72,8 +72,9 @@ class Simulator:
     ``lane_groups`` (``scratch="lanes"``): a world's lanes split into this many groups (a warp each
     on a GPU, 32 lanes a group by default), each evaluating a share of the joints, limits and
     drives into its own copy of the Newton system, summed before the factor.
-    ``steps_per_launch``: where a step is one launch (``one_launch``), ``step(n)`` takes up to this
-    many steps a launch, each world's steps in turn in its block.
+    ``steps_per_launch``: where a step is one launch of the lane-split kernel (``scratch="lanes"``
+    with ``one_launch``), ``step(n)`` takes up to this many steps a launch, each world's steps in
+    turn in its block.
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
@@ -121,7 +122,7 @@ class Simulator:
     def step(self, num_steps: int = 1):
         """Advance every world ``num_steps`` steps of ``dt`` (where a step is one launch, up to the
         solver's ``steps_per_launch`` a launch)."""
-        for k in self._chunks(num_steps):
+        for k in self.solver.launch_chunks(num_steps):
             if self.use_graph and self._warm:
                 if k not in self._graph:
                     # capture after one plain step, so every kernel is compiled and loaded; with the
@@ -137,11 +138,6 @@ class Simulator:
                 self.solver.step(self.state, k)
                 self._warm = True
             self.state.time += k * self.dt
-
-    def _chunks(self, num_steps: int) -> list:
-        """The steps of each launch (or run of a step's phases) for ``num_steps`` steps."""
-        n = int(num_steps)
-        return self.solver.launch_chunks(n) if self.solver.multi_step else [1] * n
 
     def launch_step(self, num_steps: int = 1):
         """``num_steps`` steps as direct launches of the step's kernels, without the simulator's own

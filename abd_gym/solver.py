@@ -82,8 +82,9 @@ class SolverSettings:
     # before the factor (fused.assemble_groups; Solver.lane_work balances the shares); block_dim
     # then defaults to 32 lanes a group.  None: default_lane_groups
     lane_groups: int | None = None
-    # where a step is one launch (one_launch, a single launch), Simulator.step(n) takes up to this
-    # many steps a launch (fused.newton_lanes' ``steps``); None: default_steps_per_launch
+    # where a step is one launch of the lane-split kernel (scratch="lanes", one_launch, a single
+    # launch: Solver.multi_step), Simulator.step(n) takes up to this many steps a launch
+    # (fused.newton_lanes' ``steps``); None: default_steps_per_launch
     steps_per_launch: int | None = None
 
 
@@ -427,12 +428,8 @@ class Solver:
         """``num_steps`` implicit Euler steps of every world.  No host synchronisation: the loops run
         as ``wp.capture_while`` on device flags, so the whole step can be captured in a CUDA graph.
         Where a step is one launch (``multi_step``), up to ``steps_per_launch`` steps a launch."""
-        if self.multi_step:
-            for k in self.launch_chunks(num_steps):
-                self._fused_newton(state, k)
-            return
-        for _ in range(int(num_steps)):
-            for phase, _ in self.phases():
+        for k in self.launch_chunks(num_steps):
+            for phase, _ in self.step_phases(k):
                 phase(state)
 
     @property
@@ -442,8 +439,9 @@ class Solver:
         return self.one_launch and self.capturable and self.lanes
 
     def launch_chunks(self, num_steps: int) -> list:
-        """``num_steps`` as the step counts of successive launches (at most steps_per_launch each)."""
-        n, k = int(num_steps), self.steps_per_launch
+        """``num_steps`` as the step counts of successive launches: at most steps_per_launch each
+        where a launch can take several (multi_step), else one each."""
+        n, k = int(num_steps), self.steps_per_launch if self.multi_step else 1
         return [k] * (n // k) + ([n % k] if n % k else [])
 
     def phases(self) -> list:
