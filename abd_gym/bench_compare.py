@@ -3,7 +3,9 @@ MuJoCo Warp (optional: ``pip install mujoco mujoco-warp``), same device, same wo
 
 Both step with dt = 0.01 from random states; MuJoCo Warp runs its default (semi-implicit Euler)
 integrator, replayed as a CUDA graph of 10 steps (on the CPU it steps plainly); abd_gym replays its
-own captured step.  Reports world-steps per second and the ratio ours / MuJoCo Warp.
+own captured step.  Each engine is timed ``--repeat`` times and keeps its fastest run (a short run on
+a GPU varies with clocks and whatever ran before it).  Reports world-steps per second and the ratio
+ours / MuJoCo Warp.
 """
 import argparse
 import json
@@ -126,6 +128,7 @@ def main(argv=None):
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--scratch", default="auto", help="comma-separated layouts of our fused step: auto (the "
                     "simulator's default), global, shared, lanes (each timed against the same MuJoCo Warp run)")
+    ap.add_argument("--repeat", type=int, default=3, help="time each engine this many times and keep its fastest")
     ap.add_argument("--out", default="bench_out")
     args = ap.parse_args(argv)
     gpu = args.device.startswith("cuda")
@@ -139,18 +142,20 @@ def main(argv=None):
             theirs = float("nan")
             if w not in alone:
                 try:
-                    theirs = mjw_steps_per_second(case, w, steps, args.dt, args.device)
+                    theirs = mjw_steps_per_second(case, w, steps, args.dt, args.device, repeat=args.repeat)
                 except ImportError:
                     pass
             for scratch in args.scratch.split(","):
                 ours, residual, mem, scratch = ours_steps_per_second(case, w, steps, args.dt, args.device,
+                                                                     repeat=args.repeat,
                                                                      scratch=None if scratch == "auto" else scratch)
                 rows.append(dict(case=case, num_worlds=w, scratch=scratch, abd_gym=ours, mujoco_warp=theirs,
                                  ratio=ours / theirs, joint_residual=residual, memory_bytes_per_world=mem))  # fmt: skip
                 print(f"{case:16s} {w:8d} worlds  abd_gym ({scratch}) {ours:14,.0f}  mujoco_warp {theirs:14,.0f} "
                       f"world-steps/s  ratio {ours / theirs:.3f}  residual {residual:.1e} m  {mem:,.0f} B/world",
                       flush=True)  # fmt: skip
-    result = dict(device=args.device, device_name=wp.get_device(args.device).name, dt=args.dt, rows=rows)
+    result = dict(device=args.device, device_name=wp.get_device(args.device).name, dt=args.dt, steps=steps,
+                  repeat=args.repeat, rows=rows)  # fmt: skip
     lines = [f"Device: {result['device_name']}, dt = {args.dt}", "",
              "| mechanism | worlds | abd_gym step | abd_gym world-steps/s | MuJoCo Warp world-steps/s | ratio "
              "| joint residual [m] | abd_gym memory [B/world] |", "|---|---:|---|---:|---:|---:|---:|---:|"]  # fmt: skip

@@ -44,8 +44,10 @@ def test_bench_threads(tmp_path):
 
 def test_bench_compare_without_mujoco_warp(tmp_path):
     bench.main(["compare", "--cases", "cartpole", "--worlds", "2", "--ours-only", "3", "--steps", "2",
-                "--scratch", "global,lanes", "--out", str(tmp_path)])  # fmt: skip
-    rows = _load(tmp_path / "compare.json")["rows"]
+                "--scratch", "global,lanes", "--repeat", "2", "--out", str(tmp_path)])  # fmt: skip
+    result = _load(tmp_path / "compare.json")
+    assert result["repeat"] == 2 and result["steps"] == 2  # each engine timed best-of-2, on record
+    rows = result["rows"]
     assert [(row["num_worlds"], row["scratch"]) for row in rows] == [(2, "global"), (2, "lanes"), (3, "global"), (3, "lanes")]
     for row in rows:
         assert {"case", "num_worlds", "scratch", "abd_gym", "mujoco_warp", "ratio", "joint_residual",
