@@ -81,84 +81,153 @@ def shared_array(dtype, count: int):
 
 
 @functools.lru_cache(maxsize=None)
-def warp_ldl_solve(dtype, n: int):
-    """A native CUDA function: the lane-split step's L D Lᵀ factor and substitutions for one world
-    of ``n`` ≤ 32 unknowns, solved by the 32 lanes of one warp with the system in registers.
+def world_funcs(lanes: int, per_block: int):
+    """(world_sync, world_lane) for a kernel whose worlds have ``lanes`` threads each, ``per_block``
+    worlds to a CUDA block: a barrier for one world's lanes and the thread's lane in its world.  One
+    world a block: the block's barrier and thread index (block_sync, lane_index).  Several (a warp
+    of 32 lanes split into worlds of 8 or 16 side by side): ``__syncwarp`` over the world's own
+    lanes, so a world waits only for itself (two worlds of a warp may take different branches)."""
+    if per_block <= 1:
+        return block_sync, lane_index
+    if lanes * per_block != 32 or lanes & (lanes - 1):
+        raise ValueError(f"{per_block} worlds of {lanes} lanes do not split a warp")
 
-    ``regs_ldl_solve(H, g, dq, lane, factor) -> ok``.  Lane i loads row i of the packed H (shared
-    memory) into registers.  With ``factor``, column j of the right-looking factor takes
-    D_j = H[j, j] and each H[k, j] from their lanes by shuffles, and lane i updates its row in
-    place, H[i, k] −= H[i, j] H[k, j] / D_j (j < k ≤ i): the arithmetic of ``ldl_lanes``, in the
-    same order, without its barrier and shared-memory round trip a column.  The factor goes back to
-    H as ldl_lanes leaves it (D_j L_ij below the diagonal, 1/D_j on it), so a later iteration can
-    reuse it (``factor`` 0 loads it).  Then Δq = −(L D Lᵀ)⁻¹g: forward, y_i −= H[i, j] y_j / D_j
-    with y_j / D_j shuffled from lane j; backward from the last row, with lane i holding column i
-    of H (loaded once the factor is in H), so lane k's x_k is shuffled to the rows above it.  Δq
-    goes to dq.  ok: 0 when a pivot is not positive and finite (the same broadcast pivot decides it
-    on every lane).  Every loop is unrolled over the compile-time n, so the rows stay in registers.
-    CUDA only (the CPU's lanes use ldl_lanes and solve_lanes)."""
+    sync = f"""
+#if defined(__CUDA_ARCH__)
+__syncwarp(((1u << {lanes}) - 1u) << ((threadIdx.x & 31u) & ~{lanes - 1}u));
+#else
+WP_TILE_SYNC();
+#endif
+"""
+    index = f"return WP_TILE_THREAD_IDX % {lanes};"
+
+    @wp.func_native(sync)
+    def world_sync():
+        ...
+
+    @wp.func_native(index)
+    def world_lane() -> int:
+        ...
+
+    return world_sync, world_lane
+
+
+@functools.lru_cache(maxsize=None)
+def warp_ldl_solve(dtype, n: int, lanes: int = 32):
+    """A native CUDA function: the lane-split step's L D Lᵀ factor and substitutions for one world
+    of ``n`` unknowns, solved by its ``lanes`` lanes (32: a warp; 16 or 8: a segment of a warp that
+    holds 2 or 4 worlds) with the system in registers.
+
+    ``regs_ldl_solve(H, g, dq, lane, factor) -> ok``.  Lane l holds rows l, l + lanes, … (R =
+    ⌈n / lanes⌉ of them) of the packed H (shared memory) in registers.  With ``factor``, column j of
+    the right-looking factor takes D_j = H[j, j] and each H[k, j] from their lanes by shuffles
+    within the world's segment, and each lane updates its rows in place, H[i, k] −= H[i, j] H[k, j]
+    / D_j (j < k ≤ i): the arithmetic of ``ldl_lanes``, in the same order, without its barrier and
+    shared-memory round trip a column (so the same factor for any lane count).  The factor goes
+    back to H as ldl_lanes leaves it (D_j L_ij below the diagonal, 1/D_j on it), so a later
+    iteration can reuse it (``factor`` 0 loads it).  Then Δq = −(L D Lᵀ)⁻¹g: forward, y_i −=
+    H[i, j] y_j / D_j with y_j / D_j shuffled from row j's lane; backward from the last row, with
+    each lane holding its rows' columns of H (loaded once the factor is in H), so x_k is shuffled
+    to the rows above it.  Δq goes to dq.  ok: 0 when a pivot is not positive and finite (the same
+    broadcast pivot decides it on every lane).  Every loop is unrolled over the compile-time n, so
+    the rows stay in registers.  CUDA only (the CPU's lanes use ldl_lanes and solve_lanes)."""
     ctype = "float" if dtype == wp.float32 else "double"
+    L = int(lanes)
+    R = -(-int(n) // L)
     snippet = f"""
 #if defined(__CUDA_ARCH__)
 typedef {ctype} T;
 const int N = {int(n)};
-const unsigned FULL = 0xffffffffu;
+const int L = {L};
+const int R = {R};
+const unsigned MASK = {"0xffffffffu" if L == 32 else f"((1u << {L}) - 1u) << ((threadIdx.x & 31u) & ~{L - 1}u)"};
 T* Hs = H.data;
-const int i = lane;
-const bool own = i < N;
-const int ri = (i * (i + 1)) >> 1;
-T h[N];
+const int l = lane;
+T h[R][N];
+T dinv[R];
 #pragma unroll
-for (int k = 0; k < N; ++k) {{
-    h[k] = T(0);
-    if (own && k <= i) h[k] = Hs[ri + k];
+for (int r = 0; r < R; ++r) {{
+    const int i = l + r * L;
+    const int ri = (i * (i + 1)) >> 1;
+#pragma unroll
+    for (int k = 0; k < N; ++k) {{
+        h[r][k] = T(0);
+        if (i < N && k <= i) h[r][k] = Hs[ri + k];
+    }}
+    dinv[r] = i < N ? Hs[ri + i] : T(0);  // 1/D_i, where a reused factor holds it
 }}
-T dinv = own ? Hs[ri + i] : T(0);  // 1/D_i, where a reused factor holds it
 int ok = 1;
 if (factor) {{
-    dinv = T(0);
+#pragma unroll
+    for (int r = 0; r < R; ++r) dinv[r] = T(0);
 #pragma unroll
     for (int j = 0; j < N; ++j) {{
-        const T dj = __shfl_sync(FULL, h[j], j);
+        const T dj = __shfl_sync(MASK, h[j / L][j], j % L, L);
         if (!(dj > T(0)) || !isfinite(dj)) ok = 0;
         const T inv = T(1) / dj;
-        if (i == j) dinv = inv;
-        const T cj = h[j] * inv;
+        T cj[R];
+#pragma unroll
+        for (int r = 0; r < R; ++r) {{
+            if (l + r * L == j) dinv[r] = inv;
+            cj[r] = h[r][j] * inv;
+        }}
 #pragma unroll
         for (int k = j + 1; k < N; ++k) {{
-            const T hk = __shfl_sync(FULL, h[j], k);
-            if (i >= k) h[k] -= cj * hk;
+            const T hk = __shfl_sync(MASK, h[k / L][j], k % L, L);
+#pragma unroll
+            for (int r = 0; r < R; ++r) {{
+                if (l + r * L >= k) h[r][k] -= cj[r] * hk;
+            }}
         }}
     }}
     if (!ok) return 0;
-    if (own) {{
 #pragma unroll
-        for (int k = 0; k < N; ++k) {{
-            if (k < i) Hs[ri + k] = h[k];
+    for (int r = 0; r < R; ++r) {{
+        const int i = l + r * L;
+        const int ri = (i * (i + 1)) >> 1;
+        if (i < N) {{
+#pragma unroll
+            for (int k = 0; k < N; ++k) {{
+                if (k < i) Hs[ri + k] = h[r][k];
+            }}
+            Hs[ri + i] = dinv[r];
         }}
-        Hs[ri + i] = dinv;
     }}
-    __syncwarp();
+    __syncwarp(MASK);
 }}
-T c[N];
+T c[R][N];
+T y[R];
 #pragma unroll
-for (int k = 0; k < N; ++k) {{
-    c[k] = T(0);
-    if (own && k > i) c[k] = Hs[((k * (k + 1)) >> 1) + i];
+for (int r = 0; r < R; ++r) {{
+    const int i = l + r * L;
+#pragma unroll
+    for (int k = 0; k < N; ++k) {{
+        c[r][k] = T(0);
+        if (i < N && k > i) c[r][k] = Hs[((k * (k + 1)) >> 1) + i];
+    }}
+    y[r] = i < N ? -g.data[i] : T(0);
 }}
-T y = own ? -g.data[i] : T(0);
 #pragma unroll
 for (int j = 0; j < N; ++j) {{
-    const T tj = __shfl_sync(FULL, y * dinv, j);
-    if (i > j) y -= h[j] * tj;
+    const T tj = __shfl_sync(MASK, y[j / L] * dinv[j / L], j % L, L);
+#pragma unroll
+    for (int r = 0; r < R; ++r) {{
+        if (l + r * L > j) y[r] -= h[r][j] * tj;
+    }}
 }}
 #pragma unroll
 for (int k = N - 1; k >= 0; --k) {{
-    const T xk = __shfl_sync(FULL, y * dinv, k);
-    if (i < k) y -= c[k] * xk;
+    const T xk = __shfl_sync(MASK, y[k / L] * dinv[k / L], k % L, L);
+#pragma unroll
+    for (int r = 0; r < R; ++r) {{
+        if (l + r * L < k) y[r] -= c[r][k] * xk;
+    }}
 }}
-if (own) dq.data[i] = y * dinv;
-__syncwarp();
+#pragma unroll
+for (int r = 0; r < R; ++r) {{
+    if (l + r * L < N) dq.data[l + r * L] = y[r] * dinv[r];
+}}
+__syncwarp(MASK);
 return ok;
 #else
 return 0;
@@ -183,7 +252,7 @@ WORLD_PHASES = (0, 1, 2, 3, 4, 13, 14)  # the phases that partition a world's st
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
                  max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False,
-                 cuda=False, block=0, bracket=True, groups=1):  # fmt: skip
+                 cuda=False, block=0, bracket=True, groups=1, per_block=1):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -208,7 +277,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     (``Terms.work``: the bodies on group 0, each joint, limit and drive on one group, balanced by
     the host, ``Solver.lane_work``) into its own copy of g and H, which are then summed (one
     barrier); the factor and everything after it as with one group.  A world's chain of dependent
-    evaluations, one warp evaluating every term in turn, is cut to its busiest group's share."""
+    evaluations, one warp evaluating every term in turn, is cut to its busiest group's share.
+    ``per_block`` (lanes on CUDA, ``block`` 8 or 16 lanes a world): that many worlds side by side in
+    a block of one warp (world_funcs), so a warp's instructions serve 4 or 2 worlds at once."""
     # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
     # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
     # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
@@ -227,15 +298,20 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     if LANES % G:
         raise ValueError(f"{LANES} lanes a world do not split into {G} equal groups")
     RL = LANES // G
-    # on a GPU, a world of up to 32 unknowns on one warp of lanes factors and solves in registers
-    # (the first group's warp, when there are several)
-    warp_regs = lanes and cuda and RL == 32 and n <= 32
+    WPB = max(int(per_block), 1) if lanes and cuda else 1  # worlds a block
+    if WPB > 1 and G > 1:
+        raise ValueError("lane groups take a block per world (per_block 1)")
+    # a world's barrier and lane: the block's, or its own lanes' of a warp shared with other worlds
+    block_sync, lane_index = world_funcs(LANES, WPB)  # noqa: F811 (the kernel's own, shadowing the module's)
+    # on a GPU, a world whose lanes (the first group's warp, when there are several) hold at most
+    # 3 of its rows each, factors and solves in registers
+    warp_regs = lanes and cuda and RL in (8, 16, 32) and (G == 1 or RL == 32) and n <= 3 * RL
     # compact code where a world's step is a latency-bound chain (lanes): blocks of a term in loops
     # of selected arguments, one inlined assemble per mode (cart-pole's kernel 414 KB of SASS ->
     # 291 KB, 1,024 worlds 5% faster on an H100, results/code_size_h100.md); a thread per world
     # (throughput-bound) keeps the branches, whose selects cost it 1-5% there
     compact = lanes
-    regs_ldl_solve = warp_ldl_solve(dtype, n) if warp_regs else None
+    regs_ldl_solve = warp_ldl_solve(dtype, n, RL) if warp_regs else None
     N = n  # unknowns per world (12 per free body), a constant of the kernel
     TRI = N * (N + 1) // 2  # H's packed lower triangle (and, lanes, the stride of the groups' copies)
     o = ops(dtype)
@@ -1300,8 +1376,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     # with lane groups, G copies of H and of g (copy c from c·TRI; copy 0's g holds past N the
     # bodies' energies, the groups' energies and the factor's ok, assemble_groups and solve_world)
     GLEN = N + NF if G == 1 else (G - 1) * TRI + N + NF + G + 1
+    WORDS = G * TRI + GLEN + N  # a world's scratch words
     if lanes and cuda:
-        lanes_scratch = shared_array(dtype, G * TRI + GLEN + N)
+        lanes_scratch = shared_array(dtype, WPB * WORDS)
 
     @wp.kernel(**options)
     def newton_lanes(
@@ -1311,8 +1388,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
         factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), steps: int,
     ):  # fmt: skip
-        """Block w (of LANES lanes) solves world w, its g, H (packed; G copies each) and Δq in the
-        block's shared memory on CUDA, else contiguous in the global scratch from w·G·TRI (G·TRI
+        """Block w (of LANES lanes; on CUDA with per_block > 1, the block of worlds w − w % WPB …,
+        LANES lanes each) solves world w, its g, H (packed; G copies each) and Δq in the block's
+        shared memory on CUDA (its slot w % WPB), else contiguous in the global scratch from w·G·TRI (G·TRI
         words a world in each of g, H and dq).  ``steps`` > 1 (with ``bracket`` only): the world's
         next steps follow in the same launch (worlds are independent; the controls stay), its
         state, model and controls then read from the SM's L1 cache instead of L2, with no launch
@@ -1320,7 +1398,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         c = wp.tid()
         w = c // LANES
         if wp.static(lanes and cuda):
-            base = lanes_scratch()
+            base = lanes_scratch() + wp.uint64((w % WPB) * WORDS * SIZE)  # the world's slot of its block's
             Hs = wp.array(ptr=base, shape=(G * TRI,), dtype=dtype)
             gs = wp.array(ptr=base + wp.uint64(G * TRI * SIZE), shape=(GLEN,), dtype=dtype)
             ds = wp.array(ptr=base + wp.uint64((G * TRI + GLEN) * SIZE), shape=(N,), dtype=dtype)

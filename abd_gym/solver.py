@@ -42,7 +42,8 @@ class SolverSettings:
     # how the fused step splits the work (fused.py): "global", a thread per world (several worlds in
     # turn when threads < worlds); "shared", a thread per world with its Newton system (H packed) in
     # its CUDA block's shared memory (default_block_dim_shared; on the CPU the packed system stays in
-    # global memory); or "lanes", a block of block_dim threads per world (default 32; on the CPU
+    # global memory); or "lanes", block_dim threads per world (default_lane_width: 32, or on a GPU
+    # 16 or 8 where more worlds must fit at once, 2 or 4 worlds then sharing a warp; on the CPU
     # lanes run as cooperative fibers only with wp.config.enable_cpu_blocks, else one); None:
     # default_scratch
     scratch: str | None = None
@@ -211,20 +212,35 @@ def lane_work(counts: dict, groups: int, row_lanes: int, num_dofs: int):
     return out_k, out_i, np.array([len(x) for x in share], dtype=np.int32)
 
 
-LANES_MAX_WORLDS = 1024  # the default scratch is "lanes" up to this many worlds (default_scratch)
+def default_lane_width(device, num_worlds: int, dtype=wp.float32) -> int:
+    """Lanes a world of the lane-split step on a GPU: the most of 32, 16, 8 whose warps all fit on
+    the GPU at once (LANE_WARPS_PER_SM; under 32 lanes, 32 // lanes worlds share a warp), else 0.
+    A world's step is a chain of dependent work on its lanes, so the GPU runs ~8 warps an SM (its
+    registers' worth) each taking about as long whether it holds 1, 2 or 4 worlds: narrower worlds
+    pay only once one wave of full-width worlds no longer holds them.  Measured on an H100
+    (results/lane_width_h100.md), world-steps/s against a thread per world ("shared"): 2,048
+    worlds at 16 lanes 2.11x (cart-pole) / 2.35x (double pendulum), 4,096 at 8 lanes 1.68x / 1.90x;
+    at 1,024 worlds 16 lanes 0.96x / 0.92x of 32; at 8,192 worlds (8 lanes, two waves) 0.83x /
+    1.07x of shared.  float64: 32 lanes only (narrower worlds hold 2-3 rows of twice the registers
+    a lane; unmeasured)."""
+    room = LANE_WARPS_PER_SM * getattr(device, "sm_count", 0)
+    widths = (32, 16, 8) if dtype == wp.float32 else (32,)
+    return next((L for L in widths if 0 < num_worlds and -(-num_worlds * L // 32) <= room), 0)
 
 
 def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int = 0) -> str:
-    """On a GPU, for up to 24 unknowns (a cart-pole, a double pendulum): "lanes" up to 1,024 worlds,
-    where one thread per world leaves most SMs idle; else "shared" where a block of 32 threads'
-    systems fits its shared memory (float32); else "global".  Measured on an H100 (``python -m
+    """On a GPU, for up to 24 unknowns (a cart-pole, a double pendulum): "lanes" where the worlds'
+    warps fit the GPU at once (default_lane_width: up to 4,224 worlds on an H100's 132 SMs), where
+    one thread per world leaves most SMs idle; else "shared" where a block of 32 threads' systems
+    fits its shared memory (float32); else "global".  Measured on an H100 (``python -m
     abd_gym.bench --scratch global,shared,lanes``): shared 1.18-1.25x as fast as global on
     cart-poles and 1.25-1.47x on double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast
-    as shared on both at 1,024 worlds, 0.70x at 2,048 (results/bench_h100_lanes_rows.*).  Larger scenes
-    keep the thread per world: lanes are unmeasured there."""
+    as shared on both at 1,024 worlds (results/bench_h100_lanes_rows.*), and narrower lanes 1.7-2.4x
+    at 2,048 and 4,096 (results/lane_width_h100.md).  Larger scenes keep the thread per world:
+    lanes are unmeasured there."""
     if not (fused and device.is_cuda):
         return "global"
-    if n <= 24 and 0 < num_worlds <= LANES_MAX_WORLDS:
+    if n <= 24 and default_lane_width(device, num_worlds, dtype):
         return "lanes"
     if default_block_dim_shared(n, dtype) >= 32:
         return "shared"
@@ -303,8 +319,11 @@ class Solver:
         if spl is not None and not (isinstance(spl, (int, np.integer)) and spl > 0):
             raise ValueError(f"steps_per_launch must be a positive integer or None, got {spl!r}")
         self.steps_per_launch = int(spl or default_steps_per_launch())
-        self.lane_groups = int(groups or default_lane_groups(wp.get_device(dev), scratch, W))
-        self.block_dim = settings.block_dim or (32 * self.lane_groups if self.lanes
+        # lanes a world: block_dim, else default_lane_width where the worlds fit the GPU at once, else 32
+        width = settings.block_dim or (self.lanes and default_lane_width(wp.get_device(dev), W, dt_)) or 32
+        narrow = self.lanes and width < 32
+        self.lane_groups = int(groups or (1 if narrow else default_lane_groups(wp.get_device(dev), scratch, W)))
+        self.block_dim = settings.block_dim or ((width if narrow else 32 * self.lane_groups) if self.lanes
                                                 else default_block_dim(wp.get_device(dev), T))  # fmt: skip
         if self.in_smem:
             fit = default_block_dim_shared(n, dt_)
@@ -323,6 +342,10 @@ class Solver:
         if self.lanes and self.block_dim % self.lane_groups:
             raise ValueError(f"scratch='lanes': {self.block_dim} lanes a world (block_dim) do not split into "
                              f"{self.lane_groups} equal groups (lane_groups)")  # fmt: skip
+        # worlds of under 32 lanes (a power of two, one group) share a warp on a GPU (fused.world_funcs)
+        L = self.block_dim
+        share = self.lanes and cuda and L < 32 and not L & (L - 1) and self.lane_groups == 1
+        self.worlds_per_block = 32 // L if share else 1
         self.q_trial = wp.zeros((T, model.num_bodies), dtype=model.vec12, device=dev)
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)
@@ -517,7 +540,8 @@ class Solver:
             wp.launch(kernel, dim=m.num_worlds * L, inputs=[
                 state.q, self.q_trial, terms, bracket, self.g_flat, self.H_flat, self.dq_flat, m.dtype(s.tol * self.h),
                 s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
-                state.factorizations, state.converged, int(steps)], block_dim=L, device=m.device)  # fmt: skip
+                state.factorizations, state.converged, int(steps)], block_dim=L * self.worlds_per_block,
+                device=m.device)  # fmt: skip
             return
         n = m.num_dofs
 
@@ -566,7 +590,7 @@ class Solver:
             smem_spilling=st.smem_spilling, envelope=self.envelope, retract=bool(st.retract),
             phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
-            groups=self.lane_groups)  # fmt: skip
+            groups=self.lane_groups, per_block=self.worlds_per_block)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip

@@ -24,8 +24,14 @@ def _steps(n):
 
 
 # name -> a patch applied before anything is built; it may return keyword arguments for the Simulator
+def _kw(**kw):
+    return lambda: kw
+
+
 VARIANTS = {"new": lambda: None, "new_s1": _steps(1), "new_s3": _steps(3), "new_s4": _steps(4),
-            "new_s6": _steps(6)}
+            "new_s6": _steps(6), "b16": _kw(block_dim=16), "b8": _kw(block_dim=8),
+            "lanes": _kw(scratch="lanes"), "lanes_b16": _kw(scratch="lanes", block_dim=16),
+            "lanes_b8": _kw(scratch="lanes", block_dim=8)}  # fmt: skip
 
 
 def one(args):

@@ -86,7 +86,8 @@ def test_lane_split_step_matches_one_thread_per_world(lanes, groups, request):
     lanes=None runs one lane a block; 8 runs eight cooperative fibers; 16 in 2 groups, two groups
     of eight, each with its share of the cart-pole's joints, limit and drive (Solver.lane_work) in
     its own copy of the system.  On a GPU, (None, 2) runs two warps a world (the first factoring
-    in registers); on the CPU it is the one-lane case again."""
+    in registers), and 8 runs the four worlds in one warp (three rows a lane in registers); on the
+    CPU (None, 2) is the one-lane case again."""
     import warp as wp
 
     if lanes:
@@ -96,7 +97,10 @@ def test_lane_split_step_matches_one_thread_per_world(lanes, groups, request):
     from abd_gym.solver import default_lane_groups
 
     cpu = wp.get_device(sim.device).is_cpu
-    g = 1 if cpu and not lanes else groups or default_lane_groups(wp.get_device(sim.device), "lanes", 4)
+    # (narrow worlds, under 32 lanes, take one group unless told)
+    narrow = (lanes or 32) < 32
+    g = 1 if cpu and not lanes else groups or (1 if narrow else default_lane_groups(wp.get_device(sim.device),
+                                                                                     "lanes", 4))  # fmt: skip
     expect = lanes or (1 if cpu else 32 * g)
     assert sim.solver.lanes and sim.solver.block_dim == expect and sim.solver.lane_groups == g
     if sim.solver.lane_groups > 1:  # every group has terms to evaluate
@@ -105,6 +109,24 @@ def test_lane_split_step_matches_one_thread_per_world(lanes, groups, request):
     assert sim.failed_worlds().tolist() == [3]
     np.testing.assert_array_equal(sim.newton_iterations(), sim0.newton_iterations())
     np.testing.assert_array_equal(sim.newton_factorizations(), sim0.newton_factorizations())
+
+
+def test_lane_widths_are_the_same_step(cpu_blocks):
+    """Worlds of 16 or 8 lanes (on a GPU two or four worlds to a warp, each waiting only for its own
+    lanes, factoring in registers with two or three rows a lane) take the same steps as worlds of
+    32, bit for bit: every entry of g and H is summed by one lane in term order and the factor's
+    arithmetic is the same whatever lane holds a row (controls, a mass and a limit changed, a reset
+    and a failed world in the same warp as healthy ones)."""
+    import warp as wp
+
+    ref, sim0 = _run(True, scratch="lanes", block_dim=32, lane_groups=1)  # (4 worlds would take 4 groups)
+    for lanes in (16, 8):
+        out, sim = _run(True, scratch="lanes", block_dim=lanes)
+        per_block = 32 // lanes if wp.get_device(sim.device).is_cuda else 1
+        assert sim.solver.block_dim == lanes and sim.solver.worlds_per_block == per_block
+        np.testing.assert_array_equal(np.nan_to_num(out), np.nan_to_num(ref))
+        assert sim.failed_worlds().tolist() == [3]
+        np.testing.assert_array_equal(sim.newton_iterations(), sim0.newton_iterations())
 
 
 @pytest.mark.parametrize("scratch", ["lanes"])
@@ -253,19 +275,26 @@ def test_scratch_beyond_32_bit_indexing_is_refused():
 
 
 def test_default_scratch_by_device_size_and_batch():
-    """The layout a simulator picks: a thread per world on the CPU; on a GPU lanes for up to 1,024
-    worlds of up to 24 unknowns, the shared scratch above that where 32 systems fit a block, else
-    the global one (the measured crossovers, solver.default_scratch)."""
+    """The layout a simulator picks: a thread per world on the CPU; on a GPU lanes for worlds of up
+    to 24 unknowns while their warps fit it at once (32 lanes a world up to 8 warps an SM, then 16
+    and 8 lanes: 1,056 / 2,112 / 4,224 worlds on 132 SMs), the shared scratch above that where 32
+    systems fit a block, else the global one (the measured crossovers, solver.default_scratch and
+    default_lane_width)."""
     from types import SimpleNamespace
 
     import warp as wp
 
-    from abd_gym.solver import default_scratch
+    from abd_gym.solver import default_lane_width, default_scratch
 
-    gpu, cpu = SimpleNamespace(is_cuda=True), SimpleNamespace(is_cuda=False)
+    gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False, sm_count=0)
     assert default_scratch(cpu, 24, wp.float32, True, 16) == "global"
     assert default_scratch(gpu, 24, wp.float32, True, 1024) == "lanes"
-    assert default_scratch(gpu, 24, wp.float32, True, 1025) == "shared"
+    assert default_scratch(gpu, 24, wp.float32, True, 4224) == "lanes"
+    assert default_scratch(gpu, 24, wp.float32, True, 4225) == "shared"
+    widths = [default_lane_width(gpu, w) for w in (1, 1056, 1057, 2112, 2113, 4224, 4225)]
+    assert widths == [32, 32, 16, 16, 8, 8, 0]
+    assert default_lane_width(cpu, 16) == 0
+    assert default_lane_width(gpu, 1056, wp.float64) == 32 and default_lane_width(gpu, 1057, wp.float64) == 0
     assert default_scratch(gpu, 36, wp.float32, True, 64) == "global"  # 32 of its systems exceed 47 KB
     assert default_scratch(gpu, 24, wp.float64, True, 4096) == "global"
     assert default_scratch(gpu, 24, wp.float32, False, 64) == "global"  # the staged step has one layout
