@@ -35,6 +35,7 @@ import numpy as np
 import warp as wp
 
 from . import coordinates, solver_kernels
+from .angles import angle_ops
 from .constitutions import _point_joint, affine_body, drive, prismatic_joint, prismatic_limit, revolute_limit
 from .warp_ops import ENERGY, GRADIENT, HESSIAN, ops
 
@@ -252,7 +253,8 @@ WORLD_PHASES = (0, 1, 2, 3, 4, 13, 14)  # the phases that partition a world's st
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
                  max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False,
-                 cuda=False, block=0, bracket=True, groups=1, per_block=1):  # fmt: skip
+                 cuda=False, block=0, bracket=True, groups=1, per_block=1, pri_limits=False,
+                 pri_drives=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -279,7 +281,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     barrier); the factor and everything after it as with one group.  A world's chain of dependent
     evaluations, one warp evaluating every term in turn, is cut to its busiest group's share.
     ``per_block`` (lanes on CUDA, ``block`` 8 or 16 lanes a world): that many worlds side by side in
-    a block of one warp (world_funcs), so a warp's instructions serve 4 or 2 worlds at once."""
+    a block of one warp (world_funcs), so a warp's instructions serve 4 or 2 worlds at once.
+    ``pri_limits`` / ``pri_drives``: a prismatic joint's limit / one drive on it are evaluated in
+    the joint's own term (``Terms.pri_lim``, ``pri_drv``; prismatic_term), on the displacement and
+    frames the joint has loaded, with one put of the summed gradient; the limits and drives left
+    (``has_plim``, ``has_drive``: ``Terms.drive_rest``) keep terms of their own."""
     # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
     # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
     # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
@@ -323,8 +329,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     kron3, kron_index = o.kron3, o.kron_index
     prismatic_grad = prismatic_joint.kernel(dtype).grad
     rlim_parts = revolute_limit.kernel(dtype).parts
-    plim_parts = prismatic_limit.kernel(dtype).parts
-    drive_parts = drive.kernel(dtype).parts
+    plim_parts, plim_cubic = prismatic_limit.kernel(dtype).parts, prismatic_limit.kernel(dtype).cubic
+    drive_parts, drive_scalar = drive.kernel(dtype).parts, drive.kernel(dtype).scalar
+    pri_displacement, pri_displacement_grad = angle_ops(dtype).displacement, angle_ops(dtype).displacement_grad
     staged = solver_kernels.kernels(dtype, envelope, packed)
     h_row = staged["h_row"]
     cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
@@ -604,14 +611,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             put_grad(g, s, B, oi, de * gi)
             put_grad(g, s, B, oj, de * gj)
             if derivs == HESSIAN and dde != zero:
-                if wp.static(compact):
-                    for blk in range(3):  # (i, i), (i, j), (j, j): a loop, so one inlined put_outer
-                        put_outer(H, s, B, wp.where(blk < 2, oi, oj), wp.where(blk == 0, oi, oj),
-                                  wp.where(blk < 2, gi, gj), wp.where(blk == 0, gi, gj), dde)  # fmt: skip
-                else:
-                    put_outer(H, s, B, oi, oi, gi, gi, dde)
-                    put_outer(H, s, B, oi, oj, gi, gj, dde)
-                    put_outer(H, s, B, oj, oj, gj, gj, dde)
+                put_outer_pair(H, s, B, oi, oj, gi, gj, dde)
+
+    @wp.func
+    def put_outer_pair(H: Any, s: int, B: int, oi: int, oj: int, gi: vec12, gj: vec12, dde: dtype):
+        """The Hessian E''∇x∇xᵀ of a term of a scalar x, ∇x = (gi, gj): its blocks (i, i), (i, j), (j, j)."""
+        if wp.static(compact):
+            for blk in range(3):  # (i, i), (i, j), (j, j): a loop, so one inlined put_outer
+                put_outer(H, s, B, wp.where(blk < 2, oi, oj), wp.where(blk == 0, oi, oj),
+                          wp.where(blk < 2, gi, gj), wp.where(blk == 0, gi, gj), dde)  # fmt: skip
+        else:
+            put_outer(H, s, B, oi, oi, gi, gi, dde)
+            put_outer(H, s, B, oi, oj, gi, gj, dde)
+            put_outer(H, s, B, oj, oj, gj, gj, dde)
 
     @wp.struct
     class Terms:
@@ -655,6 +667,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         c_prev: wp.array2d(dtype=dtype)
         s_prev: wp.array2d(dtype=dtype)
         drive_joint: wp.array(dtype=wp.int32)
+        drive_rest: wp.array(dtype=wp.int32)  # the drives with a term of their own (has_drive)
+        pri_lim: wp.array(dtype=wp.int32)  # prismatic joint k's limit (pri_limits), or −1
+        pri_drv: wp.array(dtype=wp.int32)  # a drive on prismatic joint k (pri_drives), or −1
         drive_mode: wp.array(dtype=wp.int32)
         kp: wp.array2d(dtype=dtype)
         kd: wp.array2d(dtype=dtype)
@@ -733,20 +748,58 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def prismatic_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
-                       H: Any, j: int):  # fmt: skip
+                       H: Any, kp: int):  # fmt: skip
+        """Prismatic joint kp (of pri_ids) and, with pri_limits / pri_drives, its limit and a drive
+        on it: their energies E(x) of the displacement x add E'∇x to the joint's gradient before its
+        one put, and E''∇x∇xᵀ to its Hessian (limit.cubic, drive.scalar: the arithmetic of
+        plim_term and drive_term on the same x and ∇x)."""
+        j = t.pri_ids[kp]
         qi = q[qr, t.body_a[j]]
         qj = q[qr, t.body_b[j]]
         oi = t.dof[t.body_a[j]]
         oj = t.dof[t.body_b[j]]
+        ca = t.c_a[w, j]
+        cb = t.c_b[w, j]
+        ta = t.t_a[w, j]
         # the Hessian goes straight into H (prismatic_hessian), so the evaluator builds none
-        ej, gi, gj = prismatic_grad(qi, qj, t.c_a[w, j], t.c_b[w, j], t.t_a[w, j], t.t_b[w, j], t.n_a[w, j],
-                                    t.n_b[w, j], t.b_a[w, j], t.b_b[w, j], t.K[w, j], derivs)  # fmt: skip
+        ej, gi, gj = prismatic_grad(qi, qj, ca, cb, ta, t.t_b[w, j], t.n_a[w, j], t.n_b[w, j], t.b_a[w, j],
+                                    t.b_b[w, j], t.K[w, j], derivs)  # fmt: skip
+        de = zero
+        dde = zero
+        gxi = vec12()
+        gxj = vec12()
+        if wp.static(pri_limits or pri_drives):
+            x = pri_displacement(qi, qj, ca, cb, ta)
+            if wp.static(pri_limits):
+                kl = t.pri_lim[kp]
+                if kl >= 0:
+                    el, dl, ddl = plim_cubic(x, t.plim_lo[w, kl], t.plim_up[w, kl], t.plim_s[w, kl])
+                    ej += el
+                    de += dl
+                    dde += ddl
+            if wp.static(pri_drives):
+                kd = t.pri_drv[kp]
+                if kd >= 0:
+                    hw = t.h_step[w]
+                    h2 = hw * hw
+                    ed, dd, ddd = drive_scalar(x, t.unwrapped[w, j], t.drive_mode[kd], t.control[w, kd], t.fmax[w, kd],
+                                               t.kp[w, kd], t.kd[w, kd], t.x_anchor[w, j], hw)  # fmt: skip
+                    ej += h2 * ed
+                    de += h2 * dd
+                    dde += h2 * ddd
+            if derivs != 0 and (de != zero or dde != zero):
+                gxi, gxj = pri_displacement_grad(qi, qj, ca, cb, ta)
+                gi = gi + de * gxi
+                gj = gj + de * gxj
         if derivs != 0:
             put_grad(g, s, B, oi, gi)
             put_grad(g, s, B, oj, gj)
             if derivs == HESSIAN:
-                prismatic_hessian(H, s, B, oi, oj, qi, qj, t.c_a[w, j], t.c_b[w, j], t.t_a[w, j], t.t_b[w, j], t.n_a[w, j],
-                                  t.n_b[w, j], t.b_a[w, j], t.b_b[w, j], t.K[w, j])  # fmt: skip
+                prismatic_hessian(H, s, B, oi, oj, qi, qj, ca, cb, ta, t.t_b[w, j], t.n_a[w, j], t.n_b[w, j],
+                                  t.b_a[w, j], t.b_b[w, j], t.K[w, j])  # fmt: skip
+                if wp.static(pri_limits or pri_drives):
+                    if dde != zero:
+                        put_outer_pair(H, s, B, oi, oj, gxi, gxj, dde)
         return ej
 
     @wp.func
@@ -841,7 +894,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     e += point_term(q, qr, w, s, B, derivs, t, g, H, t.fix_ids[k], 4)
             if wp.static(has_pri):
                 if kind == WORK_PRISMATIC:
-                    e += prismatic_term(q, qr, w, s, B, derivs, t, g, H, t.pri_ids[k])
+                    e += prismatic_term(q, qr, w, s, B, derivs, t, g, H, k)
             if wp.static(has_rlim):
                 if kind == WORK_REVOLUTE_LIMIT:
                     e += rlim_term(q, qr, w, s, B, derivs, t, g, H, k)
@@ -850,7 +903,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     e += plim_term(q, qr, w, s, B, derivs, t, g, H, k)
             if wp.static(has_drive):
                 if kind == WORK_DRIVE:
-                    e += drive_term(q, qr, w, s, B, derivs, t, g, H, k, hw, h2)
+                    e += drive_term(q, qr, w, s, B, derivs, t, g, H, t.drive_rest[k], hw, h2)
         return e
 
     @wp.func
@@ -920,7 +973,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             ck = tick(t, w, 0, 9, ck)
         if wp.static(has_pri):
             for k in range(t.pri_ids.shape[0]):
-                e += prismatic_term(q, qr, w, s, B, derivs, t, g, H, t.pri_ids[k])
+                e += prismatic_term(q, qr, w, s, B, derivs, t, g, H, k)
             ck = tick(t, w, 0, 10, ck)
         if wp.static(has_rlim):
             for k in range(t.rlim_ids.shape[0]):
@@ -930,8 +983,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 e += plim_term(q, qr, w, s, B, derivs, t, g, H, k)
         ck = tick(t, w, 0, 11, ck)
         if wp.static(has_drive):
-            for k in range(t.drive_joint.shape[0]):
-                e += drive_term(q, qr, w, s, B, derivs, t, g, H, k, hw, h2)
+            for k in range(t.drive_rest.shape[0]):
+                e += drive_term(q, qr, w, s, B, derivs, t, g, H, t.drive_rest[k], hw, h2)
             ck = tick(t, w, 0, 12, ck)
         return e
 

@@ -165,6 +165,32 @@ def default_steps_per_launch() -> int:
 # warps of the lane-split kernel an SM holds at once: its threads take ~255 registers (65,536 a SM)
 LANE_WARPS_PER_SM = 8
 
+# the fused step evaluates a prismatic joint's limit and a drive on it in the joint's own term
+# (fused.prismatic_term): measured on an H100, see prismatic_terms
+FUSE_PRISMATIC = True
+
+
+def prismatic_terms(model):
+    """(pri_lim, pri_drv, rest): for each prismatic joint (in Model.joint_ids order) the index of
+    its limit and of the first drive on it, or −1; the drives left for terms of their own (on
+    revolute joints, or a prismatic joint's second), in order."""
+    from .scene import PRISMATIC
+
+    pri = list(model.joint_ids[PRISMATIC].numpy()[: model.joint_count[PRISMATIC]])
+    at = {int(j): k for k, j in enumerate(pri)}
+    pri_lim = np.full(len(pri), -1, np.int32)
+    for kl, j in enumerate(model.limit_joints[PRISMATIC]):
+        pri_lim[at[int(j)]] = kl
+    pri_drv = np.full(len(pri), -1, np.int32)
+    rest = []
+    for kd, j in enumerate(model.drive_joint.numpy()[: model.num_drives]):
+        k = at.get(int(j))
+        if k is not None and pri_drv[k] < 0:
+            pri_drv[k] = kd
+        else:
+            rest.append(kd)
+    return pri_lim, pri_drv, rest
+
 
 def default_lane_groups(device, scratch: str, num_worlds: int) -> int:
     """Lane groups a world of the lane-split step on a GPU: the most of 4, 2, 1 whose warps (a
@@ -582,15 +608,20 @@ class Solver:
         from .scene import FIXED, PRISMATIC, REVOLUTE
 
         m = self.model
+        pri_lim, pri_drv, rest = prismatic_terms(m) if FUSE_PRISMATIC else (None, None, list(range(m.num_drives)))
+        fuse_lim = pri_lim is not None and bool((pri_lim >= 0).any())
+        fuse_drv = pri_drv is not None and bool((pri_drv >= 0).any())
         has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
-               len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
+               len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
+               len(rest) > 0)  # fmt: skip
         st = self.settings
         kernel, Terms, Bracket, assemble_system = fused_kernel(
             m.dtype, *has, scratch=self.scratch, n=m.num_dofs, max_registers=st.max_registers,
             smem_spilling=st.smem_spilling, envelope=self.envelope, retract=bool(st.retract),
             phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
-            groups=self.lane_groups, per_block=self.worlds_per_block)  # fmt: skip
+            groups=self.lane_groups, per_block=self.worlds_per_block, pri_limits=fuse_lim,
+            pri_drives=fuse_drv)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -598,6 +629,8 @@ class Solver:
         for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor"):
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
+        t.drive_rest = m._int(rest)
+        t.pri_lim, t.pri_drv = (m._int(a if a is not None else []) for a in (pri_lim, pri_drv))
         t.h_step = self.h_step
         t.rev_ids, t.fix_ids, t.pri_ids = m.joint_ids[REVOLUTE], m.joint_ids[FIXED], m.joint_ids[PRISMATIC]
         t.rlim_ids, t.plim_ids = m.limit_joint_ids[REVOLUTE], m.limit_joint_ids[PRISMATIC]
@@ -606,7 +639,7 @@ class Solver:
         t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
         counts = {"revolute": m.joint_count[REVOLUTE], "fixed": m.joint_count[FIXED],
                   "prismatic": m.joint_count[PRISMATIC], "revolute_limit": len(m.limit_joints[REVOLUTE]),
-                  "prismatic_limit": len(m.limit_joints[PRISMATIC]), "drive": m.num_drives}  # fmt: skip
+                  "prismatic_limit": len(m.limit_joints[PRISMATIC]) * (not fuse_lim), "drive": len(rest)}  # fmt: skip
         G = self.lane_groups
         none = (np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), np.zeros(1, np.int32))  # (unused)
         self.work = lane_work(counts, G, self.block_dim // G, m.num_dofs) if G > 1 else none

@@ -56,6 +56,39 @@ def kernel(dtype):
     zero = dtype(0.0)
 
     @wp.func
+    def drive_scalar(x: dtype, xp: dtype, md: int, u: dtype, fmax: dtype, kp: dtype, kd: dtype, anchor: dtype,
+                     h: dtype):  # fmt: skip
+        """(E, E'(x), E''(x)) of one drive per unit h² at its coordinate x [rad or m]: effort
+        −clip(u, ±fmax)(x − xp); position / velocity the Huber energy of the clipped PD force
+        (module docstring; ``kd`` the damping [N·s/m or N·m·s/rad], ``anchor`` x̂ of BDF2, else xp)."""
+        e = zero
+        de = zero
+        dde = zero
+        if md == 0:
+            tau = wp.clamp(u, -fmax, fmax)
+            e = -tau * (x - xp)
+            de = -tau
+        else:
+            kdh = kd / h
+            xs = u
+            vs = zero
+            if md == 2:
+                xs = zero
+                vs = u
+            aa = kp + kdh
+            x0 = (kp * xs + kdh * (anchor + h * vs)) / aa
+            r = x - x0
+            cap = fmax / aa
+            if wp.abs(r) <= cap:
+                e = half * aa * r * r
+                de = aa * r
+                dde = aa
+            else:
+                e = fmax * (wp.abs(r) - half * cap)
+                de = fmax * wp.sign(r)
+        return e, de, dde
+
+    @wp.func
     def drive_parts(
         qi: vec12, qj: vec12, w: int, k: int, joint: wp.array(dtype=wp.int32), joint_kind: wp.array(dtype=wp.int32),
         c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
@@ -91,31 +124,7 @@ def kernel(dtype):
             if md == 1:
                 e_phys = half * kp * (x - u) * (x - u)
             return e_phys, zero, zero, gi, gj
-        e = zero
-        de = zero
-        dde = zero
-        if md == 0:
-            tau = wp.clamp(u, -fmax, fmax)
-            e = -tau * (x - xp)
-            de = -tau
-        else:
-            kd = damping[w, k] / h
-            xs = u
-            vs = zero
-            if md == 2:
-                xs = zero
-                vs = u
-            aa = kp + kd
-            x0 = (kp * xs + kd * (x_anchor[w, j] + h * vs)) / aa
-            r = x - x0
-            cap = fmax / aa
-            if wp.abs(r) <= cap:
-                e = half * aa * r * r
-                de = aa * r
-                dde = aa
-            else:
-                e = fmax * (wp.abs(r) - half * cap)
-                de = fmax * wp.sign(r)
+        e, de, dde = drive_scalar(x, xp, md, u, fmax, kp, damping[w, k], x_anchor[w, j], h)
         if derivs != 0 and rev:
             gi, gj = theta_grad(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], c, s)
         elif derivs != 0:
@@ -171,7 +180,7 @@ def kernel(dtype):
         if derivs != 0 and physical == 0:
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
 
-    return SimpleNamespace(kernel=drive, eval=drive_eval, parts=drive_parts)
+    return SimpleNamespace(kernel=drive, eval=drive_eval, parts=drive_parts, scalar=drive_scalar)
 
 
 def terms(model, physical=False):

@@ -52,12 +52,9 @@ def kernel(dtype):
     one, three, six = dtype(1.0), dtype(3.0), dtype(6.0)
 
     @wp.func
-    def prismatic_limit_parts(
-        qi: vec12, qj: vec12, ca: vec3, cb: vec3, ta: vec3, lo: dtype, up: dtype, st: dtype, derivs: int,
-    ):  # fmt: skip
-        """(E, E'(x), E''(x), ∇_i x, ∇_j x): the gradient is E'∇x, the solver's Hessian E''∇x∇xᵀ
-        (∇x only for derivs != 0 where the limit acts)."""
-        x = displacement(qi, qj, ca, cb, ta)
+    def cubic(x: dtype, lo: dtype, up: dtype, st: dtype):
+        """(E, E'(x), E''(x)) of the limit at displacement x [m]: s·r³ for the overshoot r past a
+        bound, divided by the range's width u − l where it has one (cubic_np)."""
         inv = one
         if up > lo:
             inv = one / (up - lo)
@@ -74,6 +71,15 @@ def kernel(dtype):
             e = st * r * r * r
             de = -three * st * r * r * inv
             dde = six * st * r * inv * inv
+        return e, de, dde
+
+    @wp.func
+    def prismatic_limit_parts(
+        qi: vec12, qj: vec12, ca: vec3, cb: vec3, ta: vec3, lo: dtype, up: dtype, st: dtype, derivs: int,
+    ):  # fmt: skip
+        """(E, E'(x), E''(x), ∇_i x, ∇_j x): the gradient is E'∇x, the solver's Hessian E''∇x∇xᵀ
+        (∇x only for derivs != 0 where the limit acts)."""
+        e, de, dde = cubic(displacement(qi, qj, ca, cb, ta), lo, up, st)
         gi = vec12()
         gj = vec12()
         if derivs != 0 and de != dtype(0.0):
@@ -109,7 +115,7 @@ def kernel(dtype):
         if derivs != 0 and e != dtype(0.0):
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
 
-    return SimpleNamespace(kernel=prismatic_limit, eval=prismatic_limit_eval, parts=prismatic_limit_parts)
+    return SimpleNamespace(kernel=prismatic_limit, eval=prismatic_limit_eval, parts=prismatic_limit_parts, cubic=cubic)
 
 
 def terms(model, physical=False):
