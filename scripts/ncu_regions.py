@@ -47,11 +47,16 @@ def build(case, out, groups=1):
     from abd_gym.model import Model
     from abd_gym.scene import FIXED, PRISMATIC, REVOLUTE
 
+    from abd_gym.solver import prismatic_terms
+
     m = Model(CASES[case]["scene"](), num_worlds=1, device="cpu")
+    pri_lim, pri_drv, rest = prismatic_terms(m)  # as the solver builds it (Solver._build_fused)
+    fuse_lim, fuse_drv = bool((pri_lim >= 0).any()), bool((pri_drv >= 0).any())
     has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
-           len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0, m.num_drives > 0)  # fmt: skip
+           len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
+           len(rest) > 0)  # fmt: skip
     kernel = fused_kernel(wp.float32, *has, scratch="lanes", n=m.num_dofs, cuda=True, block=32, bracket=True,
-                          groups=groups)[0]  # fmt: skip
+                          groups=groups, pri_limits=fuse_lim, pri_drives=fuse_drv)[0]  # fmt: skip
     kernel.module.options["block_dim"] = 32
     (cubin,) = wp.compile_aot_module(kernel.module, arch=90, module_dir=out, use_ptx=False)
     (source,) = [os.path.join(out, f) for f in os.listdir(out) if f.endswith(".cu")]
