@@ -42,6 +42,7 @@ from .warp_ops import ENERGY, GRADIENT, HESSIAN, ops
 OK, FAILED = 0, 1
 # the kinds of Terms.work's items (a lane group's joints, limits and drives)
 WORK_REVOLUTE, WORK_FIXED, WORK_PRISMATIC, WORK_REVOLUTE_LIMIT, WORK_PRISMATIC_LIMIT, WORK_DRIVE = 1, 2, 3, 4, 5, 6
+WORK_ANGLE = 7  # a revolute joint's limit and drives on its one angle (fused_kernel's rev_angles)
 
 
 @wp.func_native("WP_TILE_SYNC();")
@@ -254,7 +255,7 @@ WORLD_PHASES = (0, 1, 2, 3, 4, 13, 14)  # the phases that partition a world's st
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
                  max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False,
                  cuda=False, block=0, bracket=True, groups=1, per_block=1, pri_limits=False,
-                 pri_drives=False):  # fmt: skip
+                 pri_drives=False, rev_angles=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -285,7 +286,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     ``pri_limits`` / ``pri_drives``: a prismatic joint's limit / one drive on it are evaluated in
     the joint's own term (``Terms.pri_lim``, ``pri_drv``; prismatic_term), on the displacement and
     frames the joint has loaded, with one put of the summed gradient; the limits and drives left
-    (``has_plim``, ``has_drive``: ``Terms.drive_rest``) keep terms of their own."""
+    (``has_plim``, ``has_drive``: ``Terms.drive_rest``) keep terms of their own.  ``rev_angles``:
+    a revolute joint's limit and up to two drives on it are one term on the joint's angle
+    (``Terms.ang_joint``, ``ang_lim``, ``ang_drv``; angle_term), its cos, sin, increment and
+    gradient computed once; ``has_rlim`` then has no limits left."""
     # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
     # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
     # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
@@ -328,7 +332,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     point_eval_kron = _point_joint.kernel(dtype).eval_kron
     kron3, kron_index = o.kron3, o.kron_index
     prismatic_grad = prismatic_joint.kernel(dtype).grad
-    rlim_parts = revolute_limit.kernel(dtype).parts
+    rlim_parts, rlim_cubic = revolute_limit.kernel(dtype).parts, revolute_limit.kernel(dtype).cubic
+    cos_sin, delta_theta, theta_grad = angle_ops(dtype).cos_sin, angle_ops(dtype).delta_theta, angle_ops(dtype).theta_grad
     plim_parts, plim_cubic = prismatic_limit.kernel(dtype).parts, prismatic_limit.kernel(dtype).cubic
     drive_parts, drive_scalar = drive.kernel(dtype).parts, drive.kernel(dtype).scalar
     pri_displacement, pri_displacement_grad = angle_ops(dtype).displacement, angle_ops(dtype).displacement_grad
@@ -670,6 +675,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         drive_rest: wp.array(dtype=wp.int32)  # the drives with a term of their own (has_drive)
         pri_lim: wp.array(dtype=wp.int32)  # prismatic joint k's limit (pri_limits), or −1
         pri_drv: wp.array(dtype=wp.int32)  # a drive on prismatic joint k (pri_drives), or −1
+        ang_joint: wp.array(dtype=wp.int32)  # angle term a's revolute joint (rev_angles)
+        ang_lim: wp.array(dtype=wp.int32)  # its limit (index of rlim_ids), or −1
+        ang_drv: wp.array2d(dtype=wp.int32)  # up to two drives on it, or −1
         drive_mode: wp.array(dtype=wp.int32)
         kp: wp.array2d(dtype=dtype)
         kd: wp.array2d(dtype=dtype)
@@ -803,6 +811,45 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return ej
 
     @wp.func
+    def angle_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
+                   H: Any, a: int, hw: dtype, h2: dtype):  # fmt: skip
+        """Angle term a (rev_angles): revolute joint j's limit, on x = θ0 + δ, and its drives, on
+        x = x_prev + δ (δ = ΔΘ(q, q^{t−1}), the one increment both read), their E′ and E″ summed into
+        one put of E′∇θ and E″∇θ∇θᵀ (revolute_limit.cubic, drive.scalar: the arithmetic of rlim_term
+        and drive_term on the same angle); ∇θ only where they are not zero."""
+        j = t.ang_joint[a]
+        qi = q[qr, t.body_a[j]]
+        qj = q[qr, t.body_b[j]]
+        na = t.n_a[w, j]
+        ba = t.b_a[w, j]
+        nb = t.n_b[w, j]
+        bb = t.b_b[w, j]
+        c, sn = cos_sin(qi, qj, na, ba, nb, bb)
+        dl = delta_theta(c, sn, t.c_prev[w, j], t.s_prev[w, j])
+        e = zero
+        de = zero
+        dde = zero
+        kl = t.ang_lim[a]
+        if kl >= 0:
+            el, d1, d2 = rlim_cubic(t.theta0[w, j] + dl, t.rlim_lo[w, kl], t.rlim_up[w, kl], t.rlim_s[w, kl])
+            e += el
+            de += d1
+            dde += d2
+        xp = t.unwrapped[w, j]
+        for slot in range(2):
+            kd = t.ang_drv[a, slot]
+            if kd >= 0:
+                ed, d1, d2 = drive_scalar(xp + dl, xp, t.drive_mode[kd], t.control[w, kd], t.fmax[w, kd], t.kp[w, kd],
+                                          t.kd[w, kd], t.x_anchor[w, j], hw)  # fmt: skip
+                e += h2 * ed
+                de += h2 * d1
+                dde += h2 * d2
+        if derivs != 0 and (de != zero or dde != zero):
+            gi, gj = theta_grad(qi, qj, na, ba, nb, bb, c, sn)
+            put_rank1(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, de, dde)
+        return e
+
+    @wp.func
     def put_limit(g: Any, H: Any, s: int, B: int, derivs: int, t: Terms, j: int, ej: dtype, de: dtype, dde: dtype,
                   gi: vec12, gj: vec12):  # fmt: skip
         """A limit of joint j adds its terms only where it acts (its energy is not zero)."""
@@ -904,6 +951,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             if wp.static(has_drive):
                 if kind == WORK_DRIVE:
                     e += drive_term(q, qr, w, s, B, derivs, t, g, H, t.drive_rest[k], hw, h2)
+            if wp.static(rev_angles):
+                if kind == WORK_ANGLE:
+                    e += angle_term(q, qr, w, s, B, derivs, t, g, H, k, hw, h2)
         return e
 
     @wp.func
@@ -981,6 +1031,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         if wp.static(has_plim):
             for k in range(t.plim_ids.shape[0]):
                 e += plim_term(q, qr, w, s, B, derivs, t, g, H, k)
+        if wp.static(rev_angles):
+            for k in range(t.ang_joint.shape[0]):
+                e += angle_term(q, qr, w, s, B, derivs, t, g, H, k, hw, h2)
         ck = tick(t, w, 0, 11, ck)
         if wp.static(has_drive):
             for k in range(t.drive_rest.shape[0]):

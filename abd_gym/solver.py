@@ -166,30 +166,50 @@ def default_steps_per_launch() -> int:
 LANE_WARPS_PER_SM = 8
 
 # the fused step evaluates a prismatic joint's limit and a drive on it in the joint's own term
-# (fused.prismatic_term): measured on an H100, see prismatic_terms
+# (fused.prismatic_term; H100: 1.17x cart-poles at 1,024 worlds, results/fused_prismatic_h100.md),
+# and a revolute joint's limit and drives as one term on its angle (fused.angle_term; CPU only so
+# far, results/fused_prismatic_h100.md); see joint_terms
 FUSE_PRISMATIC = True
+FUSE_REVOLUTE = True
 
 
-def prismatic_terms(model):
-    """(pri_lim, pri_drv, rest): for each prismatic joint (in Model.joint_ids order) the index of
-    its limit and of the first drive on it, or −1; the drives left for terms of their own (on
-    revolute joints, or a prismatic joint's second), in order."""
-    from .scene import PRISMATIC
+def joint_terms(model, prismatic: bool = True, revolute: bool = True) -> dict:
+    """How the fused step groups the limits and drives with their joints.  ``pri_lim``, ``pri_drv``:
+    for each prismatic joint (Model.joint_ids order) its limit and the first drive on it, or −1;
+    ``ang_joint``, ``ang_lim``, ``ang_drv`` (A, 2): the revolute joints with a limit or a drive, each
+    with its limit (index of the revolute limits) and up to two drives, or −1; ``rest``: the drives
+    left for terms of their own, in order.  ``prismatic`` / ``revolute`` False: no such grouping
+    (None arrays; those limits and drives keep terms of their own)."""
+    from .scene import PRISMATIC, REVOLUTE
 
-    pri = list(model.joint_ids[PRISMATIC].numpy()[: model.joint_count[PRISMATIC]])
-    at = {int(j): k for k, j in enumerate(pri)}
-    pri_lim = np.full(len(pri), -1, np.int32)
-    for kl, j in enumerate(model.limit_joints[PRISMATIC]):
-        pri_lim[at[int(j)]] = kl
-    pri_drv = np.full(len(pri), -1, np.int32)
-    rest = []
-    for kd, j in enumerate(model.drive_joint.numpy()[: model.num_drives]):
-        k = at.get(int(j))
-        if k is not None and pri_drv[k] < 0:
-            pri_drv[k] = kd
-        else:
-            rest.append(kd)
-    return pri_lim, pri_drv, rest
+    drive_joint = [int(j) for j in model.drive_joint.numpy()[: model.num_drives]]
+    out = dict(pri_lim=None, pri_drv=None, ang_joint=None, ang_lim=None, ang_drv=None)
+    taken = set()
+    if prismatic:
+        pri = [int(j) for j in model.joint_ids[PRISMATIC].numpy()[: model.joint_count[PRISMATIC]]]
+        at = {j: k for k, j in enumerate(pri)}
+        out["pri_lim"] = np.full(len(pri), -1, np.int32)
+        for kl, j in enumerate(model.limit_joints[PRISMATIC]):
+            out["pri_lim"][at[int(j)]] = kl
+        out["pri_drv"] = np.full(len(pri), -1, np.int32)
+        for kd, j in enumerate(drive_joint):
+            if j in at and out["pri_drv"][at[j]] < 0:
+                out["pri_drv"][at[j]] = kd
+                taken.add(kd)
+    if revolute:
+        rev = set(int(j) for j in model.joint_ids[REVOLUTE].numpy()[: model.joint_count[REVOLUTE]])
+        lims = {int(j): kl for kl, j in enumerate(model.limit_joints[REVOLUTE])}
+        drives = {}
+        for kd, j in enumerate(drive_joint):
+            if j in rev and len(drives.setdefault(j, [])) < 2:
+                drives[j].append(kd)
+                taken.add(kd)
+        joints = sorted(set(lims) | set(drives))
+        out["ang_joint"] = np.array(joints, np.int32)
+        out["ang_lim"] = np.array([lims.get(j, -1) for j in joints], np.int32)
+        out["ang_drv"] = np.array([(drives.get(j, []) + [-1, -1])[:2] for j in joints], np.int32).reshape(-1, 2)
+    out["rest"] = [kd for kd in range(model.num_drives) if kd not in taken]
+    return out
 
 
 def default_lane_groups(device, scratch: str, num_worlds: int) -> int:
@@ -207,9 +227,10 @@ def default_lane_groups(device, scratch: str, num_worlds: int) -> int:
 # relative cost of a term in an assembly (thousands of cycles a world-step, the cart-pole's phase
 # clock on an H100, the baseline of results/trial_gradient_h100_dropped.md): the bodies' by rows.
 # (Measured before a prismatic joint's limit and drive moved into its own term, FUSE_PRISMATIC: its
-# cost with them is unmeasured, so a cart-pole's groups are balanced on the joint's alone.)
+# cost with them is unmeasured, so a cart-pole's groups are balanced on the joint's alone; "angle",
+# a revolute joint's limit and drives on one angle, FUSE_REVOLUTE, is a drive's, unmeasured.)
 WORK_COST = {"bodies": 14.0, "revolute": 9.0, "fixed": 13.0, "prismatic": 13.0, "revolute_limit": 6.0,
-             "prismatic_limit": 6.0, "drive": 10.0}  # fmt: skip
+             "prismatic_limit": 6.0, "drive": 10.0, "angle": 10.0}  # fmt: skip
 
 
 def lane_work(counts: dict, groups: int, row_lanes: int, num_dofs: int):
@@ -221,7 +242,7 @@ def lane_work(counts: dict, groups: int, row_lanes: int, num_dofs: int):
 
     kinds = {"revolute": fused.WORK_REVOLUTE, "fixed": fused.WORK_FIXED, "prismatic": fused.WORK_PRISMATIC,
              "revolute_limit": fused.WORK_REVOLUTE_LIMIT, "prismatic_limit": fused.WORK_PRISMATIC_LIMIT,
-             "drive": fused.WORK_DRIVE}  # fmt: skip
+             "drive": fused.WORK_DRIVE, "angle": fused.WORK_ANGLE}  # fmt: skip
     load = [0.0] * groups
     load[0] = WORK_COST["bodies"] * -(-num_dofs // max(row_lanes, 1))
     items = sorted(((WORK_COST[name], kinds[name], i) for name in kinds for i in range(counts.get(name, 0))),
@@ -610,11 +631,13 @@ class Solver:
         from .scene import FIXED, PRISMATIC, REVOLUTE
 
         m = self.model
-        pri_lim, pri_drv, rest = prismatic_terms(m) if FUSE_PRISMATIC else (None, None, list(range(m.num_drives)))
-        fuse_lim = pri_lim is not None and bool((pri_lim >= 0).any())
-        fuse_drv = pri_drv is not None and bool((pri_drv >= 0).any())
+        jt = joint_terms(m, FUSE_PRISMATIC, FUSE_REVOLUTE)
+        rest = jt["rest"]
+        fuse_lim = jt["pri_lim"] is not None and bool((jt["pri_lim"] >= 0).any())
+        fuse_drv = jt["pri_drv"] is not None and bool((jt["pri_drv"] >= 0).any())
+        angles = jt["ang_joint"] is not None and len(jt["ang_joint"]) > 0
         has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
-               len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
+               len(m.limit_joints[REVOLUTE]) > 0 and not angles, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
                len(rest) > 0)  # fmt: skip
         st = self.settings
         kernel, Terms, Bracket, assemble_system = fused_kernel(
@@ -623,7 +646,7 @@ class Solver:
             phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
             groups=self.lane_groups, per_block=self.worlds_per_block, pri_limits=fuse_lim,
-            pri_drives=fuse_drv)  # fmt: skip
+            pri_drives=fuse_drv, rev_angles=angles)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -632,7 +655,10 @@ class Solver:
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
         t.drive_rest = m._int(rest)
-        t.pri_lim, t.pri_drv = (m._int(a if a is not None else []) for a in (pri_lim, pri_drv))
+        t.pri_lim, t.pri_drv, t.ang_joint, t.ang_lim = (m._int(jt[k] if jt[k] is not None else [])
+                                                        for k in ("pri_lim", "pri_drv", "ang_joint", "ang_lim"))
+        ang_drv = jt["ang_drv"] if angles else np.full((1, 2), -1, np.int32)
+        t.ang_drv = wp.array(ang_drv, dtype=wp.int32, device=m.device)
         t.h_step = self.h_step
         t.rev_ids, t.fix_ids, t.pri_ids = m.joint_ids[REVOLUTE], m.joint_ids[FIXED], m.joint_ids[PRISMATIC]
         t.rlim_ids, t.plim_ids = m.limit_joint_ids[REVOLUTE], m.limit_joint_ids[PRISMATIC]
@@ -641,7 +667,10 @@ class Solver:
         t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
         counts = {"revolute": m.joint_count[REVOLUTE], "fixed": m.joint_count[FIXED],
                   "prismatic": m.joint_count[PRISMATIC], "revolute_limit": len(m.limit_joints[REVOLUTE]),
-                  "prismatic_limit": len(m.limit_joints[PRISMATIC]) * (not fuse_lim), "drive": len(rest)}  # fmt: skip
+                  "prismatic_limit": len(m.limit_joints[PRISMATIC]) * (not fuse_lim), "drive": len(rest),
+                  "angle": len(jt["ang_joint"]) if angles else 0}  # fmt: skip
+        if angles:
+            counts["revolute_limit"] = 0
         G = self.lane_groups
         none = (np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), np.zeros(1, np.int32))  # (unused)
         self.work = lane_work(counts, G, self.block_dim // G, m.num_dofs) if G > 1 else none

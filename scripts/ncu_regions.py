@@ -30,7 +30,7 @@ import tempfile
 
 # a region: the first of these (substrings of generated function names) on an instruction's inline chain
 REGIONS = ("open_world", "close_world", "regs_ldl_solve", "ldl_lanes", "solve_lanes", "body_rows", "point_term",
-           "prismatic_term", "rlim_term", "plim_term", "drive_term", "trial", "end_iteration", "noise_floor",
+           "prismatic_term", "angle_term", "rlim_term", "plim_term", "drive_term", "trial", "end_iteration", "noise_floor",
            "reductions", "search", "assemble", "take_step", "solve_world", "step_world")  # fmt: skip
 REASONS = ("no_inst", "long_sb", "wait", "selected", "imc", "short_sb", "branch_resolving", "not_selected", "lg",
            "dispatch", "math", "barrier", "mio")  # fmt: skip
@@ -47,16 +47,17 @@ def build(case, out, groups=1):
     from abd_gym.model import Model
     from abd_gym.scene import FIXED, PRISMATIC, REVOLUTE
 
-    from abd_gym.solver import prismatic_terms
+    from abd_gym.solver import joint_terms
 
     m = Model(CASES[case]["scene"](), num_worlds=1, device="cpu")
-    pri_lim, pri_drv, rest = prismatic_terms(m)  # as the solver builds it (Solver._build_fused)
-    fuse_lim, fuse_drv = bool((pri_lim >= 0).any()), bool((pri_drv >= 0).any())
+    jt = joint_terms(m)  # as the solver builds it (Solver._build_fused)
+    fuse_lim, fuse_drv = bool((jt["pri_lim"] >= 0).any()), bool((jt["pri_drv"] >= 0).any())
+    angles = len(jt["ang_joint"]) > 0
     has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
-           len(m.limit_joints[REVOLUTE]) > 0, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
-           len(rest) > 0)  # fmt: skip
+           len(m.limit_joints[REVOLUTE]) > 0 and not angles, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
+           len(jt["rest"]) > 0)  # fmt: skip
     kernel = fused_kernel(wp.float32, *has, scratch="lanes", n=m.num_dofs, cuda=True, block=32, bracket=True,
-                          groups=groups, pri_limits=fuse_lim, pri_drives=fuse_drv)[0]  # fmt: skip
+                          groups=groups, pri_limits=fuse_lim, pri_drives=fuse_drv, rev_angles=angles)[0]  # fmt: skip
     kernel.module.options["block_dim"] = 32
     (cubin,) = wp.compile_aot_module(kernel.module, arch=90, module_dir=out, use_ptx=False)
     (source,) = [os.path.join(out, f) for f in os.listdir(out) if f.endswith(".cu")]

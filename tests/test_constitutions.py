@@ -855,7 +855,8 @@ def test_lane_split_assembly_matches_staged(scene, ref, lanes, groups):
     (which split a 12-row block unevenly) adds its share of the terms to its own copy (the bodies
     on the first, the joints, limits and drives, of every kind, on the other two), and the copies'
     sum is the whole system.  (A prismatic joint's limit and a drive on it ride on the joint's own
-    term, solver.prismatic_terms, so five kinds of work are left.)"""
+    term, and a revolute joint's limit and drives are one term on its angle, solver.joint_terms:
+    five kinds of work are left.)"""
     import warp as wp
 
     before = wp.config.enable_cpu_blocks
@@ -870,7 +871,8 @@ def test_lane_split_assembly_matches_staged(scene, ref, lanes, groups):
             from abd_gym import fused
 
             left = {int(k) for c in range(groups) for k in kinds[c, : counts[c]]}
-            assert (counts[1:] > 0).all() and fused.WORK_PRISMATIC_LIMIT not in left and len(left) == 5
+            assert (counts[1:] > 0).all() and len(left) == 5 and fused.WORK_ANGLE in left
+            assert fused.WORK_PRISMATIC_LIMIT not in left and fused.WORK_REVOLUTE_LIMIT not in left
         for case_name in CASES:
             check_fused_system(sim, ref, case_name)
     finally:

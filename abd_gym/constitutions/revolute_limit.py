@@ -116,7 +116,7 @@ def kernel(dtype):
         if derivs != 0 and e != dtype(0.0):
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
 
-    return SimpleNamespace(kernel=revolute_limit, eval=revolute_limit_eval, parts=revolute_limit_parts)
+    return SimpleNamespace(kernel=revolute_limit, eval=revolute_limit_eval, parts=revolute_limit_parts, cubic=cubic)
 
 
 def terms(model, physical=False):
