@@ -255,7 +255,7 @@ WORLD_PHASES = (0, 1, 2, 3, 4, 13, 14)  # the phases that partition a world's st
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
                  max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False,
                  cuda=False, block=0, bracket=True, groups=1, per_block=1, pri_limits=False,
-                 pri_drives=False, rev_angles=False):  # fmt: skip
+                 pri_drives=False, rev_angles=False, defer=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -289,7 +289,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     (``has_plim``, ``has_drive``: ``Terms.drive_rest``) keep terms of their own.  ``rev_angles``:
     a revolute joint's limit and up to two drives on it are one term on the joint's angle
     (``Terms.ang_joint``, ``ang_lim``, ``ang_drv``; angle_term), its cos, sin, increment and
-    gradient computed once; ``has_rlim`` then has no limits left."""
+    gradient computed once; ``has_rlim`` then has no limits left.  ``defer``: a Newton step that
+    would be searched is taken whole and its Armijo test made on the energy the next iteration's
+    assembly returns anyway (solve_world), instead of in a pass of its own."""
     # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
     # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
     # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
@@ -322,6 +324,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     # (throughput-bound) keeps the branches, whose selects cost it 1-5% there
     compact = lanes
     regs_ldl_solve = warp_ldl_solve(dtype, n, RL) if warp_regs else None
+    DEFER = 1 if defer else 0
+    PASSES = 2 if defer else 1  # (a failed deferred test takes a pass of its own)
     N = n  # unknowns per world (12 per free body), a constant of the kernel
     TRI = N * (N + 1) // 2  # H's packed lower triangle (and, lanes, the stride of the groups' copies)
     o = ops(dtype)
@@ -691,6 +695,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         work_kind: wp.array2d(dtype=wp.int32)
         work_idx: wp.array2d(dtype=wp.int32)
         work_n: wp.array(dtype=wp.int32)
+        q_back: wp.array2d(dtype=vec12)  # defer: q before a step taken unchecked (rows as q_trial's)
 
     @wp.struct
     class Bracket:
@@ -1069,24 +1074,26 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     @wp.func
     def search(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, skip: int, done: int, chord: int,
-               max_line_search: int, lane: int):  # fmt: skip
-        """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
-        factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
-        trial points go to row ``row`` of q_trial; s, B as in assemble, lane as in trial."""
+               max_line_search: int, defer: int, resume: int, lane: int):  # fmt: skip
+        """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step) or ``defer``
+        (its test left to the next iteration, solve_world); a reused factor's step tried at α = 1
+        only; else Armijo backtracking on the world's own energy, from α = 1/2 when ``resume`` (a
+        deferred step at α = 1 failed its test).  The trial points go to row ``row`` of q_trial;
+        s, B as in assemble, lane as in trial."""
         c = clock_now()
-        alpha = one
+        alpha = wp.where(resume != 0, half, one)
         accepted = int(0)
         stalled = int(0)
         if wp.static(compact):
             # one trial and one energy in the code (a loop of tries, not a first try and a loop):
             # each inlined copy of assemble's energy costs ~28 KB of a cart-pole kernel's SASS
-            tries = wp.where(skip != 0 or chord > 0, 1, max_line_search)
+            tries = wp.where(skip != 0 or chord > 0 or defer != 0, 1, max_line_search - resume)
             for _ls in range(tries):
                 trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
                 c = tick(t, w, lane, 6, c)
-                if skip != 0:
+                if skip != 0 or defer != 0:
                     accepted = 1
-                    stalled = done
+                    stalled = wp.where(skip != 0, done, 0)
                     break
                 accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
                 c = tick(t, w, lane, 5, c)
@@ -1094,17 +1101,17 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     break
                 alpha = alpha * half  # (a rejected reused-factor step's α is unused: chord_step retries)
         else:
-            trial(q, q_trial, t, step, w, row, s, B, one, lane)
+            trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
             c = tick(t, w, lane, 6, c)
-            if skip != 0:
+            if skip != 0 or defer != 0:
                 accepted = 1
-                stalled = done
+                stalled = wp.where(skip != 0, done, 0)
             elif chord > 0:
                 accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), one, gdq)
                 c = tick(t, w, lane, 5, c)
             else:
-                for ls in range(max_line_search):
-                    if ls > 0:
+                for ls in range(resume, max_line_search):
+                    if ls > resume:
                         trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
                         c = tick(t, w, lane, 6, c)
                     accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
@@ -1160,21 +1167,28 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     def take_step(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                   w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, dmax: dtype, g_abs: dtype, threshold: dtype, chord: int,
                   reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32),
-                  lane: int):  # fmt: skip
+                  defer: int, resume: int, lane: int):  # fmt: skip
         """Everything after a Newton direction (both layouts): the stop test, the line search, the
         choice to reuse the factor next, and the update of q.  Returns (1 when the solve is over,
-        chord for the next iteration)."""
+        chord for the next iteration, 1 when the step was taken with its test deferred).  ``defer``:
+        a Newton step (a fresh factor) that would be searched is taken whole, q kept in
+        Terms.q_back; ``resume``: the search of such a step that failed, from α = 1/2."""
         floor, rounding = noise_floor(q, w, threshold)
         skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(rounding, g_abs), chord)
+        pending = wp.where(defer != 0 and skip == 0 and chord <= 0, 1, 0)
         accepted, stalled, alpha = search(q, q_trial, t, step, g, H, w, row, s, B, e0, gdq, skip, done, chord,
-                                          max_line_search, lane)  # fmt: skip
+                                          max_line_search, pending, resume, lane)  # fmt: skip
         retry, chord_next = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
         stop = int(0)
         if retry == 0:
+            if wp.static(DEFER == 1):
+                if pending != 0:
+                    for b in range(lane, q.shape[1], LANES):  # (each lane its own bodies, as end_iteration)
+                        t.q_back[row, b] = q[w, b]
             stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged, lane)
         if wp.static(lanes):
             block_sync()  # q is read whole by the next iteration
-        return stop, chord_next
+        return stop, chord_next, pending
 
     @wp.func
     def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
@@ -1198,7 +1212,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         chord = int(0)  # 1: H holds the factor of an earlier iteration, reused for this one (chord_step)
         d_prev = zero
         nfact = int(0)
-        for it in range(max_iterations):
+        its = int(0)  # Newton iterations (solves) so far
+        # defer: the last step was taken whole with its Armijo test left to this pass's energy (the
+        # energy at the new q, which the assembly returns anyway), and what that step's search needs
+        # if it fails: e, gᵀΔq, ‖Δq‖∞, ‖g‖₁ and chord of its iteration (Δq stays in dq)
+        pending = int(0)
+        e_p = zero
+        gdq_p = zero
+        dmax_p = zero
+        gabs_p = zero
+        chord_p = int(0)
+        for it in range(PASSES * max_iterations):
+            if pending == 0 and its >= max_iterations:
+                return 0
             c = clock_now()
             if wp.static(G > 1):  # every group's copy (lanes: T = 1)
                 for cp in range(G):
@@ -1230,15 +1256,39 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 # one call with the derivatives chosen at run time: a second inlined assemble
                 # (gradient only) would add ~54 KB of code
                 e0 = assemble(q, w, w, s, T, wp.where(chord > 0, GRADIENT, HESSIAN), t, g, H)
-                if chord <= 0:
-                    nfact += 1
             elif chord > 0:
                 e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
             else:
                 e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
-                nfact += 1
             c = tick(t, w, lane, 1, c)
-            if wp.static(warp_regs and G == 1):
+            resume = int(0)  # 1: the deferred step failed its test; its search resumes at α = 1/2
+            if wp.static(DEFER == 1):
+                if pending != 0:
+                    pending = 0
+                    acc, stl = armijo(e_p, e0, one, gdq_p)
+                    if acc == 0:
+                        resume = 1
+                        for b in range(lane, q.shape[1], LANES):
+                            q[w, b] = t.q_back[row, b]
+                        if wp.static(lanes):
+                            block_sync()
+                    elif stl != 0:  # the decrease is below what the precision resolves: done
+                        if lane == 0:
+                            converged[w] = 1
+                        return 0
+                    elif its >= max_iterations:
+                        return 0
+            if resume != 0:
+                e0 = e_p
+                gdq = gdq_p
+                dmax = dmax_p
+                g_abs = gabs_p
+                chord = chord_p
+            elif chord <= 0:
+                nfact += 1
+            if resume != 0:
+                ok = 1
+            elif wp.static(warp_regs and G == 1):
                 block_sync()  # the factor reads every lane's rows
                 ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
                 c = tick(t, w, lane, 2, c)  # (the factor and the substitutions)
@@ -1279,10 +1329,20 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 if lane == 0:
                     status[w] = FAILED
                 return 0
-            if lane == 0:
-                iterations[w] = it + 1
-            stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord, reuse,
-                                    d_prev, max_line_search, converged, lane)  # fmt: skip
+            if resume == 0:
+                its += 1
+                if lane == 0:
+                    iterations[w] = its
+            chord_used = chord
+            stop, chord, pending = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold,
+                                             chord, reuse, d_prev, max_line_search, converged,
+                                             wp.where(resume == 0, DEFER, 0), resume, lane)  # fmt: skip
+            if pending != 0:
+                e_p = e0
+                gdq_p = gdq
+                dmax_p = dmax
+                gabs_p = g_abs
+                chord_p = chord_used
             c = tick(t, w, lane, 4, c)
             if stop != 0:
                 return 0

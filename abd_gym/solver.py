@@ -171,6 +171,12 @@ LANE_WARPS_PER_SM = 8
 # far, results/fused_prismatic_h100.md); see joint_terms
 FUSE_PRISMATIC = True
 FUSE_REVOLUTE = True
+# the fused step takes a Newton step that would be searched whole and makes its Armijo test on the
+# energy the next iteration's assembly returns (fused_kernel's defer): the same steps bit for bit,
+# one energy pass fewer a step where the first step is accepted.  Off until measured on a GPU: the
+# CPU gains 1.00x (cart-pole) / 1.02x (double pendulum), and the lane-split cart-pole kernel grows
+# 244.9 -> 251.8 KB with a 632-byte stack frame instead of 560 (results/deferred_armijo_cpu.md)
+DEFER_ARMIJO = False
 
 
 def joint_terms(model, prismatic: bool = True, revolute: bool = True) -> dict:
@@ -646,7 +652,7 @@ class Solver:
             phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
             groups=self.lane_groups, per_block=self.worlds_per_block, pri_limits=fuse_lim,
-            pri_drives=fuse_drv, rev_angles=angles)  # fmt: skip
+            pri_drives=fuse_drv, rev_angles=angles, defer=DEFER_ARMIJO)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -654,6 +660,7 @@ class Solver:
         for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor"):
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
+        t.q_back = wp.zeros_like(self.q_trial) if DEFER_ARMIJO else self.q_trial
         t.drive_rest = m._int(rest)
         t.pri_lim, t.pri_drv, t.ang_joint, t.ang_lim = (m._int(jt[k] if jt[k] is not None else [])
                                                         for k in ("pri_lim", "pri_drv", "ang_joint", "ang_lim"))

@@ -34,7 +34,13 @@ def _unfused():
     abd_gym.solver.FUSE_PRISMATIC = False  # a prismatic joint's limit and drive in terms of their own
 
 
-VARIANTS = {"new": lambda: None, "new_s1": _steps(1), "new_s3": _steps(3), "new_s4": _steps(4), "unfused": _unfused,
+def _defer():
+    import abd_gym.solver
+
+    abd_gym.solver.DEFER_ARMIJO = True  # the Armijo test of a first Newton step on the next assembly's energy
+
+
+VARIANTS = {"new": lambda: None, "defer": _defer, "new_s1": _steps(1), "new_s3": _steps(3), "new_s4": _steps(4), "unfused": _unfused,
             "new_s6": _steps(6), "b16": _kw(block_dim=16), "b8": _kw(block_dim=8),
             "lanes": _kw(scratch="lanes"), "lanes_b16": _kw(scratch="lanes", block_dim=16),
             "lanes_b8": _kw(scratch="lanes", block_dim=8)}  # fmt: skip
