@@ -760,6 +760,15 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return ej
 
     @wp.func
+    def drive_at(t: Terms, w: int, j: int, kd: int, x: dtype, hw: dtype):
+        """(E, E′, E″) of drive kd on joint j at its coordinate x, inside ĥ² (drive.scalar from the
+        joint's coordinate at the step's start, Terms.unwrapped): a drive in its joint's term."""
+        ed, dd, ddd = drive_scalar(x, t.unwrapped[w, j], t.drive_mode[kd], t.control[w, kd], t.fmax[w, kd], t.kp[w, kd],
+                                   t.kd[w, kd], t.x_anchor[w, j], hw)  # fmt: skip
+        h2 = hw * hw
+        return h2 * ed, h2 * dd, h2 * ddd
+
+    @wp.func
     def prismatic_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
                        H: Any, kp: int):  # fmt: skip
         """Prismatic joint kp (of pri_ids) and, with pri_limits / pri_drives, its limit and a drive
@@ -793,13 +802,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             if wp.static(pri_drives):
                 kd = t.pri_drv[kp]
                 if kd >= 0:
-                    hw = t.h_step[w]
-                    h2 = hw * hw
-                    ed, dd, ddd = drive_scalar(x, t.unwrapped[w, j], t.drive_mode[kd], t.control[w, kd], t.fmax[w, kd],
-                                               t.kp[w, kd], t.kd[w, kd], t.x_anchor[w, j], hw)  # fmt: skip
-                    ej += h2 * ed
-                    de += h2 * dd
-                    dde += h2 * ddd
+                    ed, dd, ddd = drive_at(t, w, j, kd, x, t.h_step[w])
+                    ej += ed
+                    de += dd
+                    dde += ddd
             if derivs != 0 and (de != zero or dde != zero):
                 gxi, gxj = pri_displacement_grad(qi, qj, ca, cb, ta)
                 gi = gi + de * gxi
@@ -817,7 +823,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
 
     @wp.func
     def angle_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
-                   H: Any, a: int, hw: dtype, h2: dtype):  # fmt: skip
+                   H: Any, a: int, hw: dtype):  # fmt: skip
         """Angle term a (rev_angles): revolute joint j's limit, on x = θ0 + δ, and its drives, on
         x = x_prev + δ (δ = ΔΘ(q, q^{t−1}), the one increment both read), their E′ and E″ summed into
         one put of E′∇θ and E″∇θ∇θᵀ (revolute_limit.cubic, drive.scalar: the arithmetic of rlim_term
@@ -840,15 +846,13 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             e += el
             de += d1
             dde += d2
-        xp = t.unwrapped[w, j]
         for slot in range(2):
             kd = t.ang_drv[a, slot]
             if kd >= 0:
-                ed, d1, d2 = drive_scalar(xp + dl, xp, t.drive_mode[kd], t.control[w, kd], t.fmax[w, kd], t.kp[w, kd],
-                                          t.kd[w, kd], t.x_anchor[w, j], hw)  # fmt: skip
-                e += h2 * ed
-                de += h2 * d1
-                dde += h2 * d2
+                ed, d1, d2 = drive_at(t, w, j, kd, t.unwrapped[w, j] + dl, hw)
+                e += ed
+                de += d1
+                dde += d2
         if derivs != 0 and (de != zero or dde != zero):
             gi, gj = theta_grad(qi, qj, na, ba, nb, bb, c, sn)
             put_rank1(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, de, dde)
@@ -958,7 +962,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                     e += drive_term(q, qr, w, s, B, derivs, t, g, H, t.drive_rest[k], hw, h2)
             if wp.static(rev_angles):
                 if kind == WORK_ANGLE:
-                    e += angle_term(q, qr, w, s, B, derivs, t, g, H, k, hw, h2)
+                    e += angle_term(q, qr, w, s, B, derivs, t, g, H, k, hw)
         return e
 
     @wp.func
@@ -1038,7 +1042,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 e += plim_term(q, qr, w, s, B, derivs, t, g, H, k)
         if wp.static(rev_angles):
             for k in range(t.ang_joint.shape[0]):
-                e += angle_term(q, qr, w, s, B, derivs, t, g, H, k, hw, h2)
+                e += angle_term(q, qr, w, s, B, derivs, t, g, H, k, hw)
         ck = tick(t, w, 0, 11, ck)
         if wp.static(has_drive):
             for k in range(t.drive_rest.shape[0]):
@@ -1556,8 +1560,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     ):  # fmt: skip
         """Block w (of LANES lanes; on CUDA with per_block > 1, the block of worlds w − w % WPB …,
         LANES lanes each) solves world w, its g, H (packed; G copies each) and Δq in the block's
-        shared memory on CUDA (its slot w % WPB), else contiguous in the global scratch from w·G·TRI (G·TRI
-        words a world in each of g, H and dq).  ``steps`` > 1 (with ``bracket`` only): the world's
+        shared memory on CUDA (its slot w % WPB), else contiguous in the global scratch from
+        w·G·TRI (G·TRI words a world in each of g, H and dq).  ``steps`` > 1 (with ``bracket`` only): the world's
         next steps follow in the same launch (worlds are independent; the controls stay), its
         state, model and controls then read from the SM's L1 cache instead of L2, with no launch
         between steps."""

@@ -54,7 +54,8 @@ class Simulator:
     one kernel; ``threads`` (that kernel's thread count; each thread solves worlds s, s+T, …) and
     ``block_dim`` (its CUDA block size) default to values measured on an H100.  ``scratch``: where the
     fused step keeps a world's gradient, Hessian and Newton step (default, solver.default_scratch:
-    on a GPU "lanes" where the worlds fit it at once, else "shared" where it fits, else "global"): "global" (arrays, one column per thread), "shared" (a thread per world, its
+    on a GPU "lanes" where the worlds fit it at once, else "shared" where it fits, else "global"):
+    "global" (arrays, one column per thread), "shared" (a thread per world, its
     system with H packed in its CUDA block's shared memory, where a block's systems fit in 47 KB: up
     to 32 float32 threads of 24 unknowns) or "lanes" (``block_dim`` lanes per world, sharing its terms
     and its factor: a CUDA block of 32, or 16 or 8 where more worlds must fit the GPU at once, 2 or

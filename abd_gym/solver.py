@@ -168,7 +168,7 @@ LANE_WARPS_PER_SM = 8
 # the fused step evaluates a prismatic joint's limit and a drive on it in the joint's own term
 # (fused.prismatic_term; H100: 1.17x cart-poles at 1,024 worlds, results/fused_prismatic_h100.md),
 # and a revolute joint's limit and drives as one term on its angle (fused.angle_term; CPU only so
-# far, results/fused_prismatic_h100.md); see joint_terms
+# far, results/fused_angle_cpu.md); see joint_terms
 FUSE_PRISMATIC = True
 FUSE_REVOLUTE = True
 # the fused step takes a Newton step that would be searched whole and makes its Armijo test on the
@@ -185,11 +185,12 @@ def joint_terms(model, prismatic: bool = True, revolute: bool = True) -> dict:
     ``ang_joint``, ``ang_lim``, ``ang_drv`` (A, 2): the revolute joints with a limit or a drive, each
     with its limit (index of the revolute limits) and up to two drives, or −1; ``rest``: the drives
     left for terms of their own, in order.  ``prismatic`` / ``revolute`` False: no such grouping
-    (None arrays; those limits and drives keep terms of their own)."""
+    (empty arrays; those limits and drives keep terms of their own)."""
     from .scene import PRISMATIC, REVOLUTE
 
     drive_joint = [int(j) for j in model.drive_joint.numpy()[: model.num_drives]]
-    out = dict(pri_lim=None, pri_drv=None, ang_joint=None, ang_lim=None, ang_drv=None)
+    none = np.zeros(0, np.int32)
+    out = dict(pri_lim=none, pri_drv=none, ang_joint=none, ang_lim=none, ang_drv=np.zeros((0, 2), np.int32))
     taken = set()
     if prismatic:
         pri = [int(j) for j in model.joint_ids[PRISMATIC].numpy()[: model.joint_count[PRISMATIC]]]
@@ -639,9 +640,8 @@ class Solver:
         m = self.model
         jt = joint_terms(m, FUSE_PRISMATIC, FUSE_REVOLUTE)
         rest = jt["rest"]
-        fuse_lim = jt["pri_lim"] is not None and bool((jt["pri_lim"] >= 0).any())
-        fuse_drv = jt["pri_drv"] is not None and bool((jt["pri_drv"] >= 0).any())
-        angles = jt["ang_joint"] is not None and len(jt["ang_joint"]) > 0
+        fuse_lim, fuse_drv = bool((jt["pri_lim"] >= 0).any()), bool((jt["pri_drv"] >= 0).any())
+        angles = len(jt["ang_joint"]) > 0
         has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
                len(m.limit_joints[REVOLUTE]) > 0 and not angles, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
                len(rest) > 0)  # fmt: skip
@@ -662,10 +662,11 @@ class Solver:
         t.q_tilde = self.q_tilde
         t.q_back = wp.zeros_like(self.q_trial) if DEFER_ARMIJO else self.q_trial
         t.drive_rest = m._int(rest)
-        t.pri_lim, t.pri_drv, t.ang_joint, t.ang_lim = (m._int(jt[k] if jt[k] is not None else [])
-                                                        for k in ("pri_lim", "pri_drv", "ang_joint", "ang_lim"))
-        ang_drv = jt["ang_drv"] if angles else np.full((1, 2), -1, np.int32)
-        t.ang_drv = wp.array(ang_drv, dtype=wp.int32, device=m.device)
+        t.pri_lim, t.pri_drv, t.ang_joint, t.ang_lim = (m._int(jt[k]) for k in ("pri_lim", "pri_drv", "ang_joint",
+                                                                                 "ang_lim"))  # fmt: skip
+        # (an unused 1 × 2 placeholder where no joint has an angle term, as Model._int pads)
+        t.ang_drv = wp.array(jt["ang_drv"] if angles else np.full((1, 2), -1, np.int32), dtype=wp.int32,
+                             device=m.device)  # fmt: skip
         t.h_step = self.h_step
         t.rev_ids, t.fix_ids, t.pri_ids = m.joint_ids[REVOLUTE], m.joint_ids[FIXED], m.joint_ids[PRISMATIC]
         t.rlim_ids, t.plim_ids = m.limit_joint_ids[REVOLUTE], m.limit_joint_ids[PRISMATIC]
@@ -673,11 +674,9 @@ class Solver:
         t.plim_lo, t.plim_up, t.plim_s = m.limit_params[PRISMATIC]
         t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
         counts = {"revolute": m.joint_count[REVOLUTE], "fixed": m.joint_count[FIXED],
-                  "prismatic": m.joint_count[PRISMATIC], "revolute_limit": len(m.limit_joints[REVOLUTE]),
+                  "prismatic": m.joint_count[PRISMATIC], "revolute_limit": len(m.limit_joints[REVOLUTE]) * (not angles),
                   "prismatic_limit": len(m.limit_joints[PRISMATIC]) * (not fuse_lim), "drive": len(rest),
-                  "angle": len(jt["ang_joint"]) if angles else 0}  # fmt: skip
-        if angles:
-            counts["revolute_limit"] = 0
+                  "angle": len(jt["ang_joint"])}  # fmt: skip
         G = self.lane_groups
         none = (np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), np.zeros(1, np.int32))  # (unused)
         self.work = lane_work(counts, G, self.block_dim // G, m.num_dofs) if G > 1 else none

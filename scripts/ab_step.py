@@ -16,7 +16,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 
 
 def _steps(n):
@@ -52,7 +51,7 @@ def one(args):
 
     kwargs = VARIANTS[args.variant]() or {}
     from abd_gym.bench import CASES
-    from abd_gym.bench_compare import random_states
+    from abd_gym.bench_compare import fastest_run, random_states
     from abd_gym.simulator import Simulator
 
     sim = Simulator(CASES[args.case]["scene"](), num_worlds=args.worlds, dt=args.dt, device=args.device,
@@ -63,14 +62,7 @@ def one(args):
     wp.synchronize_device(sim.device)
     q = np.concatenate([sim.body_positions().reshape(args.worlds, -1), sim.body_rotations().reshape(args.worlds, -1)], 1)
     np.save(args.save, q)
-    best = float("inf")
-    for _ in range(args.repeat):
-        sim.set_joint_state(x0)
-        wp.synchronize_device(sim.device)
-        t0 = time.perf_counter()
-        sim.step(args.steps)
-        wp.synchronize_device(sim.device)
-        best = min(best, time.perf_counter() - t0)
+    best = fastest_run(sim, x0, args.steps, args.repeat)
     print(json.dumps(dict(variant=args.variant, case=args.case, worlds=args.worlds,
                           world_steps_per_second=args.worlds * args.steps / best,
                           newton_iterations=float(sim.newton_iterations().mean()),

@@ -10,12 +10,9 @@ runs of 200 steps.  Prints a line per row and writes the rows as JSON (results/l
 """
 import argparse
 import json
-import time
-
-import warp as wp
 
 from abd_gym.bench import CASES
-from abd_gym.bench_compare import random_states
+from abd_gym.bench_compare import fastest_run, random_states
 from abd_gym.simulator import Simulator
 
 VARIANTS = {"default": {}, "lanes32": dict(scratch="lanes", block_dim=32, lane_groups=1),
@@ -39,16 +36,8 @@ def main():
                 sim = Simulator(CASES[case]["scene"](), num_worlds=W, dt=0.01, device=args.device, **VARIANTS[v])
                 x0 = random_states(case, W)
                 sim.set_joint_state(x0)
-                sim.step(args.steps)
-                wp.synchronize_device(sim.device)
-                best = float("inf")
-                for _ in range(3):
-                    sim.set_joint_state(x0)
-                    wp.synchronize_device(sim.device)
-                    t0 = time.perf_counter()
-                    sim.step(args.steps)
-                    wp.synchronize_device(sim.device)
-                    best = min(best, time.perf_counter() - t0)
+                sim.step(args.steps)  # compile and capture
+                best = fastest_run(sim, x0, args.steps, 3)
                 s = sim.solver
                 r = dict(case=case, worlds=W, variant=v, scratch=s.scratch, block_dim=s.block_dim,
                          worlds_per_block=s.worlds_per_block, lane_groups=s.lane_groups,
