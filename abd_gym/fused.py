@@ -255,7 +255,7 @@ WORLD_PHASES = (0, 1, 2, 3, 4, 13, 14)  # the phases that partition a world's st
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
                  max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False,
                  cuda=False, block=0, bracket=True, groups=1, per_block=1, pri_limits=False,
-                 pri_drives=False, rev_angles=False, defer=False):  # fmt: skip
+                 pri_drives=False, rev_angles=False, defer=False, quadratic=0.0, chord_stop=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -291,7 +291,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     (``Terms.ang_joint``, ``ang_lim``, ``ang_drv``; angle_term), its cos, sin, increment and
     gradient computed once; ``has_rlim`` then has no limits left.  ``defer``: a Newton step that
     would be searched is taken whole and its Armijo test made on the energy the next iteration's
-    assembly returns anyway (solve_world), instead of in a pass of its own."""
+    assembly returns anyway (solve_world), instead of in a pass of its own.  ``quadratic``
+    (SolverSettings.quadratic_stop): a Newton step from a fresh factor accepted at α = 1 under this
+    many times q's rounding floor ends the solve; ``chord_stop``: so does a reused factor's step
+    whose contraction predicts a next step under the tolerance (take_step)."""
     # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
     # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
     # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
@@ -350,6 +353,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     begin_joint, joint_coordinates = coordinates.funcs(dtype)
     zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
+    QUAD = dtype(4.0 * float(quadratic))  # × q's rounding (SolverSettings.quadratic_stop)
+    CHORD_STOP = 1 if chord_stop else 0
 
     # the thread's scratch column s of the flat g, H (solver_kernels: entry (i, j) of H at
     # (hrow(i) + j)·T + s, hrow(i) = i·N or, packed, i(i+1)/2; entry i of g at i·T + s); B is T, the
@@ -1051,7 +1056,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return e
 
     @wp.func
-    def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype, noise: dtype, chord: int):
+    def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype, noise: dtype, chord: int, quad: bool):
         """(skip, done): take the Newton step whole, without a line search, when it is under the
         tolerance or when its predicted decrease −gᵀΔq is below what the energy's float rounding
         can resolve (the search could only halve it on noise; ``noise``: solver_kernels.energy_noise);
@@ -1064,6 +1069,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         # pendulums at dt 0.005 crawling at α = 1/32 where float64 takes α = 1 and converges in 2)
         skip = dmax < dtype(10.0) * floor or unresolved
         done = dmax < floor or (unresolved and dmax < dtype(1000.0) * floor and chord <= 0)
+        done = done or quad  # (quadratic_stop: a Newton step taken whole ends the solve)
         return wp.where(skip, 1, 0), wp.where(done, 1, 0)
 
     @wp.func
@@ -1178,10 +1184,21 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         a Newton step (a fresh factor) that would be searched is taken whole, q kept in
         Terms.q_back; ``resume``: the search of such a step that failed, from α = 1/2."""
         floor, rounding = noise_floor(q, w, threshold)
-        skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(rounding, g_abs), chord)
-        pending = wp.where(defer != 0 and skip == 0 and chord <= 0, 1, 0)
+        # a Newton step under quadratic_stop × q's rounding ends the solve if accepted at α = 1 (its
+        # test, where it needs one, is made now, not deferred)
+        quad = chord <= 0 and dmax < QUAD * rounding
+        skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(rounding, g_abs), chord, quad)
+        pending = wp.where(defer != 0 and skip == 0 and chord <= 0 and not quad, 1, 0)
         accepted, stalled, alpha = search(q, q_trial, t, step, g, H, w, row, s, B, e0, gdq, skip, done, chord,
                                           max_line_search, pending, resume, lane)  # fmt: skip
+        if quad and accepted != 0 and alpha == one:
+            stalled = 1  # Newton's next step would be below the rounding (quadratic_stop)
+        if wp.static(CHORD_STOP == 1):
+            # a reused factor's steps contract linearly, θ = d/d_prev an iteration: the error left,
+            # θ/(1 − θ)·d, under the tolerance ends the solve (Hairer & Wanner's test for simplified
+            # Newton), as a division-free product (the staged step's converge tests the same)
+            if chord > 0 and accepted != 0 and dmax < d_prev and dmax * dmax < floor * (d_prev - dmax):
+                stalled = 1
         retry, chord_next = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
         stop = int(0)
         if retry == 0:

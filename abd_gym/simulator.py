@@ -76,7 +76,10 @@ class Simulator:
     drives into its own copy of the Newton system, summed before the factor.
     ``steps_per_launch``: where a step is one launch of the lane-split kernel (``scratch="lanes"``
     with ``one_launch``), ``step(n)`` takes up to this many steps a launch, each world's steps in
-    turn in its block.
+    turn in its block.  ``quadratic_stop``: a Newton step from a fresh factor accepted whole (α = 1)
+    under this many times q's rounding floor ends the solve (its quadratic convergence would leave
+    rounding; float32 only in effect; 0: off).  ``chord_stop`` (off): a reused factor's step whose
+    contraction predicts a next step under the tolerance ends it too.
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
@@ -86,11 +89,14 @@ class Simulator:
                  max_registers: int = 0, smem_spilling: bool = False, reuse_factor: bool | None = None,
                  envelope: bool | None = None, retract: bool = True, cpu_workers: int | None = None,
                  one_launch: bool | None = None, lane_groups: int | None = None,
-                 steps_per_launch: int | None = None):  # fmt: skip
+                 steps_per_launch: int | None = None, quadratic_stop: float = 100.0,
+                 chord_stop: bool = False):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
             raise ValueError(f"tol must be positive, got {tol!r}")
+        if not (isinstance(quadratic_stop, (int, float)) and math.isfinite(quadratic_stop) and quadratic_stop >= 0):
+            raise ValueError(f"quadratic_stop must be a finite number >= 0, got {quadratic_stop!r}")
         self.scene = scene
         device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
         self.model = Model(scene, num_worlds, dtype=dtype, device=device)
@@ -100,7 +106,9 @@ class Simulator:
                                                            bool(smem_spilling), reuse_factor, envelope,
                                                            bool(retract), cpu_workers, one_launch,
                                                            lane_groups=lane_groups,
-                                                           steps_per_launch=steps_per_launch))  # fmt: skip
+                                                           steps_per_launch=steps_per_launch,
+                                                           quadratic_stop=float(quadratic_stop),
+                                                           chord_stop=bool(chord_stop)))  # fmt: skip
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device

@@ -87,6 +87,18 @@ class SolverSettings:
     # launch: Solver.multi_step), Simulator.step(n) takes up to this many steps a launch
     # (fused.newton_lanes' ``steps``); None: default_steps_per_launch
     steps_per_launch: int | None = None
+    # a step from a fresh factor accepted at α = 1 (Armijo, or taken whole) that is under this many
+    # times q's rounding floor (4·eps·(1 + ‖q‖∞)) ends the solve without an iteration to confirm it:
+    # Newton's next step would be below that rounding (float32 cart-poles and double pendulums at
+    # dt 0.01: first steps up to 3e-4 m, the next at most 1.3e-7 m).  It acts in float32 (1e-4 m
+    # for q ~ 1); in float64 the tolerance h·tol is far above the rounding and the stop stays the
+    # step under the tolerance.  0: off.  results/quadratic_stop.md
+    quadratic_stop: float = 100.0
+    # a reused factor's step whose contraction θ = d/d_prev leaves θ/(1 − θ)·d under the tolerance
+    # ends the solve (Hairer & Wanner's test for simplified Newton).  Off: measured to take 1.7x
+    # fewer iterations on CartPole-v0 under random forces, with a float32 trajectory 8x further from
+    # a tight solve's (results/quadratic_stop.md)
+    chord_stop: bool = False
 
 
 def _flat(a: wp.array) -> wp.array:
@@ -219,16 +231,34 @@ def joint_terms(model, prismatic: bool = True, revolute: bool = True) -> dict:
     return out
 
 
-def default_lane_groups(device, scratch: str, num_worlds: int) -> int:
-    """Lane groups a world of the lane-split step on a GPU: the most of 4, 2, 1 whose warps (a
-    group each) all fit on the GPU at once (LANE_WARPS_PER_SM), else the launch runs in two waves.
-    Measured on an H100 (results/lane_groups_h100.md), cart-poles / double pendulums: 4 groups at
-    128 and 256 worlds 1.22x / 1.05x and 1.19x / 1.06x as fast as 1; 2 groups at 512 worlds 1.08x /
-    1.02x; at 1,024 worlds 2 groups run in two waves, 0.61x.  The CPU: 1."""
+def term_counts(model, jt: dict) -> dict:
+    """The fused step's terms of each kind (lane_work's ``counts``), given joint_terms' grouping
+    ``jt``: the limits and drives on a joint's own term are no terms of their own."""
+    from .scene import FIXED, PRISMATIC, REVOLUTE
+
+    m, angles = model, len(jt["ang_joint"]) > 0
+    return {"revolute": m.joint_count[REVOLUTE], "fixed": m.joint_count[FIXED], "prismatic": m.joint_count[PRISMATIC],
+            "revolute_limit": len(m.limit_joints[REVOLUTE]) * (not angles),
+            "prismatic_limit": len(m.limit_joints[PRISMATIC]) * (not bool((jt["pri_lim"] >= 0).any())),
+            "drive": len(jt["rest"]), "angle": len(jt["ang_joint"])}  # fmt: skip
+
+
+def default_lane_groups(device, scratch: str, num_worlds: int, terms: int = 3) -> int:
+    """Lane groups a world of the lane-split step on a GPU: one for the bodies and one for each of
+    the world's ``terms`` (joints, limits and drives, term_counts), at most 4, else 2, else 1: the
+    most whose blocks (a warp a group) all fit on the GPU at once (LANE_WARPS_PER_SM), else the
+    launch runs in two waves.  Measured on an H100 (results/lane_groups_h100.md,
+    results/quadratic_stop.md): cart-poles / double pendulums, each with 2 terms, at 128 and 256
+    worlds in 3 groups 1.12x / 1.10x and 1.11x / 1.07x as fast as in 1 (4 groups, one idle,
+    1.07x / 1.06x and 1.05x / 1.02x); at 352 worlds 3-warp blocks no longer fit at once (2 a SM) and run 0.65x; 2
+    groups at 512 worlds 1.01x / 0.98x; at 1,024 worlds 2 groups run in two waves, 0.61x.  The
+    CPU: 1."""
     if scratch != "lanes" or not getattr(device, "is_cuda", False):
         return 1
-    room = LANE_WARPS_PER_SM * device.sm_count
-    return next(g for g in (4, 2, 1) if g == 1 or num_worlds * g <= room)
+    top = min(4, 1 + terms)
+    # a block's warps share an SM: LANE_WARPS_PER_SM // g blocks of g warps fit on one
+    return next(g for g in sorted({top, min(top, 2), 1}, reverse=True)
+                if g == 1 or num_worlds <= LANE_WARPS_PER_SM // g * device.sm_count)
 
 
 # relative cost of a term in an assembly (thousands of cycles a world-step, the cart-pole's phase
@@ -378,7 +408,8 @@ class Solver:
         # lanes a world: block_dim, else default_lane_width where the worlds fit the GPU at once, else 32
         width = settings.block_dim or (self.lanes and default_lane_width(wp.get_device(dev), W, dt_)) or 32
         narrow = self.lanes and width < 32
-        self.lane_groups = int(groups or (1 if narrow else default_lane_groups(wp.get_device(dev), scratch, W)))
+        terms = sum(term_counts(model, joint_terms(model, FUSE_PRISMATIC, FUSE_REVOLUTE)).values())
+        self.lane_groups = int(groups or (1 if narrow else default_lane_groups(wp.get_device(dev), scratch, W, terms)))
         self.block_dim = settings.block_dim or ((width if narrow else 32 * self.lane_groups) if self.lanes
                                                 else default_block_dim(wp.get_device(dev), T))  # fmt: skip
         if self.in_smem:
@@ -652,7 +683,8 @@ class Solver:
             phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
             groups=self.lane_groups, per_block=self.worlds_per_block, pri_limits=fuse_lim,
-            pri_drives=fuse_drv, rev_angles=angles, defer=DEFER_ARMIJO)  # fmt: skip
+            pri_drives=fuse_drv, rev_angles=angles, defer=DEFER_ARMIJO, quadratic=float(st.quadratic_stop),
+            chord_stop=bool(st.chord_stop))  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -673,10 +705,7 @@ class Solver:
         t.rlim_lo, t.rlim_up, t.rlim_s = m.limit_params[REVOLUTE]
         t.plim_lo, t.plim_up, t.plim_s = m.limit_params[PRISMATIC]
         t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
-        counts = {"revolute": m.joint_count[REVOLUTE], "fixed": m.joint_count[FIXED],
-                  "prismatic": m.joint_count[PRISMATIC], "revolute_limit": len(m.limit_joints[REVOLUTE]) * (not angles),
-                  "prismatic_limit": len(m.limit_joints[PRISMATIC]) * (not fuse_lim), "drive": len(rest),
-                  "angle": len(jt["ang_joint"])}  # fmt: skip
+        counts = term_counts(m, jt)
         G = self.lane_groups
         none = (np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), np.zeros(1, np.int32))  # (unused)
         self.work = lane_work(counts, G, self.block_dim // G, m.num_dofs) if G > 1 else none
@@ -712,7 +741,7 @@ class Solver:
         wp.launch(k["converge"], dim=W, inputs=[state.q, self.take, self.dq_max, dt(s.tol * self.h), self.alpha,
                                                 int(self.reuse_factor), self.chord, self.d_prev, self.active,
                                                 state.converged, state.iterations, s.max_iterations,
-                                                self.remaining], device=dev)  # fmt: skip
+                                                self.remaining, int(s.chord_stop)], device=dev)  # fmt: skip
 
     def _line_search_round(self, state):
         """Try α on every searching world; Armijo accepts or halves it (down to 2^-(max_line_search-1))."""
@@ -725,7 +754,8 @@ class Solver:
         self.assemble(state, self.q_trial, self.E_trial, self.searching, 0)
         self.ls_remaining.zero_()
         wp.launch(k["accept"], dim=W, inputs=[state.q, self.E, self.E_trial, len(self.cols), self.gdq, self.g_abs, self.dq_max,
-                                              dt(s.tol * self.h), dt(0.5 ** (s.max_line_search - 1)), self.alpha,
+                                              dt(s.tol * self.h), dt(0.5 ** (s.max_line_search - 1)),
+                                              dt(s.quadratic_stop), self.alpha,
                                               self.searching, self.take, self.chord, self.active, state.converged,
                                               self.ls_remaining], device=dev)  # fmt: skip
 

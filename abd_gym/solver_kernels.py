@@ -499,7 +499,7 @@ def kernels(dtype, envelope=False, packed=False):
     def accept(
         q: wp.array2d(dtype=vec12), E0: wp.array2d(dtype=dtype), E1: wp.array2d(dtype=dtype), nterms: int,
         gdq: wp.array(dtype=dtype), g_abs: wp.array(dtype=dtype),
-        dq_max: wp.array(dtype=dtype), threshold: dtype, min_alpha: dtype,
+        dq_max: wp.array(dtype=dtype), threshold: dtype, min_alpha: dtype, quadratic: dtype,
         alpha: wp.array(dtype=dtype), searching: wp.array(dtype=wp.int32), take: wp.array(dtype=wp.int32),
         chord: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
         remaining: wp.array(dtype=wp.int32),
@@ -511,7 +511,9 @@ def kernels(dtype, envelope=False, packed=False):
         whose search runs out takes no step and stops: converged if its Newton step was already
         within 1000× the tolerance, else reported as not converged.  A step from a reused factor
         (chord) is tried at α = 1 only and ends the solve only under the tolerance; rejected, it is
-        not taken (take 0) and the next iteration refactors.
+        not taken (take 0) and the next iteration refactors.  A Newton step (fresh factor) accepted at
+        α = 1 that is under ``quadratic`` × q's rounding floor (4·eps·(1 + ‖q‖∞)) also ends it
+        (SolverSettings.quadratic_stop).
         """
         w = wp.tid()
         if searching[w] == 0:
@@ -532,6 +534,8 @@ def kernels(dtype, envelope=False, packed=False):
             # unresolved and within 1000× it (take 2)
             searching[w] = 0
             done = dq_max[w] < floor or (unresolved and dq_max[w] < dtype(1000.0) * floor)
+            quad = chord[w] <= 0 and dq_max[w] < quadratic * dtype(4.0) * rounding
+            done = done or quad
             take[w] = wp.where(done, 2, 1)
             if chord[w] > 0 and dq_max[w] >= floor:
                 take[w] = 1
@@ -543,6 +547,8 @@ def kernels(dtype, envelope=False, packed=False):
             take[w] = 1
             if e0 - e1 <= noise:
                 take[w] = 2  # no decrease the precision can resolve: this is as converged as it gets
+            if chord[w] <= 0 and a == one and dq_max[w] < quadratic * dtype(4.0) * rounding:
+                take[w] = 2  # a whole Newton step this small leaves an error below q's rounding
         elif chord[w] > 0:
             searching[w] = 0
             take[w] = 0
@@ -569,10 +575,12 @@ def kernels(dtype, envelope=False, packed=False):
         q: wp.array2d(dtype=vec12), take: wp.array(dtype=wp.int32), dq_max: wp.array(dtype=dtype), threshold: dtype,
         alpha: wp.array(dtype=dtype), reuse: int, chord: wp.array(dtype=wp.int32), d_prev: wp.array(dtype=dtype),
         active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-        max_iterations: int, remaining: wp.array(dtype=wp.int32),
+        max_iterations: int, remaining: wp.array(dtype=wp.int32), chord_stop: int,
     ):  # fmt: skip
         """‖Δq‖∞ below h·tol (or q's rounding), or a step whose energy change is below rounding:
         the step just taken was the last one needed.  At the iteration cap a world stops unconverged.
+        With ``chord_stop`` (SolverSettings.chord_stop), a reused factor's step whose contraction
+        predicts a next step under the tolerance also ends the solve.
         The next iteration reuses the factor after a full step taken whole (with ``reuse``), and
         keeps reusing it while the steps shrink 8× an iteration, and not after a reused factor's step
         was rejected (fused.chord_step)."""
@@ -591,14 +599,19 @@ def kernels(dtype, envelope=False, packed=False):
             chord[w] = wp.where(taken != 0 and dq_max[w] <= dtype(0.125) * d_prev[w], 1, -1)
         elif was_chord == 0:
             chord[w] = wp.where(taken != 0 and alpha[w] == one, reuse, 0)
+        dp = d_prev[w]
         d_prev[w] = dq_max[w]
         floor, rounding = noise_floor(q, w, threshold)
+        d = dq_max[w]
+        # (chord_stop: a reused factor's step whose contraction θ = d/d_prev leaves θ/(1 − θ)·d under
+        # the tolerance, as fused.take_step)
+        linear = chord_stop != 0 and was_chord > 0 and taken != 0 and d < dp and d * d < floor * (dp - d)
         if retry:
             if iterations[w] >= max_iterations:
                 active[w] = 0
             else:
                 wp.atomic_add(remaining, 0, 1)
-        elif dq_max[w] < floor or stalled:
+        elif dq_max[w] < floor or stalled or linear:
             converged[w] = 1
             active[w] = 0
         elif iterations[w] >= max_iterations:

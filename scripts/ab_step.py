@@ -42,7 +42,8 @@ def _defer():
 VARIANTS = {"new": lambda: None, "defer": _defer, "new_s1": _steps(1), "new_s3": _steps(3), "new_s4": _steps(4), "unfused": _unfused,
             "new_s6": _steps(6), "b16": _kw(block_dim=16), "b8": _kw(block_dim=8),
             "lanes": _kw(scratch="lanes"), "lanes_b16": _kw(scratch="lanes", block_dim=16),
-            "lanes_b8": _kw(scratch="lanes", block_dim=8)}  # fmt: skip
+            "lanes_b8": _kw(scratch="lanes", block_dim=8), "qs0": _kw(quadratic_stop=0.0),
+            "chord_stop": _kw(chord_stop=True)}  # fmt: skip
 
 
 def one(args):

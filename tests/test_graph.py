@@ -100,7 +100,7 @@ def test_lane_split_step_matches_one_thread_per_world(lanes, groups, request):
     # (narrow worlds, under 32 lanes, take one group unless told)
     narrow = (lanes or 32) < 32
     g = 1 if cpu and not lanes else groups or (1 if narrow else default_lane_groups(wp.get_device(sim.device),
-                                                                                     "lanes", 4))  # fmt: skip
+                                                                                     "lanes", 4, 2))  # fmt: skip
     expect = lanes or (1 if cpu else 32 * g)
     assert sim.solver.lanes and sim.solver.block_dim == expect and sim.solver.lane_groups == g
     if sim.solver.lane_groups > 1:  # every group has terms to evaluate
@@ -190,14 +190,21 @@ def test_steps_in_one_launch_are_the_steps_one_by_one(scratch):
 
 def test_default_lane_groups_fill_the_gpu_once():
     """Lane groups a world by default: on a GPU the most of 4, 2, 1 whose warps all fit at once
-    (8 a streaming multiprocessor); 1 on the CPU and for the other layouts."""
+    (8 a streaming multiprocessor, a block's warps on one) and that each have work (the bodies or
+    a term: a cart-pole's limit and drive ride on its prismatic joint's term, so it has 2 terms and
+    takes 3 groups); 1 on the CPU and for the other layouts."""
     from types import SimpleNamespace
 
-    from abd_gym.solver import default_lane_groups
+    from abd_gym.solver import default_lane_groups, joint_terms, term_counts
 
     gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False)
     assert [default_lane_groups(gpu, "lanes", w) for w in (1, 264, 265, 528, 529, 1024)] == [4, 4, 2, 2, 1, 1]
+    assert [default_lane_groups(gpu, "lanes", 16, terms) for terms in (0, 1, 2, 3, 5)] == [1, 2, 3, 4, 4]
+    assert [default_lane_groups(gpu, "lanes", w, 2) for w in (264, 265, 528, 529)] == [3, 2, 2, 1]
     assert default_lane_groups(cpu, "lanes", 16) == 1 and default_lane_groups(gpu, "shared", 16) == 1
+    m = ag.Simulator(mechanisms.cartpole(), num_worlds=1).model
+    assert term_counts(m, joint_terms(m)) == dict(revolute=1, fixed=0, prismatic=1, revolute_limit=0,
+                                                  prismatic_limit=0, drive=0, angle=0)
 
 
 def test_steps_per_launch_must_be_positive():
