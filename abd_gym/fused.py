@@ -710,6 +710,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         q_prev: wp.array2d(dtype=vec12)
         q_hist: wp.array2d(dtype=vec12)
         qd_hist: wp.array2d(dtype=vec12)
+        qd_hist2: wp.array2d(dtype=vec12)
+        order3: wp.array2d(dtype=wp.int32)
+        control_prev: wp.array2d(dtype=dtype)
+        calm: wp.array(dtype=wp.int32)
         fresh: wp.array(dtype=wp.int32)
         c_ref: wp.array2d(dtype=dtype)
         s_ref: wp.array2d(dtype=dtype)
@@ -1379,7 +1383,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         status and step."""
         nb = q.shape[1]
         for b in range(lane, nb, LANES):
-            open_body(q, k.qd, status, k.fresh, k.h, k.bdf2, t.h_step, w, b)
+            open_body(q, k.qd, status, k.fresh, k.h, k.bdf2, t.h_step, t.control, k.control_prev, k.calm, w, b)
         if wp.static(lanes):
             block_sync()
         for j in range(lane, t.joint_kind.shape[0], LANES):
@@ -1388,7 +1392,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         if wp.static(lanes):
             block_sync()
         for b in range(lane, nb, LANES):
-            predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, t.q_tilde, t.dof, t.mass, t.mc, k.gravity, k.h, t.h_step,
+            predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.dof, t.mass, t.mc, k.gravity, k.h, t.h_step,
                          status, k.bend, w, b)  # fmt: skip
         if wp.static(lanes):
             block_sync()
@@ -1401,7 +1405,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         if wp.static(lanes):
             block_sync()
         for b in range(lane, q.shape[1], LANES):
-            finalize_body(q, k.q_prev, k.qd, k.q_hist, k.qd_hist, t.dof, k.h, t.h_step, status, w, b)
+            finalize_body(q, k.q_prev, k.qd, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, t.dof, k.h, t.h_step, status, w, b)
         if wp.static(lanes):
             block_sync()
         if status[w] == OK:

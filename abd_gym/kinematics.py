@@ -115,7 +115,8 @@ def kernels(dtype):
         p_rel0: wp.array(dtype=vec3), t_loc: wp.array(dtype=vec3), c_loc: wp.array(dtype=vec3),
         R0: wp.array(dtype=mat33), p0: wp.array(dtype=vec3), dt: dtype, omega: wp.array2d(dtype=vec3),
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
-        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
+        order3: wp.array2d(dtype=wp.int32), status: wp.array(dtype=wp.int32),
         fresh: wp.array(dtype=wp.int32), mask: wp.array(dtype=wp.int32), masked: int,
         num_joints: int, body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32),
         kind: wp.array(dtype=wp.int32), c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3),
@@ -182,6 +183,8 @@ def kernels(dtype):
             q_prev[k, b] = qb
             q_hist[k, b] = qb - dt * vb
             qd_hist[k, b] = vb
+            qd_hist2[k, b] = vb
+            order3[k, b] = 0
         status[k] = 0
         fresh[k] = 1
         for j in range(num_joints):
@@ -208,7 +211,7 @@ def restart_launch(plan: TreePlan, omega: wp.array, state, model, solver, idx: w
     masked, m, st = mask is not None, model, state
     return kernels(model.dtype), N, [
         idx, xx, plan.steps, plan.sign, plan.R_rel0, plan.p_rel0, plan.t_loc, plan.c_loc, plan.R0, plan.p0, float(dt),
-        omega, st.q, st.qd, st.q_prev, st.q_hist, st.qd_hist, st.status, st.fresh, mask if masked else idx, int(masked),
+        omega, st.q, st.qd, st.q_prev, st.q_hist, st.qd_hist, st.qd_hist2, st.order3, st.status, st.fresh, mask if masked else idx, int(masked),
         m.num_joints, m.body_a, m.body_b, m.joint_kind, m.c_a, m.c_b, m.t_a, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
         st.theta0, st.c_prev, st.s_prev, st.unwrapped, st.x_hist, solver.h_step, float(solver.h), st.x_anchor, st.coord,
         st.coord_vel]

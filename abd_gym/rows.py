@@ -47,8 +47,9 @@ def kernels(dtype):
     def restart_q(idx: wp.array(dtype=wp.int32), q_src: wp.array2d(dtype=vec12), qd_src: wp.array2d(dtype=vec12),
                   dt: dtype, q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
                   q_prev: wp.array2d(dtype=vec12), q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
+                  qd_hist2: wp.array2d(dtype=vec12), order3: wp.array2d(dtype=wp.int32),
                   status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32)):  # fmt: skip
-        """World idx[i] restarts at (q, q̇) = row i: no past (q^{n−1} = q − dt q̇, q̇^{n−1} = q̇, and
+        """World idx[i] restarts at (q, q̇) = row i: no past (q^{n−1} = q − dt q̇, q̇^{n−1} = q̇^{n−2} = q̇, and
         ``fresh``: its next step is an implicit Euler one), status OK."""
         i, b = wp.tid()
         k = idx[i]
@@ -59,6 +60,8 @@ def kernels(dtype):
         q_prev[k, b] = x
         q_hist[k, b] = x - dt * v
         qd_hist[k, b] = v
+        qd_hist2[k, b] = v
+        order3[k, b] = 0
         if b == 0:
             status[k] = 0
             fresh[k] = 1
@@ -72,7 +75,7 @@ def restart(state, idx: wp.array, q, qd, dt: float, model, stage: "Staging") -> 
     src = [stage(name, np.broadcast_to(a, (N, nb, 12)), model.vec12) for name, a in (("q", q), ("qd", qd))]
     wp.launch(kernels(model.dtype)["restart_q"], dim=(N, nb),
               inputs=[idx, *src, model.dtype(dt), state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
-                      state.status, state.fresh], device=model.device)  # fmt: skip
+                      state.qd_hist2, state.order3, state.status, state.fresh], device=model.device)  # fmt: skip
 
 
 @wp.kernel

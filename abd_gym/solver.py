@@ -583,14 +583,15 @@ class Solver:
         m, k, dev = self.model, self.k, self.model.device
         W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
         wp.launch(k["open_step"], dim=(W, nb), inputs=[state.q, state.qd, state.status, state.fresh, dt(self.h), self.bdf2,
-                                                       self.h_step], device=dev)  # fmt: skip
+                                                       self.h_step, state.control, state.control_prev, state.calm],
+                  device=dev)  # fmt: skip
         if m.num_joints:
             wp.launch(self.begin_step, dim=(W, m.num_joints),
                       inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
                               state.theta0, state.c_prev, state.s_prev, self.all_active, state.unwrapped,
                               state.x_hist, self.h_step, dt(self.h), state.x_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
-                                                     self.q_tilde, m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step,
+                                                     state.qd_hist2, state.order3, state.calm, self.q_tilde, m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step,
                                                      state.status, int(self.settings.retract)], device=dev)  # fmt: skip
 
     def _newton(self, state):
@@ -610,7 +611,7 @@ class Solver:
         m, k, dev = self.model, self.k, self.model.device
         W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
         wp.launch(k["finalize"], dim=(W, nb), inputs=[state.q, state.q_prev, state.qd, state.q_hist, state.qd_hist,
-                                                      m.dof, dt(self.h), self.h_step, state.status], device=dev)  # fmt: skip
+                                                      state.qd_hist2, state.order3, m.dof, dt(self.h), self.h_step, state.status], device=dev)  # fmt: skip
         self.update_coordinates(state, accumulate=True)
 
     def _fused_newton(self, state, steps: int = 1):
@@ -715,7 +716,8 @@ class Solver:
         self.phase_cycles = wp.zeros((m.num_worlds if st.phase_clock else 1, len(PHASES)), dtype=wp.int64, device=m.device)
         t.clock = self.phase_cycles
         k = Bracket()  # what opening and closing a world's step reads besides t (fused.open_world, close_world)
-        for name in ("qd", "q_prev", "q_hist", "qd_hist", "fresh", "x_hist", "coord"):
+        for name in ("qd", "q_prev", "q_hist", "qd_hist", "qd_hist2", "order3", "control_prev", "calm", "fresh", "x_hist",
+                     "coord"):  # fmt: skip
             setattr(k, name, getattr(state, name))
         k.velocity = state.coord_vel
         k.c_ref, k.s_ref = m.c_ref, m.s_ref

@@ -62,8 +62,9 @@ def kernels(dtype, envelope=False, packed=False):
     @wp.func
     def predict_body(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
-        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
-        q_tilde: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
+        order3: wp.array2d(dtype=wp.int32), calm: wp.array(dtype=wp.int32), q_tilde: wp.array2d(dtype=vec12),
+        dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
         mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype, h_step: wp.array(dtype=dtype),
         status: wp.array(dtype=wp.int32), bend: int, w: int, b: int,
     ):  # fmt: skip
@@ -73,8 +74,14 @@ def kernels(dtype, envelope=False, packed=False):
         Newton starts from qⁿ + h q̇ⁿ + h (q̇ⁿ − q̇ⁿ⁻¹), the last step's motion extrapolated to second
         order, not from q̃: q̃ lets a jointed body fall freely by h²g, which the joints then undo
         (a first Newton step of ~1e-3 m at dt 0.01, against ~1e-5 m from the extrapolation; float32
-        cart-poles and double pendulums converge in 2.0 iterations instead of 2.7–2.9).  After a
-        reset q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ."""
+        cart-poles and double pendulums converge in 2.0 iterations instead of 2.7–2.9).  Where the
+        third-order extrapolation qⁿ + h(3q̇ⁿ − 3q̇ⁿ⁻¹ + q̇ⁿ⁻²) would have guessed the body's last
+        step better (``order3``, set by finalize_body) and the world's controls are those of its last
+        two steps (``calm``, open_body), it is used instead: smooth motion then starts ~10x closer
+        (float32 cart-poles at dt 0.01: 1.87 -> 1.02 Newton iterations a step); across a change of
+        control its jerk is the change's, and guessed 1.05-1.3x more iterations on CartPole-v0,
+        Reacher-v0 and DoublePendulumCart-v0 under random actions.  After
+        a reset q̇ⁿ⁻² = q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ."""
         qb = q[w, b]
         q_prev[w, b] = qb
         if dof[b] < 0 or status[w] != OK:
@@ -97,19 +104,22 @@ def kernels(dtype, envelope=False, packed=False):
         # rigid); with the bent trial steps, CartPole-v0's scene at dt 0.02 under random forces takes
         # 3.14 Newton iterations a step instead of 4.54 (float64, tests/test_hard_cases.py)
         d = h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
+        if order3[w, b] != 0 and calm[w] >= 2:
+            d = h * (dtype(3.0) * (qd[w, b] - qd_hist[w, b]) + qd_hist2[w, b])
         q[w, b] = wp.where(bend != 0, retract(qb, d, one, mass[w, b], mc[w, b], 1), qb + d)
 
     @wp.kernel(module="unique")
     def predict(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
-        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
-        q_tilde: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
-        mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype, h_step: wp.array(dtype=dtype),
-        status: wp.array(dtype=wp.int32), bend: int,
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
+        order3: wp.array2d(dtype=wp.int32), calm: wp.array(dtype=wp.int32), q_tilde: wp.array2d(dtype=vec12),
+        dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype,
+        h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32), bend: int,
     ):  # fmt: skip
         """predict_body of body b of world w."""
         w, b = wp.tid()
-        predict_body(q, qd, q_prev, q_hist, qd_hist, q_tilde, dof, mass, mc, gravity, h, h_step, status, bend, w, b)
+        predict_body(q, qd, q_prev, q_hist, qd_hist, qd_hist2, order3, calm, q_tilde, dof, mass, mc, gravity, h, h_step,
+                     status, bend, w, b)  # fmt: skip
 
     # The Newton scratch of a world (or of a fused thread) is column w of n × n and n × 1 arrays with
     # one column per world or thread, stored flat: H's entry (i, j) at (i·n + j)·T + w, g's entry i
@@ -637,12 +647,14 @@ def kernels(dtype, envelope=False, packed=False):
     @wp.func
     def finalize_body(
         q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
-        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
-        dof: wp.array(dtype=wp.int32), h: dtype, h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32),
-        w: int, b: int,
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
+        order3: wp.array2d(dtype=wp.int32), dof: wp.array(dtype=wp.int32), h: dtype, h_step: wp.array(dtype=dtype),
+        status: wp.array(dtype=wp.int32), w: int, b: int,
     ):  # fmt: skip
         """q̇ⁿ⁺¹ = (qⁿ⁺¹ − qⁿ)/h, or (3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹)/(2h) for a BDF2 step; the history shifts.
-        A failed world keeps its last good state."""
+        ``order3``: whether the third-order extrapolation of the velocity (predict_body) would have
+        guessed q̇ⁿ⁺¹ better than the second-order one (its third difference smaller than the
+        second).  A failed world keeps its last good state."""
         if status[w] != OK:
             q[w, b] = q_prev[w, b]
             return
@@ -651,31 +663,53 @@ def kernels(dtype, envelope=False, packed=False):
             if h_step[w] < h:
                 # the differences first: 3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹ cancels to ~eps·|q| in float32
                 v = (dtype(3.0) * (q[w, b] - q_prev[w, b]) - (q_prev[w, b] - q_hist[w, b])) / (dtype(2.0) * h)
-            qd_hist[w, b] = qd[w, b]
+            v0 = qd[w, b]
+            v1 = qd_hist[w, b]
+            d2 = v - dtype(2.0) * v0 + v1
+            d3 = d2 - (v0 - dtype(2.0) * v1 + qd_hist2[w, b])
+            m2 = zero
+            m3 = zero
+            for r in range(12):
+                m2 = wp.max(m2, wp.abs(d2[r]))
+                m3 = wp.max(m3, wp.abs(d3[r]))
+            order3[w, b] = wp.where(m3 < m2, 1, 0)
+            qd_hist2[w, b] = v1
+            qd_hist[w, b] = v0
             qd[w, b] = v
         q_hist[w, b] = q_prev[w, b]
 
     @wp.kernel(module="unique")
     def finalize(
         q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
-        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12),
-        dof: wp.array(dtype=wp.int32), h: dtype, h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32),
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
+        order3: wp.array2d(dtype=wp.int32), dof: wp.array(dtype=wp.int32), h: dtype, h_step: wp.array(dtype=dtype),
+        status: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """finalize_body of body b of world w."""
         w, b = wp.tid()
-        finalize_body(q, q_prev, qd, q_hist, qd_hist, dof, h, h_step, status, w, b)
+        finalize_body(q, q_prev, qd, q_hist, qd_hist, qd_hist2, order3, dof, h, h_step, status, w, b)
 
     @wp.func
     def open_body(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
-        fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype), w: int, b: int,
+        fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype),
+        control: wp.array2d(dtype=dtype), control_prev: wp.array2d(dtype=dtype), calm: wp.array(dtype=wp.int32),
+        w: int, b: int,
     ):  # fmt: skip
         """A world with a non-finite q or q̇ fails; each world's effective step: ĥ = 2h/3 for BDF2,
         but h (an implicit Euler step) for a world without a past step (``fresh``).  BDF2 started
         from a past invented as "the velocity was constant" takes a first velocity of (2/3)h·a for
         h·a, an O(h) error it never loses (measured: first-order global error); an implicit Euler
-        first step is O(h²) accurate, which keeps BDF2 second order.  (Body 0 sets the world's.)"""
+        first step is O(h²) accurate, which keeps BDF2 second order.  (Body 0 sets the world's.)
+        ``calm``: the steps in a row, up to 2, whose controls are the last step's (predict_body
+        extrapolates the last accelerations to third order only across steps of one control)."""
         if b == 0:
+            same = int(1)
+            for d in range(control.shape[1]):
+                if control[w, d] != control_prev[w, d]:
+                    same = 0
+                control_prev[w, d] = control[w, d]
+            calm[w] = wp.where(same != 0 and fresh[w] == 0, wp.min(calm[w] + 1, 2), 0)
             he = h
             if bdf2 != 0 and fresh[w] == 0:
                 he = dtype(2.0) * h / dtype(3.0)
@@ -689,10 +723,11 @@ def kernels(dtype, envelope=False, packed=False):
     def open_step(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
         fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype),
+        control: wp.array2d(dtype=dtype), control_prev: wp.array2d(dtype=dtype), calm: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """open_body of body b of world w."""
         w, b = wp.tid()
-        open_body(q, qd, status, fresh, h, bdf2, h_step, w, b)
+        open_body(q, qd, status, fresh, h, bdf2, h_step, control, control_prev, calm, w, b)
 
     return dict(
         predict=predict, start=start, newton_direction=newton_direction, h_row=h_row, cholesky_solve=cholesky_solve,

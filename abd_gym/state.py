@@ -25,6 +25,12 @@ class State:
             wp.zeros((W, nj), dtype=dt, device=dev) for _ in range(8)
         )
         self.control = wp.zeros((W, nd), dtype=dt, device=dev)
+        # q̇ⁿ⁻², whether its third-order extrapolation guesses a body's next step, the last step's
+        # controls and the steps in a row with the same (solver_kernels.predict_body, open_body)
+        self.qd_hist2 = wp.zeros_like(self.q)
+        self.order3 = wp.zeros((W, nb), dtype=wp.int32, device=dev)
+        self.control_prev = wp.zeros_like(self.control)
+        self.calm = wp.zeros(W, dtype=wp.int32, device=dev)
         self.status = wp.zeros(W, dtype=wp.int32, device=dev)
         # 1: the world has no past step (new, or its state was just set); its next step is an
         # implicit Euler step even under BDF2 (see solver_kernels.open_step)

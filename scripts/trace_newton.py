@@ -18,7 +18,7 @@ import warp as wp
 import abd_gym as ag
 from abd_gym import mechanisms
 
-STATE = ("q", "qd", "q_prev", "q_hist", "qd_hist", "theta0", "c_prev", "s_prev", "coord", "coord_vel", "unwrapped",
+STATE = ("q", "qd", "q_prev", "q_hist", "qd_hist", "qd_hist2", "order3", "theta0", "c_prev", "s_prev", "coord", "coord_vel", "unwrapped",
          "x_hist", "x_anchor", "control", "status", "fresh")  # fmt: skip
 
 
