@@ -45,8 +45,9 @@ def kernels(dtype, envelope=False, packed=False):
         noise follows (energy_noise)."""
         m = zero
         for b in range(q.shape[1]):
-            for r in range(12):
-                m = wp.max(m, wp.abs(q[w, b][r]))
+            # a body's 12 values loaded at once and reduced in registers (an element at a time in
+            # a loop, each waits on its own load: the fused step's chain, every iteration)
+            m = wp.max(m, wp.max(wp.abs(q[w, b])))
         rounding = EPS * (one + m)
         return wp.max(threshold, dtype(4.0) * rounding), rounding
 
@@ -667,12 +668,7 @@ def kernels(dtype, envelope=False, packed=False):
             v1 = qd_hist[w, b]
             d2 = v - dtype(2.0) * v0 + v1
             d3 = d2 - (v0 - dtype(2.0) * v1 + qd_hist2[w, b])
-            m2 = zero
-            m3 = zero
-            for r in range(12):
-                m2 = wp.max(m2, wp.abs(d2[r]))
-                m3 = wp.max(m3, wp.abs(d3[r]))
-            order3[w, b] = wp.where(m3 < m2, 1, 0)
+            order3[w, b] = wp.where(wp.max(wp.abs(d3)) < wp.max(wp.abs(d2)), 1, 0)
             qd_hist2[w, b] = v1
             qd_hist[w, b] = v0
             qd[w, b] = v
@@ -715,9 +711,8 @@ def kernels(dtype, envelope=False, packed=False):
                 he = dtype(2.0) * h / dtype(3.0)
             h_step[w] = he
             fresh[w] = 0
-        for r in range(12):
-            if not (wp.isfinite(q[w, b][r]) and wp.isfinite(qd[w, b][r])):
-                status[w] = FAILED
+        if not (wp.isfinite(q[w, b]) and wp.isfinite(qd[w, b])):
+            status[w] = FAILED
 
     @wp.kernel(module="unique")
     def open_step(
