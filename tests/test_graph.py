@@ -140,7 +140,7 @@ def test_deferred_armijo_test_is_the_same_step(scratch, monkeypatch):
 
     def run(defer):
         monkeypatch.setattr(abd_gym.solver, "DEFER_ARMIJO", defer)
-        sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=16, dt=0.05, scratch=scratch, device="cpu")
+        sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=16, dt=0.05, scratch=scratch)
         sim.set_joint_state(np.random.default_rng(0).uniform(-2.5, 2.5, (16, 2)))
         out = []
         for _ in range(60):
