@@ -33,6 +33,7 @@ def main():
     ap.add_argument("--out", default=os.environ.get("OUT", "."))
     args = ap.parse_args()
     trees, rows = args.trees.split(","), []
+    os.makedirs(args.out, exist_ok=True)
     for W in (int(w) for w in args.worlds.split(",")):
         for case in args.cases.split(","):
             for r in range(args.rounds):
@@ -56,7 +57,6 @@ def main():
             print(f"SUMMARY {case} {W}: " + "  ".join(
                 f"{t} {best[t] / 1e6:.2f} M (x{best[t] / max(best[trees[0]], 1e-9):.3f}, iterations {its[t]:.2f})"
                 for t in trees), flush=True)  # fmt: skip
-    os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "ab_trees.json"), "w") as f:
         json.dump(rows, f, indent=1)
 
