@@ -614,6 +614,31 @@ def test_make_and_make_vec():
     env.close()
 
 
+def test_simulator_options_reach_the_simulator():
+    """simulator_options passes more Simulator settings through gym.make_vec (here the Newton stop on a
+    reused factor's contraction: fewer iterations under random forces); the task's own settings
+    cannot be overridden, and a bad value is the Simulator's error."""
+    def iterations(**kw):
+        venv = gym.make_vec("abd_gym/CartPole-v0", num_envs=8, vectorization_mode="vector_entry_point", **kw)
+        venv.reset(seed=0)
+        venv.action_space.seed(0)
+        its = []
+        for _ in range(20):
+            venv.step(venv.action_space.sample())
+            its.append(venv.unwrapped.sim.newton_iterations().mean())
+        assert venv.unwrapped.sim.solver.settings.chord_stop == bool(kw)
+        venv.close()
+        return np.mean(its)
+
+    assert iterations(simulator_options={"chord_stop": True}) < 0.75 * iterations()
+    with pytest.raises(ValueError, match="dt"):
+        gym.make_vec("abd_gym/CartPole-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                     simulator_options={"dt": 0.5})  # fmt: skip
+    with pytest.raises(ValueError, match="quadratic_stop"):
+        gym.make_vec("abd_gym/CartPole-v0", num_envs=2, vectorization_mode="vector_entry_point",
+                     simulator_options={"quadratic_stop": -1.0})  # fmt: skip
+
+
 def test_single_env_seeding_is_reproducible():
     env = gym.make("abd_gym/Pendulum-v0")
     runs = []
