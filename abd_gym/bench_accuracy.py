@@ -55,11 +55,12 @@ def mujoco_reference(case, x0, v0=None, dt=1e-4, integrator="RK4"):
     return out
 
 
-def run_ours(case, x0, dt, dtype, tol, device, integrator="implicit_euler", reuse_factor=None):
+def run_ours(case, x0, dt, dtype, tol, device, integrator="implicit_euler", reuse_factor=None, **options):
     """Joint angles (samples, worlds, joints) over 1 s from x0, the largest joint residual [m], the
-    largest energy drift [J] and whether Newton reused its factors."""
+    largest energy drift [J] and whether Newton reused its factors (``options``: more Simulator
+    settings)."""
     sim = Simulator(CASES[case][1](), num_worlds=len(x0), dt=dt, device=device, dtype=dtype, tol=tol,
-                    integrator=integrator, reuse_factor=reuse_factor)  # fmt: skip
+                    integrator=integrator, reuse_factor=reuse_factor, **options)  # fmt: skip
     sim.set_joint_state(x0)
     e0 = sum(sim.energies().values())
     every, n = _samples(dt)

@@ -408,7 +408,9 @@ class Solver:
         # lanes a world: block_dim, else default_lane_width where the worlds fit the GPU at once, else 32
         width = settings.block_dim or (self.lanes and default_lane_width(wp.get_device(dev), W, dt_)) or 32
         narrow = self.lanes and width < 32
-        terms = sum(term_counts(model, joint_terms(model, FUSE_PRISMATIC, FUSE_REVOLUTE)).values())
+        # how the fused step groups limits and drives with their joints (read again by _build_fused)
+        self.joint_terms = joint_terms(model, FUSE_PRISMATIC, FUSE_REVOLUTE)
+        terms = sum(term_counts(model, self.joint_terms).values())
         self.lane_groups = int(groups or (1 if narrow else default_lane_groups(wp.get_device(dev), scratch, W, terms)))
         self.block_dim = settings.block_dim or ((width if narrow else 32 * self.lane_groups) if self.lanes
                                                 else default_block_dim(wp.get_device(dev), T))  # fmt: skip
@@ -670,7 +672,7 @@ class Solver:
         from .scene import FIXED, PRISMATIC, REVOLUTE
 
         m = self.model
-        jt = joint_terms(m, FUSE_PRISMATIC, FUSE_REVOLUTE)
+        jt = self.joint_terms
         rest = jt["rest"]
         fuse_lim, fuse_drv = bool((jt["pri_lim"] >= 0).any()), bool((jt["pri_drv"] >= 0).any())
         angles = len(jt["ang_joint"]) > 0

@@ -538,15 +538,15 @@ def kernels(dtype, envelope=False, packed=False):
             mag += wp.abs(E0[w, t]) + wp.abs(E1[w, t])
         floor, rounding = noise_floor(q, w, threshold)
         unresolved = -gdq[w] <= dtype(1600.0) * EPS * wp.abs(e0) or -gdq[w] <= energy_noise(rounding, g_abs[w])
+        # a Newton step this small, accepted at α = 1, leaves an error below q's rounding (quadratic_stop)
+        quad = chord[w] <= 0 and dq_max[w] < quadratic * dtype(4.0) * rounding
         if dq_max[w] < dtype(10.0) * floor or unresolved:
             # taken whole (α = 1, the first trial), as the fused step (fused.whole_step): within 10×
             # the noise floor, or a predicted decrease below the energy's rounding, which the test
             # could only halve on noise; the solve ends here if the step is under the tolerance, or
             # unresolved and within 1000× it (take 2)
             searching[w] = 0
-            done = dq_max[w] < floor or (unresolved and dq_max[w] < dtype(1000.0) * floor)
-            quad = chord[w] <= 0 and dq_max[w] < quadratic * dtype(4.0) * rounding
-            done = done or quad
+            done = dq_max[w] < floor or (unresolved and dq_max[w] < dtype(1000.0) * floor) or quad
             take[w] = wp.where(done, 2, 1)
             if chord[w] > 0 and dq_max[w] >= floor:
                 take[w] = 1
@@ -558,8 +558,8 @@ def kernels(dtype, envelope=False, packed=False):
             take[w] = 1
             if e0 - e1 <= noise:
                 take[w] = 2  # no decrease the precision can resolve: this is as converged as it gets
-            if chord[w] <= 0 and a == one and dq_max[w] < quadratic * dtype(4.0) * rounding:
-                take[w] = 2  # a whole Newton step this small leaves an error below q's rounding
+            if quad and a == one:
+                take[w] = 2
         elif chord[w] > 0:
             searching[w] = 0
             take[w] = 0

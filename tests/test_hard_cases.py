@@ -112,6 +112,23 @@ def test_default_tolerance_matches_exact_implicit_euler():
     assert np.abs(trajectory("float32", 1e-5) - exact).max() < 5e-3
 
 
+def _forced_cartpoles(steps, **kw):
+    """16 CartPole-v0 scenes at dt 0.02 under random cart forces (±10 N, new each step), every world
+    converged each step: the mean Newton iterations a step and the final joint coordinates."""
+    from envs.cartpole import build_cart_scene
+
+    sim = ag.Simulator(build_cart_scene(), num_worlds=16, dt=0.02, **kw)
+    rng = np.random.default_rng(0)
+    sim.set_joint_state(np.c_[np.zeros(16), rng.uniform(-0.2, 0.2, 16)])
+    its = []
+    for _ in range(steps):
+        sim.set_controls(rng.uniform(-10, 10, (16, 1)))
+        sim.step()
+        assert sim.converged().all()
+        its.append(sim.newton_iterations().mean())
+    return np.mean(its), sim.joint_coordinates()
+
+
 @pytest.mark.parametrize("dtype, most", [("float64", 3.4), ("float32", 4.0)])
 def test_newton_follows_rotations(dtype, most):
     """A pole turning under random cart forces at dt 0.02 (the CartPole-v0 scene): the initial
@@ -119,18 +136,7 @@ def test_newton_follows_rotations(dtype, most):
     that leave the rotations by ~(ωh)², where the stiff orthogonality energy makes Newton take
     several steps to turn the pole.  Measured on 16 worlds: 4.54 → 3.14 iterations a step
     (float64) and 5.91 → 3.62 (float32)."""
-    from envs.cartpole import build_cart_scene
-
-    sim = ag.Simulator(build_cart_scene(), num_worlds=16, dt=0.02, dtype=dtype)
-    rng = np.random.default_rng(0)
-    sim.set_joint_state(np.c_[np.zeros(16), rng.uniform(-0.2, 0.2, 16)])
-    its = []
-    for _ in range(40):
-        sim.set_controls(rng.uniform(-10, 10, (16, 1)))
-        sim.step()
-        assert sim.converged().all()
-        its.append(sim.newton_iterations().mean())
-    assert np.mean(its) < most
+    assert _forced_cartpoles(40, dtype=dtype)[0] < most
 
 
 def _pendulums(dtype="float32", steps=60, **kw):
@@ -175,21 +181,7 @@ def test_chord_stop_ends_on_a_contracting_reused_factor(fused):
     """chord_stop (off by default): a reused factor's step whose contraction θ = d/d_prev leaves
     θ/(1 − θ)·d under the tolerance ends the solve.  Under random cart forces at dt 0.02 (the
     CartPole-v0 scene, float32) it takes markedly fewer iterations, every world converged."""
-    from envs.cartpole import build_cart_scene
-
-    def run(chord_stop):
-        sim = ag.Simulator(build_cart_scene(), num_worlds=16, dt=0.02, chord_stop=chord_stop, fused=fused)
-        rng = np.random.default_rng(0)
-        sim.set_joint_state(np.c_[np.zeros(16), rng.uniform(-0.2, 0.2, 16)])
-        its = []
-        for _ in range(30):
-            sim.set_controls(rng.uniform(-10, 10, (16, 1)))
-            sim.step()
-            assert sim.converged().all()
-            its.append(sim.newton_iterations().mean())
-        return np.mean(its), sim.joint_coordinates()
-
-    (its_on, x_on), (its_off, x_off) = run(True), run(False)
+    (its_on, x_on), (its_off, x_off) = (_forced_cartpoles(30, chord_stop=c, fused=fused) for c in (True, False))
     assert its_on < 0.75 * its_off
     np.testing.assert_allclose(x_on, x_off, atol=5e-3)
 
