@@ -1060,7 +1060,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         return e
 
     @wp.func
-    def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype, noise: dtype, chord: int, quad: bool):
+    def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype, noise: dtype, chord: int):
         """(skip, done): take the Newton step whole, without a line search, when it is under the
         tolerance or when its predicted decrease −gᵀΔq is below what the energy's float rounding
         can resolve (the search could only halve it on noise; ``noise``: solver_kernels.energy_noise);
@@ -1073,7 +1073,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         # pendulums at dt 0.005 crawling at α = 1/32 where float64 takes α = 1 and converges in 2)
         skip = dmax < dtype(10.0) * floor or unresolved
         done = dmax < floor or (unresolved and dmax < dtype(1000.0) * floor and chord <= 0)
-        done = done or quad  # (quadratic_stop: a Newton step taken whole ends the solve)
         return wp.where(skip, 1, 0), wp.where(done, 1, 0)
 
     @wp.func
@@ -1191,12 +1190,12 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         # a Newton step under quadratic_stop × q's rounding ends the solve if accepted at α = 1 (its
         # test, where it needs one, is made now, not deferred)
         quad = chord <= 0 and dmax < QUAD * rounding
-        skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(rounding, g_abs), chord, quad)
+        skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(rounding, g_abs), chord)
         pending = wp.where(defer != 0 and skip == 0 and chord <= 0 and not quad, 1, 0)
         accepted, stalled, alpha = search(q, q_trial, t, step, g, H, w, row, s, B, e0, gdq, skip, done, chord,
                                           max_line_search, pending, resume, lane)  # fmt: skip
         if quad and accepted != 0 and alpha == one:
-            stalled = 1  # Newton's next step would be below the rounding (quadratic_stop)
+            stalled = 1  # taken whole or by Armijo: Newton's next step would be rounding (quadratic_stop)
         if wp.static(CHORD_STOP == 1):
             # a reused factor's steps contract linearly, θ = d/d_prev an iteration: the error left,
             # θ/(1 − θ)·d, under the tolerance ends the solve (Hairer & Wanner's test for simplified
@@ -1392,8 +1391,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         if wp.static(lanes):
             block_sync()
         for b in range(lane, nb, LANES):
-            predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.dof, t.mass, t.mc, k.gravity, k.h, t.h_step,
-                         status, k.bend, w, b)  # fmt: skip
+            predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.dof, t.mass,
+                         t.mc, k.gravity, k.h, t.h_step, status, k.bend, w, b)  # fmt: skip
         if wp.static(lanes):
             block_sync()
 
@@ -1405,7 +1404,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         if wp.static(lanes):
             block_sync()
         for b in range(lane, q.shape[1], LANES):
-            finalize_body(q, k.q_prev, k.qd, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, t.dof, k.h, t.h_step, status, w, b)
+            finalize_body(q, k.q_prev, k.qd, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, t.dof, k.h, t.h_step, status, w,
+                          b)  # fmt: skip
         if wp.static(lanes):
             block_sync()
         if status[w] == OK:

@@ -593,8 +593,9 @@ class Solver:
                               state.theta0, state.c_prev, state.s_prev, self.all_active, state.unwrapped,
                               state.x_hist, self.h_step, dt(self.h), state.x_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
-                                                     state.qd_hist2, state.order3, state.calm, self.q_tilde, m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step,
-                                                     state.status, int(self.settings.retract)], device=dev)  # fmt: skip
+                                                     state.qd_hist2, state.order3, state.calm, self.q_tilde, m.dof, m.mass,
+                                                     m.mc, m.gravity, dt(self.h), self.h_step, state.status,
+                                                     int(self.settings.retract)], device=dev)  # fmt: skip
 
     def _newton(self, state):
         """Every world's Newton solve: the fused kernel, or the staged kernels' loop."""
@@ -613,7 +614,8 @@ class Solver:
         m, k, dev = self.model, self.k, self.model.device
         W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
         wp.launch(k["finalize"], dim=(W, nb), inputs=[state.q, state.q_prev, state.qd, state.q_hist, state.qd_hist,
-                                                      state.qd_hist2, state.order3, m.dof, dt(self.h), self.h_step, state.status], device=dev)  # fmt: skip
+                                                      state.qd_hist2, state.order3, m.dof, dt(self.h), self.h_step,
+                                                      state.status], device=dev)  # fmt: skip
         self.update_coordinates(state, accumulate=True)
 
     def _fused_newton(self, state, steps: int = 1):
