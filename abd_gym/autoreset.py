@@ -42,11 +42,13 @@ def default_depth(num_worlds: int) -> int:
 def _take(dtype):
     @wp.kernel
     def take(pending: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32), queue: wp.array3d(dtype=dtype),
-             xx: wp.array3d(dtype=dtype), elapsed: wp.array(dtype=wp.int64), tick: int):  # fmt: skip
+             xx: wp.array3d(dtype=dtype), elapsed: wp.array(dtype=wp.int64), tick: int,
+             task_queue: wp.array2d(dtype=dtype), task: wp.array2d(dtype=wp.float32), task_width: int):  # fmt: skip
         """A pending world w's next initial state, row taken[w] mod depth of its queue (queue row
-        slot·W + w), into xx[w]; one more taken.  With ``tick``, every world's episode clock
-        (elapsed, env steps) too: restarted at 0 where the world is reset, else one step on (the
-        Torch backend's clocks, on the device: one launch less a step)."""
+        slot·W + w), into xx[w], and the same row of its task values into task[w] (the env's
+        float32 task array; ``task_width`` 0: none); one more taken.  With ``tick``, every
+        world's episode clock (elapsed, env steps) too: restarted at 0 where the world is reset,
+        else one step on (the Torch backend's clocks, on the device: one launch less a step)."""
         w = wp.tid()
         if tick != 0:
             elapsed[w] = wp.where(pending[w] != 0, wp.int64(0), elapsed[w] + wp.int64(1))
@@ -57,6 +59,8 @@ def _take(dtype):
         for k in range(2):
             for c in range(xx.shape[2]):
                 xx[w, k, c] = queue[r, k, c]
+        for c in range(task_width):
+            task[w, c] = wp.float32(task_queue[r, c])
         taken[w] = taken[w] + 1
 
     return take
@@ -64,12 +68,17 @@ def _take(dtype):
 
 class NextEpisodes:
     """Each world's queue of next initial joint states (``queue``, device (depth·W, 2, max(joints,
-    1)): coordinates and rates, row slot·W + w), the device mask of worlds to autoreset in the next
-    step (``pending``, int32) and each world's count of rows taken (``taken``)."""
+    1)): coordinates and rates, row slot·W + w) and of the task's values for those episodes
+    (``task_queue``, (depth·W, task_width), the same rows: a Reacher's target), the device mask of
+    worlds to autoreset in the next step (``pending``, int32) and each world's count of rows taken
+    (``taken``)."""
 
-    def __init__(self, sim, draw, depth: int | None = None):
-        """``draw(n)`` -> (coordinates, velocities), each (n, num_joints): n fresh episodes.
-        ``depth``: rows per world's queue (default_depth of the world count when None)."""
+    def __init__(self, sim, draw, depth: int | None = None, task_width: int = 0, host_task: bool = False):
+        """``draw(n)`` -> (coordinates, velocities), each (n, num_joints), and with ``task_width``
+        the task values (n, task_width) too: n fresh episodes.  ``depth``: rows per world's queue
+        (default_depth of the world count when None).  ``host_task``: the task values stay on the
+        host too (``task_rows``: the NumPy backend's task arrays are host memory, which a kernel on
+        a GPU cannot write)."""
         if depth is None:
             depth = default_depth(sim.num_worlds)
         if depth < 4:
@@ -87,6 +96,12 @@ class NextEpisodes:
         self._drawn = np.zeros(W, dtype=np.int64)
         self._fixed = m.joint_kind_np == FIXED_CODE
         self._no_clock = None  # apply's stand-in clock array, when the host keeps the clocks
+        self.task_width = int(task_width)
+        # (1, 1) stand-ins where there are no task values (a kernel's array cannot be None here)
+        self.task_queue = wp.zeros((self.depth * W if task_width else 1, max(self.task_width, 1)), dtype=m.dtype,
+                                   device=dev)  # fmt: skip
+        self._no_task = wp.zeros((1, 1), dtype=wp.float32, device=dev)
+        self._task_host = np.zeros((self.depth * W, self.task_width), np.float32) if task_width and host_task else None
 
     def restart(self):
         """Fresh queues for every world (after a full reset, from the env's new generator)."""
@@ -119,10 +134,12 @@ class NextEpisodes:
         self._drawn += np.maximum(short, 0)
         m = self.sim.model
         nj, n = m.num_joints, len(w)
-        x, xd = (np.asarray(a, dtype=np.float64) for a in self.draw_fn(n))
-        for name, a in (("coordinates", x), ("velocities", xd)):
-            if a.shape != (n, nj) or not np.all(np.isfinite(a)):
-                raise ValueError(f"the task's initial {name} must be finite with shape ({n}, {nj}), got {a.shape}")
+        drawn = [np.asarray(a, dtype=np.float64) for a in self.draw_fn(n)]
+        x, xd = drawn[:2]
+        for name, a, shape in (("coordinates", x, (n, nj)), ("velocities", xd, (n, nj)),
+                               ("task values", drawn[2] if self.task_width else None, (n, self.task_width))):  # fmt: skip
+            if a is not None and (a.shape != shape or not np.all(np.isfinite(a))):
+                raise ValueError(f"the task's initial {name} must be finite with shape {shape}, got {a.shape}")
         # as set_joint_state: a fixed joint's coordinate is 0; a scene without joints has one 0 column
         xx = np.zeros((n, 2, self.queue.shape[2]), dtype=m.np_dtype)
         xx[:, 0, :nj] = np.where(self._fixed[None, :], 0.0, x)
@@ -132,6 +149,18 @@ class NextEpisodes:
         src = stage("queue_rows", xx.reshape(n, -1), m.dtype)
         self.sim._replay("queue_top_up", rows.kernels(m.dtype)["scatter"], (n, self._rows.shape[1]),
                          [self._rows, idx_dev, src])  # fmt: skip
+        if self.task_width:
+            src = stage("queue_task_rows", drawn[2], m.dtype)
+            self.sim._replay("queue_task_top_up", rows.kernels(m.dtype)["scatter"], (n, self.task_width),
+                             [self.task_queue, idx_dev, src])  # fmt: skip
+            if self._task_host is not None:
+                self._task_host[(e % K) * W + w] = drawn[2]
+
+    def task_rows(self, mask: np.ndarray) -> np.ndarray:
+        """The task values (n, task_width) that the worlds of the host bool ``mask`` take in this
+        step (host_task), read before ``took`` counts the rows."""
+        w = np.flatnonzero(mask)
+        return self._task_host[(self._taken[w] % self.depth) * len(self._taken) + w]
 
     def clear(self, idx: np.ndarray):
         """No autoreset pending for the worlds ``idx`` (they were just reset by hand)."""
@@ -141,17 +170,20 @@ class NextEpisodes:
             wp.launch(rows.fill_int, dim=len(idx), inputs=[self.pending, rows.indices(idx, self.sim._stage, "clear_idx"), 0],
                       device=self.sim.device)  # fmt: skip
 
-    def apply(self, elapsed: wp.array | None = None):
+    def apply(self, elapsed: wp.array | None = None, task: wp.array | None = None):
         """Start the pending worlds' next episodes: two launches on device arrays, for every world
         whether pending or not (a graph holds them with no condition: a conditional node and the
         launches it guarded cost more than these two do on the worlds with nothing to do).
-        ``elapsed``: the episode clocks (int64 (W,)) to tick in the same launch."""
+        ``elapsed``: the episode clocks (int64 (W,)) to tick in the same launch; ``task``: the
+        env's task values (float32 (W, task_width)) to write there too (else left to the host:
+        ``task_rows``)."""
         sim = self.sim
         if elapsed is None and self._no_clock is None:
             self._no_clock = wp.zeros(1, dtype=wp.int64, device=sim.device)
         sim._replay("queue_take", _take(sim.model.dtype), sim.num_worlds,
                     [self.pending, self.taken, self.queue, self.xx, self._no_clock if elapsed is None else elapsed,
-                     int(elapsed is not None)])  # fmt: skip
+                     int(elapsed is not None), self.task_queue, self._no_task if task is None else task,
+                     0 if task is None else self.task_width])  # fmt: skip
         sim.set_joint_state_where(self.pending, self.xx)
 
     def mask(self, xp):

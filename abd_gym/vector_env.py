@@ -40,8 +40,10 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   Op by op on a GPU, a step waits for the device once more, at the NaN check, before its physics
   is queued; the step graph (below) checks on the device and never waits for the step it queues.
 * autoresets on the device and the step as one graph: in NEXT_STEP mode, for a task whose
-  episodes start from ``_initial_state`` alone (no ``_reset_task``) and while no parameters are
-  randomised, each world's next initial states are drawn ahead into a queue on the device
+  episodes start from ``_initial_state`` and its ``task_state`` values (``_draw_task``: a
+  Reacher's target) alone (no ``_reset_task`` of its own) and while no parameters are
+  randomised, each world's next initial states and task values are drawn ahead into a queue on
+  the device
   (:mod:`abd_gym.autoreset`; from a generator spawned from ``np_random`` at each full reset, so
   the same seed gives the same episodes on every backend and device) and the autoreset is device
   work only.  With the Torch backend on a GPU the whole step (action check, controls, physics,
@@ -96,7 +98,9 @@ bad value is the Simulator's error.
 
 A task subclasses :class:`ABDVectorEnv` and defines the class attributes ``dt``, ``frame_skip``
 and the methods ``build_scene``, ``observation_high`` (bounds), ``_observe``, ``_reward`` and
-optionally ``_terminated``, ``_initial_state``, ``_reset_task``, ``_info``, ``_controls`` and
+optionally ``_terminated``, ``_initial_state``, ``task_state`` with ``_draw_task`` (per-episode
+task values, e.g. a target: drawn on the device's autoreset path too), ``_reset_task`` (a task's
+own reset on the host, which keeps it off the device path), ``_info``, ``_controls`` and
 ``_render_extras``.  :class:`ABDEnv` turns a task into a single-world ``gymnasium.Env``.
 """
 from __future__ import annotations
@@ -183,6 +187,11 @@ class ABDVectorEnv(VectorEnv):
     dt: float = 0.02  # simulator time step [s]
     frame_skip: int = 1  # simulator steps per env step
     reset_option_keys: tuple = ()  # task-specific reset options (besides reset_mask and randomize)
+    # per-episode task values that each new episode draws (``_draw_task``): (attribute, width)
+    # pairs.  The env keeps them in one float32 array (N, total width) whose columns the
+    # attributes view ((N,) for width 1, else (N, width)), so that an autoreset on the device
+    # writes them with the episode's initial state (autoreset.py)
+    task_state: tuple = ()
     # rendering: plane of the view ("xz": x right, z up; "xy": x right, y up), centre [m], width [m]
     render_plane: str = "xz"
     render_center: tuple = (0.0, 0.0)
@@ -251,6 +260,12 @@ class ABDVectorEnv(VectorEnv):
 
         # ---- per-world bookkeeping
         self._elapsed = self._zeros(N, dtype="int")  # env steps in the current episode
+        self._task_width = sum(int(w) for _, w in self.task_state)
+        self._task = self._zeros(N, self._task_width)  # the task_state values, views of its columns
+        col = 0
+        for name, width in self.task_state:
+            setattr(self, name, self._task[:, col] if width == 1 else self._task[:, col : col + width])
+            col += width
         # all-False flags made once: building them each step was a host-to-device copy (on a GPU, a
         # copy from pageable memory, which waits for the stream) in every step of every task
         # without terminations
@@ -261,11 +276,13 @@ class ABDVectorEnv(VectorEnv):
         self._pending_in_flight = False
         self._has_reset = False
         # NEXT_STEP autoresets on the device (autoreset.py), for tasks whose episodes start from
-        # _initial_state alone (no _reset_task); not while parameters are randomised
+        # _initial_state and _draw_task alone (no _reset_task of their own); not while parameters
+        # are randomised
         own_reset = type(self)._reset_task is not ABDVectorEnv._reset_task
         self._next = None
         if self.autoreset_mode == AutoresetMode.NEXT_STEP and not own_reset:
-            self._next = NextEpisodes(self.sim, lambda n: self._initial_state(n, self._next_rng, {}))
+            self._next = NextEpisodes(self.sim, self._draw_episodes, task_width=self._task_width,
+                                      host_task=backend == "numpy")  # fmt: skip
         self._next_rng = None  # the generator of the next episodes' draws (spawned at each full reset)
         cuda_torch = backend == "torch" and self.device.is_cuda
         if graph and not (cuda_torch and self._next is not None):
@@ -353,8 +370,33 @@ class ABDVectorEnv(VectorEnv):
         nj = self.scene.num_joints
         return np.zeros((n, nj)), np.zeros((n, nj))
 
+    def _draw_task(self, n: int, rng: np.random.Generator, options: dict) -> dict:
+        """The ``task_state`` values of n new episodes: {attribute: (n,) or (n, width) host array}."""
+        return {}
+
     def _reset_task(self, idx: np.ndarray, rng: np.random.Generator, options: dict):
-        """Task state (targets, ...) of the worlds ``idx`` for a new episode."""
+        """Task state of the worlds ``idx`` for a new episode: by default the ``task_state`` values
+        ``_draw_task`` draws.  A task that overrides this resets on the host (no autoresets on the
+        device, no step graph)."""
+        if self._task_width:
+            self._put(self._task, idx, self._task_matrix(self._draw_task(len(idx), rng, options), len(idx)))
+
+    def _task_matrix(self, values: dict, n: int) -> np.ndarray:
+        """``_draw_task``'s values as one (n, total width) array, columns in ``task_state`` order."""
+        missing = [name for name, _ in self.task_state if name not in values]
+        if missing or len(values) != len(self.task_state):
+            raise ValueError(f"_draw_task must return exactly the task_state values {[k for k, _ in self.task_state]}, "
+                             f"got {sorted(values)}")  # fmt: skip
+        return np.concatenate([np.asarray(values[name], dtype=np.float64).reshape(n, int(w))
+                               for name, w in self.task_state], axis=1)  # fmt: skip
+
+    def _draw_episodes(self, n: int):
+        """n next episodes for the autoreset queues (autoreset.py), from the generator spawned at
+        the last full reset: initial coordinates, rates and (with ``task_state``) task values."""
+        x, xd = self._initial_state(n, self._next_rng, {})
+        if not self._task_width:
+            return x, xd
+        return x, xd, self._task_matrix(self._draw_task(n, self._next_rng, {}), n)
 
     def _info(self, obs) -> dict:
         """Per-step info: a dict of batched arrays (each gets an all-True ``"_key"`` mask)."""
@@ -757,7 +799,8 @@ class ABDVectorEnv(VectorEnv):
         obs, reward, self._out_b = self._unpack(self._out_raw)
         self._wp = dict(effort=wp.from_torch(self._effort), obs=wp.from_torch(obs), reward=wp.from_torch(reward),
                         flags=wp.from_torch(self._out_b), bad=wp.from_torch(self._out_b[4]),
-                        elapsed=wp.from_torch(self._elapsed))  # fmt: skip
+                        elapsed=wp.from_torch(self._elapsed),
+                        task=wp.from_torch(self._task) if self._task_width else None)  # fmt: skip
 
     def _unpack(self, raw):
         """Views of the packed outputs ``raw`` (the buffer, or a copy of its head): observations
@@ -805,7 +848,7 @@ class ABDVectorEnv(VectorEnv):
             # first of which ticks the episode clocks with Torch; with NumPy the host keeps the
             # clocks and, on the CPU, skips the launches when its mask has no pending world
             if self.xp is not np:
-                self._next.apply(self._wp["elapsed"])
+                self._next.apply(self._wp["elapsed"], self._wp["task"])
             elif capturing or not self.device.is_cpu or self._next.mask(np).any():
                 self._next.apply()
 
@@ -827,6 +870,8 @@ class ABDVectorEnv(VectorEnv):
             pend = self._next.mask(xp)
             self._elapsed += 1
             self._elapsed[pend] = 0
+            if self._task_width and pend.any():  # the rows the device's worlds took (host_task)
+                self._task[pend] = self._next.task_rows(pend)
             obs, reward, terminated, truncated, failed, info_values = self._outcome(a, pend)
             done = terminated | truncated
             self._next.set_pending(done)

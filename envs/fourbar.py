@@ -65,6 +65,9 @@ def _box_along(scene, p0, p1, mass, name, width=0.02, fixed=False):
 class FourBarVectorEnv(ABDVectorEnv):
     """Batched FourBar-v0 (see the module docstring)."""
 
+    # per-world target phase φ*(t) = phase0 + speed·t [rad], drawn per episode (_draw_task)
+    task_state = (("target_phase0", 1), ("target_speed", 1))
+
     dt, frame_skip = 0.01, 2
     render_center, render_width, render_size = (0.15, 0.1), 0.9, (480, 400)
     phi_ref = math.pi / 2  # crank angle of the zero pose
@@ -78,8 +81,6 @@ class FourBarVectorEnv(ABDVectorEnv):
         if s != lengths[0] or s + l_ > sum(lengths) - s - l_:
             raise ValueError(f"lengths {lengths} are not a Grashof crank-rocker with the crank shortest")
         super().__init__(num_envs, **kwargs)
-        self.target_phase0 = self._zeros(num_envs)
-        self.target_speed = self._zeros(num_envs)
 
     # ---- kinematics
     def points(self, xp, phi):
@@ -125,11 +126,10 @@ class FourBarVectorEnv(ABDVectorEnv):
         qd = (self.joint_angles(phi + eps * rate) - self.joint_angles(phi - eps * rate)) / (2 * eps)
         return q, qd
 
-    def _reset_task(self, idx, rng, options):
+    def _draw_task(self, n, rng, options):
         lo, hi = self.speed_range
-        speed = rng.uniform(lo, hi, size=len(idx)) * rng.choice([-1.0, 1.0], size=len(idx))
-        self._put(self.target_phase0, idx, rng.uniform(-math.pi, math.pi, size=len(idx)))
-        self._put(self.target_speed, idx, speed)
+        speed = rng.uniform(lo, hi, size=n) * rng.choice([-1.0, 1.0], size=n)
+        return {"target_phase0": rng.uniform(-math.pi, math.pi, size=n), "target_speed": speed}
 
     def target_phase(self, dt=0.0):
         return self.target_phase0 + self.target_speed * (self.episode_time() + dt)

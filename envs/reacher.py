@@ -60,11 +60,11 @@ class ReacherVectorEnv(ABDVectorEnv):
     reset_option_keys = ("target",)
     render_plane, render_center, render_width, render_size = "xy", (0.0, 0.0), 0.5, (400, 400)
     target_radius = (0.03, 0.2)  # m
+    task_state = (("target", 2),)  # (N, 2) [m], drawn per episode (_draw_task)
 
     def __init__(self, num_envs=1, *, lengths=(0.1, 0.11), masses=(0.1, 0.1), max_torque=0.2, damping=0.02, **kwargs):
         self.lengths, self.masses, self.max_torque, self.damping = lengths, masses, max_torque, damping
         super().__init__(num_envs, **kwargs)
-        self.target = self._zeros(num_envs, 2)
 
     def build_scene(self):
         return build_reacher_scene(self.lengths, self.masses, self.max_torque, self.damping)
@@ -82,14 +82,14 @@ class ReacherVectorEnv(ABDVectorEnv):
     def _initial_state(self, n, rng, options):
         return rng.uniform(-0.1, 0.1, size=(n, 2)), rng.uniform(-0.005, 0.005, size=(n, 2))
 
-    def _reset_task(self, idx, rng, options):
+    def _draw_task(self, n, rng, options):
         lo, hi = self.target_radius
-        r = np.sqrt(rng.uniform(lo**2, hi**2, size=len(idx)))
-        phi = rng.uniform(-math.pi, math.pi, size=len(idx))
+        r = np.sqrt(rng.uniform(lo**2, hi**2, size=n))
+        phi = rng.uniform(-math.pi, math.pi, size=n)
         target = np.stack([r * np.cos(phi), r * np.sin(phi)], axis=1)
         if "target" in options:
             target[:] = np.asarray(options["target"], dtype=np.float64).reshape(2)
-        self._put(self.target, idx, target)
+        return {"target": target}
 
     def tip(self, q):
         """(N, 2) tip position [m] from the joint angles (N, 2)."""

@@ -47,6 +47,9 @@ def piston_x(xp, phi, r, L):
 class SliderCrankVectorEnv(ABDVectorEnv):
     """Batched SliderCrank-v0 (see the module docstring)."""
 
+    # per-world target s*(t) = mid + amp·sin(omega·t + phase) [m], drawn per episode (_draw_task)
+    task_state = (("target_mid", 1), ("target_amp", 1), ("target_omega", 1), ("target_phase", 1))
+
     dt, frame_skip = 0.01, 2
     render_center, render_width, render_size = (0.15, 0.0), 0.7, (480, 320)
     phi_ref = math.pi / 2
@@ -66,8 +69,6 @@ class SliderCrankVectorEnv(ABDVectorEnv):
         x = piston_x(np, grid, crank, rod)
         self.phi_range = (float(grid[np.argmin(np.abs(x - hi))]), float(grid[np.argmin(np.abs(x - lo))]))
         super().__init__(num_envs, **kwargs)
-        # per-world target s*(t) = mid + amp·sin(omega·t + phase)
-        self.target_mid, self.target_amp, self.target_omega, self.target_phase = (self._zeros(num_envs) for _ in "abcd")
 
     def build_scene(self):
         r, L = self.r, self.L
@@ -107,12 +108,10 @@ class SliderCrankVectorEnv(ABDVectorEnv):
         qd = (self.joint_state(phi + eps * rate) - self.joint_state(phi - eps * rate)) / (2 * eps)
         return self.joint_state(phi), qd
 
-    def _reset_task(self, idx, rng, options):
-        n, (lo, hi) = len(idx), self.stroke
-        self._put(self.target_mid, idx, np.full(n, 0.5 * (lo + hi)))
-        self._put(self.target_amp, idx, rng.uniform(0.01, 0.06, size=n))
-        self._put(self.target_omega, idx, rng.uniform(1.0, 4.0, size=n))
-        self._put(self.target_phase, idx, rng.uniform(-math.pi, math.pi, size=n))
+    def _draw_task(self, n, rng, options):
+        lo, hi = self.stroke
+        return {"target_mid": np.full(n, 0.5 * (lo + hi)), "target_amp": rng.uniform(0.01, 0.06, size=n),
+                "target_omega": rng.uniform(1.0, 4.0, size=n), "target_phase": rng.uniform(-math.pi, math.pi, size=n)}
 
     def target(self):
         """(N,) target displacement s* [m] and its rate [m/s]."""

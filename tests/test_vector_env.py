@@ -380,6 +380,62 @@ def test_device_autoreset_matches_the_host_reset(backend):
     assert ends > 0 and truncs > 0
 
 
+@pytest.mark.parametrize("backend", ["numpy", "torch", "torch-checked"])
+def test_device_autoreset_draws_the_task_state(backend):
+    """A task with per-episode task values (Reacher-v0's target, ``task_state``) autoresets on the
+    device: the queues hold each next episode's target with its initial state, the worlds that
+    ended take both in the next step (the Torch backend by the take kernel, NumPy's by the host
+    copy of the rows: the same episodes from the same seed), and the env's clock, observations and
+    flags follow as for a task without task values.  A task with a ``_reset_task`` of its own keeps
+    its resets on the host."""
+    from envs.reacher import ReacherVectorEnv
+
+    if backend != "numpy":
+        pytest.importorskip("torch")
+    env, ref = (ReacherVectorEnv(N, max_episode_steps=4, backend=b) for b in (backend.split("-")[0], "numpy"))
+    env._check_on_device = backend == "torch-checked"
+    assert env._next is not None and env._next.task_width == 2
+    env.reset(seed=7)
+    ref.reset(seed=7)
+    rng = np.random.default_rng(1)
+    targets = [np.asarray(ref.target).copy()]
+    for t in range(13):
+        a = rng.uniform(-1, 1, size=(N, 2)).astype(np.float32)
+        out, want = env.step(a), ref.step(a)
+        for x, y in zip(out[:4], want[:4]):
+            np.testing.assert_allclose(np.asarray(x.cpu() if hasattr(x, "cpu") else x), y, atol=1e-6)
+        target = np.asarray(env.target.cpu() if hasattr(env.target, "cpu") else env.target)
+        np.testing.assert_array_equal(target, ref.target)
+        np.testing.assert_allclose(want[0][:, 4:6], ref.target, atol=1e-7)  # observed as it is held
+        if t % 5 == 4:  # the step after a truncation (every 4 steps, then 1 autoreset step): new targets
+            assert not np.any(np.all(target == targets[-1], axis=1))
+            r = np.hypot(target[:, 0], target[:, 1])
+            assert np.all((r >= 0.03 - 1e-6) & (r <= 0.2 + 1e-6))
+            targets.append(target.copy())
+        else:
+            np.testing.assert_array_equal(target, targets[-1])
+    assert len(targets) == 3
+    env.close()
+    ref.close()
+
+    class OwnReset(ReacherVectorEnv):
+        def _reset_task(self, idx, rng, options):
+            self._put(self._task, idx, np.full((len(idx), 2), 0.1))
+
+    own = OwnReset(N, max_episode_steps=4)
+    assert own._next is None  # resets on the host
+    own.reset(seed=0)
+    np.testing.assert_array_equal(own.target, np.float32(0.1))
+    own.close()
+
+    class BadDraw(ReacherVectorEnv):
+        def _draw_task(self, n, rng, options):
+            return {"goal": np.zeros((n, 2))}
+
+    with pytest.raises(ValueError, match=r"task_state values \['target'\], got \['goal'\]"):
+        BadDraw(N).reset(seed=0)
+
+
 def _snapshot(env):
     sim = env.unwrapped.sim
     return [np.array(x) for x in (sim.body_q(), sim.joint_velocities(), sim.joint_coordinates(), sim.state.time,
@@ -515,7 +571,7 @@ def test_device_autoreset_draws_fresh_episodes():
     env.close()
 
 
-@pytest.mark.parametrize("task", ["CartPole-v0", "Pendulum-v0"])
+@pytest.mark.parametrize("task", ["CartPole-v0", "Pendulum-v0", "Reacher-v0"])
 def test_graph_step_matches_launched_step(task):
     """On a GPU with Torch: the env step replayed as one CUDA graph (graph=True, the default there)
     gives the stream of the same step launched op by op (graph=False): the same physics, and the
