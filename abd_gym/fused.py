@@ -247,7 +247,7 @@ return 0;
 # the phases fused_kernel(phase_clock=True) times, columns of Terms.clock (cycles summed per world)
 PHASES = ("zero", "assemble", "factor", "solve", "step", "step: energy", "step: trial", "assemble: bodies",
           "assemble: revolute", "assemble: fixed", "assemble: prismatic", "assemble: limits", "assemble: drives",
-          "open", "close")
+          "open", "close", "open: bodies", "open: joints", "open: predict", "close: finalize", "close: joints")
 WORLD_PHASES = (0, 1, 2, 3, 4, 13, 14)  # the phases that partition a world's step (the rest split these)
 
 
@@ -1381,20 +1381,24 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         references read q before the initial guess moves it, and the prediction reads the world's
         status and step."""
         nb = q.shape[1]
+        c = clock_now()
         for b in range(lane, nb, LANES):
             open_body(q, k.qd, status, k.fresh, k.h, k.bdf2, t.h_step, t.control, k.control_prev, k.calm, w, b)
         if wp.static(lanes):
             block_sync()
+        c = tick(t, w, lane, 15, c)
         for j in range(lane, t.joint_kind.shape[0], LANES):
             begin_joint(q, t.body_a, t.body_b, t.joint_kind, t.n_a, t.b_a, t.n_b, t.b_b, k.c_ref, k.s_ref, t.theta0,
                         t.c_prev, t.s_prev, t.unwrapped, k.x_hist, t.h_step, k.h, t.x_anchor, w, j)  # fmt: skip
         if wp.static(lanes):
             block_sync()
+        c = tick(t, w, lane, 16, c)
         for b in range(lane, nb, LANES):
             predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.dof, t.mass,
                          t.mc, k.gravity, k.h, t.h_step, status, k.bend, w, b)  # fmt: skip
         if wp.static(lanes):
             block_sync()
+        tick(t, w, lane, 17, c)
 
     @wp.func
     def close_world(q: wp.array2d(dtype=vec12), t: Terms, k: Bracket, status: wp.array(dtype=wp.int32), w: int,
@@ -1403,16 +1407,19 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         the world's q is final, its joints' coordinates (a healthy world's only)."""
         if wp.static(lanes):
             block_sync()
+        c = clock_now()
         for b in range(lane, q.shape[1], LANES):
             finalize_body(q, k.q_prev, k.qd, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, t.dof, k.h, t.h_step, status, w,
                           b)  # fmt: skip
         if wp.static(lanes):
             block_sync()
+        c = tick(t, w, lane, 18, c)
         if status[w] == OK:
             for j in range(lane, t.joint_kind.shape[0], LANES):
                 joint_coordinates(q, k.q_prev, k.qd, t.body_a, t.body_b, t.joint_kind, t.c_a, t.c_b, t.t_a, t.n_a, t.b_a,
                                   t.n_b, t.b_b, t.theta0, t.c_prev, t.s_prev, k.h, 1, 0, k.coord, k.velocity,
                                   t.unwrapped, k.x_hist, w, j)  # fmt: skip
+        tick(t, w, lane, 19, c)  # (lane 0's joints: no barrier follows them)
 
     @wp.func
     def step_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, k: Bracket,
