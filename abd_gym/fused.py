@@ -1113,6 +1113,12 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 if accepted != 0:
                     break
                 alpha = alpha * half  # (a rejected reused-factor step's α is unused: chord_step retries)
+                if wp.static(lanes):
+                    # the next trial moves q_trial: every lane's energy must have read it first
+                    # (assemble ends on the joints' terms, with no barrier; without this one a
+                    # fast lane's next trial raced a slow lane's energy: a SliderCrank-v0 world's
+                    # lanes took different steps and failed, tests/test_graph.py)
+                    block_sync()
         else:
             trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
             c = tick(t, w, lane, 6, c)

@@ -314,19 +314,26 @@ def default_lane_width(device, num_worlds: int, dtype=wp.float32) -> int:
     return next((L for L in widths if 0 < num_worlds and -(-num_worlds * L // 32) <= room), 0)
 
 
+# the most unknowns a world of the default lane-split step has (three free bodies: the closed-loop
+# tasks FourBar-v0 and SliderCrank-v0, measured); larger worlds keep a thread each, unmeasured
+LANES_MAX_UNKNOWNS = 36
+
+
 def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int = 0) -> str:
-    """On a GPU, for up to 24 unknowns (a cart-pole, a double pendulum): "lanes" where the worlds'
-    warps fit the GPU at once (default_lane_width: up to 4,224 worlds on an H100's 132 SMs), where
-    one thread per world leaves most SMs idle; else "shared" where a block of 32 threads' systems
-    fits its shared memory (float32); else "global".  Measured on an H100 (``python -m
-    abd_gym.bench --scratch global,shared,lanes``): shared 1.18-1.25x as fast as global on
-    cart-poles and 1.25-1.47x on double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast
-    as shared on both at 1,024 worlds (results/bench_h100_lanes_rows.*), and narrower lanes 1.7-2.4x
-    at 2,048 and 4,096 (results/lane_width_h100.md).  Larger scenes keep the thread per world:
-    lanes are unmeasured there."""
+    """On a GPU, for up to LANES_MAX_UNKNOWNS unknowns (a cart-pole, a double pendulum, a four-bar
+    or slider-crank linkage): "lanes" where the worlds' warps fit the GPU at once
+    (default_lane_width: up to 4,224 worlds on an H100's 132 SMs), where one thread per world
+    leaves most SMs idle; else "shared" where a block of 32 threads' systems fits its shared memory
+    (float32); else "global".  Measured on an H100 (``python -m abd_gym.bench --scratch
+    global,shared,lanes``): shared 1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on
+    double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast as shared on both at 1,024
+    worlds (results/bench_h100_lanes_rows.*), and narrower lanes 1.7-2.4x at 2,048 and 4,096
+    (results/lane_width_h100.md); for the 36 unknowns of FourBar-v0's and SliderCrank-v0's
+    scenes, lanes 6.6x / 9.0x as fast as global at 1,024 worlds, 4.5x / 6.7x at 2,048 and 2.9x /
+    3.2x at 4,096 (results/session20/loops.md)."""
     if not (fused and device.is_cuda):
         return "global"
-    if n <= 24 and default_lane_width(device, num_worlds, dtype):
+    if n <= LANES_MAX_UNKNOWNS and default_lane_width(device, num_worlds, dtype):
         return "lanes"
     if default_block_dim_shared(n, dtype) >= 32:
         return "shared"

@@ -129,6 +129,38 @@ def test_lane_widths_are_the_same_step(cpu_blocks):
         np.testing.assert_array_equal(sim.newton_iterations(), sim0.newton_iterations())
 
 
+def test_lane_split_step_on_a_closed_loop(cpu_blocks):
+    """The lane-split step (a GPU's default up to 36 unknowns) on SliderCrank-v0's closed loop of
+    three bodies and four joints against one thread per world: on a GPU 32 lanes factor with two
+    rows a lane in registers, 16 with three, 8 (over 24 unknowns) in shared memory; the same steps
+    to float32 rounding under the task's torques (on the CPU, eight cooperative fibers)."""
+    import warp as wp
+
+    from envs.slider_crank import SliderCrankVectorEnv
+
+    env = SliderCrankVectorEnv(1)
+    W, rng = 4, np.random.default_rng(2)
+    x, xd = env._initial_state(W, rng, {})
+    torque = rng.uniform(-1, 1, (W, 1)) * env._max_effort
+
+    def run(scratch, block_dim=None):
+        sim = ag.Simulator(env.scene, num_worlds=W, dt=env.dt, scratch=scratch, block_dim=block_dim)
+        assert sim.model.num_dofs == 36
+        sim.set_joint_state(x, xd)
+        sim.set_controls(torque)
+        sim.step(40)
+        return sim.joint_coordinates(), sim
+
+    ref, _ = run("global")
+    cuda = wp.get_device(env.sim.device).is_cuda
+    for lanes in (32, 16, 8) if cuda else (8,):
+        out, sim = run("lanes", lanes)
+        assert sim.solver.lanes and sim.solver.block_dim == lanes and not sim.failed_worlds().size
+        np.testing.assert_allclose(out, ref, atol=1e-4)
+    assert np.abs(out - x).max() > 0.05  # (the crank turned)
+    env.close()
+
+
 @pytest.mark.parametrize("scratch", ["global", "lanes"])
 def test_deferred_armijo_test_is_the_same_step(scratch, monkeypatch):
     """solver.DEFER_ARMIJO: a Newton step that would be searched is taken whole and its Armijo test
@@ -306,7 +338,7 @@ def test_scratch_beyond_32_bit_indexing_is_refused():
 
 def test_default_scratch_by_device_size_and_batch():
     """The layout a simulator picks: a thread per world on the CPU; on a GPU lanes for worlds of up
-    to 24 unknowns while their warps fit it at once (32 lanes a world up to 8 warps an SM, then 16
+    to 36 unknowns while their warps fit it at once (32 lanes a world up to 8 warps an SM, then 16
     and 8 lanes: 1,056 / 2,112 / 4,224 worlds on 132 SMs), the shared scratch above that where 32
     systems fit a block, else the global one (the measured crossovers, solver.default_scratch and
     default_lane_width)."""
@@ -325,6 +357,8 @@ def test_default_scratch_by_device_size_and_batch():
     assert widths == [32, 32, 16, 16, 8, 8, 0]
     assert default_lane_width(cpu, 16) == 0
     assert default_lane_width(gpu, 1056, wp.float64) == 32 and default_lane_width(gpu, 1057, wp.float64) == 0
-    assert default_scratch(gpu, 36, wp.float32, True, 64) == "global"  # 32 of its systems exceed 47 KB
+    assert default_scratch(gpu, 36, wp.float32, True, 64) == "lanes"  # (a four-bar, a slider-crank)
+    assert default_scratch(gpu, 48, wp.float32, True, 64) == "global"  # 32 of its systems exceed 47 KB
+    assert default_scratch(gpu, 36, wp.float32, True, 4225) == "global"
     assert default_scratch(gpu, 24, wp.float64, True, 4096) == "global"
     assert default_scratch(gpu, 24, wp.float32, False, 64) == "global"  # the staged step has one layout
