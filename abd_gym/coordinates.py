@@ -22,7 +22,7 @@ def kernels(dtype):
 
 @functools.lru_cache(maxsize=None)
 def funcs(dtype):
-    """(begin_joint, joint_coordinates): one joint of one world each (for the fused step)."""
+    """(begin_joint, joint_coordinates, close_joint): one joint of one world each (for the fused step)."""
     return _build(dtype)[2:]
 
 
@@ -133,4 +133,44 @@ def _build(dtype):
         joint_coordinates(q, q_prev, qd, body_a, body_b, kind, c_a, c_b, t_a, n_a, b_a, n_b, b_b, theta0, c_prev, s_prev, h,
                           accumulate, rate_from_qd, coord, velocity, unwrapped, x_hist, w, j)  # fmt: skip
 
-    return begin_step, coordinates, begin_joint, joint_coordinates
+    @wp.func
+    def close_joint(
+        q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), body_a: wp.array(dtype=wp.int32),
+        body_b: wp.array(dtype=wp.int32), kind: wp.array(dtype=wp.int32),
+        c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
+        n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+        theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+        c_ref: wp.array2d(dtype=dtype), s_ref: wp.array2d(dtype=dtype), h: dtype, bdf2: int,
+        coord: wp.array2d(dtype=dtype), velocity: wp.array2d(dtype=dtype), unwrapped: wp.array2d(dtype=dtype),
+        x_hist: wp.array2d(dtype=dtype), x_anchor: wp.array2d(dtype=dtype), w: int, j: int,
+    ):  # fmt: skip
+        """The fused step's close of joint j of world w: joint_coordinates (accumulating the
+        multi-turn angle), then what begin_joint would compute from the same q as the next step
+        opens, from the cos/sin just computed: θ0 = ΔΘ(q, q_ref), (cos, sin)θ and the drives'
+        anchor (x, or x̂ = x + (x − x_prev)/3 for BDF2, whose next step is not a fresh one).  The
+        same values, one cos_sin a step fewer; a world set between steps (fresh) opens with
+        begin_joint as before."""
+        qi = q[w, body_a[j]]
+        qj = q[w, body_b[j]]
+        if kind[j] == REVOLUTE_CODE:
+            c, s = cos_sin(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j])
+            d = delta_theta(c, s, c_prev[w, j], s_prev[w, j])
+            coord[w, j] = theta0[w, j] + d
+            velocity[w, j] = d / h
+            x_hist[w, j] = unwrapped[w, j]
+            unwrapped[w, j] = unwrapped[w, j] + d
+            c_prev[w, j] = c
+            s_prev[w, j] = s
+            theta0[w, j] = delta_theta(c, s, c_ref[w, j], s_ref[w, j])
+        elif kind[j] == PRISMATIC_CODE:
+            x = displacement(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
+            xp = displacement(q_prev[w, body_a[j]], q_prev[w, body_b[j]], c_a[w, j], c_b[w, j], t_a[w, j])
+            coord[w, j] = x
+            velocity[w, j] = (x - xp) / h
+            x_hist[w, j] = unwrapped[w, j]
+            unwrapped[w, j] = x
+        x_anchor[w, j] = unwrapped[w, j]
+        if bdf2 != 0:
+            x_anchor[w, j] = unwrapped[w, j] + (unwrapped[w, j] - x_hist[w, j]) / dtype(3.0)
+
+    return begin_step, coordinates, begin_joint, joint_coordinates, close_joint

@@ -350,7 +350,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     reductions = staged["reductions"]
     noise_floor, energy_noise = staged["noise_floor"], staged["energy_noise"]
     open_body, predict_body, finalize_body = staged["open_body"], staged["predict_body"], staged["finalize_body"]
-    begin_joint, joint_coordinates = coordinates.funcs(dtype)
+    begin_joint, _, close_joint = coordinates.funcs(dtype)
     zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
     QUAD = dtype(4.0 * float(quadratic))  # × q's rounding (SolverSettings.quadratic_stop)
@@ -1388,16 +1388,20 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         status and step."""
         nb = q.shape[1]
         c = clock_now()
+        # fresh: the world was set since its last step (a reset, a state set), whose close then did
+        # not leave the joints' references for this step (close_joint); the close clears it
+        fresh = k.fresh[w]
         for b in range(lane, nb, LANES):
-            open_body(q, k.qd, status, k.fresh, k.h, k.bdf2, t.h_step, t.control, k.control_prev, k.calm, w, b)
+            open_body(q, k.qd, status, k.fresh, k.h, k.bdf2, t.h_step, t.control, k.control_prev, k.calm, w, b, 0)
         if wp.static(lanes):
             block_sync()
         c = tick(t, w, lane, 15, c)
-        for j in range(lane, t.joint_kind.shape[0], LANES):
-            begin_joint(q, t.body_a, t.body_b, t.joint_kind, t.n_a, t.b_a, t.n_b, t.b_b, k.c_ref, k.s_ref, t.theta0,
-                        t.c_prev, t.s_prev, t.unwrapped, k.x_hist, t.h_step, k.h, t.x_anchor, w, j)  # fmt: skip
-        if wp.static(lanes):
-            block_sync()
+        if fresh != 0:
+            for j in range(lane, t.joint_kind.shape[0], LANES):
+                begin_joint(q, t.body_a, t.body_b, t.joint_kind, t.n_a, t.b_a, t.n_b, t.b_b, k.c_ref, k.s_ref, t.theta0,
+                            t.c_prev, t.s_prev, t.unwrapped, k.x_hist, t.h_step, k.h, t.x_anchor, w, j)  # fmt: skip
+            if wp.static(lanes):
+                block_sync()
         c = tick(t, w, lane, 16, c)
         for b in range(lane, nb, LANES):
             predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.dof, t.mass,
@@ -1422,9 +1426,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         c = tick(t, w, lane, 18, c)
         if status[w] == OK:
             for j in range(lane, t.joint_kind.shape[0], LANES):
-                joint_coordinates(q, k.q_prev, k.qd, t.body_a, t.body_b, t.joint_kind, t.c_a, t.c_b, t.t_a, t.n_a, t.b_a,
-                                  t.n_b, t.b_b, t.theta0, t.c_prev, t.s_prev, k.h, 1, 0, k.coord, k.velocity,
-                                  t.unwrapped, k.x_hist, w, j)  # fmt: skip
+                close_joint(q, k.q_prev, t.body_a, t.body_b, t.joint_kind, t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b,
+                            t.b_b, t.theta0, t.c_prev, t.s_prev, k.c_ref, k.s_ref, k.h, k.bdf2, k.coord, k.velocity,
+                            t.unwrapped, k.x_hist, t.x_anchor, w, j)  # fmt: skip
+        if lane == 0:
+            k.fresh[w] = 0  # (read by this step's open only, before its first barrier)
         tick(t, w, lane, 19, c)  # (lane 0's joints: no barrier follows them)
 
     @wp.func

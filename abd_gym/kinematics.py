@@ -106,7 +106,7 @@ def kernels(dtype):
         K = wp.skew(t)
         return wp.identity(3, dtype) + wp.sin(x) * K + (one - wp.cos(x)) * (K * K)
 
-    begin_joint, joint_coordinates = coordinate_funcs(dtype)
+    begin_joint, joint_coordinates = coordinate_funcs(dtype)[:2]
 
     @wp.kernel
     def restart(

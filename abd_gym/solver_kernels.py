@@ -693,7 +693,7 @@ def kernels(dtype, envelope=False, packed=False):
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
         fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype),
         control: wp.array2d(dtype=dtype), control_prev: wp.array2d(dtype=dtype), calm: wp.array(dtype=wp.int32),
-        w: int, b: int,
+        w: int, b: int, clear: int,
     ):  # fmt: skip
         """A world with a non-finite q or q̇ fails; each world's effective step: ĥ = 2h/3 for BDF2,
         but h (an implicit Euler step) for a world without a past step (``fresh``).  BDF2 started
@@ -701,7 +701,8 @@ def kernels(dtype, envelope=False, packed=False):
         h·a, an O(h) error it never loses (measured: first-order global error); an implicit Euler
         first step is O(h²) accurate, which keeps BDF2 second order.  (Body 0 sets the world's.)
         ``calm``: the steps in a row, up to 2, whose controls are the last step's (predict_body
-        extrapolates the last accelerations to third order only across steps of one control)."""
+        extrapolates the last accelerations to third order only across steps of one control).
+        ``clear``: the world is no longer fresh (else the step's close clears it: the fused step)."""
         if b == 0:
             same = int(1)
             for d in range(control.shape[1]):
@@ -713,7 +714,8 @@ def kernels(dtype, envelope=False, packed=False):
             if bdf2 != 0 and fresh[w] == 0:
                 he = dtype(2.0) * h / dtype(3.0)
             h_step[w] = he
-            fresh[w] = 0
+            if clear != 0:
+                fresh[w] = 0
         if not (wp.isfinite(q[w, b]) and wp.isfinite(qd[w, b])):
             status[w] = FAILED
 
@@ -725,7 +727,7 @@ def kernels(dtype, envelope=False, packed=False):
     ):  # fmt: skip
         """open_body of body b of world w."""
         w, b = wp.tid()
-        open_body(q, qd, status, fresh, h, bdf2, h_step, control, control_prev, calm, w, b)
+        open_body(q, qd, status, fresh, h, bdf2, h_step, control, control_prev, calm, w, b, 1)
 
     return dict(
         predict=predict, start=start, newton_direction=newton_direction, h_row=h_row, cholesky_solve=cholesky_solve,

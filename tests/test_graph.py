@@ -305,9 +305,11 @@ def test_concurrent_cpu_launches_are_the_same_step(one_launch):
 def test_one_launch_step_is_the_bracketed_step(scratch, dtype, integrator, cpu_blocks):
     """one_launch (the fused kernel opens and closes each world's step: finite check, references,
     prediction, velocities, coordinates) against the same kernels launched around it: the same
-    functions in the same order per world, so the same trajectories, joint coordinates and rates
-    bit for bit, through controls, limits, a reset and a failure; BDF2 included (its step sizes
-    and anchors); with lanes on eight CPU fibers, split a body or a joint per lane."""
+    functions in the same order per world (the one launch's close also leaves the next step's joint
+    references, close_joint, which the kernels' open computes from the same q), so the same
+    trajectories, joint coordinates and rates bit for bit, through controls, limits, a reset and a
+    failure; BDF2 included (its step sizes and anchors); with lanes on eight CPU fibers, split a
+    body or a joint per lane."""
     block = 8 if scratch == "lanes" else None
     one, sim1 = _run(True, dtype=dtype, scratch=scratch, one_launch=True, integrator=integrator, block_dim=block)
     two, sim2 = _run(True, dtype=dtype, scratch=scratch, one_launch=False, integrator=integrator, block_dim=block)
