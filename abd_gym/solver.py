@@ -330,7 +330,7 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
     worlds (results/bench_h100_lanes_rows.*), and narrower lanes 1.7-2.4x at 2,048 and 4,096
     (results/lane_width_h100.md); for the 36 unknowns of FourBar-v0's and SliderCrank-v0's
     scenes, lanes 6.6x / 9.0x as fast as global at 1,024 worlds, 4.5x / 6.7x at 2,048 and 2.9x /
-    3.2x at 4,096 (results/session20/loops.md)."""
+    3.2x at 4,096 (results/session20/README.md)."""
     if not (fused and device.is_cuda):
         return "global"
     if n <= LANES_MAX_UNKNOWNS and default_lane_width(device, num_worlds, dtype):
