@@ -223,6 +223,25 @@ def test_acrobot_elbow_limit_holds_and_can_be_randomised():
         np.testing.assert_allclose(from_obs, from_bodies, atol=2e-3)
 
 
+def test_reacher_target_reset_option_and_mask():
+    """Reacher-v0's target (its task_state): the reset option ``target`` fixes it for the worlds
+    reset, a masked reset redraws only the masked worlds' targets, and the observation carries
+    the target as held."""
+    from envs.reacher import ReacherVectorEnv
+
+    env = ReacherVectorEnv(3, autoreset_mode=AutoresetMode.DISABLED)
+    obs, _ = env.reset(seed=1, options={"target": (0.1, -0.05)})
+    np.testing.assert_array_equal(env.target, np.float32([[0.1, -0.05]] * 3))
+    np.testing.assert_array_equal(obs[:, 4:6], env.target)
+    before = np.array(env.target)
+    obs, _ = env.reset(options={"reset_mask": np.array([False, True, False])})
+    assert not np.array_equal(env.target[1], before[1])
+    np.testing.assert_array_equal(env.target[[0, 2]], before[[0, 2]])
+    assert 0.03 - 1e-6 <= np.hypot(*env.target[1]) <= 0.2 + 1e-6
+    np.testing.assert_array_equal(obs[:, 4:6], env.target)
+    env.close()
+
+
 def test_reacher_shoulder_limit_near_180_degrees():
     from envs.reacher import ReacherVectorEnv
 
