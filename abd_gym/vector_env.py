@@ -260,6 +260,9 @@ class ABDVectorEnv(VectorEnv):
 
         # ---- per-world bookkeeping
         self._elapsed = self._zeros(N, dtype="int")  # env steps in the current episode
+        for name, width in self.task_state:
+            if not (isinstance(name, str) and name.isidentifier() and isinstance(width, (int, np.integer)) and width >= 1):
+                raise ValueError(f"task_state entries must be (attribute name, positive int width), got {(name, width)!r}")
         self._task_width = sum(int(w) for _, w in self.task_state)
         self._task = self._zeros(N, self._task_width)  # the task_state values, views of its columns
         col = 0

@@ -435,6 +435,12 @@ def test_device_autoreset_draws_the_task_state(backend):
     with pytest.raises(ValueError, match=r"task_state values \['target'\], got \['goal'\]"):
         BadDraw(N).reset(seed=0)
 
+    class BadWidth(ReacherVectorEnv):
+        task_state = (("target", 0),)
+
+    with pytest.raises(ValueError, match=r"positive int width\), got \('target', 0\)"):
+        BadWidth(N)
+
 
 def _snapshot(env):
     sim = env.unwrapped.sim
