@@ -35,6 +35,14 @@ def _build(dtype):
     theta_grad, displacement_grad = a.theta_grad, a.displacement_grad
 
     @wp.func
+    def anchor(unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype), bdf2_step: bool, w: int, j: int):
+        """The drives' anchor coordinate of a step: xⁿ, or x̂ = (4xⁿ − xⁿ⁻¹)/3 = xⁿ + (xⁿ − xⁿ⁻¹)/3 for
+        a BDF2 step (the difference first: its rounding is the increment's)."""
+        if bdf2_step:
+            return unwrapped[w, j] + (unwrapped[w, j] - x_hist[w, j]) / dtype(3.0)
+        return unwrapped[w, j]
+
+    @wp.func
     def begin_joint(
         q: wp.array2d(dtype=vec12), body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32),
         kind: wp.array(dtype=wp.int32),
@@ -46,9 +54,7 @@ def _build(dtype):
     ):  # fmt: skip
         """θ0 and cos/sin θ of q^{t−1} (the state at the start of the step), and the drives' anchor
         coordinate: xⁿ, or x̂ = (4xⁿ − xⁿ⁻¹)/3 for a BDF2 step (h_step[w] = 2h/3 < h); joint j of world w."""
-        x_anchor[w, j] = unwrapped[w, j]
-        if h_step[w] < h:
-            x_anchor[w, j] = unwrapped[w, j] + (unwrapped[w, j] - x_hist[w, j]) / dtype(3.0)
+        x_anchor[w, j] = anchor(unwrapped, x_hist, h_step[w] < h, w, j)
         if kind[j] != REVOLUTE_CODE:
             return
         c, s = cos_sin(q[w, body_a[j]], q[w, body_b[j]], n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j])
@@ -149,7 +155,9 @@ def _build(dtype):
         opens, from the cos/sin just computed: θ0 = ΔΘ(q, q_ref), (cos, sin)θ and the drives'
         anchor (x, or x̂ = x + (x − x_prev)/3 for BDF2, whose next step is not a fresh one).  The
         same values, one cos_sin a step fewer; a world set between steps (fresh) opens with
-        begin_joint as before."""
+        begin_joint as before.  (joint_coordinates' arithmetic written out, not called: calling it
+        and then storing its cos/sin built a 0.8 KB larger kernel with a larger stack frame, and
+        at 1,024 worlds the step's time follows its code, results/session20/README.md §4.)"""
         qi = q[w, body_a[j]]
         qj = q[w, body_b[j]]
         if kind[j] == REVOLUTE_CODE:
@@ -169,8 +177,6 @@ def _build(dtype):
             velocity[w, j] = (x - xp) / h
             x_hist[w, j] = unwrapped[w, j]
             unwrapped[w, j] = x
-        x_anchor[w, j] = unwrapped[w, j]
-        if bdf2 != 0:
-            x_anchor[w, j] = unwrapped[w, j] + (unwrapped[w, j] - x_hist[w, j]) / dtype(3.0)
+        x_anchor[w, j] = anchor(unwrapped, x_hist, bdf2 != 0, w, j)
 
     return begin_step, coordinates, begin_joint, joint_coordinates, close_joint
