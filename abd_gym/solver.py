@@ -191,6 +191,23 @@ FUSE_REVOLUTE = True
 DEFER_ARMIJO = False
 
 
+def fused_flags(model, jt: dict | None = None):
+    """What fused_kernel is built with for ``model``'s scene: (its positional has_* flags: revolute,
+    fixed and prismatic joints, revolute and prismatic limits left with terms of their own, drives
+    with terms of their own; the keyword flags pri_limits, pri_drives, rev_angles), from
+    ``joint_terms`` (``jt``, computed when not given)."""
+    from .scene import FIXED, PRISMATIC, REVOLUTE
+
+    jt = joint_terms(model) if jt is None else jt
+    fuse_lim, fuse_drv = bool((jt["pri_lim"] >= 0).any()), bool((jt["pri_drv"] >= 0).any())
+    angles = len(jt["ang_joint"]) > 0
+    m = model
+    has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
+           len(m.limit_joints[REVOLUTE]) > 0 and not angles, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
+           len(jt["rest"]) > 0)  # fmt: skip
+    return has, dict(pri_limits=fuse_lim, pri_drives=fuse_drv, rev_angles=angles)
+
+
 def joint_terms(model, prismatic: bool = True, revolute: bool = True) -> dict:
     """How the fused step groups the limits and drives with their joints.  ``pri_lim``, ``pri_drv``:
     for each prismatic joint (Model.joint_ids order) its limit and the first drive on it, or −1;
@@ -682,21 +699,15 @@ class Solver:
 
         m = self.model
         jt = self.joint_terms
-        rest = jt["rest"]
-        fuse_lim, fuse_drv = bool((jt["pri_lim"] >= 0).any()), bool((jt["pri_drv"] >= 0).any())
-        angles = len(jt["ang_joint"]) > 0
-        has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
-               len(m.limit_joints[REVOLUTE]) > 0 and not angles, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
-               len(rest) > 0)  # fmt: skip
+        has, joined = fused_flags(m, jt)
         st = self.settings
         kernel, Terms, Bracket, assemble_system = fused_kernel(
             m.dtype, *has, scratch=self.scratch, n=m.num_dofs, max_registers=st.max_registers,
             smem_spilling=st.smem_spilling, envelope=self.envelope, retract=bool(st.retract),
             phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
-            groups=self.lane_groups, per_block=self.worlds_per_block, pri_limits=fuse_lim,
-            pri_drives=fuse_drv, rev_angles=angles, defer=DEFER_ARMIJO, quadratic=float(st.quadratic_stop),
-            chord_stop=bool(st.chord_stop))  # fmt: skip
+            groups=self.lane_groups, per_block=self.worlds_per_block, **joined, defer=DEFER_ARMIJO,
+            quadratic=float(st.quadratic_stop), chord_stop=bool(st.chord_stop))  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -705,11 +716,11 @@ class Solver:
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
         t.q_back = wp.zeros_like(self.q_trial) if DEFER_ARMIJO else self.q_trial
-        t.drive_rest = m._int(rest)
+        t.drive_rest = m._int(jt["rest"])
         t.pri_lim, t.pri_drv, t.ang_joint, t.ang_lim = (m._int(jt[k]) for k in ("pri_lim", "pri_drv", "ang_joint",
                                                                                  "ang_lim"))  # fmt: skip
         # (an unused 1 × 2 placeholder where no joint has an angle term, as Model._int pads)
-        t.ang_drv = wp.array(jt["ang_drv"] if angles else np.full((1, 2), -1, np.int32), dtype=wp.int32,
+        t.ang_drv = wp.array(jt["ang_drv"] if joined["rev_angles"] else np.full((1, 2), -1, np.int32), dtype=wp.int32,
                              device=m.device)  # fmt: skip
         t.h_step = self.h_step
         t.rev_ids, t.fix_ids, t.pri_ids = m.joint_ids[REVOLUTE], m.joint_ids[FIXED], m.joint_ids[PRISMATIC]

@@ -37,44 +37,18 @@ REASONS = ("no_inst", "long_sb", "wait", "selected", "imc", "short_sb", "branch_
 
 
 def build(case, out, groups=1):
-    """The lane-split kernel of ``case`` compiled for sm_90 with line info and no #line directives."""
-    import warp as wp
+    """The lane-split kernel of ``case`` compiled for sm_90 with line info and no #line directives,
+    as the solver builds it (scripts/sass_size.py's build)."""
+    from sass_size import build as build_kernel  # (scripts/ is this script's folder on sys.path)
 
-    wp.config.lineinfo = True
-    wp.config.line_directives = False
-    from abd_gym.bench import CASES
-    from abd_gym.fused import fused_kernel
-    from abd_gym.model import Model
-    from abd_gym.scene import FIXED, PRISMATIC, REVOLUTE
-
-    from abd_gym.solver import joint_terms
-
-    m = Model(CASES[case]["scene"](), num_worlds=1, device="cpu")
-    jt = joint_terms(m)  # as the solver builds it (Solver._build_fused)
-    fuse_lim, fuse_drv = bool((jt["pri_lim"] >= 0).any()), bool((jt["pri_drv"] >= 0).any())
-    angles = len(jt["ang_joint"]) > 0
-    has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
-           len(m.limit_joints[REVOLUTE]) > 0 and not angles, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
-           len(jt["rest"]) > 0)  # fmt: skip
-    kernel = fused_kernel(wp.float32, *has, scratch="lanes", n=m.num_dofs, cuda=True, block=32, bracket=True,
-                          groups=groups, pri_limits=fuse_lim, pri_drives=fuse_drv, rev_angles=angles)[0]  # fmt: skip
-    kernel.module.options["block_dim"] = 32
-    (cubin,) = wp.compile_aot_module(kernel.module, arch=90, module_dir=out, use_ptx=False)
-    (source,) = [os.path.join(out, f) for f in os.listdir(out) if f.endswith(".cu")]
-    return str(cubin), source
+    return build_kernel(case, 32, lineinfo=True, groups=groups, out=out)
 
 
 def functions(source):
-    """The generated function each line of the .cu file is in."""
-    owner, name = [], "?"
-    with open(source) as f:
-        text = f.read().splitlines()
-    for line in text:
-        m = re.match(r"\s*(?:static\s+)?(?:CUDA_CALLABLE|extern \"C\" __global__)[^(]*?\b(\w+)\s*\(", line)
-        if m:
-            name = m.group(1)
-        owner.append(name)
-    return owner
+    """The generated function each line of the .cu file is in (scripts/sass_size.py's)."""
+    from sass_size import functions as owners
+
+    return owners(source)
 
 
 def opcode(sass):

@@ -22,16 +22,18 @@ import tempfile
 import warp as wp
 
 
-def build(case: str, lanes: int, lineinfo: bool):
-    """The compiled cubin's path and the generated .cu source of ``case``'s lane-split kernel."""
+def build(case: str, lanes: int = 32, lineinfo: bool = False, groups: int = 1, out: str | None = None):
+    """The compiled cubin's path and the generated .cu source of ``case``'s lane-split kernel, as
+    the solver builds it for a GPU (solver.fused_flags, the default SolverSettings), for sm_90, in
+    ``out`` (a new temporary folder when None); ``lineinfo``: with line information and without
+    #line directives (scripts/ncu_regions.py)."""
     if lineinfo:
         wp.config.lineinfo = True
         wp.config.line_directives = False
     from abd_gym.bench import CASES
     from abd_gym.fused import fused_kernel
     from abd_gym.model import Model
-    from abd_gym.scene import FIXED, PRISMATIC, REVOLUTE
-    from abd_gym.solver import SolverSettings, joint_terms
+    from abd_gym.solver import SolverSettings, fused_flags
 
     if case in CASES:
         scene = CASES[case]["scene"]()
@@ -45,17 +47,11 @@ def build(case: str, lanes: int, lineinfo: bool):
         scene = env.unwrapped.scene
         env.close()
     m = Model(scene, num_worlds=1, device="cpu")
-    jt = joint_terms(m)
-    fuse_lim, fuse_drv = bool((jt["pri_lim"] >= 0).any()), bool((jt["pri_drv"] >= 0).any())
-    angles = len(jt["ang_joint"]) > 0
-    has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
-           len(m.limit_joints[REVOLUTE]) > 0 and not angles, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
-           len(jt["rest"]) > 0)  # fmt: skip
+    has, joined = fused_flags(m)
     kernel = fused_kernel(wp.float32, *has, scratch="lanes", n=m.num_dofs, cuda=True, block=lanes, bracket=True,
-                          pri_limits=fuse_lim, pri_drives=fuse_drv, rev_angles=angles,
-                          quadratic=float(SolverSettings.quadratic_stop))[0]  # fmt: skip
+                          groups=groups, **joined, quadratic=float(SolverSettings.quadratic_stop))[0]  # fmt: skip
     kernel.module.options["block_dim"] = lanes
-    out = tempfile.mkdtemp()
+    out = tempfile.mkdtemp() if out is None else out
     (cubin,) = wp.compile_aot_module(kernel.module, arch=90, module_dir=out, use_ptx=False)
     (source,) = [os.path.join(out, f) for f in os.listdir(out) if f.endswith(".cu")]
     return str(cubin), source
@@ -105,16 +101,24 @@ def summary(cubin: str):
     return text, regs, frame
 
 
-def by_function(cubin: str, source: str):
-    """SASS bytes per generated function (the innermost one of each instruction's source line)."""
-    from elftools.elf.elffile import ELFFile
-
+def functions(source):
+    """The generated function each line of the generated .cu file is in (its name, per line)."""
     owner, name = [], "?"
-    for line in open(source).read().splitlines():
+    with open(source) as f:
+        text = f.read().splitlines()
+    for line in text:
         m = re.match(r"\s*(?:static\s+)?(?:CUDA_CALLABLE|extern \"C\" __global__)[^(]*?\b(\w+)\s*\(", line)
         if m:
             name = m.group(1)
         owner.append(name)
+    return owner
+
+
+def by_function(cubin: str, source: str):
+    """SASS bytes per generated function (the innermost one of each instruction's source line)."""
+    from elftools.elf.elffile import ELFFile
+
+    owner = functions(source)
     elf = ELFFile(open(cubin, "rb"))
     dwarf = elf.get_dwarf_info(relocate_dwarf_sections=False)
     size, off, sizes = elf.get_section_by_name(".debug_line").data_size, 0, collections.Counter()
