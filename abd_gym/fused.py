@@ -255,7 +255,7 @@ WORLD_PHASES = (0, 1, 2, 3, 4, 13, 14)  # the phases that partition a world's st
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
                  max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False,
                  cuda=False, block=0, bracket=True, groups=1, per_block=1, pri_limits=False,
-                 pri_drives=False, rev_angles=False, defer=False, quadratic=0.0, chord_stop=False):  # fmt: skip
+                 pri_drives=False, rev_angles=False, defer=False, quadratic=0.0, chord_stop=False, hold=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -294,7 +294,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     assembly returns anyway (solve_world), instead of in a pass of its own.  ``quadratic``
     (SolverSettings.quadratic_stop): a Newton step from a fresh factor accepted at α = 1 under this
     many times q's rounding floor ends the solve; ``chord_stop``: so does a reused factor's step
-    whose contraction predicts a next step under the tolerance (take_step)."""
+    whose contraction predicts a next step under the tolerance (take_step).  ``hold`` (with
+    ``bracket``): the step leaves alone the worlds of Bracket.hold and, while Bracket.go[0] is 0,
+    every world (step_world; a vector env's step graph), a check that a scene stepped on its own
+    does not carry."""
     # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
     # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
     # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
@@ -720,6 +723,8 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         x_hist: wp.array2d(dtype=dtype)
         coord: wp.array2d(dtype=dtype)
         velocity: wp.array2d(dtype=dtype)
+        hold: wp.array(dtype=wp.int32)  # (W,): a world with hold[w] != 0 is not stepped (step_world)
+        go: wp.array(dtype=wp.int32)  # (1,): 0 steps no world
         gravity: vec3
         h: dtype
         bdf2: int
@@ -1439,7 +1444,14 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                    row: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
                    status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
                    factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
-        """World w's step: its solve (solve_world), opened and closed here when ``bracket``."""
+        """World w's step: its solve (solve_world), opened and closed here when ``bracket``.  Built
+        with ``hold`` (and bracket), a world held (k.hold[w] != 0) or a batch refused (k.go[0] == 0)
+        is not stepped: no row of the world is read or written, so that another kernel may rewrite
+        it meanwhile (the vector env's autoreset, on a second stream), and its Newton counters keep
+        their last values."""
+        if wp.static(bracket and hold):
+            if k.go[0] == 0 or k.hold[w] != 0:
+                return
         if wp.static(bracket):
             c = clock_now()
             open_world(q, t, k, status, w, lane)

@@ -149,12 +149,15 @@ class Simulator:
                 self._warm = True
             self.state.time += k * self.dt
 
-    def launch_step(self, num_steps: int = 1):
+    def launch_step(self, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
         """``num_steps`` steps as direct launches of the step's kernels, without the simulator's own
         graphs and without advancing the host clock ``state.time``: for a caller that captures the
         step in a graph of its own (the vector env's), and advances the clock (``tick``) at each
-        replay.  The same step as ``step``."""
-        self.solver.step(self.state, num_steps)
+        replay.  The same step as ``step``.  ``hold`` (device int32 (num_worlds,)) and ``go``
+        (device int32 (1,)), where the step is one launch (``solver.holds``): the worlds with
+        hold[w] != 0, and every world while go[0] == 0, are not stepped, and none of their rows is
+        read or written, so that other launches may rewrite them at the same time."""
+        self.solver.step(self.state, num_steps, hold=hold, go=go)
 
     def tick(self, num_steps: int = 1):
         """Advance the host clock ``state.time`` by ``num_steps`` steps (see ``launch_step``)."""

@@ -489,6 +489,9 @@ class Solver:
         self.gdq, self.dq_max, self.alpha, self.g_abs = (wp.zeros(W, dtype=dt_, device=dev) for _ in range(4))
         self.active, self.searching, self.take = (wp.zeros(W, dtype=wp.int32, device=dev) for _ in range(3))
         self.all_active = wp.ones(W, dtype=wp.int32, device=dev)
+        self.hold_worlds = False  # the one-launch step checks hold and go (enable_hold)
+        self._no_hold = wp.zeros(W, dtype=wp.int32, device=dev)  # the fused step's default hold and go
+        self._go_all = wp.ones(1, dtype=wp.int32, device=dev)
         self.remaining = wp.zeros(1, dtype=wp.int32, device=dev)  # loop flags for wp.capture_while
         self.ls_remaining = wp.zeros(1, dtype=wp.int32, device=dev)
         # the shared and lane scratches pack H and factor it densely (their envelope=True was refused above)
@@ -560,13 +563,54 @@ class Solver:
         return {t: e[:, i].astype(np.float64) for t, i in self.report_cols.items() if t != "scratch"}
 
     # ------------------------------------------------------------------ step
-    def step(self, state, num_steps: int = 1):
+    def step(self, state, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
         """``num_steps`` implicit Euler steps of every world.  No host synchronisation: the loops run
         as ``wp.capture_while`` on device flags, so the whole step can be captured in a CUDA graph.
-        Where a step is one launch (``multi_step``), up to ``steps_per_launch`` steps a launch."""
+        Where a step is one launch (``multi_step``), up to ``steps_per_launch`` steps a launch.
+        ``hold`` (device int32 (W,)) and ``go`` (device int32 (1,)), where the step is one launch
+        (``holds``): the worlds with hold[w] != 0, and every world if go[0] == 0, are not stepped,
+        and none of their rows is read or written (fused.step_world)."""
+        phases = None
+        if hold is not None or go is not None:
+            phases = self._held_phases(hold, go)
         for k in self.launch_chunks(num_steps):
-            for phase, _ in self.step_phases(k):
+            for phase, _ in phases(k) if phases else self.step_phases(k):
                 phase(state)
+
+    @property
+    def holds(self) -> bool:
+        """Whether ``step`` can hold worlds (``hold``, ``go``): the step is one launch, whose kernel
+        was built to check them (``enable_hold``; the staged kernels do not)."""
+        return self.one_launch and self.hold_worlds
+
+    def enable_hold(self) -> bool:
+        """Build the one-launch step with the check of ``hold`` and ``go`` (two loads and a branch a
+        world-step, which a scene stepped on its own does not carry: 1–2% of an H100's cart-pole
+        step at 1,024 worlds); before the first step only.  Returns ``holds``."""
+        if self.one_launch and not self.hold_worlds:
+            if self._fused is not None:
+                raise RuntimeError("enable_hold comes before the first step (the step's kernel is built then)")
+            self.hold_worlds = True
+        return self.holds
+
+    def _held_phases(self, hold, go):
+        """step_phases with the bracket whose hold and go are these arrays (validated; a bracket kept per pair)."""
+        m = self.model
+        if not self.holds:
+            raise ValueError("hold and go need the one-launch step built to hold worlds (Solver.holds: "
+                             "settings.one_launch and enable_hold)")  # fmt: skip
+        for name, a, shape in (("hold", hold, (m.num_worlds,)), ("go", go, (1,))):
+            if a is not None and (a.dtype != wp.int32 or tuple(a.shape) != shape or a.device != wp.get_device(m.device)):
+                raise ValueError(f"{name} must be an int32 array of shape {shape} on {m.device}, got "
+                                 f"{a.dtype} {tuple(a.shape)} on {a.device}")  # fmt: skip
+
+        def phases(k):
+            fn = functools.partial(self._fused_newton, steps=int(k), hold=hold, go=go)
+            if k != 1 and not self.multi_step:
+                raise ValueError(f"{k} steps in one go need the one-launch step (multi_step)")
+            return [(fn, self.capturable)]
+
+        return phases
 
     @property
     def multi_step(self) -> bool:
@@ -642,13 +686,16 @@ class Solver:
                                                       state.status], device=dev)  # fmt: skip
         self.update_coordinates(state, accumulate=True)
 
-    def _fused_newton(self, state, steps: int = 1):
+    def _fused_newton(self, state, steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
         """The fused kernel: Newton for every world; with one_launch, the whole step, ``steps`` of
-        them in turn (a single launch only: ``multi_step``)."""
+        them in turn (a single launch only: ``multi_step``), holding the worlds ``hold`` marks and,
+        where go[0] == 0, every world (no arrays: none)."""
         m, s = self.model, self.settings
         if self._fused is None:
             self._fused = self._build_fused(state)
         kernel, terms, bracket, _ = self._fused
+        if hold is not None or go is not None:
+            bracket = self._bracket(bracket, hold, go)
         if steps != 1 and not self.multi_step:
             raise ValueError(f"{steps} steps in one launch need the one-launch step (one_launch) in a single launch")
         if self.lanes:
@@ -707,7 +754,7 @@ class Solver:
             phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
             groups=self.lane_groups, per_block=self.worlds_per_block, **joined, defer=DEFER_ARMIJO,
-            quadratic=float(st.quadratic_stop), chord_stop=bool(st.chord_stop))  # fmt: skip
+            quadratic=float(st.quadratic_stop), chord_stop=bool(st.chord_stop), hold=self.hold_worlds)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -744,7 +791,24 @@ class Solver:
         k.velocity = state.coord_vel
         k.c_ref, k.s_ref = m.c_ref, m.s_ref
         k.gravity, k.h, k.bdf2, k.bend = m.gravity, m.dtype(self.h), self.bdf2, int(st.retract)
+        k.hold, k.go = self._no_hold, self._go_all
+        self._Bracket, self._brackets = Bracket, {}
         return kernel, t, k, assemble_system
+
+    def _bracket(self, base, hold, go):
+        """``base`` (the Bracket) with these hold and go arrays (None: hold none, step all); one kept
+        per pair of arrays, so that a replayed graph's struct and its arrays stay alive."""
+        hold = self._no_hold if hold is None else hold
+        go = self._go_all if go is None else go
+        key = (hold.ptr, go.ptr)
+        entry = self._brackets.get(key)
+        if entry is None or entry[0] is not hold or entry[1] is not go:
+            k = self._Bracket()
+            for name in self._Bracket.vars:
+                setattr(k, name, getattr(base, name))
+            k.hold, k.go = hold, go
+            entry = self._brackets[key] = (hold, go, k)
+        return entry[2]
 
     def _newton_iteration(self, state):
         m, k, dev, s = self.model, self.k, self.model.device, self.settings

@@ -220,6 +220,54 @@ def test_steps_in_one_launch_are_the_steps_one_by_one(scratch):
     assert sim.failed_worlds().tolist() == [3]
 
 
+def test_held_worlds_are_not_stepped():
+    """launch_step(hold=, go=) on the one-launch step built for it (Solver.enable_hold, before the
+    first step): the worlds marked in ``hold`` are not stepped
+    and no row of theirs is written (so that the vector env's autoreset may rewrite them on another
+    stream meanwhile), the others step bit for bit as without it, and go[0] = 0 steps no world; a
+    solver whose step is not one launch, or a hold of the wrong shape or dtype, is refused."""
+    import warp as wp
+
+    def make(sim=None, **kw):
+        sim = sim or ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, **kw)
+        rng = np.random.default_rng(3)
+        sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
+        sim.set_controls(rng.uniform(-10, 10, (4, 1)))
+        sim.step(2)
+        return sim
+
+    def arrays(sim):
+        return {k: np.nan_to_num(v.numpy()) for k, v in vars(sim.state).items() if isinstance(v, wp.array)}
+
+    kw = dict(scratch="lanes", one_launch=True, steps_per_launch=3)
+    free, held = make(**kw), make(**kw)
+    assert not held.solver.holds  # built without the check unless asked, before the first step
+    with pytest.raises(RuntimeError, match="before the first step"):
+        held.solver.enable_hold()
+    held = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, **kw)
+    assert held.solver.enable_hold() and held.solver.holds
+    held = make(sim=held)
+    hold = wp.array([0, 1, 0, 0], dtype=wp.int32, device=held.device)
+    before = arrays(held)
+    free.step(7)
+    held.launch_step(7, hold=hold)
+    after, want = arrays(held), arrays(free)
+    assert len(after) > 20
+    for name, a in after.items():
+        np.testing.assert_array_equal(a[[0, 2, 3]], want[name][[0, 2, 3]], err_msg=name)
+        np.testing.assert_array_equal(a[1], before[name][1], err_msg=name)
+    assert not np.array_equal(after["q"][0], before["q"][0])
+    held.launch_step(3, go=wp.zeros(1, dtype=wp.int32, device=held.device))
+    for name, a in arrays(held).items():
+        np.testing.assert_array_equal(a, after[name], err_msg=name)
+    with pytest.raises(ValueError, match=r"hold must be an int32 array of shape \(4,\)"):
+        held.launch_step(1, hold=wp.zeros(3, dtype=wp.int32, device=held.device))
+    staged = make(scratch="global", one_launch=False)
+    assert not staged.solver.enable_hold()
+    with pytest.raises(ValueError, match="one-launch step"):
+        staged.launch_step(1, hold=hold)
+
+
 def test_default_lane_groups_fill_the_gpu_once():
     """Lane groups a world by default: on a GPU the most of 4, 2, 1 whose warps all fit at once
     (8 a streaming multiprocessor, a block's warps on one) and that each have work (the bodies or
