@@ -41,15 +41,21 @@ def default_depth(num_worlds: int) -> int:
 @functools.lru_cache(maxsize=None)
 def _take(dtype):
     @wp.kernel
-    def take(pending: wp.array(dtype=wp.int32), taken: wp.array(dtype=wp.int32), queue: wp.array3d(dtype=dtype),
+    def take(pending: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32), armed: wp.array(dtype=wp.int32),
+             taken: wp.array(dtype=wp.int32), queue: wp.array3d(dtype=dtype),
              xx: wp.array3d(dtype=dtype), elapsed: wp.array(dtype=wp.int64), tick: int,
              task_queue: wp.array2d(dtype=dtype), task: wp.array2d(dtype=wp.float32), task_width: int):  # fmt: skip
         """A pending world w's next initial state, row taken[w] mod depth of its queue (queue row
         slot·W + w), into xx[w], and the same row of its task values into task[w] (the env's
         float32 task array; ``task_width`` 0: none); one more taken.  With ``tick``, every
         world's episode clock (elapsed, env steps) too: restarted at 0 where the world is reset,
-        else one step on (the Torch backend's clocks, on the device: one launch less a step)."""
+        else one step on (the Torch backend's clocks, on the device: one launch less a step).
+        None of it where go[0] == 0 (a refused step); ``armed``: the worlds to restart now."""
         w = wp.tid()
+        if go[0] == 0:
+            armed[w] = 0
+            return
+        armed[w] = pending[w]
         if tick != 0:
             elapsed[w] = wp.where(pending[w] != 0, wp.int64(0), elapsed[w] + wp.int64(1))
         if pending[w] == 0:
@@ -91,6 +97,8 @@ class NextEpisodes:
         self._rows = wp.array(ptr=self.queue.ptr, dtype=m.dtype, shape=(self.depth * W, 2 * nj), device=dev)  # (rows, 2·nj)
         self.xx = wp.zeros((W, 2, nj), dtype=m.dtype, device=dev)  # the pending worlds' states, taken
         self.pending = wp.zeros(W, dtype=wp.int32, device=dev)
+        self.armed = wp.zeros(W, dtype=wp.int32, device=dev)  # the pending worlds that restart in this step (go)
+        self._go_all = wp.ones(1, dtype=wp.int32, device=dev)
         self.taken = wp.zeros(W, dtype=wp.int32, device=dev)
         self._taken = np.zeros(W, dtype=np.int64)  # the host's count, from the masks it reads
         self._drawn = np.zeros(W, dtype=np.int64)
@@ -170,21 +178,22 @@ class NextEpisodes:
             wp.launch(rows.fill_int, dim=len(idx), inputs=[self.pending, rows.indices(idx, self.sim._stage, "clear_idx"), 0],
                       device=self.sim.device)  # fmt: skip
 
-    def apply(self, elapsed: wp.array | None = None, task: wp.array | None = None):
+    def apply(self, elapsed: wp.array | None = None, task: wp.array | None = None, go: wp.array | None = None):
         """Start the pending worlds' next episodes: two launches on device arrays, for every world
         whether pending or not (a graph holds them with no condition: a conditional node and the
         launches it guarded cost more than these two do on the worlds with nothing to do).
         ``elapsed``: the episode clocks (int64 (W,)) to tick in the same launch; ``task``: the
         env's task values (float32 (W, task_width)) to write there too (else left to the host:
-        ``task_rows``)."""
+        ``task_rows``); ``go`` (int32 (1,)): nothing happens while go[0] == 0 (the vector env's
+        refused step, with no conditional node around these launches)."""
         sim = self.sim
         if elapsed is None and self._no_clock is None:
             self._no_clock = wp.zeros(1, dtype=wp.int64, device=sim.device)
         sim._replay("queue_take", _take(sim.model.dtype), sim.num_worlds,
-                    [self.pending, self.taken, self.queue, self.xx, self._no_clock if elapsed is None else elapsed,
-                     int(elapsed is not None), self.task_queue, self._no_task if task is None else task,
-                     0 if task is None else self.task_width])  # fmt: skip
-        sim.set_joint_state_where(self.pending, self.xx)
+                    [self.pending, self._go_all if go is None else go, self.armed, self.taken, self.queue, self.xx,
+                     self._no_clock if elapsed is None else elapsed, int(elapsed is not None), self.task_queue,
+                     self._no_task if task is None else task, 0 if task is None else self.task_width])  # fmt: skip
+        sim.set_joint_state_where(self.armed, self.xx)
 
     def mask(self, xp):
         """The pending mask as a backend bool array (Torch: on the device; NumPy: on the host, from

@@ -48,8 +48,13 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   the same seed gives the same episodes on every backend and device) and the autoreset is device
   work only.  With the Torch backend on a GPU the whole step (action check, controls, physics,
   autoreset, observation, reward, flags) is then captured once as one CUDA graph (the Warp part,
-  whose physics and autoreset sit in a conditional node, with the Torch graph of what follows
-  nested in it as a child graph) and replayed, two such graphs in turn: the graph reads the
+  with the Torch graph of what follows nested in it as a child graph) and replayed, two such
+  graphs in turn.  Where the simulator's step is one launch (``Solver.holds``: the lane-split
+  step, by default up to ~4,000 worlds), the physics and the autoreset run at once on two streams
+  of the graph: the step holds (does not touch) the worlds whose autoreset restarts them, and
+  both skip a refused batch themselves; elsewhere they run in turn inside a conditional node on
+  the check's go flag.  (On an H100 this took 1,024 CartPole-v0 worlds' step graph from 142 to
+  118 µs of device time, about 102 of them physics.)  The graph reads the
   caller's action batch and writes the step's outputs to a fresh buffer (the caller's to keep) by
   pointers the host leaves in page-locked memory, and writes the done mask there for the host,
   so a step is one graph launch and no copy.  The env's own bookkeeping runs there as a few Warp kernels
@@ -294,6 +299,10 @@ class ABDVectorEnv(VectorEnv):
         self._use_graph = cuda_torch and self._next is not None if graph is None else bool(graph)
         self._graph = None  # ((pre, physics graphs, post graphs), post outputs, mailed): _capture
         self._device_warm = False
+        # the step graph runs the autoreset beside the physics, which then holds the pending worlds
+        # (_physics): where the step is one launch, its kernel is built with that check
+        if self._use_graph:
+            self.sim.solver.enable_hold()
         # the step graph checks its actions for NaN on the device (a refused batch steps nothing,
         # and the next call raises): a host check would make the host wait for the device each step
         self._check_on_device = self._use_graph and wp.is_conditional_graph_supported()
@@ -313,6 +322,7 @@ class ABDVectorEnv(VectorEnv):
         self._stream_id = self._torch_stream = None  # that stream's id and Torch object
         self._post_graphs = []  # the Torch graphs nested in the step graphs (kept: their memory)
         self._slot = 0  # the step graph (and mailbox and host flags slot) replayed next
+        self._side_stream = None  # the step graph's second stream (the autoreset beside the physics)
         self._mailed = None  # the action batch the last step graph reads (kept until it has)
 
         # ---- per-world physical parameters (host copies of what the simulator holds)
@@ -838,8 +848,22 @@ class ABDVectorEnv(VectorEnv):
     def _physics(self, capturing: bool, checked: bool):
         """The simulator's step, then the autoreset of last step's ended worlds (autoreset.py);
         ``checked``: only where the go flag is set (a conditional node of the step graph, which the
-        device decides)."""
+        device decides).  Captured where the step can hold worlds: both at once (below)."""
         sim = self.sim
+        if capturing and self.xp is not np and sim.solver.holds:
+            # the physics and the autoreset at once, on two streams of the graph: the step holds the
+            # pending worlds (it neither reads nor writes their rows) while the autoreset restarts
+            # them, and both leave a refused batch (go cleared) alone themselves, with no
+            # conditional node (on an H100 the node cost ~8 µs a step, and the autoreset's two
+            # launches ~19 µs, at 1,024 CartPole-v0 worlds' ~100 µs physics)
+            go = self._go if checked else None
+            if self._side_stream is None:
+                raise RuntimeError("the step's side stream is made before its capture (_capture)")
+            with wp.ScopedStream(self._side_stream):  # waits for the stream's work so far (the check)
+                self._next.apply(self._wp["elapsed"], self._wp["task"], go=go)
+            sim.launch_step(self.frame_skip, hold=self._next.pending, go=go)
+            wp.get_stream(self.device).wait_stream(self._side_stream)
+            return
 
         def run():
             if capturing:
@@ -964,6 +988,8 @@ class ABDVectorEnv(VectorEnv):
         for kernel in mailed:
             kernel.module.load(self.device)
         physics, posts, outputs = [], [], []
+        if self.sim.solver.holds and self._side_stream is None:
+            self._side_stream = wp.Stream(self.device)
         for slot in (0, 1):
             try:
                 post, out = self._torch_graph(lambda: self._post(self._action_buf, slot), keep=True)

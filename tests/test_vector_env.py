@@ -359,7 +359,8 @@ def test_device_autoreset_matches_the_host_reset(backend):
     torch-checked: with the GPU graph's checks and conditional launches (run directly on the CPU)."""
     if backend != "numpy":
         pytest.importorskip("torch")
-    dev, host = (_FixedStartCartPole(N, max_episode_steps=9, backend=backend.split("-")[0]) for _ in range(2))
+    dev, host = (_FixedStartCartPole(N, max_episode_steps=9, backend=backend.split("-")[0], device="cpu")
+                 for _ in range(2))  # fmt: skip
     host._next = None  # the host path: _reset_worlds in the step
     assert dev._next is not None and not dev._use_graph  # on the CPU: the same launches, no graph
     dev._check_on_device = backend == "torch-checked"
@@ -440,6 +441,47 @@ def test_device_autoreset_draws_the_task_state(backend):
 
     with pytest.raises(ValueError, match=r"positive int width\), got \('target', 0\)"):
         BadWidth(N)
+
+
+def test_autoreset_launches_wait_for_the_go_flag():
+    """NextEpisodes.apply(go=): with go[0] = 0 (a batch the device refused, in the GPU step graph
+    where the autoreset runs beside the physics, with no conditional node) no world takes a row or
+    restarts and no clock ticks; with go[0] = 1 the pending worlds do, the others only tick."""
+    import warp as wp
+
+    env = make(backend="torch", device="cpu") if _has_torch() else None
+    if env is None:
+        pytest.skip("needs torch")
+    env.reset(seed=2)
+    for _ in range(3):
+        env.step(np.zeros((N, 1), np.float32))
+    nxt, sim, clock = env._next, env.sim, env._wp["elapsed"]
+    nxt.set_pending(np.array([False, True, False, True]))
+
+    def snap():
+        return [np.array(x) for x in (sim.joint_coordinates(), sim.joint_velocities(), clock.numpy(), nxt.taken.numpy())]
+
+    before = snap()
+    nxt.apply(clock, env._wp["task"], go=wp.zeros(1, dtype=wp.int32, device="cpu"))
+    for x, y in zip(snap(), before):
+        np.testing.assert_array_equal(x, y)
+    nxt.apply(clock, env._wp["task"], go=wp.ones(1, dtype=wp.int32, device="cpu"))
+    x, v, c, taken = snap()
+    np.testing.assert_array_equal(taken - before[3], [0, 1, 0, 1])
+    np.testing.assert_array_equal(c, np.where([0, 1, 0, 1], 0, before[2] + 1))
+    np.testing.assert_array_equal(x[[0, 2]], before[0][[0, 2]])
+    rows = nxt.queue.numpy()[N * (before[3][[1, 3]] % nxt.depth) + [1, 3]]
+    np.testing.assert_allclose(x[[1, 3]], rows[:, 0, : x.shape[1]], atol=1e-6)
+    np.testing.assert_allclose(v[[1, 3]], rows[:, 1, : v.shape[1]], atol=1e-6)
+    env.close()
+
+
+def _has_torch():
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def _snapshot(env):
