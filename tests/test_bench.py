@@ -119,3 +119,26 @@ def test_env_rate_keeps_the_fastest_window():
     assert len(rates) == 3 and all(r > 0 and math.isfinite(r) for r in rates)
     with pytest.raises(ValueError, match="repeat"):
         env_steps_per_second("CartPole-v0", 2, 3, "cpu", repeat=0)
+
+
+def test_timestamps_fill_their_ring_in_order():
+    """abd_gym.timestamps: each mark takes the ring's next slot (the GPU's global timer, in ns; 0
+    on the CPU), clear empties it, and a ring that overflowed says so."""
+    import numpy as np
+    import warp as wp
+
+    from abd_gym.timestamps import Stamps
+
+    device = "cuda:0" if wp.is_cuda_available() else "cpu"
+    st = Stamps(device, 3)
+    for _ in range(3):
+        st.mark()
+    t = st.read()
+    assert t.dtype == np.int64 and len(t) == 3 and np.all(np.diff(t) >= 0)
+    assert (t > 0).all() if device != "cpu" else (t == 0).all()
+    st.clear()
+    assert len(st.read()) == 0
+    for _ in range(4):
+        st.mark()
+    with pytest.raises(RuntimeError, match="4 stamps overflowed a ring of 3"):
+        st.read()
