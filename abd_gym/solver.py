@@ -570,11 +570,10 @@ class Solver:
         ``hold`` (device int32 (W,)) and ``go`` (device int32 (1,)), where the step is one launch
         (``holds``): the worlds with hold[w] != 0, and every world if go[0] == 0, are not stepped,
         and none of their rows is read or written (fused.step_world)."""
-        phases = None
         if hold is not None or go is not None:
-            phases = self._held_phases(hold, go)
+            self._check_hold(hold, go)
         for k in self.launch_chunks(num_steps):
-            for phase, _ in phases(k) if phases else self.step_phases(k):
+            for phase, _ in self.step_phases(k, hold, go):
                 phase(state)
 
     @property
@@ -593,8 +592,8 @@ class Solver:
             self.hold_worlds = True
         return self.holds
 
-    def _held_phases(self, hold, go):
-        """step_phases with the bracket whose hold and go are these arrays (validated; a bracket kept per pair)."""
+    def _check_hold(self, hold, go):
+        """``step``'s hold and go: a solver that can hold them, int32 arrays of their shapes on its device."""
         m = self.model
         if not self.holds:
             raise ValueError("hold and go need the one-launch step built to hold worlds (Solver.holds: "
@@ -603,14 +602,6 @@ class Solver:
             if a is not None and (a.dtype != wp.int32 or tuple(a.shape) != shape or a.device != wp.get_device(m.device)):
                 raise ValueError(f"{name} must be an int32 array of shape {shape} on {m.device}, got "
                                  f"{a.dtype} {tuple(a.shape)} on {a.device}")  # fmt: skip
-
-        def phases(k):
-            fn = functools.partial(self._fused_newton, steps=int(k), hold=hold, go=go)
-            if k != 1 and not self.multi_step:
-                raise ValueError(f"{k} steps in one go need the one-launch step (multi_step)")
-            return [(fn, self.capturable)]
-
-        return phases
 
     @property
     def multi_step(self) -> bool:
@@ -634,11 +625,11 @@ class Solver:
             return [(self._whole_step, True)]
         return [(self._open, True), (self._newton, False), (self._close, True)]
 
-    def step_phases(self, steps: int = 1) -> list:
-        """(part, capturable) pairs for ``steps`` steps: the one launch of multi_step, else (steps 1)
-        phases()."""
-        if self.multi_step:
-            return [(functools.partial(self._fused_newton, steps=int(steps)), self.capturable)]
+    def step_phases(self, steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None) -> list:
+        """(part, capturable) pairs for ``steps`` steps: the one launch of multi_step (or of a step
+        holding worlds: ``hold``, ``go``), else (steps 1) phases()."""
+        if self.multi_step or hold is not None or go is not None:
+            return [(functools.partial(self._fused_newton, steps=int(steps), hold=hold, go=go), self.capturable)]
         if steps != 1:
             raise ValueError(f"{steps} steps in one go need the one-launch step (multi_step)")
         return self.phases()

@@ -449,9 +449,8 @@ def test_autoreset_launches_wait_for_the_go_flag():
     restarts and no clock ticks; with go[0] = 1 the pending worlds do, the others only tick."""
     import warp as wp
 
-    env = make(backend="torch", device="cpu") if _has_torch() else None
-    if env is None:
-        pytest.skip("needs torch")
+    pytest.importorskip("torch")
+    env = make(backend="torch", device="cpu")
     env.reset(seed=2)
     for _ in range(3):
         env.step(np.zeros((N, 1), np.float32))
@@ -474,14 +473,6 @@ def test_autoreset_launches_wait_for_the_go_flag():
     np.testing.assert_allclose(x[[1, 3]], rows[:, 0, : x.shape[1]], atol=1e-6)
     np.testing.assert_allclose(v[[1, 3]], rows[:, 1, : v.shape[1]], atol=1e-6)
     env.close()
-
-
-def _has_torch():
-    try:
-        import torch  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 def _snapshot(env):

@@ -1,29 +1,19 @@
 import numpy as np
 import warp as wp
 
-@wp.func_native("""
-unsigned long long t = 0;
-#if defined(__CUDA_ARCH__)
-asm volatile("mov.u64 %0, %%globaltimer;" : "=l"(t));
-#endif
-return t;
-""")
-def gtimer() -> wp.uint64: ...
+"""The probes' stamp kernels, on abd_gym.timestamps' global timer (the pair form for envstamp.py)."""
+from abd_gym.timestamps import global_timer as gtimer
+from abd_gym.timestamps import stamp as stamp1  # noqa: F401 -- a ring's next slot (envparts.py, envstamp2.py)
+
 
 @wp.kernel
 def stamp(t: wp.array(dtype=wp.uint64), counter: wp.array(dtype=wp.int32), which: int):
+    """Pair i's stamp ``which`` (0 before, 1 after: the pair counted)."""
     i = counter[0]
     if 2 * i + 1 < t.shape[0]:
         t[2 * i + which] = gtimer()
     if which == 1:
         counter[0] = i + 1
-
-@wp.kernel
-def stamp1(t: wp.array(dtype=wp.uint64), counter: wp.array(dtype=wp.int32)):
-    i = counter[0]
-    if i < t.shape[0]:
-        t[i] = gtimer()
-    counter[0] = i + 1
 
 
 class Clock:
