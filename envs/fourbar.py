@@ -135,12 +135,19 @@ class FourBarVectorEnv(ABDVectorEnv):
         return self.target_phase0 + self.target_speed * (self.episode_time() + dt)
 
     def target(self):
-        """(N, 2) target point P* [m] and (N, 2) its velocity [m/s]."""
+        """(N, 2) target point P* [m] and (N, 2) its velocity [m/s], Ṗ* = (P(φ* + ε) − P(φ* − ε)) / (2ε)
+        · ω with ε = 1e-3 rad, in float64: in float32 the difference's rounding (an ulp of P over
+        2ε) reached 3e-5 m/s, so two float32 evaluations (Torch's and torch.compile's) disagreed
+        there by far more than an ulp of the result."""
         xp, eps = self.xp, 1e-3
-        _, _, (px, pz) = self.points(xp, self.target_phase())
-        _, _, (px1, pz1) = self.points(xp, self.target_phase(eps))
-        _, _, (px0, pz0) = self.points(xp, self.target_phase(-eps))
-        return xp.stack([px, pz], axis=1), xp.stack([(px1 - px0) / (2 * eps), (pz1 - pz0) / (2 * eps)], axis=1)
+        phase = self.target_phase()
+        _, _, (px, pz) = self.points(xp, phase)
+        phase = phase.astype(np.float64) if xp is np else phase.double()
+        _, _, (px1, pz1) = self.points(xp, phase + eps)
+        _, _, (px0, pz0) = self.points(xp, phase - eps)
+        rate = self.target_speed / (2 * eps)  # dφ*/dt = ω
+        vel = xp.stack([(px1 - px0) * rate, (pz1 - pz0) * rate], axis=1)
+        return xp.stack([px, pz], axis=1), self._f32(vel)
 
     def coupler_point_position(self):
         """(N, 2) coupler point P [m] from the coupler body's pose."""

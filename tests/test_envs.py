@@ -304,6 +304,25 @@ def test_slider_crank_loop_and_piston_limits():
     assert s.min() > lo - 0.005 and s.max() < hi + 0.005  # ...which hold it short of the dead centres
 
 
+def test_fourbar_target_velocity_is_the_targets_rate():
+    """The observed Ṗ* is dP*/dt of the target's own curve: against a float64 central difference of
+    step 1e-6 s (error ~1e-9 m/s), to float32 rounding of the observation (|Ṗ*| < ~1 m/s)."""
+    from envs.fourbar import fourbar_points
+
+    env = rollout("abd_gym/FourBar-v0", "random")[3]
+    a, b, c, d = env.lengths
+    env.reset(seed=6)
+    for _ in range(5):
+        obs = env.step(np.full((N, 1), 0.5))[0]
+    phase = np.asarray(env.target_phase(), dtype=np.float64)
+    h, w = 1e-6, np.asarray(env.target_speed, dtype=np.float64)
+    _, _, (x1, z1) = fourbar_points(np, phase + w * h, a, b, c, d, env.coupler_point)
+    _, _, (x0, z0) = fourbar_points(np, phase - w * h, a, b, c, d, env.coupler_point)
+    rate = np.stack([x1 - x0, z1 - z0], axis=1) / (2 * h)
+    assert np.abs(rate).max() > 0.05  # the targets move
+    np.testing.assert_allclose(obs[:, 7:9], rate, rtol=0, atol=2e-6)
+
+
 @pytest.mark.parametrize("env_id", ["abd_gym/FourBar-v0", "abd_gym/SliderCrank-v0"])
 def test_linkage_targets_move(env_id):
     _, _, observations, env = rollout(env_id, "random")
