@@ -118,11 +118,11 @@ class NextEpisodes:
         self._drawn[:] = 0
         self._top_up()
 
-    def took(self, idx: np.ndarray):
-        """The worlds ``idx`` took a row in this step (the host learns it from the ended-world mask);
-        the queues are topped up once some world has used half of its own."""
-        self._taken[idx] += 1
-        if len(idx) and np.any(self._drawn[idx] - self._taken[idx] <= self.depth // 2):
+    def took(self, mask: np.ndarray):
+        """The worlds of the host bool ``mask`` (W,) took a row in this step (the host learns it from
+        the ended-world mask); the queues are topped up once some world has used half of its own."""
+        self._taken += mask
+        if (self._drawn - self._taken).min() <= self.depth // 2:
             self._top_up()
 
     def _top_up(self):

@@ -668,7 +668,7 @@ class ABDVectorEnv(VectorEnv):
             event.synchronize()
             rows = host[self._pinned_slot]
             self._pending = rows[0].copy()
-            if self._unread:
+            if self._unread and rows[1].any():
                 self._refused = np.flatnonzero(rows[1])
             self._pending_in_flight = False
         if self._unread:  # the verdict of a step checked on the device
@@ -805,24 +805,30 @@ class ABDVectorEnv(VectorEnv):
         dev = self._torch_device
         self._go = wp.ones(1, dtype=wp.int32, device=self.device)
         self._go_t = wp.to_torch(self._go)
-        # one byte buffer, so that one clone of its head copies the observations, rewards and the three
-        # flags returned
-        self._out_raw = torch.zeros(4 * N * (d + 1) + 5 * N, dtype=torch.uint8, device=dev)
-        self._out_head = 4 * N * (d + 1) + 3 * N
-        obs, reward, self._out_b = self._unpack(self._out_raw)
+        # one buffer (float32 words: the observations' and rewards' type; the flags' bytes after them),
+        # so that one clone of its head copies the observations, rewards and the three flags returned
+        self._out_raw = torch.zeros(-(-(4 * N * (d + 1) + 5 * N) // 4), dtype=torch.float32, device=dev)
+        self._out_head = -(-(4 * N * (d + 1) + 3 * N) // 4)
+        obs, reward = self._unpack(self._out_raw, 0)
+        F = 4 * N * (d + 1)
+        self._out_b = self._out_raw.view(torch.uint8)[F: F + 5 * N].view(torch.bool).view(5, N)
         self._wp = dict(effort=wp.from_torch(self._effort), obs=wp.from_torch(obs), reward=wp.from_torch(reward),
                         flags=wp.from_torch(self._out_b), bad=wp.from_torch(self._out_b[4]),
                         elapsed=wp.from_torch(self._elapsed),
                         task=wp.from_torch(self._task) if self._task_width else None)  # fmt: skip
 
-    def _unpack(self, raw):
-        """Views of the packed outputs ``raw`` (the buffer, or a copy of its head): observations
-        (N, d), rewards (N,) and the flag rows it holds (terminated, truncated, failed[, done, bad])."""
+    def _unpack(self, raw, rows: int = 3):
+        """Views of the packed outputs ``raw`` (float32 words, the buffer or a copy of its head, at
+        storage offset 0): observations (N, d), rewards (N,), then the first ``rows`` flag rows
+        (terminated, truncated, failed, done, bad: bytes after the rewards), each (N,).  Built by
+        as_strided, one Torch call a view: slicing and retyping took 11 calls, ~15 µs of host time a
+        step on the H100's host at 1,024 envs."""
         torch = self.xp
         N, d = self.num_envs, self.single_observation_space.shape[0]
         F = 4 * N * (d + 1)
-        f = raw[:F].view(torch.float32)
-        return f[: N * d].view(N, d), f[N * d:], raw[F:].view(torch.bool).view(-1, N)
+        flags = raw.view(torch.bool) if rows else None
+        return (raw.as_strided((N, d), (d, 1)), raw.as_strided((N,), (1,), N * d),
+                *(flags.as_strided((N,), (1,), F + k * N) for k in range(rows)))  # fmt: skip
 
     def _pre(self, a, checked: bool, slot: int | None = None):
         """The controls of the actions ``a``.  ``checked`` (on the device; ``a`` not yet clipped, and
@@ -918,8 +924,7 @@ class ABDVectorEnv(VectorEnv):
                           self.sim.state.status, self._go, pending, k["elapsed"], steps, k["obs"], k["reward"],
                           k["flags"], self._mail_dev if mailed else None, slot or 0,
                           self._host_flags_dev if mailed else None], device=dev)  # fmt: skip
-        obs, reward, b = self._unpack(self._out_raw)
-        return (obs, reward, b[0], b[1], b[2]), info_values, b[3:5]
+        return self._unpack(self._out_raw), info_values, self._out_b[3:5]
 
     def _task_outcome(self, a):
         """The task's observation (float32, clipped to the space), reward (float32), termination and
@@ -1027,7 +1032,7 @@ class ABDVectorEnv(VectorEnv):
             self._replay_stream, self._stream_id, self._torch_stream = wp.stream_from_torch(ts), sid, ts
         # the outputs' buffer: fresh from Torch's allocator each step (stream-ordered, as a clone's
         # would be), which the caller keeps
-        raw = torch.empty(self._out_head, dtype=torch.uint8, device=self._torch_device)
+        raw = torch.empty(self._out_head, dtype=torch.float32, device=self._torch_device)
         mail = self._mail_np[slot]
         mail[1] = raw.data_ptr()
         if mailed:
@@ -1071,25 +1076,23 @@ class ABDVectorEnv(VectorEnv):
                 # (one clone of the packed bytes)
                 out = self._unpack(self._out_raw[: self._out_head].clone())
         if self.xp is not np:
-            obs, reward, b = out
-            out = (obs, reward, b[0], b[1], b[2])
             info_values = {k: v.clone() for k, v in info_values.items()}
         obs, reward, terminated, truncated, failed = out
         # the worlds the device just reset (last step's ended ones, known on the host now): their
         # info is a reset's (none), their clock restarts, they took a row of their queues; this
         # read raises if the device refused the last step
+        # (whole-mask NumPy operations: a few calls a step, each cheaper on 1,024 worlds than the
+        # index list and fancy indexing they replace)
         mask = self._pending_now()
         if replayed:
             self.sim.tick(self.frame_skip)
-        pending = np.flatnonzero(mask)
         if checked:
             self._undo = before + (mask.copy(),)
-        has_info = np.ones(self.num_envs, dtype=bool)
-        if len(pending):
-            has_info[pending] = False
-            self.sim.state.time[pending] = 0.0
-            self._next.took(pending)
-            self._pending[pending] = False
+        has_info = ~mask
+        if mask.any():
+            self.sim.state.time[mask] = 0.0
+            self._next.took(mask)
+            mask[...] = False  # (self._pending: none left pending)
         if not checked and flags.ndim == 2:
             flags = flags[0]  # the done row
         self._defer_pending(flags, checked, slot)
