@@ -652,6 +652,41 @@ def test_graph_step_matches_launched_step(task):
     plain.close()
 
 
+def test_each_env_compiles_its_own_outcome():
+    """Envs of several sizes in one process each keep a compiled outcome: torch.compile keeps its
+    versions of a function on its code object, at most recompile_limit of them (8; here 1), after
+    which it runs the function uncompiled; each env compiles a copy of its own."""
+    torch = pytest.importorskip("torch")
+    import logging
+    import shutil
+
+    if shutil.which("g++") is None and shutil.which("c++") is None:
+        pytest.skip("torch.compile on the CPU needs a C++ compiler")
+    if not hasattr(torch._dynamo.config, "recompile_limit"):
+        pytest.skip("this Torch names the limit otherwise")
+    fallbacks = []
+
+    class Catch(logging.Handler):
+        def emit(self, record):
+            if "recompile_limit" in record.getMessage():
+                fallbacks.append(record.getMessage())
+
+    handler, log = Catch(), logging.getLogger("torch._dynamo")
+    log.addHandler(handler)
+    try:
+        with torch._dynamo.config.patch(recompile_limit=1):
+            for n in (4, 8):
+                env = gym.make_vec("abd_gym/CartPole-v0", num_envs=n, vectorization_mode="vector_entry_point",
+                                   device="cpu", backend="torch", compile_outcome=True)  # fmt: skip
+                env.reset(seed=0)
+                for _ in range(2):
+                    env.step(torch.zeros(n, 1))
+                env.close()
+    finally:
+        log.removeHandler(handler)
+    assert not fallbacks
+
+
 @pytest.mark.parametrize("task", ["CartPole-v0", "Pendulum-v0"])
 def test_compiled_outcome_matches_eager(task):
     """compile_outcome=True (torch.compile of the task's observation, reward and termination; the
