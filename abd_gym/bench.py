@@ -60,8 +60,9 @@ CASES = {
                              pole=1, rest=(0.0, math.pi)),
     "cartpole_bare": dict(scene=lambda: mechanisms.cartpole(track=None, force=None),
                           mode=lambda: (_cartpole_mode(), np.array([0.0, 1.0])), pole=1, rest=(0.0, math.pi)),
-    # a 10-link chain (120 unknowns): its Hessian is block-banded, factored on its envelope; no
-    # closed-form period (mode None)
+    # 5- and 10-link chains (60 and 120 unknowns): their Hessians are block-banded, factored on
+    # their envelopes; no closed-form period (mode None)
+    "chain5": dict(scene=lambda: mechanisms.chain(5, length=0.1), mode=None, pole=0, rest=(0.0,) * 5),
     "chain10": dict(scene=lambda: mechanisms.chain(10, length=0.1), mode=None, pole=0, rest=(0.0,) * 10),
 }  # fmt: skip
 

@@ -83,6 +83,15 @@ def shared_array(dtype, count: int):
 
 
 @functools.lru_cache(maxsize=None)
+def lanes_scratch_words(n: int, groups: int) -> int:
+    """Words of one world's scratch in the lane-split step (its block's shared memory on CUDA):
+    ``groups`` copies of H's packed lower triangle (n(n+1)/2 each), g (n, then the bodies' energies
+    and, with groups, the copies' g, the groups' energies and the factor's flag) and Δq (n)."""
+    tri, nf = n * (n + 1) // 2, n // 12
+    glen = n + nf if groups == 1 else (groups - 1) * tri + n + nf + groups + 1
+    return groups * tri + glen + n
+
+
 def world_funcs(lanes: int, per_block: int):
     """(world_sync, world_lane) for a kernel whose worlds have ``lanes`` threads each, ``per_block``
     worlds to a CUDA block: a barrier for one world's lanes and the thread's lane in its world.  One
@@ -1598,7 +1607,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     # with lane groups, G copies of H and of g (copy c from c·TRI; copy 0's g holds past N the
     # bodies' energies, the groups' energies and the factor's ok, assemble_groups and solve_world)
     GLEN = N + NF if G == 1 else (G - 1) * TRI + N + NF + G + 1
-    WORDS = G * TRI + GLEN + N  # a world's scratch words
+    WORDS = lanes_scratch_words(N, G)  # a world's scratch words
     if lanes and cuda:
         lanes_scratch = shared_array(dtype, WPB * WORDS)
 

@@ -260,7 +260,15 @@ def term_counts(model, jt: dict) -> dict:
             "drive": len(jt["rest"]), "angle": len(jt["ang_joint"])}  # fmt: skip
 
 
-def default_lane_groups(device, scratch: str, num_worlds: int, terms: int = 3) -> int:
+def lanes_scratch_bytes(n: int, dtype, groups: int = 1, per_block: int = 1) -> int:
+    """Shared memory of a block of the lane-split step on CUDA: ``per_block`` worlds of ``n``
+    unknowns, each with ``groups`` copies of its system (fused.lanes_scratch_words)."""
+    from .fused import lanes_scratch_words
+
+    return per_block * lanes_scratch_words(n, groups) * (4 if dtype == wp.float32 else 8)
+
+
+def default_lane_groups(device, scratch: str, num_worlds: int, terms: int = 3, n: int = 0, dtype=wp.float32) -> int:
     """Lane groups a world of the lane-split step on a GPU: one for the bodies and one for each of
     the world's ``terms`` (joints, limits and drives, term_counts), at most 4, else 2, else 1: the
     most whose blocks (a warp a group) all fit on the GPU at once (LANE_WARPS_PER_SM), else the
@@ -268,14 +276,16 @@ def default_lane_groups(device, scratch: str, num_worlds: int, terms: int = 3) -
     results/quadratic_stop.md): cart-poles / double pendulums, each with 2 terms, at 128 and 256
     worlds in 3 groups 1.12x / 1.10x and 1.11x / 1.07x as fast as in 1 (4 groups, one idle,
     1.07x / 1.06x and 1.05x / 1.02x); at 352 worlds 3-warp blocks no longer fit at once (2 a SM) and run 0.65x; 2
-    groups at 512 worlds 1.01x / 0.98x; at 1,024 worlds 2 groups run in two waves, 0.61x.  The
+    groups at 512 worlds 1.01x / 0.98x; at 1,024 worlds 2 groups run in two waves, 0.61x.  With
+    ``n`` unknowns: no more groups than a block's shared memory holds copies of the system.  The
     CPU: 1."""
     if scratch != "lanes" or not getattr(device, "is_cuda", False):
         return 1
     top = min(4, 1 + terms)
     # a block's warps share an SM: LANE_WARPS_PER_SM // g blocks of g warps fit on one
     return next(g for g in sorted({top, min(top, 2), 1}, reverse=True)
-                if g == 1 or num_worlds <= LANE_WARPS_PER_SM // g * device.sm_count)
+                if g == 1 or (num_worlds <= LANE_WARPS_PER_SM // g * device.sm_count
+                              and lanes_scratch_bytes(n, dtype, g) <= SHARED_BLOCK_BYTES))  # fmt: skip
 
 
 # relative cost of a term in an assembly (thousands of cycles a world-step, the cart-pole's phase
@@ -315,9 +325,11 @@ def lane_work(counts: dict, groups: int, row_lanes: int, num_dofs: int):
     return out_k, out_i, np.array([len(x) for x in share], dtype=np.int32)
 
 
-def default_lane_width(device, num_worlds: int, dtype=wp.float32) -> int:
-    """Lanes a world of the lane-split step on a GPU: the most of 32, 16, 8 whose warps all fit on
-    the GPU at once (LANE_WARPS_PER_SM; under 32 lanes, 32 // lanes worlds share a warp), else 0.
+def default_lane_width(device, num_worlds: int, dtype=wp.float32, n: int = 0) -> int:
+    """Lanes a world of the lane-split step on a GPU: for up to LANES_MAX_UNKNOWNS unknowns ``n``,
+    the most of 32, 16, 8 whose warps all fit on the GPU at once (LANE_WARPS_PER_SM; under 32
+    lanes, 32 // lanes worlds share a warp), else 0; for more, 32 up to WIDE_LANES_MAX_WORLDS
+    worlds where one world's system fits a block's shared memory, else 0.
     A world's step is a chain of dependent work on its lanes, so the GPU runs ~8 warps an SM (its
     registers' worth) each taking about as long whether it holds 1, 2 or 4 worlds: narrower worlds
     pay only once one wave of full-width worlds no longer holds them.  Measured on an H100
@@ -327,21 +339,31 @@ def default_lane_width(device, num_worlds: int, dtype=wp.float32) -> int:
     1.07x of shared.  float64: 32 lanes only (narrower worlds hold 2-3 rows of twice the registers
     a lane; unmeasured)."""
     room = LANE_WARPS_PER_SM * getattr(device, "sm_count", 0)
+    if n > LANES_MAX_UNKNOWNS:
+        fits = room and lanes_scratch_bytes(n, dtype) <= SHARED_BLOCK_BYTES
+        return 32 if fits and 0 < num_worlds <= WIDE_LANES_MAX_WORLDS else 0
     widths = (32, 16, 8) if dtype == wp.float32 else (32,)
     return next((L for L in widths if 0 < num_worlds and -(-num_worlds * L // 32) <= room), 0)
 
 
-# the most unknowns a world of the default lane-split step has (three free bodies: the closed-loop
-# tasks FourBar-v0 and SliderCrank-v0, measured); larger worlds keep a thread each, unmeasured
+# the most unknowns of a world that the default lane-split step gives 16 or 8 lanes where 32 would
+# not fit the GPU at once (three free bodies: the closed-loop tasks FourBar-v0 and SliderCrank-v0,
+# measured); larger worlds take 32 lanes, up to WIDE_LANES_MAX_WORLDS worlds.  H100, 5-link chains
+# (60 unknowns; results/session22), world-steps/s: 2,048 worlds at 16 lanes 4.68 M against 9.64 M
+# at 32 (and 4.47 M shared); 4,096 worlds at 8 lanes 4.17 M, at 32 9.07 M, shared 5.54 M; 16,384
+# at 32 lanes 6.42 M against shared 8.35 M.  10-link chains (120 unknowns, no shared scratch):
+# 32 lanes 3.4x / 2.4x the global step at 1,024 / 2,048 worlds.
 LANES_MAX_UNKNOWNS = 36
+WIDE_LANES_MAX_WORLDS = 4096
 
 
 def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int = 0) -> str:
     """On a GPU, for up to LANES_MAX_UNKNOWNS unknowns (a cart-pole, a double pendulum, a four-bar
     or slider-crank linkage): "lanes" where the worlds' warps fit the GPU at once
     (default_lane_width: up to 4,224 worlds on an H100's 132 SMs), where one thread per world
-    leaves most SMs idle; else "shared" where a block of 32 threads' systems fits its shared memory
-    (float32); else "global".  Measured on an H100 (``python -m abd_gym.bench --scratch
+    leaves most SMs idle; for more (chains): "lanes" at 32 lanes up to WIDE_LANES_MAX_WORLDS worlds
+    where a world's system fits a block's shared memory; else "shared" where a block of 32
+    threads' systems fits its shared memory (float32); else "global".  Measured on an H100 (``python -m abd_gym.bench --scratch
     global,shared,lanes``): shared 1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on
     double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast as shared on both at 1,024
     worlds (results/bench_h100_lanes_rows.*), and narrower lanes 1.7-2.4x at 2,048 and 4,096
@@ -350,7 +372,7 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
     3.2x at 4,096 (results/session20/README.md)."""
     if not (fused and device.is_cuda):
         return "global"
-    if n <= LANES_MAX_UNKNOWNS and default_lane_width(device, num_worlds, dtype):
+    if default_lane_width(device, num_worlds, dtype, n):
         return "lanes"
     if default_block_dim_shared(n, dtype) >= 32:
         return "shared"
@@ -430,12 +452,12 @@ class Solver:
             raise ValueError(f"steps_per_launch must be a positive integer or None, got {spl!r}")
         self.steps_per_launch = int(spl or default_steps_per_launch())
         # lanes a world: block_dim, else default_lane_width where the worlds fit the GPU at once, else 32
-        width = settings.block_dim or (self.lanes and default_lane_width(wp.get_device(dev), W, dt_)) or 32
+        width = settings.block_dim or (self.lanes and default_lane_width(wp.get_device(dev), W, dt_, n)) or 32
         narrow = self.lanes and width < 32
         # how the fused step groups limits and drives with their joints (read again by _build_fused)
         self.joint_terms = joint_terms(model, FUSE_PRISMATIC, FUSE_REVOLUTE)
         terms = sum(term_counts(model, self.joint_terms).values())
-        self.lane_groups = int(groups or (1 if narrow else default_lane_groups(wp.get_device(dev), scratch, W, terms)))
+        self.lane_groups = int(groups or (1 if narrow else default_lane_groups(wp.get_device(dev), scratch, W, terms, n, dt_)))
         self.block_dim = settings.block_dim or ((width if narrow else 32 * self.lane_groups) if self.lanes
                                                 else default_block_dim(wp.get_device(dev), T))  # fmt: skip
         if self.in_smem:
@@ -459,6 +481,13 @@ class Solver:
         L = self.block_dim
         share = self.lanes and cuda and L < 32 and not L & (L - 1) and self.lane_groups == 1
         self.worlds_per_block = 32 // L if share else 1
+        if self.lanes and cuda:
+            need = lanes_scratch_bytes(n, dt_, self.lane_groups, self.worlds_per_block)
+            if need > SHARED_BLOCK_BYTES:
+                raise ValueError(f"scratch='lanes': a block of {self.worlds_per_block} world(s) of {n} unknowns in "
+                                 f"{self.lane_groups} lane group(s) needs {need} B of shared memory, more than its "
+                                 f"{SHARED_BLOCK_BYTES} B: take 32 lanes a world (block_dim=32) and lane_groups=1, "
+                                 "or scratch='shared' or 'global'")  # fmt: skip
         self.q_trial = wp.zeros((T, model.num_bodies), dtype=model.vec12, device=dev)
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)

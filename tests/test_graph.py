@@ -282,9 +282,26 @@ def test_default_lane_groups_fill_the_gpu_once():
     assert [default_lane_groups(gpu, "lanes", 16, terms) for terms in (0, 1, 2, 3, 5)] == [1, 2, 3, 4, 4]
     assert [default_lane_groups(gpu, "lanes", w, 2) for w in (264, 265, 528, 529)] == [3, 2, 2, 1]
     assert default_lane_groups(cpu, "lanes", 16) == 1 and default_lane_groups(gpu, "shared", 16) == 1
+    # no more copies of a world's system than a block's shared memory holds (47 KB)
+    assert [default_lane_groups(gpu, "lanes", 16, 9, n) for n in (36, 60, 96)] == [4, 2, 1]
     m = ag.Simulator(mechanisms.cartpole(), num_worlds=1).model
     assert term_counts(m, joint_terms(m)) == dict(revolute=1, fixed=0, prismatic=1, revolute_limit=0,
                                                   prismatic_limit=0, drive=0, angle=0)
+
+
+def test_lane_scratch_bytes():
+    """A block's shared memory in the lane-split step: per world, H's packed triangle per lane
+    group, g and Δq; 4 worlds of 120 unknowns at 8 lanes need 120,160 B (ptxas on an H100 reported
+    120,288 B for that kernel, Warp's own 128 B included, and refused it)."""
+    import warp as wp
+
+    from abd_gym.fused import lanes_scratch_words
+    from abd_gym.solver import lanes_scratch_bytes
+
+    assert lanes_scratch_words(24, 1) == 300 + 24 + 2 + 24
+    assert lanes_scratch_words(24, 3) == 3 * 300 + (2 * 300 + 24 + 2 + 3 + 1) + 24
+    assert lanes_scratch_bytes(120, wp.float32, 1, 4) == 120_160
+    assert lanes_scratch_bytes(120, wp.float64) == 2 * lanes_scratch_bytes(120, wp.float32) == 60_080
 
 
 def test_steps_per_launch_must_be_positive():
@@ -408,7 +425,13 @@ def test_default_scratch_by_device_size_and_batch():
     assert default_lane_width(cpu, 16) == 0
     assert default_lane_width(gpu, 1056, wp.float64) == 32 and default_lane_width(gpu, 1057, wp.float64) == 0
     assert default_scratch(gpu, 36, wp.float32, True, 64) == "lanes"  # (a four-bar, a slider-crank)
-    assert default_scratch(gpu, 48, wp.float32, True, 64) == "global"  # 32 of its systems exceed 47 KB
+    # more unknowns (chains): 32 lanes up to 4,096 worlds where a world's system fits 47 KB
+    assert [default_lane_width(gpu, w, wp.float32, 60) for w in (1, 1057, 4096, 4097)] == [32, 32, 32, 0]
+    assert default_scratch(gpu, 48, wp.float32, True, 64) == "lanes"
+    assert default_scratch(gpu, 120, wp.float32, True, 2048) == "lanes"
+    assert default_scratch(gpu, 60, wp.float32, True, 4097) == "global"  # 32 of its systems exceed 47 KB
+    assert default_scratch(gpu, 120, wp.float64, True, 1024) == "global"  # one system: 60 KB
+    assert default_scratch(gpu, 156, wp.float32, True, 1024) == "global"  # 49.6 KB
     assert default_scratch(gpu, 36, wp.float32, True, 4225) == "global"
     assert default_scratch(gpu, 24, wp.float64, True, 4096) == "global"
     assert default_scratch(gpu, 24, wp.float32, False, 64) == "global"  # the staged step has one layout
