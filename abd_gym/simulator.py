@@ -54,12 +54,15 @@ class Simulator:
     one kernel; ``threads`` (that kernel's thread count; each thread solves worlds s, s+T, …) and
     ``block_dim`` (its CUDA block size) default to values measured on an H100.  ``scratch``: where the
     fused step keeps a world's gradient, Hessian and Newton step (default, solver.default_scratch:
-    on a GPU "lanes" where the worlds fit it at once, else "shared" where it fits, else "global"):
+    on a GPU "lanes" where the worlds fit it at once, and for worlds of more than 36 unknowns up to
+    4,096 worlds where one system fits a block's shared memory, else "shared" where it fits, else
+    "global"):
     "global" (arrays, one column per thread), "shared" (a thread per world, its
     system with H packed in its CUDA block's shared memory, where a block's systems fit in 47 KB: up
     to 32 float32 threads of 24 unknowns) or "lanes" (``block_dim`` lanes per world, sharing its terms
-    and its factor: a CUDA block of 32, or 16 or 8 where more worlds must fit the GPU at once, 2 or
-    4 worlds then sharing a warp); same arithmetic, same trajectories to rounding.
+    and its factor: a CUDA block of 32, or 16 or 8 where more worlds of up to 36 unknowns must fit
+    the GPU at once, 2 or 4 worlds then sharing a warp; a block's systems in its 47 KB of shared
+    memory); same arithmetic, same trajectories to rounding.
     ``max_registers`` and ``smem_spilling``: the fused kernel's CUDA register cap and spilling to shared memory.
     ``reuse_factor``: Newton's reuse of a Cholesky factor (default: float32 only).  ``envelope``:
     factor only the Hessian's envelope, the columns from each row's first coupled body on (default:
