@@ -355,6 +355,11 @@ def default_lane_width(device, num_worlds: int, dtype=wp.float32, n: int = 0) ->
 # 32 lanes 3.4x / 2.4x the global step at 1,024 / 2,048 worlds.
 LANES_MAX_UNKNOWNS = 36
 WIDE_LANES_MAX_WORLDS = 4096
+# past those worlds, a chain's systems in shared memory where this many fit a block (fewer threads
+# than a warp): H100, 5-link chains (6 a block) 2.7x / 1.84x / 1.51x / 1.07x the global step at
+# 1,024 / 8,192 / 16,384 / 65,536 worlds; 10-link chains (1 a block) 1.06x at 4,096 but 0.51x at
+# 16,384 (results/session22).  Worlds of up to 36 unknowns keep the rule of 32 (their measured one).
+SHARED_MIN_SYSTEMS = 6
 
 
 def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int = 0) -> str:
@@ -363,7 +368,8 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
     (default_lane_width: up to 4,224 worlds on an H100's 132 SMs), where one thread per world
     leaves most SMs idle; for more (chains): "lanes" at 32 lanes up to WIDE_LANES_MAX_WORLDS worlds
     where a world's system fits a block's shared memory; else "shared" where a block of 32
-    threads' systems fits its shared memory (float32); else "global".  Measured on an H100 (``python -m abd_gym.bench --scratch
+    threads' systems fits its shared memory (float32), or for worlds of more than
+    LANES_MAX_UNKNOWNS unknowns SHARED_MIN_SYSTEMS of them; else "global".  Measured on an H100 (``python -m abd_gym.bench --scratch
     global,shared,lanes``): shared 1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on
     double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast as shared on both at 1,024
     worlds (results/bench_h100_lanes_rows.*), and narrower lanes 1.7-2.4x at 2,048 and 4,096
@@ -374,7 +380,8 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
         return "global"
     if default_lane_width(device, num_worlds, dtype, n):
         return "lanes"
-    if default_block_dim_shared(n, dtype) >= 32:
+    fit = default_block_dim_shared(n, dtype)
+    if fit >= 32 or (n > LANES_MAX_UNKNOWNS and fit >= SHARED_MIN_SYSTEMS):
         return "shared"
     return "global"
 

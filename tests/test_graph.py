@@ -429,7 +429,10 @@ def test_default_scratch_by_device_size_and_batch():
     assert [default_lane_width(gpu, w, wp.float32, 60) for w in (1, 1057, 4096, 4097)] == [32, 32, 32, 0]
     assert default_scratch(gpu, 48, wp.float32, True, 64) == "lanes"
     assert default_scratch(gpu, 120, wp.float32, True, 2048) == "lanes"
-    assert default_scratch(gpu, 60, wp.float32, True, 4097) == "global"  # 32 of its systems exceed 47 KB
+    # past them, shared where 6 of its systems fit a block (60 unknowns: 6), else global
+    assert default_scratch(gpu, 60, wp.float32, True, 4097) == "shared"
+    assert default_scratch(gpu, 120, wp.float32, True, 4097) == "global"  # one fits
+    assert default_scratch(gpu, 60, wp.float64, True, 4097) == "global"  # three fit
     assert default_scratch(gpu, 120, wp.float64, True, 1024) == "global"  # one system: 60 KB
     assert default_scratch(gpu, 156, wp.float32, True, 1024) == "global"  # 49.6 KB
     assert default_scratch(gpu, 36, wp.float32, True, 4225) == "global"
