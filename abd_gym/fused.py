@@ -82,7 +82,6 @@ def shared_array(dtype, count: int):
     return shared_scratch
 
 
-@functools.lru_cache(maxsize=None)
 def lanes_scratch_words(n: int, groups: int) -> int:
     """Words of one world's scratch in the lane-split step (its block's shared memory on CUDA):
     ``groups`` copies of H's packed lower triangle (n(n+1)/2 each), g (n, then the bodies' energies
@@ -92,6 +91,7 @@ def lanes_scratch_words(n: int, groups: int) -> int:
     return groups * tri + glen + n
 
 
+@functools.lru_cache(maxsize=None)
 def world_funcs(lanes: int, per_block: int):
     """(world_sync, world_lane) for a kernel whose worlds have ``lanes`` threads each, ``per_block``
     worlds to a CUDA block: a barrier for one world's lanes and the thread's lane in its world.  One

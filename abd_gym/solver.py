@@ -369,8 +369,8 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
     leaves most SMs idle; for more (chains): "lanes" at 32 lanes up to WIDE_LANES_MAX_WORLDS worlds
     where a world's system fits a block's shared memory; else "shared" where a block of 32
     threads' systems fits its shared memory (float32), or for worlds of more than
-    LANES_MAX_UNKNOWNS unknowns SHARED_MIN_SYSTEMS of them; else "global".  Measured on an H100 (``python -m abd_gym.bench --scratch
-    global,shared,lanes``): shared 1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on
+    LANES_MAX_UNKNOWNS unknowns SHARED_MIN_SYSTEMS of them; else "global".  Measured on an H100
+    (``python -m abd_gym.bench --scratch global,shared,lanes``): shared 1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on
     double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast as shared on both at 1,024
     worlds (results/bench_h100_lanes_rows.*), and narrower lanes 1.7-2.4x at 2,048 and 4,096
     (results/lane_width_h100.md); for the 36 unknowns of FourBar-v0's and SliderCrank-v0's

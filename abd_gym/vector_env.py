@@ -161,8 +161,9 @@ def _own_code(method):
     """The bound ``method`` on a copy of its function's code object.  torch.compile keeps a
     function's compiled versions on its code object, which every env (every task, every size)
     would share, up to ``torch._dynamo.config.recompile_limit`` (8), after which new ones run
-    uncompiled: on an H100 the sixth env of one bench process, FourBar-v0 at 1,024 envs, fell
-    back to its eager outcome (0.71 of its physics against 0.95 in a process of its own)."""
+    uncompiled: on an H100 a later env of one bench process, FourBar-v0 at 1,024 envs after the
+    cart-pole's and Reacher's, fell back to its eager outcome (0.71 of its physics against 0.95
+    with its own copy)."""
     f = method.__func__
     g = types.FunctionType(f.__code__.replace(), f.__globals__, f.__name__, f.__defaults__, f.__closure__)
     return types.MethodType(g, method.__self__)
