@@ -681,6 +681,7 @@ def test_each_env_compiles_its_own_outcome():
                 env.reset(seed=0)
                 for _ in range(2):
                     env.step(torch.zeros(n, 1))
+                assert hasattr(env.unwrapped._outcome_fn, "_torchdynamo_orig_callable")  # compiled
                 env.close()
     finally:
         log.removeHandler(handler)
