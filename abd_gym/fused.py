@@ -52,6 +52,9 @@ def block_sync():
     ...
 
 
+whole_block_sync = block_sync  # (kept under its own name: a kernel's block_sync may be its world's)
+
+
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
 return clock64();
@@ -95,17 +98,18 @@ def lanes_scratch_words(n: int, groups: int) -> int:
 def world_funcs(lanes: int, per_block: int):
     """(world_sync, world_lane) for a kernel whose worlds have ``lanes`` threads each, ``per_block``
     worlds to a CUDA block: a barrier for one world's lanes and the thread's lane in its world.  One
-    world a block: the block's barrier and thread index (block_sync, lane_index).  Several (a warp
-    of 32 lanes split into worlds of 8 or 16 side by side): ``__syncwarp`` over the world's own
-    lanes, so a world waits only for itself (two worlds of a warp may take different branches)."""
+    world a block: the block's barrier and thread index (block_sync, lane_index).  Several: worlds
+    of 32 lanes (a warp each, lockstep blocks) ``__syncwarp`` over their warp; worlds of 8 or 16
+    lanes side by side in a warp over the world's own lanes, so a world waits only for itself (two
+    worlds of a warp may take different branches)."""
     if per_block <= 1:
         return block_sync, lane_index
-    if lanes * per_block != 32 or lanes & (lanes - 1):
-        raise ValueError(f"{per_block} worlds of {lanes} lanes do not split a warp")
-
+    if lanes & (lanes - 1) or lanes > 32 or lanes * per_block % 32:
+        raise ValueError(f"{per_block} worlds of {lanes} lanes do not fill whole warps")
+    mask = "" if lanes == 32 else f"((1u << {lanes}) - 1u) << ((threadIdx.x & 31u) & ~{lanes - 1}u)"
     sync = f"""
 #if defined(__CUDA_ARCH__)
-__syncwarp(((1u << {lanes}) - 1u) << ((threadIdx.x & 31u) & ~{lanes - 1}u));
+__syncwarp({mask});
 #else
 WP_TILE_SYNC();
 #endif
@@ -290,8 +294,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     the host, ``Solver.lane_work``) into its own copy of g and H, which are then summed (one
     barrier); the factor and everything after it as with one group.  A world's chain of dependent
     evaluations, one warp evaluating every term in turn, is cut to its busiest group's share.
-    ``per_block`` (lanes on CUDA, ``block`` 8 or 16 lanes a world): that many worlds side by side in
-    a block of one warp (world_funcs), so a warp's instructions serve 4 or 2 worlds at once.
+    ``per_block`` (lanes on CUDA, one group): worlds a block, in whole warps (world_funcs); worlds
+    of 8 or 16 lanes side by side in a warp, so a warp's instructions serve 4 or 2 worlds at once.
+    A block of several warps starts each step of a launch (``steps``) at a barrier of the whole
+    block: its warps then run each stretch of the kernel's code together (Solver.lockstep_warps).
     ``pri_limits`` / ``pri_drives``: a prismatic joint's limit / one drive on it are evaluated in
     the joint's own term (``Terms.pri_lim``, ``pri_drv``; prismatic_term), on the displacement and
     frames the joint has loaded, with one put of the summed gradient; the limits and drives left
@@ -330,6 +336,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         raise ValueError("lane groups take a block per world (per_block 1)")
     # a world's barrier and lane: the block's, or its own lanes' of a warp shared with other worlds
     block_sync, lane_index = world_funcs(LANES, WPB)  # noqa: F811 (the kernel's own, shadowing the module's)
+    # a block of several warps (lockstep): its worlds start each step of a launch together, so the
+    # SM's warps run the same stretch of the kernel's code at once (Solver.lockstep_warps)
+    LOCKSTEP = LANES * WPB > 32
     # on a GPU, a world whose lanes (the first group's warp, when there are several) hold at most
     # 3 of its rows each, factors and solves in registers
     warp_regs = lanes and cuda and RL in (8, 16, 32) and (G == 1 or RL == 32) and n <= 3 * RL
@@ -1635,7 +1644,10 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             ds = wp.array(ptr=base + wp.uint64((G * TRI + GLEN) * SIZE), shape=(N,), dtype=dtype)
             for st in range(steps):
                 if st > 0:
-                    block_sync()  # the last step's coordinates and histories, by other lanes
+                    if wp.static(LOCKSTEP):
+                        whole_block_sync()  # (the block's barrier, stronger than the world's)
+                    else:
+                        block_sync()  # the last step's coordinates and histories, by other lanes
                 step_world(q, q_trial, t, k, gs, Hs, ds, w, 0, 1, w, threshold, max_iterations, max_line_search,
                            reuse, status, iterations, factorizations, converged, c - w * LANES)  # fmt: skip
         else:

@@ -79,7 +79,10 @@ class Simulator:
     drives into its own copy of the Newton system, summed before the factor.
     ``steps_per_launch``: where a step is one launch of the lane-split kernel (``scratch="lanes"``
     with ``one_launch``), ``step(n)`` takes up to this many steps a launch, each world's steps in
-    turn in its block.  ``quadratic_stop``: a Newton step from a fresh factor accepted whole (α = 1)
+    turn in its block.  ``lockstep_warps`` (``scratch="lanes"`` on a GPU): warps a CUDA block whose
+    worlds start each step of a launch together, so an SM's warps share the kernel's instruction
+    fetches (default: 8, 4 or 2 where the worlds fill whole blocks, and then 50 steps a launch;
+    ignored on the CPU).  ``quadratic_stop``: a Newton step from a fresh factor accepted whole (α = 1)
     under this many times q's rounding floor ends the solve (its quadratic convergence would leave
     rounding; float32 only in effect; 0: off).  ``chord_stop`` (off): a reused factor's step whose
     contraction predicts a next step under the tolerance ends it too.
@@ -93,7 +96,7 @@ class Simulator:
                  envelope: bool | None = None, retract: bool = True, cpu_workers: int | None = None,
                  one_launch: bool | None = None, lane_groups: int | None = None,
                  steps_per_launch: int | None = None, quadratic_stop: float = 100.0,
-                 chord_stop: bool = False):  # fmt: skip
+                 chord_stop: bool = False, lockstep_warps: int | None = None):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
@@ -111,7 +114,8 @@ class Simulator:
                                                            lane_groups=lane_groups,
                                                            steps_per_launch=steps_per_launch,
                                                            quadratic_stop=float(quadratic_stop),
-                                                           chord_stop=bool(chord_stop)))  # fmt: skip
+                                                           chord_stop=bool(chord_stop),
+                                                           lockstep_warps=lockstep_warps))  # fmt: skip
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device

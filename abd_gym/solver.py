@@ -87,6 +87,12 @@ class SolverSettings:
     # launch: Solver.multi_step), Simulator.step(n) takes up to this many steps a launch
     # (fused.newton_lanes' ``steps``); None: default_steps_per_launch
     steps_per_launch: int | None = None
+    # scratch="lanes" on a GPU, one lane group: warps a CUDA block, whose worlds start each step of
+    # a launch together at a barrier of the block (fused.newton_lanes), so an SM's warps run each
+    # stretch of the kernel's code at once and share its instruction fetches; 1: a block a warp,
+    # the warps drifting apart over a launch's steps.  Ignored where a block is not warps of
+    # one-group worlds (the CPU, the other layouts, lane groups).  None: default_lockstep_warps
+    lockstep_warps: int | None = None
     # a step from a fresh factor accepted at α = 1 (Armijo, or taken whole) that is under this many
     # times q's rounding floor (4·eps·(1 + ‖q‖∞)) ends the solve without an iteration to confirm it:
     # Newton's next step would be below that rounding (float32 cart-poles and double pendulums at
@@ -166,12 +172,26 @@ def default_block_dim_shared(n: int, dtype) -> int:
     return min(32, SHARED_BLOCK_BYTES // shared_bytes_per_thread(n, dtype))
 
 
-def default_steps_per_launch() -> int:
-    """Steps a launch where a step is one launch: 2.  Measured on an H100 at 1,024 worlds
-    (results/steps_per_launch_h100.md): 2 steps a launch 1.06x as fast as 1 on cart-poles and
-    1.11x on double pendulums; 3 no better, 10 slower than 1 (0.88-0.9x: a block's warps drift
-    apart in the ~300 KB kernel, and the SM's instruction caches miss more)."""
-    return 2
+def default_steps_per_launch(lockstep_warps: int = 1) -> int:
+    """Steps a launch where a step is one launch: 50 where the lane-split step's warps run in
+    lockstep blocks (``lockstep_warps`` > 1), else 2.  Measured on an H100 at 1,024 worlds
+    (results/session23/README.md), world-steps/s against 2 steps a launch in blocks of a warp:
+    lockstep blocks of 8 warps at 10 / 20 / 50 steps 1.09x / 1.12x / 1.14x cart-poles and 1.10x /
+    1.12x / 1.14x double pendulums; without lockstep 10 steps took 1.03x cart-poles (1.18x double
+    pendulums), 2,048 cart-poles at 16 lanes 0.90x: a launch's warps drift apart in the ~240 KB
+    kernel and the SM's instruction caches miss more (results/steps_per_launch_h100.md)."""
+    return 50 if lockstep_warps > 1 else 2
+
+
+def default_lockstep_warps(device, scratch: str, num_worlds: int, lanes: int, groups: int, n: int, dtype) -> int:
+    """Warps a block of the lane-split step on a GPU (SolverSettings.lockstep_warps): the most of 8
+    (LANE_WARPS_PER_SM, an SM's worth), 4, 2 that split the worlds into whole blocks (worlds ×
+    lanes a multiple of 32 × warps) whose systems fit the block's shared memory; 1 for one thread
+    a world, lane groups and the CPU."""
+    if scratch != "lanes" or groups != 1 or not getattr(device, "is_cuda", False) or lanes > 32:
+        return 1
+    return next(k for k in (8, 4, 2, 1) if k == 1 or (num_worlds * lanes % (32 * k) == 0 and lanes_scratch_bytes(
+        n, dtype, 1, 32 * k // lanes) <= SHARED_BLOCK_BYTES))  # fmt: skip
 
 
 # warps of the lane-split kernel an SM holds at once: its threads take ~255 registers (65,536 a SM)
@@ -457,7 +477,9 @@ class Solver:
         spl = settings.steps_per_launch
         if spl is not None and not (isinstance(spl, (int, np.integer)) and spl > 0):
             raise ValueError(f"steps_per_launch must be a positive integer or None, got {spl!r}")
-        self.steps_per_launch = int(spl or default_steps_per_launch())
+        lock = settings.lockstep_warps
+        if lock is not None and not (isinstance(lock, (int, np.integer)) and 1 <= lock <= LANE_WARPS_PER_SM):
+            raise ValueError(f"lockstep_warps must be an integer from 1 to {LANE_WARPS_PER_SM} or None, got {lock!r}")
         # lanes a world: block_dim, else default_lane_width where the worlds fit the GPU at once, else 32
         width = settings.block_dim or (self.lanes and default_lane_width(wp.get_device(dev), W, dt_, n)) or 32
         narrow = self.lanes and width < 32
@@ -488,13 +510,25 @@ class Solver:
         L = self.block_dim
         share = self.lanes and cuda and L < 32 and not L & (L - 1) and self.lane_groups == 1
         self.worlds_per_block = 32 // L if share else 1
+        # warps a block (lockstep): only where a block's warps are worlds of one group on a GPU
+        one_group = self.lanes and cuda and self.lane_groups == 1 and (L == 32 or share)
+        if not one_group:
+            lock = 1
+        elif lock is None:
+            lock = default_lockstep_warps(wp.get_device(dev), scratch, W, L, self.lane_groups, n, dt_)
+        elif W * L % (32 * lock):
+            raise ValueError(f"lockstep_warps={lock}: {W} worlds of {L} lanes do not fill whole blocks of {lock} "
+                             "warps (worlds × lanes a multiple of 32 × lockstep_warps)")  # fmt: skip
+        self.lockstep_warps = int(lock)
+        self.worlds_per_block *= self.lockstep_warps
+        self.steps_per_launch = int(spl or default_steps_per_launch(self.lockstep_warps))
         if self.lanes and cuda:
             need = lanes_scratch_bytes(n, dt_, self.lane_groups, self.worlds_per_block)
             if need > SHARED_BLOCK_BYTES:
                 raise ValueError(f"scratch='lanes': a block of {self.worlds_per_block} world(s) of {n} unknowns in "
                                  f"{self.lane_groups} lane group(s) needs {need} B of shared memory, more than its "
-                                 f"{SHARED_BLOCK_BYTES} B: take 32 lanes a world (block_dim=32) and lane_groups=1, "
-                                 "or scratch='shared' or 'global'")  # fmt: skip
+                                 f"{SHARED_BLOCK_BYTES} B: take 32 lanes a world (block_dim=32), lane_groups=1 and "
+                                 "lockstep_warps=1, or scratch='shared' or 'global'")  # fmt: skip
         self.q_trial = wp.zeros((T, model.num_bodies), dtype=model.vec12, device=dev)
         self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
         self.E_trial = wp.zeros_like(self.E)

@@ -123,7 +123,8 @@ def test_lane_widths_are_the_same_step(cpu_blocks):
     for lanes in (16, 8):
         out, sim = _run(True, scratch="lanes", block_dim=lanes)
         per_block = 32 // lanes if wp.get_device(sim.device).is_cuda else 1
-        assert sim.solver.block_dim == lanes and sim.solver.worlds_per_block == per_block
+        # (on a GPU the 4 worlds' warps, 2 or 1, also run as one lockstep block by default)
+        assert sim.solver.block_dim == lanes and sim.solver.worlds_per_block == per_block * sim.solver.lockstep_warps
         np.testing.assert_array_equal(np.nan_to_num(out), np.nan_to_num(ref))
         assert sim.failed_worlds().tolist() == [3]
         np.testing.assert_array_equal(sim.newton_iterations(), sim0.newton_iterations())
@@ -218,6 +219,76 @@ def test_steps_in_one_launch_are_the_steps_one_by_one(scratch):
     np.testing.assert_allclose(np.asarray(sim.state.time), np.asarray(sim1.state.time))
     np.testing.assert_allclose(np.asarray(sim.state.time), 0.16)
     assert sim.failed_worlds().tolist() == [3]
+
+
+def test_lockstep_blocks_are_the_same_step():
+    """lockstep_warps: on a GPU, blocks of several warps whose worlds start each step of a launch at
+    the block's barrier take the same steps as a block a warp, bit for bit (8 worlds of 32 lanes in
+    blocks of 8 and 2 warps, of 16 lanes two a warp in blocks of 4 warps; launches of 7 steps with
+    controls, a narrowed limit and a failed world); iterations and clocks alike.  On the CPU the
+    setting is ignored (a block runs one world)."""
+    import warp as wp
+
+    def run(**kw):
+        sim = ag.Simulator(mechanisms.cartpole(), num_worlds=8, dt=0.01, scratch="lanes", lane_groups=1,
+                           steps_per_launch=7, **kw)  # fmt: skip
+        rng = np.random.default_rng(5)
+        sim.set_joint_state(rng.uniform(-0.3, 0.3, (8, 2)))
+        out = []
+        for n in (7, 3, 14):
+            sim.set_controls(rng.uniform(-10, 10, (8, 1)))
+            sim.step(n)
+            out.append(np.concatenate([sim.body_q().reshape(8, -1), sim.joint_coordinates(),
+                                       sim.joint_velocities()], axis=1))  # fmt: skip
+            if n == 3:
+                sim.set_limit(0, lower=-0.2, upper=0.2, worlds=[1])
+                q = sim.state.q.numpy()
+                q[5, 1, 0] = np.nan
+                sim.state.q.assign(q)
+        return np.array(out), sim
+
+    ref, sim1 = run(block_dim=32, lockstep_warps=1)
+    if not wp.get_device(sim1.device).is_cuda:
+        assert run(lockstep_warps=8)[1].solver.lockstep_warps == 1
+        pytest.skip("lockstep blocks are CUDA blocks of several warps")
+    assert sim1.solver.worlds_per_block == 1
+    for kw, per_block in ((dict(block_dim=32, lockstep_warps=8), 8), (dict(block_dim=32, lockstep_warps=2), 2),
+                          (dict(block_dim=16, lockstep_warps=4), 8)):  # fmt: skip
+        out, sim = run(**kw)
+        assert sim.solver.lockstep_warps == kw["lockstep_warps"] and sim.solver.worlds_per_block == per_block
+        np.testing.assert_array_equal(np.nan_to_num(out), np.nan_to_num(ref))
+        np.testing.assert_array_equal(sim.newton_iterations(), sim1.newton_iterations())
+        np.testing.assert_allclose(np.asarray(sim.state.time), np.asarray(sim1.state.time))
+        assert sim.failed_worlds().tolist() == [5]
+    kw = dict(scratch="lanes", block_dim=32, lane_groups=1)
+    assert ag.Simulator(mechanisms.cartpole(), num_worlds=8, **kw).solver.lockstep_warps == 8
+    with pytest.raises(ValueError, match="lockstep_warps=4: 6 worlds of 32 lanes do not fill whole blocks"):
+        ag.Simulator(mechanisms.cartpole(), num_worlds=6, lockstep_warps=4, **kw)
+
+
+def test_default_lockstep_warps():
+    """Warps a lockstep block by default: the most of 8, 4, 2 that split the worlds into whole
+    blocks whose systems fit the block's shared memory (and 50 steps a launch with them, else 2);
+    1 with lane groups, one thread a world and on the CPU; a count outside 1 … 8 is refused."""
+    from types import SimpleNamespace
+
+    import warp as wp
+
+    from abd_gym.solver import default_lockstep_warps, default_steps_per_launch
+
+    gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False)
+    f32 = wp.float32
+    assert [default_lockstep_warps(gpu, "lanes", w, 32, 1, 24, f32) for w in (1024, 1020, 1022, 1023)] == [8, 4, 2, 1]
+    assert [default_lockstep_warps(gpu, "lanes", w, 16, 1, 24, f32) for w in (2048, 2047)] == [8, 1]
+    assert default_lockstep_warps(gpu, "lanes", 4096, 8, 1, 36, f32) == 4  # 32 worlds of 36 unknowns: 100 KB
+    assert default_lockstep_warps(gpu, "lanes", 1024, 32, 1, 60, f32) == 4  # 8 of 60 unknowns: 61 KB
+    assert default_lockstep_warps(gpu, "lanes", 512, 64, 2, 24, f32) == 1
+    assert default_lockstep_warps(gpu, "shared", 1024, 1, 1, 24, f32) == 1
+    assert default_lockstep_warps(cpu, "lanes", 1024, 32, 1, 24, f32) == 1
+    assert default_steps_per_launch(8) == 50 and default_steps_per_launch(1) == 2
+    for bad in (0, 9, 2.0):
+        with pytest.raises(ValueError, match="lockstep_warps must be an integer from 1 to 8"):
+            ag.Simulator(mechanisms.pendulum(), num_worlds=1, lockstep_warps=bad)
 
 
 def test_held_worlds_are_not_stepped():
