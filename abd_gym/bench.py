@@ -117,7 +117,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
         reuse_factor=sim.solver.reuse_factor, envelope=sim.solver.envelope, retract=sim.solver.settings.retract,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
         threads=sim.solver.threads, block_dim=sim.solver.block_dim, cpu_workers=len(sim.solver.newton_launches),
-        lane_groups=sim.solver.lane_groups, steps_per_launch=k,
+        lane_groups=sim.solver.lane_groups, steps_per_launch=k, lockstep_warps=sim.solver.lockstep_warps,
         memory_bytes_per_world=sim.memory_bytes()["total"] / num_worlds,
         unknowns=sim.model.num_dofs, constitutions=[c.NAME for c in sim.solver.parts],
     )  # fmt: skip
@@ -164,8 +164,12 @@ def main(argv=None):
                     help="comma-separated auto/N: concurrent launches of the fused step on the CPU (auto: one per core)")
     ap.add_argument("--lane-groups", default="auto",
                     help="comma-separated lane groups a world for scratch=lanes (auto: the solver's default)")
-    ap.add_argument("--steps-per-launch", default="1",
-                    help="comma-separated steps a launch where a step is one launch (sim.step(k) calls of k steps)")
+    ap.add_argument("--steps-per-launch", default="auto",
+                    help="comma-separated auto/N: steps a launch where a step is one launch (sim.step(k) calls of k "
+                         "steps; auto: the solver's default)")
+    ap.add_argument("--lockstep-warps", default="auto",
+                    help="comma-separated auto/N: warps a lockstep block of the lane-split step (auto: the "
+                         "solver's default)")
     ap.add_argument("--cases", default="double_pendulum,cartpole")
     ap.add_argument("--out", default="bench_out")
     ap.add_argument("--envs", action="store_true", help="also time each task's vector env")
@@ -183,18 +187,21 @@ def main(argv=None):
                                  period_error=period_error(case, args.dt, args.dtype, args.device)))  # fmt: skip
         reuse_choice = {"auto": None, "0": False, "1": True}
         variants = [(k, float(t), int(r), bool(int(sp)), reuse_choice[ru], reuse_choice[en], bool(int(rt)),
-                     None if cw == "auto" else int(cw), None if lg == "auto" else int(lg), int(spl))
+                     None if cw == "auto" else int(cw), None if lg == "auto" else int(lg),
+                     None if spl == "auto" else int(spl), None if lw == "auto" else int(lw))
                     for k in args.scratch.split(",") for t in args.tol.split(",") for r in args.max_registers.split(",")
                     for sp in args.smem_spilling.split(",") for ru in args.reuse_factor.split(",")
                     for en in args.envelope.split(",") for rt in args.retract.split(",")
                     for cw in args.cpu_workers.split(",")
-                    for lg in args.lane_groups.split(",") for spl in args.steps_per_launch.split(",")]  # fmt: skip
-        for (scratch, tol, regs, spill, reuse, env, rt, cw, lg, spl), w in ((v, w) for v in variants for w in worlds):
+                    for lg in args.lane_groups.split(",") for spl in args.steps_per_launch.split(",")
+                    for lw in args.lockstep_warps.split(",")]  # fmt: skip
+        for (scratch, tol, regs, spill, reuse, env, rt, cw, lg, spl, lw), w in ((v, w) for v in variants
+                                                                               for w in worlds):  # fmt: skip
             runs = [time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol, integrator=args.integrator,
                                scratch=None if scratch == "auto" else scratch, block_dim=args.block_dim,
                                max_registers=regs, smem_spilling=spill,
                                reuse_factor=reuse, envelope=env, retract=rt, cpu_workers=cw, lane_groups=lg,
-                               steps_per_launch=spl,
+                               steps_per_launch=spl, lockstep_warps=lw,
                                threads=_thread_count(args.threads, w, args.device))
                     for _ in range(max(args.repeat, 1))]  # fmt: skip
             rows.append(max(runs, key=lambda r: r["world_steps_per_second"]))
@@ -301,6 +308,7 @@ def _solver(r) -> str:
     extra += f" W{r['cpu_workers']}" if r.get("cpu_workers", 1) > 1 else ""  # concurrent CPU launches
     extra += f" G{r['lane_groups']}" if r.get("lane_groups", 1) > 1 else ""  # lane groups a world
     extra += f" S{r['steps_per_launch']}" if r.get("steps_per_launch", 1) > 1 else ""  # steps a launch
+    extra += f" K{r['lockstep_warps']}" if r.get("lockstep_warps", 1) > 1 else ""  # warps a lockstep block
     return f"{scratch}/{r['block_dim']}{extra} T{r['threads']}"
 
 

@@ -46,11 +46,19 @@ VARIANTS = {"new": lambda: None, "defer": _defer, "new_s1": _steps(1), "new_s3":
             "chord_stop": _kw(chord_stop=True)}  # fmt: skip
 
 
+def variant(name):
+    """VARIANTS[name], or "lockK_sS": lockstep_warps=K, steps_per_launch=S."""
+    if name in VARIANTS:
+        return VARIANTS[name]
+    k, s = name[len("lock"):].split("_s")
+    return _kw(lockstep_warps=int(k), steps_per_launch=int(s))
+
+
 def one(args):
     import numpy as np
     import warp as wp
 
-    kwargs = VARIANTS[args.variant]() or {}
+    kwargs = variant(args.variant)() or {}
     from abd_gym.bench import CASES
     from abd_gym.bench_compare import fastest_run, random_states
     from abd_gym.simulator import Simulator
