@@ -260,6 +260,20 @@ def test_lockstep_blocks_are_the_same_step():
         np.testing.assert_array_equal(sim.newton_iterations(), sim1.newton_iterations())
         np.testing.assert_allclose(np.asarray(sim.state.time), np.asarray(sim1.state.time))
         assert sim.failed_worlds().tolist() == [5]
+    # a held world (the vector env's autoreset) leaves its block's barrier to the others: they step
+    # as in a launch without the hold, it keeps its state
+    free, held = (ag.Simulator(mechanisms.cartpole(), num_worlds=8, dt=0.01, scratch="lanes", lane_groups=1,
+                               block_dim=32, lockstep_warps=8, steps_per_launch=7) for _ in range(2))  # fmt: skip
+    assert held.solver.enable_hold()
+    for sim in (free, held):
+        sim.set_joint_state(np.random.default_rng(6).uniform(-0.3, 0.3, (8, 2)))
+    hold = wp.array([0, 0, 1, 0, 0, 0, 0, 0], dtype=wp.int32, device=held.device)
+    q0 = held.state.q.numpy()
+    free.step(7)
+    held.launch_step(7, hold=hold)
+    q, want = held.state.q.numpy(), free.state.q.numpy()
+    np.testing.assert_array_equal(q[2], q0[2])
+    np.testing.assert_array_equal(np.delete(q, 2, 0), np.delete(want, 2, 0))
     kw = dict(scratch="lanes", block_dim=32, lane_groups=1)
     assert ag.Simulator(mechanisms.cartpole(), num_worlds=8, **kw).solver.lockstep_warps == 8
     with pytest.raises(ValueError, match="lockstep_warps=4: 6 worlds of 32 lanes do not fill whole blocks"):
