@@ -1645,7 +1645,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             for st in range(steps):
                 if st > 0:
                     if wp.static(LOCKSTEP):
-                        whole_block_sync()  # (the block's barrier, stronger than the world's)
+                        whole_block_sync()  # the whole block's: also the world's (as below)
                     else:
                         block_sync()  # the last step's coordinates and histories, by other lanes
                 step_world(q, q_trial, t, k, gs, Hs, ds, w, 0, 1, w, threshold, max_iterations, max_line_search,

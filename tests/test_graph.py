@@ -294,7 +294,7 @@ def test_default_lockstep_warps():
     f32 = wp.float32
     assert [default_lockstep_warps(gpu, "lanes", w, 32, 1, 24, f32) for w in (1024, 1020, 1022, 1023)] == [8, 4, 2, 1]
     assert [default_lockstep_warps(gpu, "lanes", w, 16, 1, 24, f32) for w in (2048, 2047)] == [8, 1]
-    assert default_lockstep_warps(gpu, "lanes", 4096, 8, 1, 36, f32) == 4  # 32 worlds of 36 unknowns: 100 KB
+    assert default_lockstep_warps(gpu, "lanes", 4096, 8, 1, 36, f32) == 4  # 32 worlds of 36 unknowns: 95 KB
     assert default_lockstep_warps(gpu, "lanes", 1024, 32, 1, 60, f32) == 4  # 8 of 60 unknowns: 61 KB
     assert default_lockstep_warps(gpu, "lanes", 512, 64, 2, 24, f32) == 1
     assert default_lockstep_warps(gpu, "shared", 1024, 1, 1, 24, f32) == 1
