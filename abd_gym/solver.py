@@ -510,8 +510,9 @@ class Solver:
         L = self.block_dim
         share = self.lanes and cuda and L < 32 and not L & (L - 1) and self.lane_groups == 1
         self.worlds_per_block = 32 // L if share else 1
-        # warps a block (lockstep): only where a block's warps are worlds of one group on a GPU
-        one_group = self.lanes and cuda and self.lane_groups == 1 and (L == 32 or share)
+        # warps a block (lockstep): only where a block's warps are worlds of one group on a GPU (narrow
+        # worlds sharing a warp, or a warp a world)
+        one_group = share or (self.lanes and cuda and L == 32 and self.lane_groups == 1)
         if not one_group:
             lock = 1
         elif lock is None:

@@ -185,6 +185,27 @@ def test_deferred_armijo_test_is_the_same_step(scratch, monkeypatch):
     np.testing.assert_array_equal(run(True), run(False))
 
 
+def _launches(sim, seed: int, counts, failed: int):
+    """sim.step(n) for each n of ``counts`` from random joint states, each under new random controls;
+    after the second, world 1's limit narrowed and world ``failed`` made non-finite.  Returns each
+    call's body states, joint coordinates and velocities, (calls, worlds, ·)."""
+    W = sim.num_worlds
+    rng = np.random.default_rng(seed)
+    sim.set_joint_state(rng.uniform(-0.3, 0.3, (W, 2)))
+    out = []
+    for i, n in enumerate(counts):
+        sim.set_controls(rng.uniform(-10, 10, (W, 1)))
+        sim.step(n)
+        out.append(np.concatenate([sim.body_q().reshape(W, -1), sim.joint_coordinates(), sim.joint_velocities()],
+                                  axis=1))  # fmt: skip
+        if i == 1:
+            sim.set_limit(0, lower=-0.2, upper=0.2, worlds=[1])
+            q = sim.state.q.numpy()
+            q[failed, 1, 0] = np.nan
+            sim.state.q.assign(q)
+    return np.array(out)
+
+
 @pytest.mark.parametrize("scratch", ["lanes"])
 def test_steps_in_one_launch_are_the_steps_one_by_one(scratch):
     """steps_per_launch: a world's steps in turn in one launch of the one-launch step (sim.step(n)
@@ -195,20 +216,7 @@ def test_steps_in_one_launch_are_the_steps_one_by_one(scratch):
     def run(spl):
         sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, scratch=scratch, one_launch=True,
                            steps_per_launch=spl)  # fmt: skip
-        rng = np.random.default_rng(3)
-        sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
-        out = []
-        for n in (7, 2, 7):
-            sim.set_controls(rng.uniform(-10, 10, (4, 1)))
-            sim.step(n)
-            out.append(np.concatenate([sim.body_q().reshape(4, -1), sim.joint_coordinates(),
-                                       sim.joint_velocities()], axis=1))  # fmt: skip
-            if n == 2:
-                sim.set_limit(0, lower=-0.2, upper=0.2, worlds=[1])
-                q = sim.state.q.numpy()
-                q[3, 1, 0] = np.nan
-                sim.state.q.assign(q)
-        return np.array(out), sim
+        return _launches(sim, 3, (7, 2, 7), failed=3), sim
 
     ref, sim1 = run(1)
     out, sim = run(3)
@@ -232,20 +240,7 @@ def test_lockstep_blocks_are_the_same_step():
     def run(**kw):
         sim = ag.Simulator(mechanisms.cartpole(), num_worlds=8, dt=0.01, scratch="lanes", lane_groups=1,
                            steps_per_launch=7, **kw)  # fmt: skip
-        rng = np.random.default_rng(5)
-        sim.set_joint_state(rng.uniform(-0.3, 0.3, (8, 2)))
-        out = []
-        for n in (7, 3, 14):
-            sim.set_controls(rng.uniform(-10, 10, (8, 1)))
-            sim.step(n)
-            out.append(np.concatenate([sim.body_q().reshape(8, -1), sim.joint_coordinates(),
-                                       sim.joint_velocities()], axis=1))  # fmt: skip
-            if n == 3:
-                sim.set_limit(0, lower=-0.2, upper=0.2, worlds=[1])
-                q = sim.state.q.numpy()
-                q[5, 1, 0] = np.nan
-                sim.state.q.assign(q)
-        return np.array(out), sim
+        return _launches(sim, 5, (7, 3, 14), failed=5), sim
 
     ref, sim1 = run(block_dim=32, lockstep_warps=1)
     if not wp.get_device(sim1.device).is_cuda:
