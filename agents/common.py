@@ -1,4 +1,4 @@
-"""Pieces shared by ``agents.train`` and ``agents.evaluate``: envs, models, evaluation, summaries."""
+"""Pieces shared by ``abd_gym.agents.train`` and ``abd_gym.agents.evaluate``: envs, models, evaluation, summaries."""
 from __future__ import annotations
 
 import json

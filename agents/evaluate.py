@@ -1,6 +1,6 @@
 """Evaluate a saved run, and optionally record a video of it.
 
-    python -m agents.evaluate RUN_DIR [--episodes N] [--device cpu|cuda:0] [--seed S]
+    python -m abd_gym.agents.evaluate RUN_DIR [--episodes N] [--device cpu|cuda:0] [--seed S]
         [--stochastic] [--model PATH] [--json PATH] [--video out.gif|out.mp4] [--video-episodes K]
 
 (also ``abd-gym-evaluate``).  Loads ``RUN_DIR/config.yaml``, ``model.zip`` (or ``--model``, e.g.
@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     quiet_warp()
     import torch
 
-    torch.set_num_threads(1)  # small MLPs: one thread is fastest (see agents.train)
+    torch.set_num_threads(1)  # small MLPs: one thread is fastest (see abd_gym.agents.train)
     if not (Path(args.run_dir) / CONFIG_FILE).is_file():
         print(f"abd-gym-evaluate: error: {args.run_dir} has no {CONFIG_FILE} (not a run directory)", file=sys.stderr)
         return 2

@@ -1,6 +1,6 @@
 """Train an SB3 agent from a YAML config.
 
-    python -m agents.train configs/cartpole_ppo.yaml [--seed S] [--device cpu|cuda:0]
+    python -m abd_gym.agents.train configs/cartpole_ppo.yaml [--seed S] [--device cpu|cuda:0]
         [--num-envs N] [--total-timesteps T] [--run-dir DIR] [--eval-episodes E] [key=value ...]
 
 (also ``abd-gym-train``).  A bare name (``cartpole_ppo``) is looked up in ``configs/``.
@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"abd-gym-train: error: {exc}", file=sys.stderr)
         return 2
-    command = " ".join(["python -m agents.train", *(sys.argv[1:] if argv is None else argv)])
+    command = " ".join(["python -m abd_gym.agents.train", *(sys.argv[1:] if argv is None else argv)])
     summary = train(
         cfg,
         config_name=name,

@@ -1,6 +1,6 @@
 """CartPoleSwingUp-v0: swing the pole up from hanging down and balance it, on a track with end stops.
 
-Scene: the CartPole-v0 scene (``envs.cartpole.build_cart_scene``): cart (1 kg) on a slider along
+Scene: the CartPole-v0 scene (``abd_gym.envs.cartpole.build_cart_scene``): cart (1 kg) on a slider along
   +x with prismatic end stops at ±2.4 m, uniform pole (0.1 kg, 1 m) on a hinge about +y, zero
   pose = pole upright; force drive on the slider (|F| ≤ 10 N).  The end stops are physical: the
   episode does not end when the cart reaches them, the limit holds the cart.
@@ -26,7 +26,7 @@ import math
 import numpy as np
 
 from abd_gym.vector_env import ABDEnv, ABDVectorEnv
-from envs.cartpole import build_cart_scene, draw_track
+from abd_gym.envs.cartpole import build_cart_scene, draw_track
 
 REWARD_RANGE = (0.0, 1.0)  # per step
 

@@ -1,6 +1,6 @@
 """DoublePendulumCart-v0: balance a double inverted pendulum (two poles in a chain) on a cart.
 
-Scene (``envs.cartpole.build_cart_scene`` with two poles; x–z plane, gravity −z; zero pose = both
+Scene (``abd_gym.envs.cartpole.build_cart_scene`` with two poles; x–z plane, gravity −z; zero pose = both
   poles upright): cart (1 kg) on a slider along +x with prismatic end stops at ±2.4 m; pole 1
   (0.1 kg, 0.5 m) hinged about +y on the cart, pole 2 (0.1 kg, 0.5 m) hinged about +y on top of
   pole 1; a force drive on the slider (|F| ≤ 20 N).
@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from abd_gym.vector_env import ABDEnv, ABDVectorEnv
-from envs.cartpole import build_cart_scene, draw_track
+from abd_gym.envs.cartpole import build_cart_scene, draw_track
 
 REWARD_RANGE = (0.0, 1.0)  # per step
 

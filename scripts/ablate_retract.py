@@ -8,7 +8,7 @@ import argparse
 import json
 import os
 
-from envs.bench_envs import env_steps_per_second
+from abd_gym.envs.bench_envs import env_steps_per_second
 
 
 def main(argv=None):

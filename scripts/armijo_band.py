@@ -48,8 +48,8 @@ def count(scene, W, dt, steps, x0, ctrl, device):
 
 
 def main():
-    from envs.acrobot import build_acrobot_scene
-    from envs.cartpole import build_cart_scene
+    from abd_gym.envs.acrobot import build_acrobot_scene
+    from abd_gym.envs.cartpole import build_cart_scene
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")

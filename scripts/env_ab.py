@@ -4,7 +4,7 @@ and off, in alternating processes.
 
     python scripts/env_ab.py --flag FUSE_REVOLUTE --tasks Reacher-v0,Acrobot-v0 --envs 1024 --device cuda:0
 
-Each process sets ``abd_gym.solver.<flag>`` and runs envs.bench_envs.env_steps_per_second (Torch
+Each process sets ``abd_gym.solver.<flag>`` and runs abd_gym.envs.bench_envs.env_steps_per_second (Torch
 backend, 200 steps, best of 3 windows); the summary gives each task's best "simulator alone" and env
 rates with the flag on against off (results/quadratic_stop.md §8)."""
 import argparse
@@ -17,7 +17,7 @@ def one(flag, value, task, envs, device):
     import abd_gym.solver
 
     setattr(abd_gym.solver, flag, bool(int(value)))
-    from envs.bench_envs import env_steps_per_second
+    from abd_gym.envs.bench_envs import env_steps_per_second
 
     env, raw, physics = env_steps_per_second(task, envs, 200, device, backend="torch", raw=True, repeat=3)
     print("RESULT " + json.dumps(dict(task=task, envs=envs, on=int(value), env=env, raw=raw, physics=physics)), flush=True)

@@ -7,7 +7,7 @@ of 200 steps), then one raw run (env, simulator alone, physics device time) with
 """
 import sys
 
-from envs.bench_envs import env_steps_per_second
+from abd_gym.envs.bench_envs import env_steps_per_second
 
 
 def main(argv):

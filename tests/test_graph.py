@@ -137,7 +137,7 @@ def test_lane_split_step_on_a_closed_loop(cpu_blocks):
     to float32 rounding under the task's torques (on the CPU, eight cooperative fibers)."""
     import warp as wp
 
-    from envs.slider_crank import SliderCrankVectorEnv
+    from abd_gym.envs.slider_crank import SliderCrankVectorEnv
 
     env = SliderCrankVectorEnv(1)
     W, rng = 4, np.random.default_rng(2)

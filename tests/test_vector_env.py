@@ -12,8 +12,8 @@ from gymnasium.vector import AutoresetMode
 import abd_gym  # noqa: F401 -- registers the ids
 from abd_gym.registration import TASKS, env_ids
 from abd_gym.vector_env import ABDVectorEnv
-from envs.cartpole import CartPoleVectorEnv
-from envs.pendulum import PendulumVectorEnv
+from abd_gym.envs.cartpole import CartPoleVectorEnv
+from abd_gym.envs.pendulum import PendulumVectorEnv
 
 N = 4
 
@@ -136,7 +136,7 @@ def test_same_step_autoreset(envs):
 
 
 def test_same_step_final_info_layout():
-    from envs.reacher import ReacherVectorEnv
+    from abd_gym.envs.reacher import ReacherVectorEnv
 
     env = ReacherVectorEnv(N, autoreset_mode=AutoresetMode.SAME_STEP, max_episode_steps=3)
     env.reset(seed=0)
@@ -389,7 +389,7 @@ def test_device_autoreset_draws_the_task_state(backend):
     copy of the rows: the same episodes from the same seed), and the env's clock, observations and
     flags follow as for a task without task values.  A task with a ``_reset_task`` of its own keeps
     its resets on the host."""
-    from envs.reacher import ReacherVectorEnv
+    from abd_gym.envs.reacher import ReacherVectorEnv
 
     if backend != "numpy":
         pytest.importorskip("torch")
