@@ -1,4 +1,14 @@
-"""abd_gym: batched affine-body dynamics with joint and limit constitutions, on Warp."""
+"""abd_gym: batched affine-body dynamics with joint and limit constitutions, on Warp.
+
+The tasks live in ``abd_gym.envs`` and the Stable-Baselines3 training in ``abd_gym.agents``;
+neither is imported here (the Gymnasium ids below name their classes by string).  Warp's
+per-module load lines are off while abd_gym is used as a library (:mod:`abd_gym.warp_log` says
+how to turn them back on).
+"""
+from .warp_log import quiet_warp
+
+quiet_warp()  # before any kernel module loads
+
 from .scene import Scene
 from .shapes import Box, Capsule, Cylinder, Inertia, Sphere
 from .simulator import Simulator

@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 
 from .common import (
-    quiet_warp,
     CONFIG_FILE,
     EVAL_SEED_OFFSET,
     MODEL_FILE,
@@ -188,7 +187,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    quiet_warp()
     import torch
 
     torch.set_num_threads(1)  # small MLPs: one thread is fastest (see abd_gym.agents.train)

@@ -26,7 +26,6 @@ from typing import Any
 import yaml
 
 from .common import (
-    quiet_warp,
     CONFIG_FILE,
     EVAL_SEED_OFFSET,
     MODEL_FILE,
@@ -194,7 +193,6 @@ def config_from_args(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    quiet_warp()
     try:
         cfg, name = config_from_args(args)
     except (ValueError, FileNotFoundError) as exc:
