@@ -30,6 +30,7 @@ from .common import (
     write_json,
 )
 from .config import algorithm_class, validate_config, yaml_load
+from ..devices import resolve_device
 
 __all__ = ["load_run", "evaluate_run", "record_video", "main"]
 
@@ -193,6 +194,12 @@ def main(argv: list[str] | None = None) -> int:
     if not (Path(args.run_dir) / CONFIG_FILE).is_file():
         print(f"abd-gym-evaluate: error: {args.run_dir} has no {CONFIG_FILE} (not a run directory)", file=sys.stderr)
         return 2
+    if args.device is not None:
+        try:
+            resolve_device(args.device)
+        except ValueError as exc:
+            print(f"abd-gym-evaluate: error: {exc}", file=sys.stderr)
+            return 2
     result = evaluate_run(
         args.run_dir,
         episodes=args.episodes,
