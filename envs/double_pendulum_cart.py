@@ -48,11 +48,11 @@ class DoublePendulumCartVectorEnv(ABDVectorEnv):
     def observation_high(self):
         return np.array([2 * self.track, 1, 1, 1, 1, self.velocity_bound, self.velocity_bound, self.velocity_bound])
 
-    def _initial_state(self, n, rng, options):
+    def initial_state(self, n, rng, options):
         s = rng.uniform(-0.05, 0.05, size=(n, 6))
         return s[:, :3], s[:, 3:]
 
-    def _observe(self):
+    def observe(self):
         xp, q, v = self.xp, self.coords(), self.velocities()
         return xp.concatenate([q[:, :1], xp.sin(q[:, 1:]), xp.cos(q[:, 1:]), v], axis=1)
 
@@ -62,13 +62,13 @@ class DoublePendulumCartVectorEnv(ABDVectorEnv):
         c1, s1, s2, c2 = obs[:, 3], obs[:, 1], obs[:, 2], obs[:, 4]
         return (l1 * c1 + l2 * (c1 * c2 - s1 * s2)) / self.height  # cos(θ1 + θ2)
 
-    def _reward(self, obs, actions):
+    def reward(self, obs, actions):
         return self.xp.clip(1.0 - 5.0 * (1.0 - self.tip_height(obs)), 0.0, 1.0)
 
-    def _terminated(self, obs):
+    def terminated(self, obs):
         return (self.tip_height(obs) < self.min_height) | (self.xp.abs(obs[:, 0]) > self.track)
 
-    def _render_extras(self, canvas, world):
+    def render_extras(self, canvas, world):
         draw_track(canvas, self.track)
 
 

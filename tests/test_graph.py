@@ -141,7 +141,7 @@ def test_lane_split_step_on_a_closed_loop(cpu_blocks):
 
     env = SliderCrankVectorEnv(1)
     W, rng = 4, np.random.default_rng(2)
-    x, xd = env._initial_state(W, rng, {})
+    x, xd = env.initial_state(W, rng, {})
     torque = rng.uniform(-1, 1, (W, 1)) * env._max_effort
 
     def run(scratch, block_dim=None):
