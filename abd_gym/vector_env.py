@@ -119,7 +119,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from . import env_kernels
+from . import env_kernels, env_snapshot
 from .autoreset import NextEpisodes
 from .scene import REVOLUTE, Scene
 from .simulator import Simulator
@@ -403,6 +403,24 @@ class ABDVectorEnv(VectorEnv):
         if any(not 0 <= w < N for w in self.render_worlds):
             raise ValueError(f"render_worlds must index worlds in [0, {N}), got {self.render_worlds}")
         self._renderer = None
+
+    # ================================================================== pickle / deepcopy
+    def __new__(cls, *args, **kwargs):
+        env = super().__new__(cls)
+        env._init_args = (args, kwargs)  # what a copy is rebuilt from (__getstate__)
+        return env
+
+    def __getstate__(self):
+        """The constructor arguments (the device as resolved) and the env's state (env_snapshot):
+        a copy is built anew from them and then steps as this env does."""
+        args, kwargs = self._init_args
+        return {"args": args, "kwargs": dict(kwargs, device=str(self.device)),
+                "snapshot": env_snapshot.capture(self)}  # fmt: skip
+
+    def __setstate__(self, state):
+        self._init_args = (state["args"], state["kwargs"])
+        self.__init__(*state["args"], **state["kwargs"])
+        env_snapshot.restore(self, state["snapshot"])
 
     # ================================================================== task interface
     def build_scene(self) -> Scene:
