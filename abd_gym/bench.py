@@ -213,7 +213,7 @@ def main(argv=None):
                   f"residual {r['joint_residual']:.2e}", flush=True)  # fmt: skip
     env_rows = []
     if args.envs:
-        from envs.bench_envs import env_steps_per_second
+        from abd_gym.envs.bench_envs import env_steps_per_second
 
         import abd_gym.registration as reg
 

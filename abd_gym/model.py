@@ -14,6 +14,7 @@ from . import angles
 from .constitutions import drive as drive_mod
 from .warp_ops import ops
 from .coordinates import FIXED_CODE, PRISMATIC_CODE, REVOLUTE_CODE
+from .devices import resolve_device
 from .scene import FIXED, PRISMATIC, REVOLUTE, Scene
 
 _KIND_CODE = {REVOLUTE: REVOLUTE_CODE, PRISMATIC: PRISMATIC_CODE, FIXED: FIXED_CODE}
@@ -41,7 +42,7 @@ class Model:
         self.num_worlds = W = int(num_worlds)
         self.dtype = resolve_dtype(dtype)
         self.np_dtype = np.float32 if self.dtype == wp.float32 else np.float64
-        self.device = wp.get_device(device)
+        self.device = resolve_device(device)
         o = ops(self.dtype)
         self.vec3, self.vec12, self.mat33 = o.vec3, o.vec12, o.mat33
         bodies, joints = scene.bodies, scene.joints

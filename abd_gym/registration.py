@@ -5,21 +5,21 @@ Importing ``abd_gym`` registers every task; ids, creators and limits:
 ==========================  =========================================  ======  =========
 id                          module (single env / vector env)           steps   threshold
 ==========================  =========================================  ======  =========
-abd_gym/Pendulum-v0         envs.pendulum                              200     -200
-abd_gym/CartPole-v0         envs.cartpole                              500     475
-abd_gym/CartPoleSwingUp-v0  envs.cartpole_swingup                      500     350
-abd_gym/DoublePendulumCart-v0 envs.double_pendulum_cart                500     450
-abd_gym/Acrobot-v0          envs.acrobot                               500     -100
-abd_gym/Reacher-v0          envs.reacher                               50      -5
-abd_gym/FourBar-v0          envs.fourbar                               200     150
-abd_gym/SliderCrank-v0      envs.slider_crank                          200     150
+abd_gym/Pendulum-v0         abd_gym.envs.pendulum                      200     -200
+abd_gym/CartPole-v0         abd_gym.envs.cartpole                      500     475
+abd_gym/CartPoleSwingUp-v0  abd_gym.envs.cartpole_swingup              500     350
+abd_gym/DoublePendulumCart-v0 abd_gym.envs.double_pendulum_cart        500     450
+abd_gym/Acrobot-v0          abd_gym.envs.acrobot                       500     -100
+abd_gym/Reacher-v0          abd_gym.envs.reacher                       50      -5
+abd_gym/FourBar-v0          abd_gym.envs.fourbar                       200     150
+abd_gym/SliderCrank-v0      abd_gym.envs.slider_crank                  200     150
 ==========================  =========================================  ======  =========
 
     env = gym.make("abd_gym/CartPole-v0")                          # one world, CPU, TimeLimit
     envs = gym.make_vec("abd_gym/CartPole-v0", num_envs=4096,      # native batched env
                         vectorization_mode="vector_entry_point", device="cuda:0", backend="torch")
 
-Entry points are strings, so nothing under ``envs/`` is imported until an env is made.
+Entry points are strings, so nothing under ``abd_gym.envs`` is imported until an env is made.
 """
 from __future__ import annotations
 
@@ -29,15 +29,15 @@ NAMESPACE = "abd_gym"
 
 # name: (module, single-env class, vector-env class, max_episode_steps, reward_threshold)
 TASKS = {
-    "Pendulum-v0": ("envs.pendulum", "PendulumEnv", "PendulumVectorEnv", 200, -200.0),
-    "CartPole-v0": ("envs.cartpole", "CartPoleEnv", "CartPoleVectorEnv", 500, 475.0),
-    "CartPoleSwingUp-v0": ("envs.cartpole_swingup", "CartPoleSwingUpEnv", "CartPoleSwingUpVectorEnv", 500, 350.0),
-    "DoublePendulumCart-v0": ("envs.double_pendulum_cart", "DoublePendulumCartEnv", "DoublePendulumCartVectorEnv",
+    "Pendulum-v0": ("abd_gym.envs.pendulum", "PendulumEnv", "PendulumVectorEnv", 200, -200.0),
+    "CartPole-v0": ("abd_gym.envs.cartpole", "CartPoleEnv", "CartPoleVectorEnv", 500, 475.0),
+    "CartPoleSwingUp-v0": ("abd_gym.envs.cartpole_swingup", "CartPoleSwingUpEnv", "CartPoleSwingUpVectorEnv", 500, 350.0),
+    "DoublePendulumCart-v0": ("abd_gym.envs.double_pendulum_cart", "DoublePendulumCartEnv", "DoublePendulumCartVectorEnv",
                               500, 450.0),
-    "Acrobot-v0": ("envs.acrobot", "AcrobotEnv", "AcrobotVectorEnv", 500, -100.0),
-    "Reacher-v0": ("envs.reacher", "ReacherEnv", "ReacherVectorEnv", 50, -5.0),
-    "FourBar-v0": ("envs.fourbar", "FourBarEnv", "FourBarVectorEnv", 200, 150.0),
-    "SliderCrank-v0": ("envs.slider_crank", "SliderCrankEnv", "SliderCrankVectorEnv", 200, 150.0),
+    "Acrobot-v0": ("abd_gym.envs.acrobot", "AcrobotEnv", "AcrobotVectorEnv", 500, -100.0),
+    "Reacher-v0": ("abd_gym.envs.reacher", "ReacherEnv", "ReacherVectorEnv", 50, -5.0),
+    "FourBar-v0": ("abd_gym.envs.fourbar", "FourBarEnv", "FourBarVectorEnv", 200, 150.0),
+    "SliderCrank-v0": ("abd_gym.envs.slider_crank", "SliderCrankEnv", "SliderCrankVectorEnv", 200, 150.0),
 }  # fmt: skip
 
 

@@ -40,8 +40,8 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   Op by op on a GPU, a step waits for the device once more, at the NaN check, before its physics
   is queued; the step graph (below) checks on the device and never waits for the step it queues.
 * autoresets on the device and the step as one graph: in NEXT_STEP mode, for a task whose
-  episodes start from ``_initial_state`` and its ``task_state`` values (``_draw_task``: a
-  Reacher's target) alone (no ``_reset_task`` of its own) and while no parameters are
+  episodes start from ``initial_state`` and its ``task_state`` values (``draw_task``: a
+  Reacher's target) alone (no ``reset_task`` of its own) and while no parameters are
   randomised, each world's next initial states and task values are drawn ahead into a queue on
   the device
   (:mod:`abd_gym.autoreset`; from a generator spawned from ``np_random`` at each full reset, so
@@ -101,12 +101,9 @@ a reused factor's contraction: CartPole-v0 under random actions 3.75 → 2.10 it
 float32 trajectory 8x further from a tight solve, results/quadratic_stop.md); an unknown name or a
 bad value is the Simulator's error.
 
-A task subclasses :class:`ABDVectorEnv` and defines the class attributes ``dt``, ``frame_skip``
-and the methods ``build_scene``, ``observation_high`` (bounds), ``_observe``, ``_reward`` and
-optionally ``_terminated``, ``_initial_state``, ``task_state`` with ``_draw_task`` (per-episode
-task values, e.g. a target: drawn on the device's autoreset path too), ``_reset_task`` (a task's
-own reset on the host, which keeps it off the device path), ``_info``, ``_controls`` and
-``_render_extras``.  :class:`ABDEnv` turns a task into a single-world ``gymnasium.Env``.
+A task subclasses :class:`ABDVectorEnv` and fills in its hooks (listed, with shapes and units, in
+the class docstring; docs/custom_task.md walks through a new task from scene to training).
+:class:`ABDEnv` turns a task into a single-world ``gymnasium.Env``.
 """
 from __future__ import annotations
 
@@ -122,7 +119,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from . import env_kernels
+from . import env_kernels, env_snapshot
 from .autoreset import NextEpisodes
 from .scene import REVOLUTE, Scene
 from .simulator import Simulator
@@ -196,7 +193,50 @@ def _range(name, value):
 
 
 class ABDVectorEnv(VectorEnv):
-    """Batched task base (see the module docstring for the API)."""
+    """Batched task base: a task is a subclass that fills in the hooks below (the module docstring
+    describes the env API they serve).  N is ``num_envs``; "backend array" means a NumPy array, or
+    a Torch tensor on the simulator's device with ``backend="torch"`` (write hooks with ``self.xp``,
+    ``numpy`` or ``torch``, and both work); coordinates are radians for revolute joints and metres
+    for sliders, rates rad/s or m/s.
+
+    Class attributes: ``dt`` (simulator step [s]), ``frame_skip`` (simulator steps per env step),
+    ``task_state`` ((attribute, width) pairs of per-episode task values, see ``draw_task``),
+    ``reset_option_keys`` (the task's own ``reset(options=...)`` keys), ``velocity_bound``
+    (observation bound for rates) and ``render_plane`` / ``render_center`` / ``render_width`` /
+    ``render_size``.  A task's own constructor arguments are attributes set before
+    ``super().__init__(num_envs, **kwargs)``, which calls ``build_scene``.
+
+    Hooks (required first):
+
+    * ``build_scene() -> Scene``: the mechanism in its zero pose (bodies [kg, m], joints, limits,
+      drives, each drive with a finite ``max_effort`` [N or N·m]).
+    * ``observation_high() -> (obs_dim,)``: positive finite bounds of one observation; the space is
+      ``Box(-high, high)`` (float32) and observations are clipped to it.
+    * ``observe() -> (N, obs_dim)``: the observation of every world (backend array).
+    * ``reward(obs, actions) -> (N,)``: the reward of the step that led to ``obs`` (N, obs_dim),
+      with the clipped actions (N, action_dim) in [-1, 1].
+    * ``terminated(obs) -> (N,) bool``: default never (failed worlds are terminated by the env).
+    * ``action_dim`` (property): default one action per drive of the scene.
+    * ``controls(actions) -> (N, num_drives)``: drive inputs from clipped actions; default
+      ``actions * max_effort`` (efforts [N or N·m]); override it when ``action_dim`` differs.
+    * ``initial_state(n, rng, options) -> (coordinates, rates)``: host NumPy arrays (n, num_joints)
+      of n fresh episodes drawn from ``rng`` (``options``: the reset options); default all zero.
+    * ``draw_task(n, rng, options) -> {attribute: (n,) or (n, width)}``: the ``task_state`` values
+      of n new episodes (host NumPy; e.g. a target [m]).  The env keeps them in backend arrays
+      named by the attributes ((N,) for width 1, else (N, width)); they are drawn ahead on the
+      device's autoreset path too.
+    * ``reset_task(idx, rng, options)``: task state of the worlds ``idx`` (host int array) at a
+      reset; default: write ``draw_task``'s values.  A task that overrides it resets on the host.
+    * ``info(obs) -> {key: (N,) array}``: per-step info values; default none.
+    * ``render_extras(canvas, world)``: marks (targets, end stops) drawn over the bodies.
+
+    What hooks read: ``coords()`` / ``velocities()`` (N, num_joints) joint coordinates and rates,
+    ``unwrapped_coords()`` (multi-turn angles [rad]), ``body_positions()`` (N, num_bodies, 3) [m],
+    ``body_rotations()`` (N, num_bodies, 3, 3), ``episode_time()`` (N,) [s], ``max_effort``
+    (num_drives,) [N or N·m], ``xp`` (``numpy`` or ``torch``), ``num_envs``, ``step_dt`` [s] and
+    the array helpers ``asarray(values, dtype)``, ``zeros(*shape, dtype)``, ``put(array, idx,
+    values)`` and ``f32(x)`` (dtype "float" float32, "int" int64, "bool").
+    """
 
     metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 50,
                                 "autoreset_mode": AutoresetMode.NEXT_STEP}  # fmt: skip
@@ -205,7 +245,7 @@ class ABDVectorEnv(VectorEnv):
     dt: float = 0.02  # simulator time step [s]
     frame_skip: int = 1  # simulator steps per env step
     reset_option_keys: tuple = ()  # task-specific reset options (besides reset_mask and randomize)
-    # per-episode task values that each new episode draws (``_draw_task``): (attribute, width)
+    # per-episode task values that each new episode draws (``draw_task``): (attribute, width)
     # pairs.  The env keeps them in one float32 array (N, total width) whose columns the
     # attributes view ((N,) for width 1, else (N, width)), so that an autoreset on the device
     # writes them with the episode's initial state (autoreset.py)
@@ -267,22 +307,22 @@ class ABDVectorEnv(VectorEnv):
         if not np.all(np.isfinite(high)) or np.any(high <= 0):
             raise ValueError(f"observation bounds must be positive and finite, got {high}")
         self.single_observation_space = spaces.Box(-high, high, dtype=np.float32)
-        self._obs_high = self._asarray(high)
+        self._obs_high = self.asarray(high)
         self._obs_low = -self._obs_high  # kept: negating it in each step is a launch
         self.action_space = batch_space(self.single_action_space, N)
         self.observation_space = batch_space(self.single_observation_space, N)
         self._max_effort = np.array([d.max_effort for d in self.scene.drives], dtype=np.float32)
         if nd and not np.all(np.isfinite(self._max_effort)):
             raise ValueError("every drive of a task needs a finite max_effort (actions are scaled by it)")
-        self._effort = self._asarray(self._max_effort) if nd else None
+        self._effort = self.asarray(self._max_effort) if nd else None
 
         # ---- per-world bookkeeping
-        self._elapsed = self._zeros(N, dtype="int")  # env steps in the current episode
+        self._elapsed = self.zeros(N, dtype="int")  # env steps in the current episode
         for name, width in self.task_state:
             if not (isinstance(name, str) and name.isidentifier() and isinstance(width, (int, np.integer)) and width >= 1):
                 raise ValueError(f"task_state entries must be (attribute name, positive int width), got {(name, width)!r}")
         self._task_width = sum(int(w) for _, w in self.task_state)
-        self._task = self._zeros(N, self._task_width)  # the task_state values, views of its columns
+        self._task = self.zeros(N, self._task_width)  # the task_state values, views of its columns
         col = 0
         for name, width in self.task_state:
             setattr(self, name, self._task[:, col] if width == 1 else self._task[:, col : col + width])
@@ -290,7 +330,7 @@ class ABDVectorEnv(VectorEnv):
         # all-False flags made once: building them each step was a host-to-device copy (on a GPU, a
         # copy from pageable memory, which waits for the stream) in every step of every task
         # without terminations
-        self._no_flags = self._zeros(N, dtype="bool")
+        self._no_flags = self.zeros(N, dtype="bool")
         self._pending = np.zeros(N, dtype=bool)  # NEXT_STEP: worlds to reset at the next step
         self._pinned = None  # GPU: (pinned host flags' slots, event) the next pending mask comes through
         self._pinned_slot = 2  # the slot of those flags that the event's step writes
@@ -299,7 +339,7 @@ class ABDVectorEnv(VectorEnv):
         # NEXT_STEP autoresets on the device (autoreset.py), for tasks whose episodes start from
         # _initial_state and _draw_task alone (no _reset_task of their own); not while parameters
         # are randomised
-        own_reset = type(self)._reset_task is not ABDVectorEnv._reset_task
+        own_reset = type(self).reset_task is not ABDVectorEnv.reset_task
         self._next = None
         if self.autoreset_mode == AutoresetMode.NEXT_STEP and not own_reset:
             self._next = NextEpisodes(self.sim, self._draw_episodes, task_width=self._task_width,
@@ -364,6 +404,24 @@ class ABDVectorEnv(VectorEnv):
             raise ValueError(f"render_worlds must index worlds in [0, {N}), got {self.render_worlds}")
         self._renderer = None
 
+    # ================================================================== pickle / deepcopy
+    def __new__(cls, *args, **kwargs):
+        env = super().__new__(cls)
+        env._init_args = (args, kwargs)  # what a copy is rebuilt from (__getstate__)
+        return env
+
+    def __getstate__(self):
+        """The constructor arguments (the device as resolved) and the env's state (env_snapshot):
+        a copy is built anew from them and then steps as this env does."""
+        args, kwargs = self._init_args
+        return {"args": args, "kwargs": dict(kwargs, device=str(self.device)),
+                "snapshot": env_snapshot.capture(self)}  # fmt: skip
+
+    def __setstate__(self, state):
+        self._init_args = (state["args"], state["kwargs"])
+        self.__init__(*state["args"], **state["kwargs"])
+        env_snapshot.restore(self, state["snapshot"])
+
     # ================================================================== task interface
     def build_scene(self) -> Scene:
         """The task's mechanism in its zero pose."""
@@ -376,42 +434,51 @@ class ABDVectorEnv(VectorEnv):
 
     @property
     def action_dim(self) -> int:
+        """Actions per world: by default one per drive."""
         return len(self.scene.drives)
 
-    def _controls(self, actions):
+    @property
+    def max_effort(self):
+        """(num_drives,) each drive's ``max_effort`` [N or N·m] as a float32 backend array."""
+        return self._effort
+
+    def controls(self, actions):
         """Drive inputs (N, num_drives) from clipped actions (N, action_dim): a × max_effort."""
         return actions * self._effort
 
-    def _observe(self):
+    def observe(self):
+        """(N, obs_dim) observation of every world (backend array)."""
         raise NotImplementedError
 
-    def _reward(self, obs, actions):
+    def reward(self, obs, actions):
+        """(N,) reward of the step to ``obs`` (N, obs_dim) with clipped ``actions`` (N, action_dim)."""
         raise NotImplementedError
 
-    def _terminated(self, obs):
+    def terminated(self, obs):
+        """(N,) bool: the worlds whose episode ends at ``obs``; by default none."""
         return self._no_flags  # read only: step combines it into a new array
 
-    def _initial_state(self, n: int, rng: np.random.Generator, options: dict):
+    def initial_state(self, n: int, rng: np.random.Generator, options: dict):
         """Joint coordinates and velocities (n, num_joints) of n fresh episodes (host NumPy)."""
         nj = self.scene.num_joints
         return np.zeros((n, nj)), np.zeros((n, nj))
 
-    def _draw_task(self, n: int, rng: np.random.Generator, options: dict) -> dict:
+    def draw_task(self, n: int, rng: np.random.Generator, options: dict) -> dict:
         """The ``task_state`` values of n new episodes: {attribute: (n,) or (n, width) host array}."""
         return {}
 
-    def _reset_task(self, idx: np.ndarray, rng: np.random.Generator, options: dict):
+    def reset_task(self, idx: np.ndarray, rng: np.random.Generator, options: dict):
         """Task state of the worlds ``idx`` for a new episode: by default the ``task_state`` values
-        ``_draw_task`` draws.  A task that overrides this resets on the host (no autoresets on the
+        ``draw_task`` draws.  A task that overrides this resets on the host (no autoresets on the
         device, no step graph)."""
         if self._task_width:
-            self._put(self._task, idx, self._task_matrix(self._draw_task(len(idx), rng, options), len(idx)))
+            self.put(self._task, idx, self._task_matrix(self.draw_task(len(idx), rng, options), len(idx)))
 
     def _task_matrix(self, values: dict, n: int) -> np.ndarray:
-        """``_draw_task``'s values as one (n, total width) array, columns in ``task_state`` order."""
+        """``draw_task``'s values as one (n, total width) array, columns in ``task_state`` order."""
         missing = [name for name, _ in self.task_state if name not in values]
         if missing or len(values) != len(self.task_state):
-            raise ValueError(f"_draw_task must return exactly the task_state values {[k for k, _ in self.task_state]}, "
+            raise ValueError(f"draw_task must return exactly the task_state values {[k for k, _ in self.task_state]}, "
                              f"got {sorted(values)}")  # fmt: skip
         return np.concatenate([np.asarray(values[name], dtype=np.float64).reshape(n, int(w))
                                for name, w in self.task_state], axis=1)  # fmt: skip
@@ -419,21 +486,22 @@ class ABDVectorEnv(VectorEnv):
     def _draw_episodes(self, n: int):
         """n next episodes for the autoreset queues (autoreset.py), from the generator spawned at
         the last full reset: initial coordinates, rates and (with ``task_state``) task values."""
-        x, xd = self._initial_state(n, self._next_rng, {})
+        x, xd = self.initial_state(n, self._next_rng, {})
         if not self._task_width:
             return x, xd
-        return x, xd, self._task_matrix(self._draw_task(n, self._next_rng, {}), n)
+        return x, xd, self._task_matrix(self.draw_task(n, self._next_rng, {}), n)
 
-    def _info(self, obs) -> dict:
+    def info(self, obs) -> dict:
         """Per-step info: a dict of batched arrays (each gets an all-True ``"_key"`` mask)."""
         return {}
 
-    def _render_extras(self, canvas, world: int):
+    def render_extras(self, canvas, world: int):
         """Draw task-specific marks (targets, end stops) on a render canvas, over the bodies."""
 
     # ================================================================== array helpers
-    def _asarray(self, values, dtype="float"):
-        """Host values as a backend array (on the simulator's device for torch)."""
+    def asarray(self, values, dtype="float"):
+        """Host values as a backend array (on the simulator's device for torch); ``dtype`` "float"
+        (float32), "int" (int64) or "bool"."""
         if self.xp is np:
             return np.asarray(values, dtype={"float": np.float32, "int": np.int64, "bool": bool}[dtype])
         import torch
@@ -441,8 +509,9 @@ class ABDVectorEnv(VectorEnv):
         dt = {"float": torch.float32, "int": torch.int64, "bool": torch.bool}[dtype]
         return torch.as_tensor(np.asarray(values), dtype=dt, device=self._torch_device)
 
-    def _zeros(self, *shape, dtype="float"):
-        return self._asarray(np.zeros(shape), dtype)
+    def zeros(self, *shape, dtype="float"):
+        """A backend array of zeros of ``shape`` (``dtype`` as ``asarray``)."""
+        return self.asarray(np.zeros(shape), dtype)
 
     def _upload(self, values: np.ndarray):
         """Host values as a tensor on the env's device.  To a GPU through pinned memory and a
@@ -464,7 +533,7 @@ class ABDVectorEnv(VectorEnv):
         else:
             array.index_fill_(0, idx, value)
 
-    def _put(self, array, idx: np.ndarray, values):
+    def put(self, array, idx: np.ndarray, values):
         """array[idx] = values (host values into a backend array of the same dtype)."""
         if self.xp is np:
             array[idx] = values
@@ -475,7 +544,8 @@ class ABDVectorEnv(VectorEnv):
         """A new all-False flag array (N,)."""
         return self._no_flags.copy() if self.xp is np else self._no_flags.clone()
 
-    def _f32(self, x):
+    def f32(self, x):
+        """``x`` (a backend array) as float32."""
         return x.astype(np.float32, copy=False) if self.xp is np else x.to(self.xp.float32)
 
     def coords(self):
@@ -500,7 +570,7 @@ class ABDVectorEnv(VectorEnv):
 
     def episode_time(self):
         """(N,) time since each world's reset [s]."""
-        return self._f32(self._elapsed) * self.step_dt
+        return self.f32(self._elapsed) * self.step_dt
 
     def _failed(self):
         if self.xp is np:
@@ -608,11 +678,11 @@ class ABDVectorEnv(VectorEnv):
         options = options or {}
         rng = self.np_random
         self._apply_parameters(idx, rng)
-        coords, vels = self._initial_state(len(idx), rng, options)
+        coords, vels = self.initial_state(len(idx), rng, options)
         self.sim.set_joint_state(coords, vels, worlds=idx)
         idx_b = self._index(idx)
         self._fill(self._elapsed, idx_b, 0)  # no value array
-        self._reset_task(idx, rng, options)
+        self.reset_task(idx, rng, options)
         self._pending_now()[idx] = False
         return idx_b
 
@@ -654,7 +724,7 @@ class ABDVectorEnv(VectorEnv):
     # ================================================================== step
     def _observe_safe(self):
         """The task's observation as float32, clipped to the observation space."""
-        obs = self._f32(self._observe())
+        obs = self.f32(self.observe())
         return self.xp.clip(obs, self._obs_low, self._obs_high)
 
     @staticmethod
@@ -748,7 +818,7 @@ class ABDVectorEnv(VectorEnv):
                 self._restart_next_episodes()
             return self._step_on_device(a)
 
-        self.sim.set_controls(self._controls(a))
+        self.sim.set_controls(self.controls(a))
         self.sim.step(self.frame_skip)  # on a GPU: queued; the host goes on while it runs
         self._elapsed += 1
         # NEXT_STEP: the worlds that ended last step; this step only resets them (read after the
@@ -791,13 +861,13 @@ class ABDVectorEnv(VectorEnv):
         xp = self.xp
         obs = self._observe_safe()
         failed = self._failed() | ~xp.isfinite(obs).all(axis=1)
-        reward = self._f32(self._reward(obs, a))
-        terminated = self._terminated(obs) | failed
+        reward = self.f32(self.reward(obs, a))
+        terminated = self.terminated(obs) | failed
         if self.max_episode_steps is not None:
             truncated = self._elapsed >= self.max_episode_steps
         else:
             truncated = self._false()
-        info_values = self._info(obs)
+        info_values = self.info(obs)
         zero = failed
         if pend is not None:
             terminated, truncated, zero = terminated & ~pend, truncated & ~pend, failed | pend
@@ -852,9 +922,9 @@ class ABDVectorEnv(VectorEnv):
         step graph's, checked): the actions are read from the batch mailed in that slot and
         clipped into ``a``."""
         if not checked:
-            self.sim.set_controls(self._controls(a))
+            self.sim.set_controls(self.controls(a))
             return
-        scaled = type(self)._controls is ABDVectorEnv._controls
+        scaled = type(self).controls is ABDVectorEnv.controls
         k = self._wp
         mailed = slot is not None
         wp.launch(env_kernels.check_actions(self.sim.model.dtype, scaled, mailed), dim=self.num_envs,
@@ -862,7 +932,7 @@ class ABDVectorEnv(VectorEnv):
                           self._mail_dev if mailed else None, slot or 0],
                   device=self.device)  # fmt: skip
         if not scaled:
-            self.sim.set_controls(self._controls(a))
+            self.sim.set_controls(self.controls(a))
 
     def _physics(self, capturing: bool, checked: bool):
         """The simulator's step, then the autoreset of last step's ended worlds (autoreset.py);
@@ -943,8 +1013,8 @@ class ABDVectorEnv(VectorEnv):
         """The task's observation (float32, clipped to the space), reward (float32), termination and
         info values after a step with the clipped actions ``a`` (Torch; what torch.compile fuses)."""
         obs = self._observe_safe()
-        reward = self._f32(self._reward(obs, a)).contiguous()
-        return obs, reward, self._terminated(obs).contiguous(), self._info(obs)
+        reward = self.f32(self.reward(obs, a)).contiguous()
+        return obs, reward, self.terminated(obs).contiguous(), self.info(obs)
 
     def _device_step(self, a):
         """One env step as device work only (no host reads, no host-dependent branches on a GPU), so
@@ -994,7 +1064,7 @@ class ABDVectorEnv(VectorEnv):
         # the check (one Warp launch, with the default controls) heads the physics' graph and reads
         # the mailed actions: one graph launch and one copy less; Torch operations (a task's own
         # controls, the host-checked path's copy) need Torch's capture, on the actions' copy
-        warp_only = checked and type(self)._controls is ABDVectorEnv._controls
+        warp_only = checked and type(self).controls is ABDVectorEnv.controls
         pre = None
         if not warp_only:
             pre, _ = self._torch_graph(lambda: self._pre(self._action_buf, checked))
@@ -1143,7 +1213,7 @@ class ABDVectorEnv(VectorEnv):
         for w in self.render_worlds:
             canvas = self._renderer.canvas()
             self._renderer.draw_bodies(canvas, pos[w], rot[w])
-            self._render_extras(canvas, w)
+            self.render_extras(canvas, w)
             frames.append(canvas.image)
         return tuple(frames)
 

@@ -12,7 +12,6 @@ from types import SimpleNamespace
 
 import warp as wp
 
-wp.config.quiet = True
 # no adjoints: the solver differentiates by hand, and skipping them halves compile time
 wp.config.enable_backward = False
 

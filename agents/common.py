@@ -1,4 +1,4 @@
-"""Pieces shared by ``agents.train`` and ``agents.evaluate``: envs, models, evaluation, summaries."""
+"""Pieces shared by ``abd_gym.agents.train`` and ``abd_gym.agents.evaluate``: envs, models, evaluation, summaries."""
 from __future__ import annotations
 
 import json
@@ -192,14 +192,3 @@ def versions() -> dict[str, str]:
 def write_json(path: Path, data: dict[str, Any]) -> None:
     path.write_text(json.dumps(data, indent=2, sort_keys=False, default=str) + "\n")
 
-
-def quiet_warp() -> None:
-    """No per-module "load took ... ms" lines from Warp between the progress bar's updates."""
-    try:
-        import warp
-
-        warp.config.quiet = True
-        if hasattr(warp, "LOG_WARNING"):  # Warp 1.19 logs module loads at INFO level
-            warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
-    except ImportError:
-        pass

@@ -36,6 +36,8 @@ from typing import Any
 
 import yaml
 
+from .. import configs as _configs
+
 __all__ = [
     "ALGOS",
     "ConfigError",
@@ -53,7 +55,7 @@ __all__ = [
     "CONFIG_DIR",
 ]
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_DIR = Path(_configs.__file__).resolve().parent  # the shipped configs (abd_gym.configs)
 
 
 class ConfigError(ValueError):
@@ -447,7 +449,8 @@ def normalize_kwargs(cfg: dict[str, Any]) -> dict[str, Any] | None:
 
 
 def find_config(name: str | Path) -> Path:
-    """A config path: as given, or ``configs/<name>(.yaml)`` in the working dir or the repo."""
+    """A config path: as given, or ``<name>(.yaml)`` in ``./configs/`` or in the shipped configs
+    (``abd_gym.configs``: the repository's ``configs/``, installed with the package)."""
     path = Path(name)
     if path.is_file():
         return path
@@ -455,7 +458,7 @@ def find_config(name: str | Path) -> Path:
         for cand in (base / path, base / f"{path}.yaml", base / f"{path}.yml"):
             if cand.is_file():
                 return cand
-    raise FileNotFoundError(f"no config {str(name)!r} (looked for the file and in configs/)")
+    raise FileNotFoundError(f"no config {str(name)!r} (looked for the file, in ./configs/ and in {CONFIG_DIR})")
 
 
 def apply_overrides(raw: dict[str, Any], overrides: list[str] | dict[str, Any]) -> dict[str, Any]:

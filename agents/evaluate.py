@@ -1,6 +1,6 @@
 """Evaluate a saved run, and optionally record a video of it.
 
-    python -m agents.evaluate RUN_DIR [--episodes N] [--device cpu|cuda:0] [--seed S]
+    python -m abd_gym.agents.evaluate RUN_DIR [--episodes N] [--device cpu|cuda:0] [--seed S]
         [--stochastic] [--model PATH] [--json PATH] [--video out.gif|out.mp4] [--video-episodes K]
 
 (also ``abd-gym-evaluate``).  Loads ``RUN_DIR/config.yaml``, ``model.zip`` (or ``--model``, e.g.
@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 
 from .common import (
-    quiet_warp,
     CONFIG_FILE,
     EVAL_SEED_OFFSET,
     MODEL_FILE,
@@ -31,6 +30,7 @@ from .common import (
     write_json,
 )
 from .config import algorithm_class, validate_config, yaml_load
+from ..devices import resolve_device
 
 __all__ = ["load_run", "evaluate_run", "record_video", "main"]
 
@@ -188,13 +188,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    quiet_warp()
     import torch
 
-    torch.set_num_threads(1)  # small MLPs: one thread is fastest (see agents.train)
+    torch.set_num_threads(1)  # small MLPs: one thread is fastest (see abd_gym.agents.train)
     if not (Path(args.run_dir) / CONFIG_FILE).is_file():
         print(f"abd-gym-evaluate: error: {args.run_dir} has no {CONFIG_FILE} (not a run directory)", file=sys.stderr)
         return 2
+    if args.device is not None:
+        try:
+            resolve_device(args.device)
+        except ValueError as exc:
+            print(f"abd-gym-evaluate: error: {exc}", file=sys.stderr)
+            return 2
     result = evaluate_run(
         args.run_dir,
         episodes=args.episodes,

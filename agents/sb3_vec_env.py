@@ -177,7 +177,7 @@ class GymnasiumVecEnv(VecEnv):
                 f"subset of worlds ({reason}); SB3 needs same-step resets. Create it with "
                 "autoreset_mode=gymnasium.vector.AutoresetMode.SAME_STEP (or vectorization_mode='sync' "
                 "with vector_kwargs={'autoreset_mode': AutoresetMode.SAME_STEP}); "
-                "agents.sb3_vec_env.make_vec_env does this for a registered id."
+                "abd_gym.agents.sb3_vec_env.make_vec_env does this for a registered id."
             )
 
     def _sample_actions(self) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Train an SB3 agent from a YAML config.
 
-    python -m agents.train configs/cartpole_ppo.yaml [--seed S] [--device cpu|cuda:0]
+    python -m abd_gym.agents.train configs/cartpole_ppo.yaml [--seed S] [--device cpu|cuda:0]
         [--num-envs N] [--total-timesteps T] [--run-dir DIR] [--eval-episodes E] [key=value ...]
 
 (also ``abd-gym-train``).  A bare name (``cartpole_ppo``) is looked up in ``configs/``.
@@ -26,7 +26,6 @@ from typing import Any
 import yaml
 
 from .common import (
-    quiet_warp,
     CONFIG_FILE,
     EVAL_SEED_OFFSET,
     MODEL_FILE,
@@ -43,6 +42,7 @@ from .common import (
     write_json,
 )
 from .config import apply_overrides, find_config, validate_config, yaml_load
+from ..devices import resolve_device
 
 __all__ = ["train", "main", "parse_args", "config_from_args"]
 
@@ -78,6 +78,7 @@ def train(
     from stable_baselines3.common.vec_env import VecNormalize
 
     cfg = validate_config(cfg)
+    resolve_device(cfg["device"])  # ValueError naming the devices there are, before the run folder is made
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(config_name, cfg["seed"])
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(cfg, sort_keys=False))
@@ -189,18 +190,19 @@ def config_from_args(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
         "eval_episodes": args.eval_episodes,
     }
     raw = apply_overrides(raw, {k: v for k, v in flags.items() if v is not None})
-    return validate_config(raw), path.stem
+    cfg = validate_config(raw)
+    resolve_device(cfg["device"])  # an unavailable device: one line and exit 2 (main), before any run folder
+    return cfg, path.stem
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    quiet_warp()
     try:
         cfg, name = config_from_args(args)
     except (ValueError, FileNotFoundError) as exc:
         print(f"abd-gym-train: error: {exc}", file=sys.stderr)
         return 2
-    command = " ".join(["python -m agents.train", *(sys.argv[1:] if argv is None else argv)])
+    command = " ".join(["python -m abd_gym.agents.train", *(sys.argv[1:] if argv is None else argv)])
     summary = train(
         cfg,
         config_name=name,

@@ -67,11 +67,11 @@ class AcrobotVectorEnv(ABDVectorEnv):
     def observation_high(self):
         return np.array([1, 1, 1, 1, self.velocity_bound, self.velocity_bound])
 
-    def _initial_state(self, n, rng, options):
+    def initial_state(self, n, rng, options):
         s = rng.uniform(-0.1, 0.1, size=(n, 4))
         return s[:, :2], s[:, 2:]
 
-    def _observe(self):
+    def observe(self):
         xp, q, v = self.xp, self.coords(), self.velocities()
         return xp.stack([xp.cos(q[:, 0]), xp.sin(q[:, 0]), xp.cos(q[:, 1]), xp.sin(q[:, 1]), v[:, 0], v[:, 1]], axis=1)
 
@@ -80,15 +80,15 @@ class AcrobotVectorEnv(ABDVectorEnv):
         c1, s1, c2, s2 = obs[:, 0], obs[:, 1], obs[:, 2], obs[:, 3]
         return -(self.lengths[0] * c1 + self.lengths[1] * (c1 * c2 - s1 * s2))
 
-    def _terminated(self, obs):
+    def terminated(self, obs):
         return self.tip_height(obs) > self.goal_height
 
-    def _reward(self, obs, actions):
+    def reward(self, obs, actions):
         length = sum(self.lengths)
         h = self.tip_height(obs)
         return self.xp.where(h > self.goal_height, 0.0, -(length - h) / (2 * length))
 
-    def _render_extras(self, canvas, world):
+    def render_extras(self, canvas, world):
         canvas.segment((-2.2, 0, self.goal_height), (2.2, 0, self.goal_height), 0.01, (160, 160, 160))
 
 

@@ -1,6 +1,6 @@
 """Throughput of the batched task environments.
 
-    python -m envs.bench_envs [--tasks CartPole-v0,Acrobot-v0] [--worlds 1,64] [--steps 100] [--device cpu]
+    python -m abd_gym.envs.bench_envs [--tasks CartPole-v0,Acrobot-v0] [--worlds 1,64] [--steps 100] [--device cpu]
 
 :func:`env_steps_per_second` times ``VectorEnv.step`` with random actions (drawn beforehand, on the
 env's device for the torch backend), after a reset and one warm-up step, autoresets included.

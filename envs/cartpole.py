@@ -75,22 +75,22 @@ class CartPoleVectorEnv(ABDVectorEnv):
     def observation_high(self):
         return np.array([2 * self.x_threshold, self.velocity_bound, 2 * self.theta_threshold, self.velocity_bound])
 
-    def _initial_state(self, n, rng, options):
+    def initial_state(self, n, rng, options):
         low, high = float(options.get("low", -0.05)), float(options.get("high", 0.05))
         s = rng.uniform(low, high, size=(n, 4))
         return s[:, [0, 2]], s[:, [1, 3]]
 
-    def _observe(self):
+    def observe(self):
         q, v = self.coords(), self.velocities()
         return self.xp.stack([q[:, 0], v[:, 0], q[:, 1], v[:, 1]], axis=1)
 
-    def _reward(self, obs, actions):
+    def reward(self, obs, actions):
         return self.xp.ones_like(obs[:, 0])
 
-    def _terminated(self, obs):
+    def terminated(self, obs):
         return (self.xp.abs(obs[:, 0]) > self.x_threshold) | (self.xp.abs(obs[:, 2]) > self.theta_threshold)
 
-    def _render_extras(self, canvas, world):
+    def render_extras(self, canvas, world):
         draw_track(canvas, self.x_threshold)
 
 

@@ -1,6 +1,6 @@
 """CartPoleSwingUp-v0: swing the pole up from hanging down and balance it, on a track with end stops.
 
-Scene: the CartPole-v0 scene (``envs.cartpole.build_cart_scene``): cart (1 kg) on a slider along
+Scene: the CartPole-v0 scene (``abd_gym.envs.cartpole.build_cart_scene``): cart (1 kg) on a slider along
   +x with prismatic end stops at ±2.4 m, uniform pole (0.1 kg, 1 m) on a hinge about +y, zero
   pose = pole upright; force drive on the slider (|F| ≤ 10 N).  The end stops are physical: the
   episode does not end when the cart reaches them, the limit holds the cart.
@@ -26,7 +26,7 @@ import math
 import numpy as np
 
 from abd_gym.vector_env import ABDEnv, ABDVectorEnv
-from envs.cartpole import build_cart_scene, draw_track
+from abd_gym.envs.cartpole import build_cart_scene, draw_track
 
 REWARD_RANGE = (0.0, 1.0)  # per step
 
@@ -48,15 +48,15 @@ class CartPoleSwingUpVectorEnv(ABDVectorEnv):
     def observation_high(self):
         return np.array([2 * self.track, self.velocity_bound, 1.0, 1.0, self.velocity_bound])
 
-    def _initial_state(self, n, rng, options):
+    def initial_state(self, n, rng, options):
         s = rng.uniform(-0.05, 0.05, size=(n, 4))
         return np.stack([s[:, 0], math.pi + s[:, 2]], axis=1), s[:, [1, 3]]
 
-    def _observe(self):
+    def observe(self):
         xp, q, v = self.xp, self.coords(), self.velocities()
         return xp.stack([q[:, 0], v[:, 0], xp.cos(q[:, 1]), xp.sin(q[:, 1]), v[:, 1]], axis=1)
 
-    def _reward(self, obs, actions):
+    def reward(self, obs, actions):
         xp = self.xp
         upright = (1.0 + obs[:, 2]) / 2
         centred = 1.0 - 0.5 * xp.clip((obs[:, 0] / self.track) ** 2, 0.0, 1.0)
@@ -64,7 +64,7 @@ class CartPoleSwingUpVectorEnv(ABDVectorEnv):
         small_velocity = (1.0 + 1.0 / (1.0 + 0.1 * obs[:, 4] ** 2)) / 2
         return upright * centred * small_control * small_velocity
 
-    def _render_extras(self, canvas, world):
+    def render_extras(self, canvas, world):
         draw_track(canvas, self.track)
 
 

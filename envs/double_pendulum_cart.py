@@ -1,6 +1,6 @@
 """DoublePendulumCart-v0: balance a double inverted pendulum (two poles in a chain) on a cart.
 
-Scene (``envs.cartpole.build_cart_scene`` with two poles; x–z plane, gravity −z; zero pose = both
+Scene (``abd_gym.envs.cartpole.build_cart_scene`` with two poles; x–z plane, gravity −z; zero pose = both
   poles upright): cart (1 kg) on a slider along +x with prismatic end stops at ±2.4 m; pole 1
   (0.1 kg, 0.5 m) hinged about +y on the cart, pole 2 (0.1 kg, 0.5 m) hinged about +y on top of
   pole 1; a force drive on the slider (|F| ≤ 20 N).
@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from abd_gym.vector_env import ABDEnv, ABDVectorEnv
-from envs.cartpole import build_cart_scene, draw_track
+from abd_gym.envs.cartpole import build_cart_scene, draw_track
 
 REWARD_RANGE = (0.0, 1.0)  # per step
 
@@ -48,11 +48,11 @@ class DoublePendulumCartVectorEnv(ABDVectorEnv):
     def observation_high(self):
         return np.array([2 * self.track, 1, 1, 1, 1, self.velocity_bound, self.velocity_bound, self.velocity_bound])
 
-    def _initial_state(self, n, rng, options):
+    def initial_state(self, n, rng, options):
         s = rng.uniform(-0.05, 0.05, size=(n, 6))
         return s[:, :3], s[:, 3:]
 
-    def _observe(self):
+    def observe(self):
         xp, q, v = self.xp, self.coords(), self.velocities()
         return xp.concatenate([q[:, :1], xp.sin(q[:, 1:]), xp.cos(q[:, 1:]), v], axis=1)
 
@@ -62,13 +62,13 @@ class DoublePendulumCartVectorEnv(ABDVectorEnv):
         c1, s1, s2, c2 = obs[:, 3], obs[:, 1], obs[:, 2], obs[:, 4]
         return (l1 * c1 + l2 * (c1 * c2 - s1 * s2)) / self.height  # cos(θ1 + θ2)
 
-    def _reward(self, obs, actions):
+    def reward(self, obs, actions):
         return self.xp.clip(1.0 - 5.0 * (1.0 - self.tip_height(obs)), 0.0, 1.0)
 
-    def _terminated(self, obs):
+    def terminated(self, obs):
         return (self.tip_height(obs) < self.min_height) | (self.xp.abs(obs[:, 0]) > self.track)
 
-    def _render_extras(self, canvas, world):
+    def render_extras(self, canvas, world):
         draw_track(canvas, self.track)
 
 

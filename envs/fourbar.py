@@ -118,7 +118,7 @@ class FourBarVectorEnv(ABDVectorEnv):
     def observation_high(self):
         return np.array([1, 1, self.velocity_bound, 1, 1, 1, 1, self.velocity_bound, self.velocity_bound])
 
-    def _initial_state(self, n, rng, options):
+    def initial_state(self, n, rng, options):
         phi = rng.uniform(-math.pi, math.pi, size=n)
         rate = rng.uniform(-1.0, 1.0, size=n)
         eps = 1e-5
@@ -126,7 +126,7 @@ class FourBarVectorEnv(ABDVectorEnv):
         qd = (self.joint_angles(phi + eps * rate) - self.joint_angles(phi - eps * rate)) / (2 * eps)
         return q, qd
 
-    def _draw_task(self, n, rng, options):
+    def draw_task(self, n, rng, options):
         lo, hi = self.speed_range
         speed = rng.uniform(lo, hi, size=n) * rng.choice([-1.0, 1.0], size=n)
         return {"target_phase0": rng.uniform(-math.pi, math.pi, size=n), "target_speed": speed}
@@ -147,7 +147,7 @@ class FourBarVectorEnv(ABDVectorEnv):
         _, _, (px0, pz0) = self.points(xp, phase - eps)
         rate = self.target_speed / (2 * eps)  # dφ*/dt = ω
         vel = xp.stack([(px1 - px0) * rate, (pz1 - pz0) * rate], axis=1)
-        return xp.stack([px, pz], axis=1), self._f32(vel)
+        return xp.stack([px, pz], axis=1), self.f32(vel)
 
     def coupler_point_position(self):
         """(N, 2) coupler point P [m] from the coupler body's pose."""
@@ -157,7 +157,7 @@ class FourBarVectorEnv(ABDVectorEnv):
         world = p + lx * A[:, :, 0] + lz * A[:, :, 2]
         return self.xp.stack([world[:, 0], world[:, 2]], axis=1)
 
-    def _observe(self):
+    def observe(self):
         xp = self.xp
         phi = self.coords()[:, 0] + self.phi_ref
         rate = self.velocities()[:, 0]
@@ -166,15 +166,15 @@ class FourBarVectorEnv(ABDVectorEnv):
         return xp.concatenate([xp.stack([xp.cos(phi), xp.sin(phi), rate], axis=1), P - target, target, target_vel],
                               axis=1)  # fmt: skip
 
-    def _reward(self, obs, actions):
+    def reward(self, obs, actions):
         xp = self.xp
         dist = xp.sqrt(obs[:, 3] ** 2 + obs[:, 4] ** 2)
         return 1.0 - xp.clip(dist / self.tolerance, 0.0, 1.0) - 0.01 * actions[:, 0] ** 2
 
-    def _info(self, obs):
+    def info(self, obs):
         return {"distance": self.xp.sqrt(obs[:, 3] ** 2 + obs[:, 4] ** 2)}
 
-    def _render_extras(self, canvas, world):
+    def render_extras(self, canvas, world):
         phi = np.linspace(-math.pi, math.pi, 90)
         _, _, (px, pz) = self.points(np, phi)
         for k in range(0, 90, 3):

@@ -54,14 +54,14 @@ class PendulumVectorEnv(ABDVectorEnv):
     def observation_high(self):
         return np.array([1.0, 1.0, self.velocity_bound])
 
-    def _initial_state(self, n, rng, options):
+    def initial_state(self, n, rng, options):
         return rng.uniform(-math.pi, math.pi, size=(n, 1)), rng.uniform(-1.0, 1.0, size=(n, 1))
 
-    def _observe(self):
+    def observe(self):
         xp, q, v = self.xp, self.coords(), self.velocities()
         return xp.stack([xp.cos(q[:, 0]), xp.sin(q[:, 0]), v[:, 0]], axis=1)
 
-    def _reward(self, obs, actions):
+    def reward(self, obs, actions):
         xp = self.xp
         theta = xp.arctan2(obs[:, 1], obs[:, 0])
         speed = xp.clip(obs[:, 2], -MAX_SPEED, MAX_SPEED)

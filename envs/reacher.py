@@ -73,16 +73,16 @@ class ReacherVectorEnv(ABDVectorEnv):
     def action_dim(self):
         return 2  # the two effort drives; the damping drives get target velocity 0
 
-    def _controls(self, actions):
-        return self.xp.concatenate([actions * self._effort[:2], 0.0 * actions], axis=1)
+    def controls(self, actions):
+        return self.xp.concatenate([actions * self.max_effort[:2], 0.0 * actions], axis=1)
 
     def observation_high(self):
         return np.array([1, 1, 1, 1, 0.25, 0.25, self.velocity_bound, self.velocity_bound, 0.5, 0.5])
 
-    def _initial_state(self, n, rng, options):
+    def initial_state(self, n, rng, options):
         return rng.uniform(-0.1, 0.1, size=(n, 2)), rng.uniform(-0.005, 0.005, size=(n, 2))
 
-    def _draw_task(self, n, rng, options):
+    def draw_task(self, n, rng, options):
         lo, hi = self.target_radius
         r = np.sqrt(rng.uniform(lo**2, hi**2, size=n))
         phi = rng.uniform(-math.pi, math.pi, size=n)
@@ -97,20 +97,20 @@ class ReacherVectorEnv(ABDVectorEnv):
         a12 = q[:, 0] + q[:, 1]
         return xp.stack([l1 * xp.cos(q[:, 0]) + l2 * xp.cos(a12), l1 * xp.sin(q[:, 0]) + l2 * xp.sin(a12)], axis=1)
 
-    def _observe(self):
+    def observe(self):
         xp, q, v = self.xp, self.coords(), self.velocities()
         tip = self.tip(q)
         return xp.concatenate([xp.cos(q), xp.sin(q), self.target, v, tip - self.target], axis=1)
 
-    def _reward(self, obs, actions):
+    def reward(self, obs, actions):
         xp = self.xp
         dist = xp.sqrt(obs[:, 8] ** 2 + obs[:, 9] ** 2)
         return -dist - 0.1 * (actions**2).sum(axis=1)
 
-    def _info(self, obs):
+    def info(self, obs):
         return {"distance": self.xp.sqrt(obs[:, 8] ** 2 + obs[:, 9] ** 2)}
 
-    def _render_extras(self, canvas, world):
+    def render_extras(self, canvas, world):
         t = np.asarray(self.target[world].tolist())
         canvas.circle((t[0], t[1], 0.0), 0.012, (220, 50, 50))
 

@@ -100,7 +100,7 @@ class SliderCrankVectorEnv(ABDVectorEnv):
     def observation_high(self):
         return np.array([1, 1, self.velocity_bound, 0.25, self.velocity_bound, 0.25, self.velocity_bound, 0.5])
 
-    def _initial_state(self, n, rng, options):
+    def initial_state(self, n, rng, options):
         lo, hi = self.phi_range
         phi = rng.uniform(lo + 0.05, hi - 0.05, size=n)
         rate = rng.uniform(-0.5, 0.5, size=n)
@@ -108,7 +108,7 @@ class SliderCrankVectorEnv(ABDVectorEnv):
         qd = (self.joint_state(phi + eps * rate) - self.joint_state(phi - eps * rate)) / (2 * eps)
         return self.joint_state(phi), qd
 
-    def _draw_task(self, n, rng, options):
+    def draw_task(self, n, rng, options):
         lo, hi = self.stroke
         return {"target_mid": np.full(n, 0.5 * (lo + hi)), "target_amp": rng.uniform(0.01, 0.06, size=n),
                 "target_omega": rng.uniform(1.0, 4.0, size=n), "target_phase": rng.uniform(-math.pi, math.pi, size=n)}
@@ -119,20 +119,20 @@ class SliderCrankVectorEnv(ABDVectorEnv):
         arg = self.target_omega * self.episode_time() + self.target_phase
         return self.target_mid + self.target_amp * xp.sin(arg), self.target_amp * self.target_omega * xp.cos(arg)
 
-    def _observe(self):
+    def observe(self):
         xp, q, v = self.xp, self.coords(), self.velocities()
         phi = q[:, 0] + self.phi_ref
         s_star, v_star = self.target()
         return xp.stack([xp.cos(phi), xp.sin(phi), v[:, 0], q[:, 3], v[:, 3], s_star, v_star, q[:, 3] - s_star], axis=1)
 
-    def _reward(self, obs, actions):
+    def reward(self, obs, actions):
         xp = self.xp
         return 1.0 - xp.clip(xp.abs(obs[:, 7]) / self.tolerance, 0.0, 1.0) - 0.01 * actions[:, 0] ** 2
 
-    def _info(self, obs):
+    def info(self, obs):
         return {"error": self.xp.abs(obs[:, 7])}
 
-    def _render_extras(self, canvas, world):
+    def render_extras(self, canvas, world):
         lo, hi = self.stroke
         for s in (lo, hi):  # where the limits engage (piston centre)
             canvas.segment((self.x_ref + s, 0, -0.03), (self.x_ref + s, 0, -0.05), 0.004, (0, 0, 0))

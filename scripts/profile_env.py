@@ -22,8 +22,8 @@ import warp as wp
 
 import abd_gym  # noqa: F401 -- registers the ids
 
-PHASES = ("_prepare_actions", "_controls", "_pending_now", "_reset_worlds", "_observe_safe", "_reward", "_terminated",
-          "_info", "_defer_pending", "_failed", "_step_on_device", "_device_step", "_capture")  # fmt: skip
+PHASES = ("_prepare_actions", "controls", "_pending_now", "_reset_worlds", "_observe_safe", "reward", "terminated",
+          "info", "_defer_pending", "_failed", "_step_on_device", "_device_step", "_capture")  # fmt: skip
 
 
 def device_phases(env, actions, steps):
@@ -146,7 +146,7 @@ def main(argv=None):
 
     # the task's outcome, compiled by torch.compile, guards on these methods: wrapping them would
     # recompile it (inside the step graph's capture)
-    task_code = ("_observe_safe", "_reward", "_terminated", "_info") if u._compile_outcome else ()
+    task_code = ("_observe_safe", "reward", "terminated", "info") if u._compile_outcome else ()
     for name in PHASES:
         if name not in task_code:
             setattr(u, name, timed(name, getattr(u, name)))

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Markdown table of training runs, from the ``summary.json`` files that ``agents.train`` writes.
+"""Markdown table of training runs, from the ``summary.json`` files that ``abd_gym.agents.train`` writes.
 
     python scripts/results_table.py runs/ [more folders or summary files ...]
         [--output results/training.md] [--copy-to results/runs]

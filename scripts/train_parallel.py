@@ -1,7 +1,7 @@
 """Train several configs at once, one process each (one torch thread each), on a many-core machine.
 
     python scripts/train_parallel.py configs/acrobot_ppo.yaml configs/reacher_sac.yaml ... \
-        [--root runs] [--timeout SECONDS] [-- extra agents.train arguments]
+        [--root runs] [--timeout SECONDS] [-- extra abd_gym.agents.train arguments]
 
 Each run goes to ``ROOT/<config>-<seed>/`` with its log in ``ROOT/<config>.log``; a run still going
 after ``--timeout`` seconds is stopped (and leaves no summary).  Prints each run's last log line.
@@ -30,7 +30,7 @@ def main(argv=None) -> int:
     procs = {}
     for cfg in args.configs:
         name = Path(cfg).stem
-        cmd = [sys.executable, "-m", "agents.train", cfg, "--seed", str(args.seed), "--no-progress",
+        cmd = [sys.executable, "-m", "abd_gym.agents.train", cfg, "--seed", str(args.seed), "--no-progress",
                "--torch-threads", "1", "--run-dir", str(root / f"{name}-{args.seed}"), *extra]  # fmt: skip
         log = open(root / f"{name}.log", "w")
         procs[name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log, time.perf_counter())

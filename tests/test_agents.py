@@ -15,9 +15,9 @@ import abd_gym  # noqa: E402,F401 -- registers the abd_gym/ ids
 from gymnasium.vector import AutoresetMode  # noqa: E402
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize  # noqa: E402
 
-from agents import config as agent_config  # noqa: E402
-from agents.config import ConfigError, load_config, validate_config  # noqa: E402
-from agents.sb3_vec_env import GymnasiumVecEnv, make_vec_env  # noqa: E402
+from abd_gym.agents import config as agent_config  # noqa: E402
+from abd_gym.agents.config import ConfigError, load_config, validate_config  # noqa: E402
+from abd_gym.agents.sb3_vec_env import GymnasiumVecEnv, make_vec_env  # noqa: E402
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 
@@ -334,9 +334,9 @@ def _tiny_config(tmp_path: Path) -> Path:
 
 
 def test_train_save_reload_evaluate(tmp_path):
-    from agents import evaluate as agent_eval
-    from agents import train as agent_train
-    from agents.common import build_eval_env
+    from abd_gym.agents import evaluate as agent_eval
+    from abd_gym.agents import train as agent_train
+    from abd_gym.agents.common import build_eval_env
 
     run_dir = tmp_path / "run"
     args = agent_train.parse_args(
@@ -410,7 +410,7 @@ def test_results_table(tmp_path):
         summary = {"config_name": f"cfg{k}", "env_id": "X-v0", "algo": "ppo", "seed": k, "timesteps": 1000 * (k + 1),
                    "wall_time_s": 12.0, "device": "cpu", "mean_return": ret, "std_return": 1.5,
                    "eval_episodes": 10, "reward_threshold": thr, "solved": ret >= thr, "run_dir": str(d),
-                   "command": f"python -m agents.train cfg{k}"}
+                   "command": f"python -m abd_gym.agents.train cfg{k}"}
         (d / "summary.json").write_text(json.dumps(summary))
     out = tmp_path / "table.md"
     subprocess.run([sys.executable, str(root / "scripts" / "results_table.py"), str(tmp_path / "runs"),
@@ -420,7 +420,7 @@ def test_results_table(tmp_path):
     assert len(rows) == 2
     assert "500.0 ± 1.5" in rows[0] and rows[0].rstrip(" |").endswith("yes")
     assert "12.5 ± 1.5" in rows[1] and rows[1].rstrip(" |").endswith("no")
-    assert "`python -m agents.train cfg1`" in text
+    assert "`python -m abd_gym.agents.train cfg1`" in text
     assert sorted(p.name for p in (tmp_path / "copies").iterdir()) == ["r0.json", "r1.json"]
 
 
@@ -431,8 +431,8 @@ def test_results_table(tmp_path):
 @pytest.mark.slow
 def test_ppo_learns_cartpole(tmp_path):
     """PPO on CartPole (the shipped config, fewer steps) ends well above a random policy."""
-    from agents import train as agent_train
-    from agents.common import build_eval_env, evaluate
+    from abd_gym.agents import train as agent_train
+    from abd_gym.agents.common import build_eval_env, evaluate
 
     path = CONFIG_DIR / "cartpole_ppo.yaml"
     cfg = load_config(path, ["n_timesteps=24000", "eval_episodes=10"])

@@ -113,7 +113,7 @@ def test_memory_counts_each_allocation_once():
 
 
 def test_env_rate_keeps_the_fastest_window():
-    from envs.bench_envs import env_steps_per_second
+    from abd_gym.envs.bench_envs import env_steps_per_second
 
     rates = env_steps_per_second("CartPole-v0", 2, 3, "cpu", raw=True, repeat=2)
     assert len(rates) == 3 and all(r > 0 and math.isfinite(r) for r in rates)

@@ -129,7 +129,7 @@ def test_acrobot_reaches_the_goal_with_the_scripted_policy():
 
 # ----------------------------------------------------------------------------- physics invariants
 def test_pendulum_energy_sanity():
-    from envs.pendulum import PendulumVectorEnv
+    from abd_gym.envs.pendulum import PendulumVectorEnv
 
     env = PendulumVectorEnv(2, autoreset_mode=AutoresetMode.DISABLED)
     env.reset(seed=0)
@@ -162,7 +162,7 @@ def test_pendulum_energy_sanity():
 
 
 def test_cart_stays_within_its_track_limits():
-    from envs.cartpole_swingup import CartPoleSwingUpVectorEnv
+    from abd_gym.envs.cartpole_swingup import CartPoleSwingUpVectorEnv
 
     env = CartPoleSwingUpVectorEnv(2, autoreset_mode=AutoresetMode.DISABLED)
     env.reset(seed=0)
@@ -179,7 +179,7 @@ def test_cart_stays_within_its_track_limits():
 
 
 def test_cartpole_termination_at_the_track_end():
-    from envs.cartpole import CartPoleVectorEnv
+    from abd_gym.envs.cartpole import CartPoleVectorEnv
 
     env = CartPoleVectorEnv(1, autoreset_mode=AutoresetMode.DISABLED)
     env.reset(seed=0)
@@ -204,7 +204,7 @@ def test_double_pendulum_tip_height_matches_the_bodies():
 
 
 def test_acrobot_elbow_limit_holds_and_can_be_randomised():
-    from envs.acrobot import AcrobotVectorEnv
+    from abd_gym.envs.acrobot import AcrobotVectorEnv
 
     env = AcrobotVectorEnv(2, autoreset_mode=AutoresetMode.DISABLED)
     env.reset(seed=0)
@@ -227,7 +227,7 @@ def test_reacher_target_reset_option_and_mask():
     """Reacher-v0's target (its task_state): the reset option ``target`` fixes it for the worlds
     reset, a masked reset redraws only the masked worlds' targets, and the observation carries
     the target as held."""
-    from envs.reacher import ReacherVectorEnv
+    from abd_gym.envs.reacher import ReacherVectorEnv
 
     env = ReacherVectorEnv(3, autoreset_mode=AutoresetMode.DISABLED)
     obs, _ = env.reset(seed=1, options={"target": (0.1, -0.05)})
@@ -243,7 +243,7 @@ def test_reacher_target_reset_option_and_mask():
 
 
 def test_reacher_shoulder_limit_near_180_degrees():
-    from envs.reacher import ReacherVectorEnv
+    from abd_gym.envs.reacher import ReacherVectorEnv
 
     env = ReacherVectorEnv(2, autoreset_mode=AutoresetMode.DISABLED)
     env.reset(seed=0)
@@ -286,7 +286,7 @@ def test_fourbar_loop_stays_closed():
 
 
 def test_slider_crank_loop_and_piston_limits():
-    from envs.slider_crank import piston_x
+    from abd_gym.envs.slider_crank import piston_x
 
     _, _, _, env = rollout("abd_gym/SliderCrank-v0", "random")
     env.reset(seed=0)
@@ -307,7 +307,7 @@ def test_slider_crank_loop_and_piston_limits():
 def test_fourbar_target_velocity_is_the_targets_rate():
     """The observed Ṗ* is dP*/dt of the target's own curve: against a float64 central difference of
     step 1e-6 s (error ~1e-9 m/s), to float32 rounding of the observation (|Ṗ*| < ~1 m/s)."""
-    from envs.fourbar import fourbar_points
+    from abd_gym.envs.fourbar import fourbar_points
 
     env = rollout("abd_gym/FourBar-v0", "random")[3]
     a, b, c, d = env.lengths

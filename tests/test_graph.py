@@ -137,11 +137,11 @@ def test_lane_split_step_on_a_closed_loop(cpu_blocks):
     to float32 rounding under the task's torques (on the CPU, eight cooperative fibers)."""
     import warp as wp
 
-    from envs.slider_crank import SliderCrankVectorEnv
+    from abd_gym.envs.slider_crank import SliderCrankVectorEnv
 
     env = SliderCrankVectorEnv(1)
     W, rng = 4, np.random.default_rng(2)
-    x, xd = env._initial_state(W, rng, {})
+    x, xd = env.initial_state(W, rng, {})
     torque = rng.uniform(-1, 1, (W, 1)) * env._max_effort
 
     def run(scratch, block_dim=None):

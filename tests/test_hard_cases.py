@@ -115,7 +115,7 @@ def test_default_tolerance_matches_exact_implicit_euler():
 def _forced_cartpoles(steps, **kw):
     """16 CartPole-v0 scenes at dt 0.02 under random cart forces (±10 N, new each step), every world
     converged each step: the mean Newton iterations a step and the final joint coordinates."""
-    from envs.cartpole import build_cart_scene
+    from abd_gym.envs.cartpole import build_cart_scene
 
     sim = ag.Simulator(build_cart_scene(), num_worlds=16, dt=0.02, **kw)
     rng = np.random.default_rng(0)

@@ -12,8 +12,8 @@ from gymnasium.vector import AutoresetMode
 import abd_gym  # noqa: F401 -- registers the ids
 from abd_gym.registration import TASKS, env_ids
 from abd_gym.vector_env import ABDVectorEnv
-from envs.cartpole import CartPoleVectorEnv
-from envs.pendulum import PendulumVectorEnv
+from abd_gym.envs.cartpole import CartPoleVectorEnv
+from abd_gym.envs.pendulum import PendulumVectorEnv
 
 N = 4
 
@@ -136,7 +136,7 @@ def test_same_step_autoreset(envs):
 
 
 def test_same_step_final_info_layout():
-    from envs.reacher import ReacherVectorEnv
+    from abd_gym.envs.reacher import ReacherVectorEnv
 
     env = ReacherVectorEnv(N, autoreset_mode=AutoresetMode.SAME_STEP, max_episode_steps=3)
     env.reset(seed=0)
@@ -347,7 +347,7 @@ class _FixedStartCartPole(CartPoleVectorEnv):
     """Every episode starts from the same state (pole at 0.15 rad, falling): the host and device
     autoreset paths then give the same stream, whatever generator each draws from."""
 
-    def _initial_state(self, n, rng, options):
+    def initial_state(self, n, rng, options):
         return np.tile([0.0, 0.15], (n, 1)), np.tile([0.0, 0.5], (n, 1))
 
 
@@ -387,9 +387,9 @@ def test_device_autoreset_draws_the_task_state(backend):
     device: the queues hold each next episode's target with its initial state, the worlds that
     ended take both in the next step (the Torch backend by the take kernel, NumPy's by the host
     copy of the rows: the same episodes from the same seed), and the env's clock, observations and
-    flags follow as for a task without task values.  A task with a ``_reset_task`` of its own keeps
+    flags follow as for a task without task values.  A task with a ``reset_task`` of its own keeps
     its resets on the host."""
-    from envs.reacher import ReacherVectorEnv
+    from abd_gym.envs.reacher import ReacherVectorEnv
 
     if backend != "numpy":
         pytest.importorskip("torch")
@@ -420,8 +420,8 @@ def test_device_autoreset_draws_the_task_state(backend):
     ref.close()
 
     class OwnReset(ReacherVectorEnv):
-        def _reset_task(self, idx, rng, options):
-            self._put(self._task, idx, np.full((len(idx), 2), 0.1))
+        def reset_task(self, idx, rng, options):
+            self.put(self.target, idx, np.full((len(idx), 2), 0.1))
 
     own = OwnReset(N, max_episode_steps=4)
     assert own._next is None  # resets on the host
@@ -430,7 +430,7 @@ def test_device_autoreset_draws_the_task_state(backend):
     own.close()
 
     class BadDraw(ReacherVectorEnv):
-        def _draw_task(self, n, rng, options):
+        def draw_task(self, n, rng, options):
             return {"goal": np.zeros((n, 2))}
 
     with pytest.raises(ValueError, match=r"task_state values \['target'\], got \['goal'\]"):
