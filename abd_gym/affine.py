@@ -1,7 +1,7 @@
 """Affine-body kinematics in float64 NumPy: the references every Warp kernel is tested against.
 
 ``q = (p, a1, a2, a3)``: a body-frame point ``xb`` sits at ``x = p + A xb = J(xb) q`` and a
-body-frame direction ``v`` at ``A v = J̊(v) q`` (DESIGN.md §2, the seeds' notation).
+body-frame direction ``v`` at ``A v = J̊(v) q`` (docs/design.md §1, the seeds' notation).
 """
 from __future__ import annotations
 

@@ -155,9 +155,9 @@ def _build(dtype):
         opens, from the cos/sin just computed: θ0 = ΔΘ(q, q_ref), (cos, sin)θ and the drives'
         anchor (x, or x̂ = x + (x − x_prev)/3 for BDF2, whose next step is not a fresh one).  The
         same values, one cos_sin a step fewer; a world set between steps (fresh) opens with
-        begin_joint as before.  (joint_coordinates' arithmetic written out, not called: calling it
-        and then storing its cos/sin built a 0.8 KB larger kernel with a larger stack frame, and
-        at 1,024 worlds the step's time follows its code, results/session20/README.md §4.)"""
+        begin_joint.  (joint_coordinates' arithmetic written out, not called: calling it and then
+        storing its cos/sin builds a 0.8 KB larger kernel with a larger stack frame, and at 1,024
+        worlds the step's time follows its code size.)"""
         qi = q[w, body_a[j]]
         qj = q[w, body_b[j]]
         if kind[j] == REVOLUTE_CODE:

@@ -76,7 +76,7 @@ def axis_frame(axis) -> np.ndarray:
     """Rows (t̂, n̂, b̂) of a joint frame: t̂ the axis, n̂ ⟂ t̂, and b̂ = n̂ × t̂.
 
     With b̂ = n̂ × t̂ the seed's sin θ = (n̂_i·b̂_j − b̂_i·n̂_j)/2 is +sin φ when body j turns by φ
-    about +t̂ relative to body i (right-hand rule): the sign convention of DESIGN.md §2.
+    about +t̂ relative to body i (right-hand rule): the sign convention of docs/design.md §3.2.
     """
     t = _vec3("axis", axis, unit=True)
     helper = np.array([1.0, 0.0, 0.0]) if abs(t[0]) < 0.9 else np.array([0.0, 1.0, 0.0])

@@ -2,7 +2,7 @@
 solver's PSD Hessian variants, the Warp kernels against the references (float64 and float32),
 ``Simulator.energies()`` against each term's own formula, and the shapes' mass moments.
 
-Conventions (DESIGN.md §2, seeds): q = (p, a1, a2, a3) per body, a pair of bodies stacks (q_i, q_j).
+Conventions (docs/design.md §1, seeds): q = (p, a1, a2, a3) per body, a pair of bodies stacks (q_i, q_j).
 In the solve, inertia, joints and limits enter as they are, orthogonality and drives times h² (ĥ² = (2h/3)²
 under BDF2).  The Warp checks share one scene (module-scoped simulators: each kernel compiles once per dtype).
 """
@@ -140,7 +140,7 @@ def test_orthogonality_hessian_keeps_the_positive_part_of_R():
     """R = AAᵀ − I of mixed sign (A stretched along one axis, compressed along another): the solver's
     Hessian keeps R⁺ (R's positive eigen-part, along its eigenvectors): PSD, and it differs from the
     exact Hessian by 4κv (R − R⁺) ⊗ I only, so a direction in R's positive eigenspace keeps its
-    exact curvature (dropping all of R lost it: Newton then crawled at dt 0.05, trace_newton.py)."""
+    exact curvature (dropping all of R loses it: Newton then crawls at dt 0.05)."""
     rng = np.random.default_rng(12)
     Q, P = random_rotation(rng), random_rotation(rng)
     A = P @ np.diag([1.01, 0.99, 1.0]) @ Q  # R = P diag(0.0201, −0.0199, 0) Pᵀ

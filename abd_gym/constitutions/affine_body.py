@@ -10,9 +10,9 @@ X = A dAᵀ); the last is R ⊗ I, indefinite where A is compressed along some d
 uses R⁺, R's positive part (R itself where R ⪰ 0, the Hessian then exact; else from R's
 eigenvalues in closed form, ``psd_part``), so the Hessian stays PSD and is exact in R's positive
 directions.  R is tiny (|R| ~ 1e-5) but 4κv·h²·R is not: along a thin link's slender directions it
-exceeds the inertia's second moments, and dropping the whole R term when one eigenvalue was
-negative (this module's earlier rule) left Newton converging linearly at ~0.92 an iteration on
-double pendulums at dt 0.05 (float64 as float32, 50 iterations unconverged; scripts/trace_newton.py).
+exceeds the inertia's second moments, so dropping the whole R term when one eigenvalue is
+negative leaves Newton converging linearly (~0.92 an iteration on double pendulums at dt 0.05,
+50 iterations unconverged).
 """
 
 import functools
