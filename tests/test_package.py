@@ -55,3 +55,45 @@ def test_import_abd_gym_imports_no_task_or_training_module(tmp_path):
     code = f"import sys, abd_gym; print(sorted(m for m in sys.modules if m.startswith({prefixes!r})))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, check=True)
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.slow
+def test_the_wheel_holds_only_the_abd_gym_namespace_and_trains_from_any_directory(tmp_path):
+    """``pip wheel .``: every file of the wheel under abd_gym/ (or its dist-info), the configs among
+    them, the console scripts naming abd_gym.agents; installed (not editable) in a virtual
+    environment, ``abd-gym-train cartpole_ppo`` runs from a folder that has no configs/."""
+    import zipfile
+
+    cmd = [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(tmp_path), str(REPO)]
+    out = subprocess.run(cmd, capture_output=True, text=True)
+    if out.returncode:
+        pytest.skip(f"pip wheel could not build here: {out.stderr.strip()[-300:]}")
+    (wheel,) = tmp_path.glob("abd_gym-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    top = {n.split("/")[0] for n in names}
+    assert top == {"abd_gym", next(t for t in top if t.endswith(".dist-info"))}, sorted(top)
+    for must in ("abd_gym/configs/cartpole_ppo.yaml", "abd_gym/envs/cartpole.py", "abd_gym/agents/train.py",
+                 "abd_gym/constitutions/revolute_limit.py"):
+        assert must in names, must
+    shipped = {n.rsplit("/", 1)[1] for n in names if n.startswith("abd_gym/configs/") and n.endswith(".yaml")}
+    assert shipped == {p.name for p in (REPO / "configs").glob("*.yaml")}
+    # every package of the source tree is in the wheel (a new subpackage must be listed in pyproject.toml)
+    for init in (REPO / "abd_gym").rglob("__init__.py"):
+        assert str(init.relative_to(REPO)) in names, init
+    entry = next(n for n in names if n.endswith("entry_points.txt"))
+    text = zipfile.ZipFile(wheel).read(entry).decode()
+    assert "abd-gym-train = abd_gym.agents.train:main" in text and "abd-gym-evaluate = abd_gym.agents.evaluate:main" in text
+
+    venv, work = tmp_path / "venv", tmp_path / "elsewhere"
+    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], check=True)
+    py = venv / "bin" / "python"
+    subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", str(wheel)], check=True)
+    work.mkdir()
+    where = subprocess.run([str(py), "-c", "import abd_gym.envs; print(abd_gym.envs.__file__)"], cwd=work,
+                           capture_output=True, text=True, check=True).stdout
+    assert str(venv) in where, where  # the installed copy, not the repository's
+    run = subprocess.run([str(venv / "bin" / "abd-gym-train"), "cartpole_ppo", "--total-timesteps", "256", "--num-envs", "4",
+                          "--eval-episodes", "1", "--no-progress", "--run-dir", str(work / "run")],
+                         cwd=work, capture_output=True, text=True)  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert (work / "run" / "summary.json").is_file() and not (work / "configs").exists()
