@@ -3,7 +3,7 @@
 Every registered task's vector env (N worlds, a fixed seed, a fixed action sequence) and two
 mechanisms on the Simulator (a 5-link chain with limits, BDF2; a double pendulum in float64) are
 stepped from a fixed start; their observations, rewards and body coordinates must equal the stored
-ones exactly.  A change that alters the arithmetic of a step fails here; regenerate only when that
+ones exactly (on the CPU, where they were written: a GPU's float32 rounds otherwise).  A change that alters the arithmetic of a step fails here; regenerate only when that
 change is meant (``python tests/test_golden.py --write``) and say so in its commit message.
 """
 import os
@@ -22,7 +22,7 @@ N, STEPS = 3, 30
 
 
 def task_trajectory(env_id):
-    env = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point")
+    env = gym.make_vec(env_id, num_envs=N, vectorization_mode="vector_entry_point", device="cpu")
     try:
         obs, _ = env.reset(seed=7)
         rng = np.random.default_rng(11)
