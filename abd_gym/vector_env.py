@@ -577,7 +577,7 @@ class ABDVectorEnv(VectorEnv):
             mask = np.zeros(self.num_envs, dtype=bool)
             mask[self.sim.failed_worlds()] = True
             return mask
-        return self.sim._out(self.sim.state.status, "torch") != 0
+        return self.sim.view(self.sim.state.status, "torch") != 0
 
     # ================================================================== actions
     def _prepare_actions(self, actions, check: bool = True):
