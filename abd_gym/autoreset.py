@@ -21,10 +21,11 @@ import functools
 import numpy as np
 import warp as wp
 
-from . import rows
+from . import launches, rows
 from .coordinates import FIXED_CODE
 
 
+DEVICE_ARRAYS = ("queue", "task_queue", "pending", "taken")  # what a snapshot copies from the device
 QUEUE_ROWS = 1 << 21  # the queues' rows in all (each 2·joints values) that a default depth stays under
 
 
@@ -110,6 +111,8 @@ class NextEpisodes:
                                    device=dev)  # fmt: skip
         self._no_task = wp.zeros((1, 1), dtype=wp.float32, device=dev)
         self._task_host = np.zeros((self.depth * W, self.task_width), np.float32) if task_width and host_task else None
+        self._stage = rows.Staging(dev)  # the top-ups' rows to the device without waiting for it
+        self._cmds = {}  # the queues' recorded launches (launches.replay)
 
     def restart(self):
         """Fresh queues for every world (after a full reset, from the env's new generator)."""
@@ -152,15 +155,15 @@ class NextEpisodes:
         xx = np.zeros((n, 2, self.queue.shape[2]), dtype=m.np_dtype)
         xx[:, 0, :nj] = np.where(self._fixed[None, :], 0.0, x)
         xx[:, 1, :nj] = xd
-        stage = self.sim._stage
+        stage = self._stage
         idx_dev = rows.indices((e % K) * W + w, stage, "queue_idx")
         src = stage("queue_rows", xx.reshape(n, -1), m.dtype)
-        self.sim._replay("queue_top_up", rows.kernels(m.dtype)["scatter"], (n, self._rows.shape[1]),
-                         [self._rows, idx_dev, src])  # fmt: skip
+        launches.replay(self._cmds, "queue_top_up", rows.kernels(m.dtype)["scatter"], (n, self._rows.shape[1]),
+                        [self._rows, idx_dev, src], self.sim.device)  # fmt: skip
         if self.task_width:
             src = stage("queue_task_rows", drawn[2], m.dtype)
-            self.sim._replay("queue_task_top_up", rows.kernels(m.dtype)["scatter"], (n, self.task_width),
-                             [self.task_queue, idx_dev, src])  # fmt: skip
+            launches.replay(self._cmds, "queue_task_top_up", rows.kernels(m.dtype)["scatter"], (n, self.task_width),
+                            [self.task_queue, idx_dev, src], self.sim.device)  # fmt: skip
             if self._task_host is not None:
                 self._task_host[(e % K) * W + w] = drawn[2]
 
@@ -175,7 +178,7 @@ class NextEpisodes:
         if len(idx) == self.pending.shape[0]:
             self.pending.zero_()
         elif len(idx):
-            wp.launch(rows.fill_int, dim=len(idx), inputs=[self.pending, rows.indices(idx, self.sim._stage, "clear_idx"), 0],
+            wp.launch(rows.fill_int, dim=len(idx), inputs=[self.pending, rows.indices(idx, self._stage, "clear_idx"), 0],
                       device=self.sim.device)  # fmt: skip
 
     def apply(self, elapsed: wp.array | None = None, task: wp.array | None = None, go: wp.array | None = None):
@@ -189,24 +192,50 @@ class NextEpisodes:
         sim = self.sim
         if elapsed is None and self._no_clock is None:
             self._no_clock = wp.zeros(1, dtype=wp.int64, device=sim.device)
-        sim._replay("queue_take", _take(sim.model.dtype), sim.num_worlds,
-                    [self.pending, self._go_all if go is None else go, self.armed, self.taken, self.queue, self.xx,
-                     self._no_clock if elapsed is None else elapsed, int(elapsed is not None), self.task_queue,
-                     self._no_task if task is None else task, 0 if task is None else self.task_width])  # fmt: skip
+        launches.replay(self._cmds, "queue_take", _take(sim.model.dtype), sim.num_worlds,
+                        [self.pending, self._go_all if go is None else go, self.armed, self.taken, self.queue, self.xx,
+                         self._no_clock if elapsed is None else elapsed, int(elapsed is not None), self.task_queue,
+                         self._no_task if task is None else task, 0 if task is None else self.task_width],
+                        sim.device)  # fmt: skip
         sim.set_joint_state_where(self.armed, self.xx)
 
     def mask(self, xp):
         """The pending mask as a backend bool array (Torch: on the device; NumPy: on the host, from
         the CPU array's memory or by a copy from the GPU, which waits for it)."""
         if xp is np:
-            return (self.sim._host_view(self.pending) if self.sim.device.is_cpu else self.pending.numpy()) != 0
-        return self.sim._out(self.pending, "torch") != 0
+            return (self.sim.host_view(self.pending) if self.sim.device.is_cpu else self.pending.numpy()) != 0
+        return self.sim.view(self.pending, "torch") != 0
 
     def set_pending(self, done):
         """The worlds that ended in this step (a backend bool array) autoreset in the next one."""
         if not isinstance(done, np.ndarray):
-            self.sim._out(self.pending, "torch").copy_(done)
+            self.sim.view(self.pending, "torch").copy_(done)
         elif self.sim.device.is_cpu:
-            self.sim._host_view(self.pending)[...] = done
+            self.sim.host_view(self.pending)[...] = done
         else:
             self.pending.assign(done.astype(np.int32))
+
+    def bookmark(self) -> np.ndarray:
+        """The host's count of rows each world has taken (to ``rewind`` to)."""
+        return self._taken.copy()
+
+    def rewind(self, taken: np.ndarray):
+        """Set the host's counts back to a ``bookmark`` (a step that the device refused and the host
+        counted, learning of the refusal a call late; the device's counts never moved)."""
+        self._taken[...] = taken
+
+    def snapshot(self) -> dict:
+        """Host copies of the queues, the pending mask and the counts (device and host)."""
+        snap = {name: getattr(self, name).numpy().copy() for name in DEVICE_ARRAYS}
+        snap.update(taken_host=self._taken.copy(), drawn=self._drawn.copy())
+        if self._task_host is not None:
+            snap["task_host"] = self._task_host.copy()
+        return snap
+
+    def restore(self, snap: dict):
+        """``snapshot``'s values back into queues of the same shapes."""
+        for name in DEVICE_ARRAYS:
+            getattr(self, name).assign(snap[name])
+        self._taken, self._drawn = snap["taken_host"].copy(), snap["drawn"].copy()
+        if "task_host" in snap:
+            self._task_host = snap["task_host"].copy()

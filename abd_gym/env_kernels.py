@@ -69,7 +69,7 @@ def finish_step(mailed: bool = False):
         truncated at ``max_steps`` env steps (none when negative).  flags rows: terminated,
         truncated, failed, done (and bad, the check's); done becomes the next step's pending mask
         unless the step was refused.  Mailed, the buffer holds the observations (N, d) and rewards
-        (float32), then the rows terminated, truncated, failed (bytes): ``ABDVectorEnv._unpack``."""
+        (float32), then the rows terminated, truncated, failed (bytes): ``DeviceStep.unpack`` (device_step.py)."""
         w = wp.tid()
         n = obs.shape[0]
         d = obs.shape[1]

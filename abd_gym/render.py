@@ -180,3 +180,15 @@ class Renderer:
             dot = max(0.012 * self.width, 2.0 / canvas.scale)
             for b, local in self.anchors:
                 canvas.circle(positions[b] + rotations[b] @ local, dot * 0.5, JOINT_COLOR)
+
+    def frames(self, positions, rotations, worlds, extras=None) -> tuple:
+        """One frame (H, W, 3) uint8 per world in ``worlds``: its bodies from ``positions`` (W, bodies,
+        3) and ``rotations`` (W, bodies, 3, 3), then ``extras(canvas, world)`` (a task's marks)."""
+        out = []
+        for w in worlds:
+            canvas = self.canvas()
+            self.draw_bodies(canvas, positions[w], rotations[w])
+            if extras is not None:
+                extras(canvas, w)
+            out.append(canvas.image)
+        return tuple(out)

@@ -12,7 +12,7 @@ import os
 import numpy as np
 import warp as wp
 
-from . import kinematics, rows
+from . import graphs, kinematics, launches, rows
 from .coordinates import FIXED_CODE
 from .model import Model
 from .scene import REVOLUTE, Scene
@@ -172,14 +172,16 @@ class Simulator:
 
     def _capture(self, phase):
         """A graph of ``phase`` (a solver step's part)."""
-        with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
-            phase(self.state)
-        return capture.graph
+        return graphs.capture(self.device, lambda: phase(self.state))[0]
 
     # ------------------------------------------------------------------ output
-    def _out(self, array, backend):
+    def view(self, array: wp.array, backend: str = "numpy"):
+        """``array`` (one of the simulator's device arrays, or a caller's array on its device) as
+        ``backend``: "numpy" a host copy (float64, int32 for int32 arrays), "warp" the array itself,
+        "torch" a zero-copy Torch view on the device (made once per array: the simulator's arrays
+        are never reallocated, so the view stays valid and writes through it reach the array)."""
         if backend == "numpy":  # a copy: on the CPU .numpy() is a view of memory the next step overwrites
-            src = self._host_view(array) if self.device.is_cpu else array.numpy()
+            src = self.host_view(array) if self.device.is_cpu else array.numpy()
             return np.array(src, dtype=np.float64 if array.dtype != wp.int32 else np.int32)
         if backend == "warp":
             return array
@@ -192,21 +194,21 @@ class Simulator:
 
     def joint_coordinates(self, backend="numpy"):
         """(num_worlds, num_joints): revolute angle [rad] (the seed's x = θ0 + δ), slider displacement [m]."""
-        return self._out(self.state.coord, backend)[:, : self.model.num_joints]
+        return self.view(self.state.coord, backend)[:, : self.model.num_joints]
 
     def joint_velocities(self, backend="numpy"):
         """(num_worlds, num_joints): rates of the coordinates over the last step [rad/s, m/s]."""
-        return self._out(self.state.coord_vel, backend)[:, : self.model.num_joints]
+        return self.view(self.state.coord_vel, backend)[:, : self.model.num_joints]
 
     def joint_angles_unwrapped(self, backend="numpy"):
         """(num_worlds, num_joints): multi-turn revolute angle [rad] (displacement for sliders)."""
-        return self._out(self.state.unwrapped, backend)[:, : self.model.num_joints]
+        return self.view(self.state.unwrapped, backend)[:, : self.model.num_joints]
 
     def body_q(self, backend="numpy"):
         """(num_worlds, num_bodies, 12): affine coordinates (p, a1, a2, a3)."""
         if backend == "numpy":
             return self.state.q.numpy().astype(np.float64)
-        return self._out(self.state.q, backend)
+        return self.view(self.state.q, backend)
 
     def body_positions(self, backend="numpy"):
         """(num_worlds, num_bodies, 3): p of each body [m]."""
@@ -267,7 +269,7 @@ class Simulator:
 
     def failed_worlds(self) -> np.ndarray:
         """Indices of worlds whose state went non-finite or whose system broke; reset them."""
-        return np.flatnonzero(self._out(self.state.status, "numpy") != 0)
+        return np.flatnonzero(self.view(self.state.status, "numpy") != 0)
 
     def converged(self) -> np.ndarray:
         """(num_worlds,) bool: the last step's Newton solve met the tolerance."""
@@ -300,18 +302,7 @@ class Simulator:
         """Launch ``kernel`` as a command recorded on the first call and replayed after, with only the
         arguments that changed (by identity; Python scalars by value) and the dim set again: packing
         a reset's ~40 unchanged arguments cost more than its kernels on the CPU."""
-        entry = self._cmds.get(key)
-        if entry is None:
-            cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
-            self._cmds[key] = (cmd, list(inputs))
-        else:
-            cmd, old = entry
-            for i, (a, b) in enumerate(zip(inputs, old)):
-                if a is not b and not (isinstance(a, (int, float)) and a == b):
-                    cmd.set_param_at_index(i, a)
-                    old[i] = a
-            cmd.set_dim(dim)
-        cmd.launch()
+        launches.replay(self._cmds, key, kernel, dim, inputs, self.device)
 
     def _mask(self, idx_dev, n=None):
         """A device int32 mask (W,) of the worlds idx_dev[:n] (reused: valid until the next call)."""
@@ -323,8 +314,9 @@ class Simulator:
             self._replay("mask", rows.fill_int, n, [self._set_mask, idx_dev, 1])
         return self._set_mask
 
-    def _host_view(self, array):
-        """A NumPy view of a CPU array's memory (cached per array)."""
+    def host_view(self, array: wp.array) -> np.ndarray:
+        """A NumPy view of a CPU array's own memory (no copy; writes reach the array), cached per
+        array.  CPU devices only: a GPU array's memory is not the host's."""
         view = self._host_views.get(id(array))
         if view is None or view[0] is not array:
             view = self._host_views[id(array)] = (array, array.numpy())
@@ -345,11 +337,11 @@ class Simulator:
         if worlds is None and type(values).__module__.startswith("torch"):
             if tuple(values.shape) != (self.num_worlds, nd):
                 raise ValueError(f"controls must have shape ({self.num_worlds}, {nd}), got {tuple(values.shape)}")
-            self._out(self.state.control, "torch").copy_(values)  # on the device, converting dtype
+            self.view(self.state.control, "torch").copy_(values)  # on the device, converting dtype
             return
         vals = _finite_array("controls", values, (len(idx), nd))
         if worlds is None and self.device.is_cpu:
-            self._host_view(self.state.control)[...] = vals  # the array's own memory: no temporary array
+            self.host_view(self.state.control)[...] = vals  # the array's own memory: no temporary array
         elif worlds is None:
             self.state.control.assign(vals.astype(self.model.np_dtype))
         else:

@@ -39,3 +39,17 @@ class State:
         self.factorizations = wp.zeros(W, dtype=wp.int32, device=dev)
         self.converged = wp.ones(W, dtype=wp.int32, device=dev)
         self.time = np.zeros(W)  # seconds since the world's last reset (host bookkeeping)
+
+    def snapshot(self) -> dict:
+        """Host copies of every per-world array and of the clock ``time``, by name."""
+        snap = {name: a.numpy().copy() for name, a in vars(self).items() if isinstance(a, wp.array)}
+        snap["time"] = self.time.copy()
+        return snap
+
+    def restore(self, snap: dict):
+        """``snapshot``'s values written back into this state's arrays (same shapes and dtypes)."""
+        for name, values in snap.items():
+            if name == "time":
+                self.time[...] = values
+            else:
+                getattr(self, name).assign(values)

@@ -51,7 +51,7 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
         sim, inner = u.sim, u.sim.step
         cuda = wp.get_device(u.device).is_cuda
         stamps = None
-        if timed and cuda and u._use_graph:
+        if timed and cuda and u.device_step.use_graph:
             # the step graph holds the physics as sim.launch_step: stamped before and after it in
             # the graph (captured at the second step, so wrapped before the first)
             from abd_gym.timestamps import Stamps
@@ -87,7 +87,7 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
             if backend == "torch":
                 import torch
 
-                actions = [torch.as_tensor(a, device=u._torch_device) for a in actions]
+                actions = [torch.as_tensor(a, device=u.arrays.torch_device) for a in actions]
             for a in actions[:2]:  # warm-up: kernel loads, then the env's graph capture (on a GPU with Torch)
                 env.step(a)
             wp.synchronize_device(u.device)

@@ -5,7 +5,7 @@ makes the host wait for the device (``torch.cuda.set_sync_debug_mode``).
     python scripts/profile_env.py [--task CartPole-v0] [--envs 1024] [--steps 200] [--device cuda:0]
 
 A phase that waits for the device shows the device's time in its row: with the step graph, only
-``_pending_now`` should (it waits for the last step while this one runs; see abd_gym/vector_env.py).
+``pending.fetch`` should (it waits for the last step while this one runs; see abd_gym/pending.py).
 With the step graph, the device's time per step is split too, by CUDA events: the replay (the step
 graph, and the actions' copy and the graphs before and after it where the step needs them), the
 info copies after it, and the gap to the next step (where the device waits for the host); and each
@@ -21,9 +21,13 @@ import numpy as np
 import warp as wp
 
 import abd_gym  # noqa: F401 -- registers the ids
+from abd_gym import graphs, outcome, step_graph, vector_env
 
-PHASES = ("_prepare_actions", "controls", "_pending_now", "_reset_worlds", "_observe_safe", "reward", "terminated",
-          "info", "_defer_pending", "_failed", "_step_on_device", "_device_step", "_capture")  # fmt: skip
+# the env's hooks and the public calls of its layers, each timed where it is looked up
+ENV_PHASES = ("controls", "observation", "reward", "terminated", "info")
+LAYER_PHASES = (("device_step", ("step", "run", "pending_now")), ("pending", ("fetch", "defer")),
+                ("next_episodes", ("took", "restart")), ("sim", ("step", "set_controls", "set_joint_state")))
+MODULE_PHASES = ((vector_env, "prepare_actions"), (outcome, "failed_mask"), (step_graph, "StepGraph"))
 
 
 def device_phases(env, actions, steps):
@@ -31,8 +35,9 @@ def device_phases(env, actions, steps):
     import torch
 
     u = env.unwrapped
+    g = u.device_step.graph
     marks = []
-    inner = u._replay
+    inner = g.replay
 
     def replay(a):
         marks[-1][1].record()
@@ -40,7 +45,7 @@ def device_phases(env, actions, steps):
         marks[-1][2].record()
         return out
 
-    u._replay = replay
+    g.replay = replay
     wp.synchronize_device(u.device)
     t0 = time.perf_counter()
     for k in range(steps):
@@ -50,8 +55,8 @@ def device_phases(env, actions, steps):
         marks[-1][3].record()
     torch.cuda.synchronize()
     wall = time.perf_counter() - t0
-    u._replay = inner
-    (pre, _, posts), _, mailed = u._graph
+    g.replay = inner
+    pre, posts, mailed = g.pre, g.posts, g.mailed
     names = ("before the replay", "the replay (" + ("actions' copy, " if not mailed else "")
              + ("pre graph, " if pre is not None else "") + "step graph"
              + (", post graph" if posts[0] is not None else "") + ")", "after it (info copies)",
@@ -74,16 +79,15 @@ def device_parts(env, actions, steps):
     import torch
 
     u = env.unwrapped
-    (pre, physics, posts), _, mailed = u._graph
-    stream = wp.stream_from_torch(torch.cuda.current_stream(u._torch_device))
-    with wp.ScopedCapture(device=u.device, force_module_load=False) as cap:
-        u.sim.launch_step(u.frame_skip)
-    alone = cap.graph
+    g = u.device_step.graph
+    physics, posts = g.physics, g.posts
+    stream = wp.stream_from_torch(torch.cuda.current_stream(u.arrays.torch_device))
+    alone, _ = graphs.capture(u.device, lambda: u.sim.launch_step(u.frame_skip))
     # the graphs alone write where their mail slots point: a buffer that outlives them
-    raw = torch.empty(u._out_head, dtype=torch.uint8, device=u._torch_device)
+    raw = torch.empty(u.device_step.out_head, dtype=torch.uint8, device=u.arrays.torch_device)
     a0 = actions[0].contiguous()
     for slot in (0, 1):
-        u._mail_np[slot] = (a0.data_ptr(), raw.data_ptr())
+        g.pinned.mail_np[slot] = (a0.data_ptr(), raw.data_ptr())
 
     def graph(k):
         wp.capture_launch(physics[k % 2], stream=stream)
@@ -92,7 +96,7 @@ def device_parts(env, actions, steps):
 
     parts = (("step graphs alone (check, physics, autoreset, outcome)", graph),
              ("simulator's step alone (its graph)", lambda k: wp.capture_launch(alone, stream=stream)),
-             ("whole env step, device work only (_replay)", lambda k: u._replay(actions[k % len(actions)])))
+             ("whole env step, device work only (replay)", lambda k: g.replay(actions[k % len(actions)])))
     print(f"device time of each part replayed {steps} times back to back (CUDA events):")
     for name, fn in parts:
         fn(0)
@@ -123,10 +127,10 @@ def main(argv=None):
     u = env.unwrapped
     print(f"{args.task} envs {args.envs} on {args.device}: {type(env).__name__} over {type(u).__name__}, "
           f"autoreset {u.autoreset_mode}, frame_skip {u.frame_skip}, autoreset on the device "
-          f"{u._next is not None}, graph {u._use_graph}")
+          f"{u.next_episodes is not None}, graph {u.device_step.use_graph}")
     env.reset(seed=0)
     rng = np.random.default_rng(0)
-    actions = [torch.as_tensor(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32), device=u._torch_device)
+    actions = [torch.as_tensor(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32), device=u.arrays.torch_device)
                for _ in range(16)]  # fmt: skip
     env.step(actions[0])
     wp.synchronize_device(u.device)
@@ -146,16 +150,16 @@ def main(argv=None):
 
     # the task's outcome, compiled by torch.compile, guards on these methods: wrapping them would
     # recompile it (inside the step graph's capture)
-    task_code = ("_observe_safe", "reward", "terminated", "info") if u._compile_outcome else ()
-    for name in PHASES:
+    task_code = ("observation", "reward", "terminated", "info") if u.device_step.compile_outcome else ()
+    for name in ENV_PHASES:
         if name not in task_code:
             setattr(u, name, timed(name, getattr(u, name)))
-    if u._next is not None:
-        u._next.took = timed("_next.took", u._next.took)
-        u._next._top_up = timed("_next._top_up", u._next._top_up)
-    sim = u.sim
-    sim.step = timed("sim.step", sim.step)
-    sim.set_controls = timed("sim.set_controls", sim.set_controls)
+    for layer, names in LAYER_PHASES:
+        obj = getattr(u, layer)
+        for name in names if obj is not None else ():
+            setattr(obj, name, timed(f"{layer}.{name}", getattr(obj, name)))
+    for module, name in MODULE_PHASES:
+        setattr(module, name, timed(name, getattr(module, name)))
     t0 = time.perf_counter()
     for k in range(args.steps):
         env.step(actions[k % len(actions)])
@@ -165,7 +169,7 @@ def main(argv=None):
     print(f"step: {host / args.steps * 1e6:.0f} us on the host, {total / args.steps * 1e6:.0f} us with the device drained")
     for name, s in sorted(spent.items(), key=lambda kv: -kv[1]):
         print(f"  {name:20s} {s / args.steps * 1e6:8.1f} us/step  ({calls[name]} calls)")
-    if u._graph is not None:
+    if u.device_step.graph is not None:
         device_phases(env, actions, args.steps)
         device_parts(env, actions, args.steps)
     if wp.get_device(u.device).is_cuda:

@@ -142,7 +142,7 @@ def test_lane_split_step_on_a_closed_loop(cpu_blocks):
     env = SliderCrankVectorEnv(1)
     W, rng = 4, np.random.default_rng(2)
     x, xd = env.initial_state(W, rng, {})
-    torque = rng.uniform(-1, 1, (W, 1)) * env._max_effort
+    torque = rng.uniform(-1, 1, (W, 1)) * env.max_effort
 
     def run(scratch, block_dim=None):
         sim = ag.Simulator(env.scene, num_worlds=W, dt=env.dt, scratch=scratch, block_dim=block_dim)

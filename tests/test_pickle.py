@@ -81,7 +81,7 @@ def test_vector_env_copy_on_the_device_autoreset_path_and_bdf2():
                        integrator="bdf2", dtype="float64")  # fmt: skip
     env.reset(seed=2)
     _same_future(env, [], 30)
-    assert env.unwrapped._next is not None
+    assert env.unwrapped.next_episodes is not None
     _same_future(env, [copy.deepcopy(env)], 60)
 
 

@@ -114,7 +114,7 @@ def test_next_step_autoreset(envs):
     assert not te2[done].any() and not tr2[done].any()
     assert np.all(np.abs(obs2[done]) <= 0.05 + 1e-5)
     assert np.all(r2[~done] == 1.0)
-    np.testing.assert_array_equal(env._elapsed[done], 0)
+    np.testing.assert_array_equal(env.episodes.elapsed[done], 0)
 
 
 def test_same_step_autoreset(envs):
@@ -130,7 +130,7 @@ def test_same_step_autoreset(envs):
     assert np.all((np.abs(final[done, 2]) > 0.2) | (np.abs(final[done, 0]) > 2.4))  # last obs of the episode
     assert np.all(np.abs(obs[done]) <= 0.05 + 1e-5)  # first obs of the next one
     np.testing.assert_array_equal(final[~done], obs[~done])
-    np.testing.assert_array_equal(env._elapsed[done], 0)
+    np.testing.assert_array_equal(env.episodes.elapsed[done], 0)
     _, r2, te2, _, _ = env.step(push(0.0))
     assert np.all(r2 == 1.0) and not te2[done].any()
 
@@ -149,7 +149,7 @@ def test_same_step_final_info_layout():
     final, final_info = info["final_obs"], info["final_info"]
     assert info["_final_info"].all() and final_info["_distance"].all() and not info["_distance"].any()
     np.testing.assert_allclose(final_info["distance"], np.hypot(final[:, 8], final[:, 9]), atol=1e-6)
-    np.testing.assert_array_equal(env._elapsed, 0)
+    np.testing.assert_array_equal(env.episodes.elapsed, 0)
     assert not np.allclose(obs[:, 4:6], final[:, 4:6])  # new targets for the new episodes
 
 
@@ -192,11 +192,11 @@ def test_per_world_reset_leaves_other_worlds_untouched():
     mask = np.array([False, True, False, True])
     for t in range(20):
         if t == 8:
-            q_before, steps_before = b.sim.body_q(), b._elapsed.copy()
+            q_before, steps_before = b.sim.body_q(), b.episodes.elapsed.copy()
             b.reset(options={"reset_mask": mask})
             np.testing.assert_array_equal(b.sim.body_q()[~mask], q_before[~mask])
-            np.testing.assert_array_equal(b._elapsed[~mask], steps_before[~mask])
-            np.testing.assert_array_equal(b._elapsed[mask], 0)
+            np.testing.assert_array_equal(b.episodes.elapsed[~mask], steps_before[~mask])
+            np.testing.assert_array_equal(b.episodes.elapsed[mask], 0)
             assert not np.allclose(b.sim.body_q()[mask], q_before[mask])
         oa, ra, *_ = a.step(actions[t])
         ob, rb, *_ = b.step(actions[t])
@@ -334,7 +334,7 @@ def test_torch_backend_matches_numpy_and_stays_on_device(mode, device):
     assert ended
     bad = torch.zeros(N, 1, device=to.device)
     bad[0, 0] = float("nan")
-    if tenv._check_on_device:  # the GPU's step graph: refused on the device, raised by the next call
+    if tenv.device_step.check_on_device:  # the GPU's step graph: refused on the device, raised by the next call
         tenv.step(bad)
         bad = torch.zeros_like(bad)
     with pytest.raises(ValueError, match=r"NaN in worlds \[0\]"):
@@ -361,9 +361,9 @@ def test_device_autoreset_matches_the_host_reset(backend):
         pytest.importorskip("torch")
     dev, host = (_FixedStartCartPole(N, max_episode_steps=9, backend=backend.split("-")[0], device="cpu")
                  for _ in range(2))  # fmt: skip
-    host._next = None  # the host path: _reset_worlds in the step
-    assert dev._next is not None and not dev._use_graph  # on the CPU: the same launches, no graph
-    dev._check_on_device = backend == "torch-checked"
+    host.next_episodes = None  # the host path: _reset_worlds in the step
+    assert dev.next_episodes is not None and not dev.device_step.use_graph  # on the CPU: the same launches, no graph
+    dev.device_step.check_on_device = backend == "torch-checked"
     for env in (dev, host):
         env.reset(seed=2)
     actions = np.random.default_rng(4).uniform(-1, 1, size=(40, N, 1)).astype(np.float32)
@@ -394,8 +394,8 @@ def test_device_autoreset_draws_the_task_state(backend):
     if backend != "numpy":
         pytest.importorskip("torch")
     env, ref = (ReacherVectorEnv(N, max_episode_steps=4, backend=b) for b in (backend.split("-")[0], "numpy"))
-    env._check_on_device = backend == "torch-checked"
-    assert env._next is not None and env._next.task_width == 2
+    env.device_step.check_on_device = backend == "torch-checked"
+    assert env.next_episodes is not None and env.next_episodes.task_width == 2
     env.reset(seed=7)
     ref.reset(seed=7)
     rng = np.random.default_rng(1)
@@ -424,7 +424,7 @@ def test_device_autoreset_draws_the_task_state(backend):
             self.put(self.target, idx, np.full((len(idx), 2), 0.1))
 
     own = OwnReset(N, max_episode_steps=4)
-    assert own._next is None  # resets on the host
+    assert own.next_episodes is None  # resets on the host
     own.reset(seed=0)
     np.testing.assert_array_equal(own.target, np.float32(0.1))
     own.close()
@@ -454,17 +454,17 @@ def test_autoreset_launches_wait_for_the_go_flag():
     env.reset(seed=2)
     for _ in range(3):
         env.step(np.zeros((N, 1), np.float32))
-    nxt, sim, clock = env._next, env.sim, env._wp["elapsed"]
+    nxt, sim, clock = env.next_episodes, env.sim, env.device_step.arrays["elapsed"]
     nxt.set_pending(np.array([False, True, False, True]))
 
     def snap():
         return [np.array(x) for x in (sim.joint_coordinates(), sim.joint_velocities(), clock.numpy(), nxt.taken.numpy())]
 
     before = snap()
-    nxt.apply(clock, env._wp["task"], go=wp.zeros(1, dtype=wp.int32, device="cpu"))
+    nxt.apply(clock, env.device_step.arrays["task"], go=wp.zeros(1, dtype=wp.int32, device="cpu"))
     for x, y in zip(snap(), before):
         np.testing.assert_array_equal(x, y)
-    nxt.apply(clock, env._wp["task"], go=wp.ones(1, dtype=wp.int32, device="cpu"))
+    nxt.apply(clock, env.device_step.arrays["task"], go=wp.ones(1, dtype=wp.int32, device="cpu"))
     x, v, c, taken = snap()
     np.testing.assert_array_equal(taken - before[3], [0, 1, 0, 1])
     np.testing.assert_array_equal(c, np.where([0, 1, 0, 1], 0, before[2] + 1))
@@ -478,8 +478,8 @@ def test_autoreset_launches_wait_for_the_go_flag():
 def _snapshot(env):
     sim = env.unwrapped.sim
     return [np.array(x) for x in (sim.body_q(), sim.joint_velocities(), sim.joint_coordinates(), sim.state.time,
-                                  env._elapsed.cpu().numpy(), env._next.pending.numpy(), env._next.taken.numpy(),
-                                  env._next._taken)]  # fmt: skip
+                                  env.episodes.elapsed.cpu().numpy(), env.next_episodes.pending.numpy(),
+                                  env.next_episodes.taken.numpy(), env.next_episodes.bookmark())]  # fmt: skip
 
 
 @pytest.mark.parametrize("device", ["cpu", "cuda:0"])
@@ -492,10 +492,10 @@ def test_nan_actions_checked_on_the_device_are_taken_back(device):
     _cuda_or_skip(device)
     env, ref = (make(max_episode_steps=9, backend="torch", device=device) for _ in range(2))
     if device == "cpu":
-        env._check_on_device = True  # ref keeps the host check: checked on the device, the same stream
-    assert env._check_on_device
+        env.device_step.check_on_device = True  # ref keeps the host check: checked on the device, the same stream
+    assert env.device_step.check_on_device
     actions = torch.as_tensor(np.random.default_rng(5).uniform(-1, 1, size=(30, N, 1)).astype(np.float32),
-                              device=env._torch_device)  # fmt: skip
+                              device=env.arrays.torch_device)  # fmt: skip
     env.reset(seed=3)
     ref.reset(seed=3)
     for a in actions[:9]:  # the 9th step truncates every world: the next one resets them all
@@ -624,7 +624,7 @@ def test_graph_step_matches_launched_step(task):
     if task == "FourBar-v0":
         kw["max_episode_steps"] = 25
     g, plain = gym.make_vec(f"abd_gym/{task}", **kw), gym.make_vec(f"abd_gym/{task}", graph=False, **kw)
-    assert g.unwrapped._use_graph and not plain.unwrapped._use_graph
+    assert g.unwrapped.device_step.use_graph and not plain.unwrapped.device_step.use_graph
     g.reset(seed=8)
     plain.reset(seed=8)
     d = g.unwrapped.action_dim
@@ -643,7 +643,7 @@ def test_graph_step_matches_launched_step(task):
         ends += int((out_g[2] | out_g[3]).sum())
         returned.append(out_g[:4])
         copies.append([x.clone() for x in out_g[:4]])
-    assert g.unwrapped._graph is not None
+    assert g.unwrapped.device_step.graph is not None
     for out, kept in zip(returned, copies):  # each step's outputs are the caller's (no later step writes them)
         for x, y in zip(out, kept):
             torch.testing.assert_close(x, y, rtol=0, atol=0)
@@ -681,7 +681,7 @@ def test_each_env_compiles_its_own_outcome():
                 env.reset(seed=0)
                 for _ in range(2):
                     env.step(torch.zeros(n, 1))
-                assert hasattr(env.unwrapped._outcome_fn, "_torchdynamo_orig_callable")  # compiled
+                assert hasattr(env.unwrapped.device_step.outcome_fn, "_torchdynamo_orig_callable")  # compiled
                 env.close()
     finally:
         log.removeHandler(handler)
@@ -700,7 +700,7 @@ def test_compiled_outcome_matches_eager(task):
         pytest.skip("torch.compile on the CPU needs a C++ compiler")
     kw = dict(num_envs=8, vectorization_mode="vector_entry_point", device="cpu", backend="torch")
     envs = [gym.make_vec(f"abd_gym/{task}", compile_outcome=c, **kw) for c in (True, False)]
-    assert envs[0].unwrapped._compile_outcome and not envs[1].unwrapped._compile_outcome
+    assert envs[0].unwrapped.device_step.compile_outcome and not envs[1].unwrapped.device_step.compile_outcome
     for e in envs:
         e.reset(seed=4)
     actions = torch.rand((30, 8, envs[0].unwrapped.action_dim), generator=torch.Generator().manual_seed(1)) * 2 - 1
@@ -712,8 +712,8 @@ def test_compiled_outcome_matches_eager(task):
         assert torch.equal(tc, te) and torch.equal(trc, tre)
         ends += int(tc.sum())
     assert ends > 0 or task == "Pendulum-v0"
-    assert hasattr(envs[0].unwrapped._outcome_fn, "_torchdynamo_orig_callable")  # the compiled one ran
-    assert envs[1].unwrapped._outcome_fn == envs[1].unwrapped._task_outcome
+    assert hasattr(envs[0].unwrapped.device_step.outcome_fn, "_torchdynamo_orig_callable")  # the compiled one ran
+    assert envs[1].unwrapped.device_step.outcome_fn == envs[1].unwrapped.device_step.task_outcome
     for e in envs:
         e.close()
     with pytest.raises(ValueError, match="compile_outcome=True needs the Torch backend"):
@@ -794,9 +794,9 @@ def test_randomized_parameters_per_world():
             "limit_strength_scale": {"slider": (2.0, 3.0)}}  # fmt: skip
     env.reset(seed=0, options={"randomize": spec})
     free = [1, 2]  # cart, pole
-    scale = env.body_mass[:, free] / env._nominal_mass[free]
+    scale = env.body_mass[:, free] / env.parameters.nominal_mass[free]
     assert np.all((scale >= 0.5) & (scale <= 2.0)) and np.ptp(scale[:, 0]) > 0.05
-    np.testing.assert_array_equal(env.body_mass[:, 0], env._nominal_mass[0])  # fixed rail untouched
+    np.testing.assert_array_equal(env.body_mass[:, 0], env.parameters.nominal_mass[0])  # fixed rail untouched
     assert np.all((env.strength_ratio >= 50) & (env.strength_ratio <= 200))
     lo, up, st = env.limits[0].T
     assert np.all((up >= 2.4 * 0.8) & (up <= 2.4 * 0.9)) and np.allclose(lo, -up) and np.all((st >= 2e4) & (st <= 3e4))
@@ -813,7 +813,7 @@ def test_randomized_parameters_per_world():
     assert not np.array_equal(env.body_mass[0], before[0])
     # randomize=None restores the nominal values
     env.reset(options={"randomize": None})
-    np.testing.assert_allclose(m.mass.numpy(), np.broadcast_to(env._nominal_mass, (N, 3)), rtol=1e-6)
+    np.testing.assert_allclose(m.mass.numpy(), np.broadcast_to(env.parameters.nominal_mass, (N, 3)), rtol=1e-6)
     np.testing.assert_allclose(m.limit_params["prismatic"][1].numpy()[:, 0], 2.4, rtol=1e-6)
     with pytest.raises(ValueError, match="unknown randomize"):
         env.reset(options={"randomize": {"masses": (1, 2)}})

@@ -1,0 +1,72 @@
+"""A task as a single-world ``gymnasium.Env``: its vector env with one world."""
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode
+
+from .simulator import Simulator
+from .vector_env import ABDVectorEnv
+
+
+class ABDEnv(gym.Env):
+    """A task as a single-world ``gymnasium.Env`` (CPU by default): its vector env with one world,
+    autoreset disabled and no internal time limit (``gym.make`` adds ``TimeLimit``).
+
+    Same conventions as the vector env: actions clipped to the action space, a NaN action raises
+    ``ValueError`` without stepping, ``reset(seed=...)`` seeds the initial-state draws,
+    ``reset(options={"randomize": ...})`` randomises the physical parameters; ``env.sim`` is the
+    simulator and ``env.vector_env`` the one-world batched env.
+    """
+
+    vector_class: type[ABDVectorEnv] = ABDVectorEnv
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        cls.metadata = {"render_modes": ["rgb_array"], "render_fps": cls.vector_class.metadata["render_fps"]}
+
+    def __init__(self, render_mode: str | None = None, device="cpu", **kwargs):
+        self.vector_env = self.vector_class(num_envs=1, device=device, backend="numpy",
+                                            autoreset_mode=AutoresetMode.DISABLED, max_episode_steps=None,
+                                            render_mode=render_mode, **kwargs)  # fmt: skip
+        self.observation_space = self.vector_env.single_observation_space
+        self.action_space = self.vector_env.single_action_space
+        self.render_mode = render_mode
+
+    @property
+    def sim(self) -> Simulator:
+        return self.vector_env.sim
+
+    @staticmethod
+    def _unbatch(info: dict) -> dict:
+        out = {}
+        for key, value in info.items():
+            if key.startswith("_"):
+                continue
+            if isinstance(value, dict):
+                out[key] = ABDEnv._unbatch(value)
+            else:
+                v = np.asarray(value)[0]
+                out[key] = v.item() if v.ndim == 0 else v
+        return out
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self.vector_env.np_random = self.np_random  # one generator: seeding this env seeds its world
+        obs, info = self.vector_env.reset(options=options)
+        return obs[0], self._unbatch(info)
+
+    def step(self, action):
+        a = np.asarray(action, dtype=np.float32).reshape(1, -1)
+        obs, reward, terminated, truncated, info = self.vector_env.step(a)
+        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), self._unbatch(info)
+
+    def render(self):
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; create the env with render_mode='rgb_array'")
+            return None
+        return self.vector_env.render()[0]
+
+    def close(self):
+        self.vector_env.close()
