@@ -266,9 +266,8 @@ WORLD_PHASES = (0, 1, 2, 3, 4, 13, 14)  # the phases that partition a world's st
 
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
-                 max_registers=0, smem_spilling=False, envelope=False, retract=True, phase_clock=False,
-                 cuda=False, block=0, bracket=True, groups=1, per_block=1, pri_limits=False,
-                 pri_drives=False, rev_angles=False, defer=False, quadratic=0.0, chord_stop=False, hold=False):  # fmt: skip
+                 envelope=False, phase_clock=False, cuda=False, block=0, bracket=True, groups=1, per_block=1,
+                 pri_limits=False, pri_drives=False, rev_angles=False, quadratic=0.0, hold=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
@@ -280,8 +279,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     measured slower than "global" but for 1,024 double pendulums and was removed; a third layout,
     g, H and Δq in each thread's local memory, measured
     slower than "global" at every batch size on an H100 and was removed; see results/.)
-    ``max_registers`` (0: the compiler's choice) caps registers per thread on CUDA, trading spills
-    for occupancy; ``smem_spilling`` lets the compiler spill registers to shared memory.
     ``cuda``: built for a GPU (the lane-split step then keeps its scratch in shared memory).
     ``phase_clock``: lane 0 adds each phase's cycles (PHASES) to ``Terms.clock`` (profiling only).
     ``bracket``: the kernel also opens each world's step before its solve (the finite check, the
@@ -304,12 +301,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     (``has_plim``, ``has_drive``: ``Terms.drive_rest``) keep terms of their own.  ``rev_angles``:
     a revolute joint's limit and up to two drives on it are one term on the joint's angle
     (``Terms.ang_joint``, ``ang_lim``, ``ang_drv``; angle_term), its cos, sin, increment and
-    gradient computed once; ``has_rlim`` then has no limits left.  ``defer``: a Newton step that
-    would be searched is taken whole and its Armijo test made on the energy the next iteration's
-    assembly returns anyway (solve_world), instead of in a pass of its own.  ``quadratic``
+    gradient computed once; ``has_rlim`` then has no limits left.  ``quadratic``
     (SolverSettings.quadratic_stop): a Newton step from a fresh factor accepted at α = 1 under this
-    many times q's rounding floor ends the solve; ``chord_stop``: so does a reused factor's step
-    whose contraction predicts a next step under the tolerance (take_step).  ``hold`` (with
+    many times q's rounding floor ends the solve (take_step).  ``hold`` (with
     ``bracket``): the step leaves alone the worlds of Bracket.hold and, while Bracket.go[0] is 0,
     every world (step_world; a vector env's step graph), a check that a scene stepped on its own
     does not carry."""
@@ -317,10 +311,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     # code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
     # (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
     options = dict(module="unique", module_options={"max_unroll": 1})
-    if max_registers:
-        options["cuda_max_registers"] = int(max_registers)
-    if smem_spilling:
-        options["enable_cuda_smem_spilling"] = True
     lanes = scratch == "lanes"
     # lanes keep their world's system packed too (in shared memory on CUDA, else contiguous in the
     # global scratch); LANES threads per world, a constant of the kernel (``block``)
@@ -348,8 +338,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     # (throughput-bound) keeps the branches, whose selects cost it 1-5% there
     compact = lanes
     regs_ldl_solve = warp_ldl_solve(dtype, n, RL) if warp_regs else None
-    DEFER = 1 if defer else 0
-    PASSES = 2 if defer else 1  # (a failed deferred test takes a pass of its own)
     N = n  # unknowns per world (12 per free body), a constant of the kernel
     TRI = N * (N + 1) // 2  # H's packed lower triangle (and, lanes, the stride of the groups' copies)
     o = ops(dtype)
@@ -375,7 +363,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
     QUAD = dtype(4.0 * float(quadratic))  # × q's rounding (SolverSettings.quadratic_stop)
-    CHORD_STOP = 1 if chord_stop else 0
 
     # the thread's scratch column s of the flat g, H (solver_kernels: entry (i, j) of H at
     # (hrow(i) + j)·T + s, hrow(i) = i·N or, packed, i(i+1)/2; entry i of g at i·T + s); B is T, the
@@ -589,10 +576,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 d = vec12()
                 for r in range(12):
                     d[r] = step[(ob + r) * T + s]
-                if wp.static(retract):
-                    qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b], 0)
-                else:
-                    qb = qb + alpha * d
+                qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b], 0)
             q_trial[row, b] = qb
         if wp.static(lanes):
             block_sync()
@@ -721,7 +705,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         work_kind: wp.array2d(dtype=wp.int32)
         work_idx: wp.array2d(dtype=wp.int32)
         work_n: wp.array(dtype=wp.int32)
-        q_back: wp.array2d(dtype=vec12)  # defer: q before a step taken unchecked (rows as q_trial's)
 
     @wp.struct
     class Bracket:
@@ -746,7 +729,6 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         gravity: vec3
         h: dtype
         bdf2: int
-        bend: int
 
     @wp.func
     def clock_now():
@@ -1110,26 +1092,24 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     @wp.func
     def search(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, skip: int, done: int, chord: int,
-               max_line_search: int, defer: int, resume: int, lane: int):  # fmt: skip
-        """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step) or ``defer``
-        (its test left to the next iteration, solve_world); a reused factor's step tried at α = 1
-        only; else Armijo backtracking on the world's own energy, from α = 1/2 when ``resume`` (a
-        deferred step at α = 1 failed its test).  The trial points go to row ``row`` of q_trial;
-        s, B as in assemble, lane as in trial."""
+               max_line_search: int, lane: int):  # fmt: skip
+        """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
+        factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
+        trial points go to row ``row`` of q_trial; s, B as in assemble, lane as in trial."""
         c = clock_now()
-        alpha = wp.where(resume != 0, half, one)
+        alpha = one
         accepted = int(0)
         stalled = int(0)
         if wp.static(compact):
             # one trial and one energy in the code (a loop of tries, not a first try and a loop):
             # each inlined copy of assemble's energy costs ~28 KB of a cart-pole kernel's SASS
-            tries = wp.where(skip != 0 or chord > 0 or defer != 0, 1, max_line_search - resume)
+            tries = wp.where(skip != 0 or chord > 0, 1, max_line_search)
             for _ls in range(tries):
                 trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
                 c = tick(t, w, lane, 6, c)
-                if skip != 0 or defer != 0:
+                if skip != 0:
                     accepted = 1
-                    stalled = wp.where(skip != 0, done, 0)
+                    stalled = done
                     break
                 accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
                 c = tick(t, w, lane, 5, c)
@@ -1145,15 +1125,15 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         else:
             trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
             c = tick(t, w, lane, 6, c)
-            if skip != 0 or defer != 0:
+            if skip != 0:
                 accepted = 1
-                stalled = wp.where(skip != 0, done, 0)
+                stalled = done
             elif chord > 0:
                 accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), one, gdq)
                 c = tick(t, w, lane, 5, c)
             else:
-                for ls in range(resume, max_line_search):
-                    if ls > resume:
+                for ls in range(max_line_search):
+                    if ls > 0:
                         trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
                         c = tick(t, w, lane, 6, c)
                     accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
@@ -1209,39 +1189,25 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     def take_step(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                   w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, dmax: dtype, g_abs: dtype, threshold: dtype, chord: int,
                   reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32),
-                  defer: int, resume: int, lane: int):  # fmt: skip
+                  lane: int):  # fmt: skip
         """Everything after a Newton direction (both layouts): the stop test, the line search, the
         choice to reuse the factor next, and the update of q.  Returns (1 when the solve is over,
-        chord for the next iteration, 1 when the step was taken with its test deferred).  ``defer``:
-        a Newton step (a fresh factor) that would be searched is taken whole, q kept in
-        Terms.q_back; ``resume``: the search of such a step that failed, from α = 1/2."""
+        chord for the next iteration)."""
         floor, rounding = noise_floor(q, w, threshold)
-        # a Newton step under quadratic_stop × q's rounding ends the solve if accepted at α = 1 (its
-        # test, where it needs one, is made now, not deferred)
+        # a Newton step under quadratic_stop × q's rounding ends the solve if accepted at α = 1
         quad = chord <= 0 and dmax < QUAD * rounding
         skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(rounding, g_abs), chord)
-        pending = wp.where(defer != 0 and skip == 0 and chord <= 0 and not quad, 1, 0)
         accepted, stalled, alpha = search(q, q_trial, t, step, g, H, w, row, s, B, e0, gdq, skip, done, chord,
-                                          max_line_search, pending, resume, lane)  # fmt: skip
+                                          max_line_search, lane)  # fmt: skip
         if quad and accepted != 0 and alpha == one:
             stalled = 1  # taken whole or by Armijo: Newton's next step would be rounding (quadratic_stop)
-        if wp.static(CHORD_STOP == 1):
-            # a reused factor's steps contract linearly, θ = d/d_prev an iteration: the error left,
-            # θ/(1 − θ)·d, under the tolerance ends the solve (Hairer & Wanner's test for simplified
-            # Newton), as a division-free product (the staged step's converge tests the same)
-            if chord > 0 and accepted != 0 and dmax < d_prev and dmax * dmax < floor * (d_prev - dmax):
-                stalled = 1
         retry, chord_next = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
         stop = int(0)
         if retry == 0:
-            if wp.static(DEFER == 1):
-                if pending != 0:
-                    for b in range(lane, q.shape[1], LANES):  # (each lane its own bodies, as end_iteration)
-                        t.q_back[row, b] = q[w, b]
             stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged, lane)
         if wp.static(lanes):
             block_sync()  # q is read whole by the next iteration
-        return stop, chord_next, pending
+        return stop, chord_next
 
     @wp.func
     def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
@@ -1266,18 +1232,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         d_prev = zero
         nfact = int(0)
         its = int(0)  # Newton iterations (solves) so far
-        # defer: the last step was taken whole with its Armijo test left to this pass's energy (the
-        # energy at the new q, which the assembly returns anyway), and what that step's search needs
-        # if it fails: e, gᵀΔq, ‖Δq‖∞, ‖g‖₁ and chord of its iteration (Δq stays in dq)
-        pending = int(0)
-        e_p = zero
-        gdq_p = zero
-        dmax_p = zero
-        gabs_p = zero
-        chord_p = int(0)
-        for it in range(PASSES * max_iterations):
-            if pending == 0 and its >= max_iterations:
-                return 0
+        for it in range(max_iterations):
             c = clock_now()
             if wp.static(G > 1):  # every group's copy (lanes: T = 1)
                 for cp in range(G):
@@ -1314,34 +1269,9 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
             else:
                 e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
             c = tick(t, w, lane, 1, c)
-            resume = int(0)  # 1: the deferred step failed its test; its search resumes at α = 1/2
-            if wp.static(DEFER == 1):
-                if pending != 0:
-                    pending = 0
-                    acc, stl = armijo(e_p, e0, one, gdq_p)
-                    if acc == 0:
-                        resume = 1
-                        for b in range(lane, q.shape[1], LANES):
-                            q[w, b] = t.q_back[row, b]
-                        if wp.static(lanes):
-                            block_sync()
-                    elif stl != 0:  # the decrease is below what the precision resolves: done
-                        if lane == 0:
-                            converged[w] = 1
-                        return 0
-                    elif its >= max_iterations:
-                        return 0
-            if resume != 0:
-                e0 = e_p
-                gdq = gdq_p
-                dmax = dmax_p
-                g_abs = gabs_p
-                chord = chord_p
-            elif chord <= 0:
+            if chord <= 0:
                 nfact += 1
-            if resume != 0:
-                ok = 1
-            elif wp.static(warp_regs and G == 1):
+            if wp.static(warp_regs and G == 1):
                 block_sync()  # the factor reads every lane's rows
                 ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
                 c = tick(t, w, lane, 2, c)  # (the factor and the substitutions)
@@ -1382,20 +1312,11 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
                 if lane == 0:
                     status[w] = FAILED
                 return 0
-            if resume == 0:
-                its += 1
-                if lane == 0:
-                    iterations[w] = its
-            chord_used = chord
-            stop, chord, pending = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold,
-                                             chord, reuse, d_prev, max_line_search, converged,
-                                             wp.where(resume == 0, DEFER, 0), resume, lane)  # fmt: skip
-            if pending != 0:
-                e_p = e0
-                gdq_p = gdq
-                dmax_p = dmax
-                gabs_p = g_abs
-                chord_p = chord_used
+            its += 1
+            if lane == 0:
+                iterations[w] = its
+            stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord, reuse,
+                                    d_prev, max_line_search, converged, lane)  # fmt: skip
             c = tick(t, w, lane, 4, c)
             if stop != 0:
                 return 0
@@ -1428,7 +1349,7 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
         c = tick(t, w, lane, 16, c)
         for b in range(lane, nb, LANES):
             predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.dof, t.mass,
-                         t.mc, k.gravity, k.h, t.h_step, status, k.bend, w, b)  # fmt: skip
+                         t.mc, k.gravity, k.h, t.h_step, status, w, b)  # fmt: skip
         if wp.static(lanes):
             block_sync()
         tick(t, w, lane, 17, c)
