@@ -16,7 +16,8 @@ import warp as wp
 
 from ..constitutions import affine_body
 from ..warp_ops import HESSIAN, ops
-from .clock import clock
+from .clock import (PHASE_ASSEMBLE_BODIES, PHASE_ASSEMBLE_REVOLUTE, PHASE_ASSEMBLE_FIXED, PHASE_ASSEMBLE_PRISMATIC,
+                     PHASE_ASSEMBLE_LIMITS, PHASE_ASSEMBLE_DRIVES, clock)  # fmt: skip
 from .layout import KernelSpec, indexing
 from .puts import puts
 from .structs import (WORK_ANGLE, WORK_DRIVE, WORK_FIXED, WORK_PRISMATIC, WORK_PRISMATIC_LIMIT, WORK_REVOLUTE,
@@ -125,7 +126,7 @@ def lane_assembly(spec: KernelSpec):
         ck = clock_now()
         if grp == 0:
             body_rows(q, qr, w, s, B, derivs, t, g, H, h2, lane, RL)
-            ck = tick(t, w, lane, 7, ck)
+            ck = tick(t, w, lane, PHASE_ASSEMBLE_BODIES, ck)
         e = group_terms(q, qr, w, s + grp * TRI, B, derivs, t, g, H, grp, hw, h2)
         if lane == grp * RL:
             g[(N + NF + grp) * B + s] = e
@@ -186,19 +187,19 @@ def assembly(spec: KernelSpec):
         else:
             for k in range(t.free.shape[0]):
                 e += body_term(q, qr, w, s, B, derivs, t, g, H, k, h2)
-        ck = tick(t, w, 0, 7, ck)
+        ck = tick(t, w, 0, PHASE_ASSEMBLE_BODIES, ck)
         if wp.static(has_rev):
             for k in range(t.rev_ids.shape[0]):
                 e += point_term(q, qr, w, s, B, derivs, t, g, H, t.rev_ids[k], 2)
-            ck = tick(t, w, 0, 8, ck)
+            ck = tick(t, w, 0, PHASE_ASSEMBLE_REVOLUTE, ck)
         if wp.static(has_fix):
             for k in range(t.fix_ids.shape[0]):
                 e += point_term(q, qr, w, s, B, derivs, t, g, H, t.fix_ids[k], 4)
-            ck = tick(t, w, 0, 9, ck)
+            ck = tick(t, w, 0, PHASE_ASSEMBLE_FIXED, ck)
         if wp.static(has_pri):
             for k in range(t.pri_ids.shape[0]):
                 e += prismatic_term(q, qr, w, s, B, derivs, t, g, H, k)
-            ck = tick(t, w, 0, 10, ck)
+            ck = tick(t, w, 0, PHASE_ASSEMBLE_PRISMATIC, ck)
         if wp.static(has_rlim):
             for k in range(t.rlim_ids.shape[0]):
                 e += rlim_term(q, qr, w, s, B, derivs, t, g, H, k)
@@ -208,11 +209,11 @@ def assembly(spec: KernelSpec):
         if wp.static(rev_angles):
             for k in range(t.ang_joint.shape[0]):
                 e += angle_term(q, qr, w, s, B, derivs, t, g, H, k, hw)
-        ck = tick(t, w, 0, 11, ck)
+        ck = tick(t, w, 0, PHASE_ASSEMBLE_LIMITS, ck)
         if wp.static(has_drive):
             for k in range(t.drive_rest.shape[0]):
                 e += drive_term(q, qr, w, s, B, derivs, t, g, H, t.drive_rest[k], hw, h2)
-            ck = tick(t, w, 0, 12, ck)
+            ck = tick(t, w, 0, PHASE_ASSEMBLE_DRIVES, ck)
         return e
 
     return SimpleNamespace(assemble=assemble)

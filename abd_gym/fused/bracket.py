@@ -10,7 +10,8 @@ import warp as wp
 from .. import coordinates, solver_kernels
 from ..solver_kernels import OK
 from ..warp_ops import ops
-from .clock import clock
+from .clock import (PHASE_OPEN, PHASE_CLOSE, PHASE_OPEN_BODIES, PHASE_OPEN_JOINTS, PHASE_OPEN_PREDICT,
+                     PHASE_CLOSE_FINALIZE, PHASE_CLOSE_JOINTS, clock)  # fmt: skip
 from .layout import KernelSpec, indexing
 from .newton import newton
 from .structs import structs
@@ -45,20 +46,20 @@ def world_step(spec: KernelSpec):
             open_body(q, k.qd, status, k.fresh, k.h, k.bdf2, t.h_step, t.control, k.control_prev, k.calm, w, b, 0)
         if wp.static(lanes):
             block_sync()
-        c = tick(t, w, lane, 15, c)
+        c = tick(t, w, lane, PHASE_OPEN_BODIES, c)
         if fresh != 0:
             for j in range(lane, t.joint_kind.shape[0], LANES):
                 begin_joint(q, t.body_a, t.body_b, t.joint_kind, t.n_a, t.b_a, t.n_b, t.b_b, k.c_ref, k.s_ref, t.theta0,
                             t.c_prev, t.s_prev, t.unwrapped, k.x_hist, t.h_step, k.h, t.x_anchor, w, j)  # fmt: skip
             if wp.static(lanes):
                 block_sync()
-        c = tick(t, w, lane, 16, c)
+        c = tick(t, w, lane, PHASE_OPEN_JOINTS, c)
         for b in range(lane, nb, LANES):
             predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.dof, t.mass,
                          t.mc, k.gravity, k.h, t.h_step, status, w, b)  # fmt: skip
         if wp.static(lanes):
             block_sync()
-        tick(t, w, lane, 17, c)
+        tick(t, w, lane, PHASE_OPEN_PREDICT, c)
 
     @wp.func
     def close_world(q: wp.array2d(dtype=vec12), t: Terms, k: Bracket, status: wp.array(dtype=wp.int32), w: int,
@@ -73,7 +74,7 @@ def world_step(spec: KernelSpec):
                           b)  # fmt: skip
         if wp.static(lanes):
             block_sync()
-        c = tick(t, w, lane, 18, c)
+        c = tick(t, w, lane, PHASE_CLOSE_FINALIZE, c)
         if status[w] == OK:
             for j in range(lane, t.joint_kind.shape[0], LANES):
                 close_joint(q, k.q_prev, t.body_a, t.body_b, t.joint_kind, t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b,
@@ -81,7 +82,7 @@ def world_step(spec: KernelSpec):
                             t.unwrapped, k.x_hist, t.x_anchor, w, j)  # fmt: skip
         if lane == 0:
             k.fresh[w] = 0  # (read by this step's open only, before its first barrier)
-        tick(t, w, lane, 19, c)  # (lane 0's joints: no barrier follows them)
+        tick(t, w, lane, PHASE_CLOSE_JOINTS, c)  # (lane 0's joints: no barrier follows them)
 
     @wp.func
     def step_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, k: Bracket,
@@ -100,12 +101,12 @@ def world_step(spec: KernelSpec):
         if wp.static(bracket):
             c = clock_now()
             open_world(q, t, k, status, w, lane)
-            tick(t, w, lane, 13, c)
+            tick(t, w, lane, PHASE_OPEN, c)
         solve_world(q, q_trial, t, g, H, dq, w, s, T, row, threshold, max_iterations, max_line_search, reuse, status,
                     iterations, factorizations, converged, lane)  # fmt: skip
         if wp.static(bracket):
             c = clock_now()
             close_world(q, t, k, status, w, lane)
-            tick(t, w, lane, 14, c)
+            tick(t, w, lane, PHASE_CLOSE, c)
 
     return SimpleNamespace(step_world=step_world)

@@ -14,7 +14,13 @@ from .structs import structs
 PHASES = ("zero", "assemble", "factor", "solve", "step", "step: energy", "step: trial", "assemble: bodies",
           "assemble: revolute", "assemble: fixed", "assemble: prismatic", "assemble: limits", "assemble: drives",
           "open", "close", "open: bodies", "open: joints", "open: predict", "close: finalize", "close: joints")
-WORLD_PHASES = (0, 1, 2, 3, 4, 13, 14)  # the phases that partition a world's step (the rest split these)
+# each phase's column (tick's k)
+(PHASE_ZERO, PHASE_ASSEMBLE, PHASE_FACTOR, PHASE_SOLVE, PHASE_STEP, PHASE_STEP_ENERGY, PHASE_STEP_TRIAL,
+ PHASE_ASSEMBLE_BODIES, PHASE_ASSEMBLE_REVOLUTE, PHASE_ASSEMBLE_FIXED, PHASE_ASSEMBLE_PRISMATIC, PHASE_ASSEMBLE_LIMITS,
+ PHASE_ASSEMBLE_DRIVES, PHASE_OPEN, PHASE_CLOSE, PHASE_OPEN_BODIES, PHASE_OPEN_JOINTS, PHASE_OPEN_PREDICT,
+ PHASE_CLOSE_FINALIZE, PHASE_CLOSE_JOINTS) = range(len(PHASES))  # fmt: skip
+# the phases that partition a world's step (the rest split these)
+WORLD_PHASES = (PHASE_ZERO, PHASE_ASSEMBLE, PHASE_FACTOR, PHASE_SOLVE, PHASE_STEP, PHASE_OPEN, PHASE_CLOSE)
 
 
 @wp.func_native("""

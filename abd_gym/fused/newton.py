@@ -16,7 +16,8 @@ from ..constitutions import affine_body
 from ..solver_kernels import FAILED, OK
 from ..warp_ops import ENERGY, GRADIENT, HESSIAN, ops
 from .assembly import assembly
-from .clock import clock
+from .clock import (PHASE_ZERO, PHASE_ASSEMBLE, PHASE_FACTOR, PHASE_SOLVE, PHASE_STEP, PHASE_STEP_ENERGY,
+                     PHASE_STEP_TRIAL, clock)  # fmt: skip
 from .factor import factor, warp_ldl_solve
 from .layout import KernelSpec, indexing
 from .structs import structs
@@ -80,13 +81,13 @@ def line_search(spec: KernelSpec):
             tries = wp.where(skip != 0 or chord > 0, 1, max_line_search)
             for _ls in range(tries):
                 trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
-                c = tick(t, w, lane, 6, c)
+                c = tick(t, w, lane, PHASE_STEP_TRIAL, c)
                 if skip != 0:
                     accepted = 1
                     stalled = done
                     break
                 accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
-                c = tick(t, w, lane, 5, c)
+                c = tick(t, w, lane, PHASE_STEP_ENERGY, c)
                 if accepted != 0:
                     break
                 alpha = alpha * half  # (a rejected reused-factor step's α is unused: chord_step retries)
@@ -98,20 +99,20 @@ def line_search(spec: KernelSpec):
                     block_sync()
         else:
             trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
-            c = tick(t, w, lane, 6, c)
+            c = tick(t, w, lane, PHASE_STEP_TRIAL, c)
             if skip != 0:
                 accepted = 1
                 stalled = done
             elif chord > 0:
                 accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), one, gdq)
-                c = tick(t, w, lane, 5, c)
+                c = tick(t, w, lane, PHASE_STEP_ENERGY, c)
             else:
                 for ls in range(max_line_search):
                     if ls > 0:
                         trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
-                        c = tick(t, w, lane, 6, c)
+                        c = tick(t, w, lane, PHASE_STEP_TRIAL, c)
                     accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
-                    c = tick(t, w, lane, 5, c)
+                    c = tick(t, w, lane, PHASE_STEP_ENERGY, c)
                     if accepted != 0:
                         break
                     alpha = alpha * half
@@ -284,7 +285,7 @@ def newton(spec: KernelSpec):
                             p += T
             if wp.static(lanes):
                 block_sync()
-            c = tick(t, w, lane, 0, c)
+            c = tick(t, w, lane, PHASE_ZERO, c)
             e0 = zero
             ok = int(0)
             gdq = zero
@@ -298,16 +299,16 @@ def newton(spec: KernelSpec):
                 e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
             else:
                 e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
-            c = tick(t, w, lane, 1, c)
+            c = tick(t, w, lane, PHASE_ASSEMBLE, c)
             if chord <= 0:
                 nfact += 1
             if wp.static(warp_regs and G == 1):
                 block_sync()  # the factor reads every lane's rows
                 ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
-                c = tick(t, w, lane, 2, c)  # (the factor and the substitutions)
+                c = tick(t, w, lane, PHASE_FACTOR, c)  # (the factor and the substitutions)
                 if ok != 0:
                     ok, gdq, dmax, g_abs = reductions(g, dq, s, N, 1)
-                c = tick(t, w, lane, 3, c)
+                c = tick(t, w, lane, PHASE_SOLVE, c)
             elif wp.static(warp_regs):
                 # lane groups: the first group's warp factors and solves (assemble_groups ended with a
                 # barrier), and passes ok to the others through slot N + NF + G of g
@@ -317,25 +318,25 @@ def newton(spec: KernelSpec):
                         g[s + N + NF + G] = wp.where(ok != 0, one, zero)
                 block_sync()
                 ok = wp.where(g[s + N + NF + G] != zero, 1, 0)
-                c = tick(t, w, lane, 2, c)
+                c = tick(t, w, lane, PHASE_FACTOR, c)
                 if ok != 0:
                     ok, gdq, dmax, g_abs = reductions(g, dq, s, N, 1)
-                c = tick(t, w, lane, 3, c)
+                c = tick(t, w, lane, PHASE_SOLVE, c)
             elif wp.static(lanes):
                 block_sync()  # the factor and the solves read every lane's rows
                 ok = 1
                 if chord <= 0:
                     ok = ldl_lanes(H, s, lane)
-                c = tick(t, w, lane, 2, c)
+                c = tick(t, w, lane, PHASE_FACTOR, c)
                 if ok != 0:
                     ok, gdq, dmax, g_abs = solve_lanes(H, g, dq, s, lane)
-                c = tick(t, w, lane, 3, c)
+                c = tick(t, w, lane, PHASE_SOLVE, c)
             elif chord > 0:
                 ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, N, T, t.first)
-                c = tick(t, w, lane, 3, c)
+                c = tick(t, w, lane, PHASE_SOLVE, c)
             else:
                 ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, N, T, t.first)
-                c = tick(t, w, lane, 2, c)
+                c = tick(t, w, lane, PHASE_FACTOR, c)
             if lane == 0:
                 factorizations[w] = nfact
             if ok == 0:
@@ -347,7 +348,7 @@ def newton(spec: KernelSpec):
                 iterations[w] = its
             stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord, reuse,
                                     d_prev, max_line_search, converged, lane)  # fmt: skip
-            c = tick(t, w, lane, 4, c)
+            c = tick(t, w, lane, PHASE_STEP, c)
             if stop != 0:
                 return 0
             d_prev = dmax
