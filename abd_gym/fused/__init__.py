@@ -29,7 +29,7 @@ kernels of ``Solver._open`` and ``_close`` as functions, a body or a joint per l
 one launch.
 
 The stages, one module each, each a factory cached on the kernel's ``KernelSpec`` that returns
-its ``wp.func``\ s (data flows down this list):
+its ``wp.func`` functions (data flows down this list):
 
 - ``layout``: the spec and its constants, the scratch's indexing, the world's barrier and lane;
 - ``structs``: the kernel's struct arguments (``Terms``, ``Bracket``);
