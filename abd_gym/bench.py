@@ -110,11 +110,10 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
     return dict(
         case=case, num_worlds=num_worlds, steps=steps, dt=dt, dtype=dtype, device=str(sim.device),
         tol=sim.solver.settings.tol, integrator=sim.solver.settings.integrator, scratch=sim.solver.scratch,
-        max_registers=sim.solver.settings.max_registers, smem_spilling=sim.solver.settings.smem_spilling,
         seconds=elapsed, steps_per_second=steps / elapsed, world_steps_per_second=num_worlds * steps / elapsed,
         newton_iterations=float(sim.newton_iterations().mean()),
         newton_factorizations=float(sim.newton_factorizations().mean()), joint_residual=residual,
-        reuse_factor=sim.solver.reuse_factor, envelope=sim.solver.envelope, retract=sim.solver.settings.retract,
+        reuse_factor=sim.solver.reuse_factor, envelope=sim.solver.envelope,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
         threads=sim.solver.threads, block_dim=sim.solver.block_dim, cpu_workers=len(sim.solver.newton_launches),
         lane_groups=sim.solver.lane_groups, steps_per_launch=k, lockstep_warps=sim.solver.lockstep_warps,
@@ -151,15 +150,11 @@ def main(argv=None):
     ap.add_argument("--block-dim", type=int, default=None, help="CUDA block size (default: per solver)")
     ap.add_argument("--repeat", type=int, default=1, help="time each row this many times and keep the fastest")
     ap.add_argument("--threads", default=None, help="fused-step threads: all (one per world), Nsm (N per SM) or a count")
-    ap.add_argument("--max-registers", default="0", help="comma-separated CUDA register caps (0: compiler's choice)")
-    ap.add_argument("--smem-spilling", default="0", help="comma-separated 0/1: spill registers to shared memory")
     ap.add_argument("--reuse-factor", default="auto",
                     help="comma-separated auto/0/1: reuse the Cholesky factor after a full Newton step "
                          "(auto: in float32 only)")
     ap.add_argument("--envelope", default="auto",
                     help="comma-separated auto/0/1: factor the Hessian's envelope only (default: when the scene has one)")
-    ap.add_argument("--retract", default="1",
-                    help="comma-separated 0/1: Newton's guess and trial points turn A along rotations (1) or lines (0)")
     ap.add_argument("--cpu-workers", default="auto",
                     help="comma-separated auto/N: concurrent launches of the fused step on the CPU (auto: one per core)")
     ap.add_argument("--lane-groups", default="auto",
@@ -186,21 +181,17 @@ def main(argv=None):
             accuracy.append(dict(case=case, dt=args.dt, dtype=args.dtype,
                                  period_error=period_error(case, args.dt, args.dtype, args.device)))  # fmt: skip
         reuse_choice = {"auto": None, "0": False, "1": True}
-        variants = [(k, float(t), int(r), bool(int(sp)), reuse_choice[ru], reuse_choice[en], bool(int(rt)),
+        variants = [(k, float(t), reuse_choice[ru], reuse_choice[en],
                      None if cw == "auto" else int(cw), None if lg == "auto" else int(lg),
                      None if spl == "auto" else int(spl), None if lw == "auto" else int(lw))
-                    for k in args.scratch.split(",") for t in args.tol.split(",") for r in args.max_registers.split(",")
-                    for sp in args.smem_spilling.split(",") for ru in args.reuse_factor.split(",")
-                    for en in args.envelope.split(",") for rt in args.retract.split(",")
-                    for cw in args.cpu_workers.split(",")
+                    for k in args.scratch.split(",") for t in args.tol.split(",") for ru in args.reuse_factor.split(",")
+                    for en in args.envelope.split(",") for cw in args.cpu_workers.split(",")
                     for lg in args.lane_groups.split(",") for spl in args.steps_per_launch.split(",")
                     for lw in args.lockstep_warps.split(",")]  # fmt: skip
-        for (scratch, tol, regs, spill, reuse, env, rt, cw, lg, spl, lw), w in ((v, w) for v in variants
-                                                                               for w in worlds):  # fmt: skip
+        for (scratch, tol, reuse, env, cw, lg, spl, lw), w in ((v, w) for v in variants for w in worlds):
             runs = [time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol, integrator=args.integrator,
                                scratch=None if scratch == "auto" else scratch, block_dim=args.block_dim,
-                               max_registers=regs, smem_spilling=spill,
-                               reuse_factor=reuse, envelope=env, retract=rt, cpu_workers=cw, lane_groups=lg,
+                               reuse_factor=reuse, envelope=env, cpu_workers=cw, lane_groups=lg,
                                steps_per_launch=spl, lockstep_warps=lw,
                                threads=_thread_count(args.threads, w, args.device))
                     for _ in range(max(args.repeat, 1))]  # fmt: skip
@@ -301,10 +292,8 @@ def _thread_count(spec, worlds, device):
 def _solver(r) -> str:
     """The fused step's layout ("global", "lanes"; "tiled", "local" in older results) and CUDA block size."""
     scratch = r.get("scratch") or ("tiled" if r.get("tiled") else "global")
-    extra = (f" r{r['max_registers']}" if r.get("max_registers") else "") + (" smem" if r.get("smem_spilling") else "")
-    extra += "" if r.get("reuse_factor", False) else " full"  # every iteration factors (older results: all)
+    extra = "" if r.get("reuse_factor", False) else " full"  # every iteration factors (older results: all)
     extra += " envelope" if r.get("envelope", False) else ""
-    extra += "" if r.get("retract", True) else " straight"  # trial points on lines (older results: all)
     extra += f" W{r['cpu_workers']}" if r.get("cpu_workers", 1) > 1 else ""  # concurrent CPU launches
     extra += f" G{r['lane_groups']}" if r.get("lane_groups", 1) > 1 else ""  # lane groups a world
     extra += f" S{r['steps_per_launch']}" if r.get("steps_per_launch", 1) > 1 else ""  # steps a launch

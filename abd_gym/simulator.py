@@ -63,12 +63,9 @@ class Simulator:
     and its factor: a CUDA block of 32, or 16 or 8 where more worlds of up to 36 unknowns must fit
     the GPU at once, 2 or 4 worlds then sharing a warp; a block's systems in its 47 KB of shared
     memory); same arithmetic, same trajectories to rounding.
-    ``max_registers`` and ``smem_spilling``: the fused kernel's CUDA register cap and spilling to shared memory.
     ``reuse_factor``: Newton's reuse of a Cholesky factor (default: float32 only).  ``envelope``:
     factor only the Hessian's envelope, the columns from each row's first coupled body on (default:
-    when the scene has one, e.g. a chain; same result as the dense factor).  ``retract`` (default
-    on): Newton's initial guess and trial points turn each body's A along a rotation
-    (``affine_body.retract``) instead of a straight line; False is the ablation.  ``cpu_workers``
+    when the scene has one, e.g. a chain; same result as the dense factor).  ``cpu_workers``
     (CPU only; default: one per core, each with at least 64 worlds): the fused step's threads run as
     that many concurrent launches (Warp runs a launch's threads one after another), between the
     step's captured phases before and after them.  ``one_launch``: the fused kernel also opens and
@@ -84,19 +81,17 @@ class Simulator:
     fetches (default: 8, 4 or 2 where the worlds fill whole blocks, and then 50 steps a launch;
     ignored on the CPU).  ``quadratic_stop``: a Newton step from a fresh factor accepted whole (α = 1)
     under this many times q's rounding floor ends the solve (its quadratic convergence would leave
-    rounding; float32 only in effect; 0: off).  ``chord_stop`` (off): a reused factor's step whose
-    contraction predicts a next step under the tolerance ends it too.
+    rounding; float32 only in effect; 0: off).
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
                  tol: float = 1e-5, max_iterations: int = 50, max_line_search: int = 12,
                  use_graph: bool | None = None, fused: bool = True, integrator: str = "implicit_euler",
                  threads: int | None = None, block_dim: int | None = None, scratch: str | None = None,
-                 max_registers: int = 0, smem_spilling: bool = False, reuse_factor: bool | None = None,
-                 envelope: bool | None = None, retract: bool = True, cpu_workers: int | None = None,
+                 reuse_factor: bool | None = None, envelope: bool | None = None, cpu_workers: int | None = None,
                  one_launch: bool | None = None, lane_groups: int | None = None,
                  steps_per_launch: int | None = None, quadratic_stop: float = 100.0,
-                 chord_stop: bool = False, lockstep_warps: int | None = None):  # fmt: skip
+                 lockstep_warps: int | None = None):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         if not (tol > 0):
@@ -108,13 +103,11 @@ class Simulator:
         self.model = Model(scene, num_worlds, dtype=dtype, device=device)
         self.state = State(self.model)
         self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search), bool(fused), integrator,
-                                                           threads, block_dim, scratch, int(max_registers),
-                                                           bool(smem_spilling), reuse_factor, envelope,
-                                                           bool(retract), cpu_workers, one_launch,
-                                                           lane_groups=lane_groups,
+                                                           threads, block_dim, scratch, reuse_factor=reuse_factor,
+                                                           envelope=envelope, cpu_workers=cpu_workers,
+                                                           one_launch=one_launch, lane_groups=lane_groups,
                                                            steps_per_launch=steps_per_launch,
                                                            quadratic_stop=float(quadratic_stop),
-                                                           chord_stop=bool(chord_stop),
                                                            lockstep_warps=lockstep_warps))  # fmt: skip
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds

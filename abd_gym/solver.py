@@ -47,10 +47,6 @@ class SolverSettings:
     # lanes run as cooperative fibers only with wp.config.enable_cpu_blocks, else one); None:
     # default_scratch
     scratch: str | None = None
-    # CUDA register cap of the fused kernel (0: the compiler's choice) and register spills to shared
-    # memory (see bench: occupancy against spills)
-    max_registers: int = 0
-    smem_spilling: bool = False
     # after a full Newton step taken whole, solve the next iteration's gradient against the same
     # Cholesky factor (a simplified-Newton step, tried at α = 1, kept while it converges 8× per
     # iteration); False: factor at every iteration.  None: in float32 only, where rounding bounds
@@ -60,9 +56,6 @@ class SolverSettings:
     # factor only the Hessian's envelope (Model.first: a block-banded chain costs O(n·12²) instead of
     # O(n³)); None: when the scene has one (a dense Hessian keeps the plain loops)
     envelope: bool | None = None
-    # Newton's initial guess and trial points turn A along rotations (affine_body.retract); False:
-    # along straight lines (the ablation)
-    retract: bool = True
     # CPU only: the fused step's threads split into this many launches run at once on as many
     # cores (Warp runs one launch's threads one after another); None: default_cpu_workers
     cpu_workers: int | None = None
@@ -100,11 +93,6 @@ class SolverSettings:
     # for q ~ 1); in float64 the tolerance h·tol is far above the rounding and the stop stays the
     # step under the tolerance.  0: off.  results/quadratic_stop.md
     quadratic_stop: float = 100.0
-    # a reused factor's step whose contraction θ = d/d_prev leaves θ/(1 − θ)·d under the tolerance
-    # ends the solve (Hairer & Wanner's test for simplified Newton).  Off: measured to take 1.7x
-    # fewer iterations on CartPole-v0 under random forces, with a float32 trajectory 8x further from
-    # a tight solve's (results/quadratic_stop.md)
-    chord_stop: bool = False
 
 
 def _flat(a: wp.array) -> wp.array:
@@ -197,19 +185,6 @@ def default_lockstep_warps(device, scratch: str, num_worlds: int, lanes: int, gr
 # warps of the lane-split kernel an SM holds at once: its threads take ~255 registers (65,536 a SM)
 LANE_WARPS_PER_SM = 8
 
-# the fused step evaluates a prismatic joint's limit and a drive on it in the joint's own term
-# (fused.prismatic_term; H100: 1.17x cart-poles at 1,024 worlds, results/fused_prismatic_h100.md),
-# and a revolute joint's limit and drives as one term on its angle (fused.angle_term; CPU only so
-# far, results/fused_angle_cpu.md); see joint_terms
-FUSE_PRISMATIC = True
-FUSE_REVOLUTE = True
-# the fused step takes a Newton step that would be searched whole and makes its Armijo test on the
-# energy the next iteration's assembly returns (fused_kernel's defer): the same steps bit for bit,
-# one energy pass fewer a step where the first step is accepted.  Off until measured on a GPU: the
-# CPU gains 1.00x (cart-pole) / 1.02x (double pendulum), and the lane-split cart-pole kernel grows
-# 244.9 -> 251.8 KB with a 632-byte stack frame instead of 560 (results/deferred_armijo_cpu.md)
-DEFER_ARMIJO = False
-
 
 def fused_flags(model, jt: dict | None = None):
     """What fused_kernel is built with for ``model``'s scene: (its positional has_* flags: revolute,
@@ -228,42 +203,39 @@ def fused_flags(model, jt: dict | None = None):
     return has, dict(pri_limits=fuse_lim, pri_drives=fuse_drv, rev_angles=angles)
 
 
-def joint_terms(model, prismatic: bool = True, revolute: bool = True) -> dict:
+def joint_terms(model) -> dict:
     """How the fused step groups the limits and drives with their joints.  ``pri_lim``, ``pri_drv``:
-    for each prismatic joint (Model.joint_ids order) its limit and the first drive on it, or −1;
+    for each prismatic joint (Model.joint_ids order) its limit and the first drive on it, or −1
+    (fused.prismatic_term; H100: 1.17x cart-poles at 1,024 worlds, results/fused_prismatic_h100.md);
     ``ang_joint``, ``ang_lim``, ``ang_drv`` (A, 2): the revolute joints with a limit or a drive, each
-    with its limit (index of the revolute limits) and up to two drives, or −1; ``rest``: the drives
-    left for terms of their own, in order.  ``prismatic`` / ``revolute`` False: no such grouping
-    (empty arrays; those limits and drives keep terms of their own)."""
+    with its limit (index of the revolute limits) and up to two drives, or −1 (fused.angle_term);
+    ``rest``: the drives left for terms of their own, in order."""
     from .scene import PRISMATIC, REVOLUTE
 
     drive_joint = [int(j) for j in model.drive_joint.numpy()[: model.num_drives]]
-    none = np.zeros(0, np.int32)
-    out = dict(pri_lim=none, pri_drv=none, ang_joint=none, ang_lim=none, ang_drv=np.zeros((0, 2), np.int32))
+    out = {}
     taken = set()
-    if prismatic:
-        pri = [int(j) for j in model.joint_ids[PRISMATIC].numpy()[: model.joint_count[PRISMATIC]]]
-        at = {j: k for k, j in enumerate(pri)}
-        out["pri_lim"] = np.full(len(pri), -1, np.int32)
-        for kl, j in enumerate(model.limit_joints[PRISMATIC]):
-            out["pri_lim"][at[int(j)]] = kl
-        out["pri_drv"] = np.full(len(pri), -1, np.int32)
-        for kd, j in enumerate(drive_joint):
-            if j in at and out["pri_drv"][at[j]] < 0:
-                out["pri_drv"][at[j]] = kd
-                taken.add(kd)
-    if revolute:
-        rev = set(int(j) for j in model.joint_ids[REVOLUTE].numpy()[: model.joint_count[REVOLUTE]])
-        lims = {int(j): kl for kl, j in enumerate(model.limit_joints[REVOLUTE])}
-        drives = {}
-        for kd, j in enumerate(drive_joint):
-            if j in rev and len(drives.setdefault(j, [])) < 2:
-                drives[j].append(kd)
-                taken.add(kd)
-        joints = sorted(set(lims) | set(drives))
-        out["ang_joint"] = np.array(joints, np.int32)
-        out["ang_lim"] = np.array([lims.get(j, -1) for j in joints], np.int32)
-        out["ang_drv"] = np.array([(drives.get(j, []) + [-1, -1])[:2] for j in joints], np.int32).reshape(-1, 2)
+    pri = [int(j) for j in model.joint_ids[PRISMATIC].numpy()[: model.joint_count[PRISMATIC]]]
+    at = {j: k for k, j in enumerate(pri)}
+    out["pri_lim"] = np.full(len(pri), -1, np.int32)
+    for kl, j in enumerate(model.limit_joints[PRISMATIC]):
+        out["pri_lim"][at[int(j)]] = kl
+    out["pri_drv"] = np.full(len(pri), -1, np.int32)
+    for kd, j in enumerate(drive_joint):
+        if j in at and out["pri_drv"][at[j]] < 0:
+            out["pri_drv"][at[j]] = kd
+            taken.add(kd)
+    rev = set(int(j) for j in model.joint_ids[REVOLUTE].numpy()[: model.joint_count[REVOLUTE]])
+    lims = {int(j): kl for kl, j in enumerate(model.limit_joints[REVOLUTE])}
+    drives = {}
+    for kd, j in enumerate(drive_joint):
+        if j in rev and len(drives.setdefault(j, [])) < 2:
+            drives[j].append(kd)
+            taken.add(kd)
+    joints = sorted(set(lims) | set(drives))
+    out["ang_joint"] = np.array(joints, np.int32)
+    out["ang_lim"] = np.array([lims.get(j, -1) for j in joints], np.int32)
+    out["ang_drv"] = np.array([(drives.get(j, []) + [-1, -1])[:2] for j in joints], np.int32).reshape(-1, 2)
     out["rest"] = [kd for kd in range(model.num_drives) if kd not in taken]
     return out
 
@@ -310,9 +282,9 @@ def default_lane_groups(device, scratch: str, num_worlds: int, terms: int = 3, n
 
 # relative cost of a term in an assembly (thousands of cycles a world-step, the cart-pole's phase
 # clock on an H100, the baseline of results/trial_gradient_h100_dropped.md): the bodies' by rows.
-# (Measured before a prismatic joint's limit and drive moved into its own term, FUSE_PRISMATIC: its
-# cost with them is unmeasured, so a cart-pole's groups are balanced on the joint's alone; "angle",
-# a revolute joint's limit and drives on one angle, FUSE_REVOLUTE, is a drive's, unmeasured.)
+# (A prismatic joint's cost with its limit and drive in its own term is unmeasured, so a cart-pole's
+# groups are balanced on the joint's alone; "angle", a revolute joint's limit and drives on one
+# angle, is a drive's, unmeasured.)
 WORK_COST = {"bodies": 14.0, "revolute": 9.0, "fixed": 13.0, "prismatic": 13.0, "revolute_limit": 6.0,
              "prismatic_limit": 6.0, "drive": 10.0, "angle": 10.0}  # fmt: skip
 
@@ -484,7 +456,7 @@ class Solver:
         width = settings.block_dim or (self.lanes and default_lane_width(wp.get_device(dev), W, dt_, n)) or 32
         narrow = self.lanes and width < 32
         # how the fused step groups limits and drives with their joints (read again by _build_fused)
-        self.joint_terms = joint_terms(model, FUSE_PRISMATIC, FUSE_REVOLUTE)
+        self.joint_terms = joint_terms(model)
         terms = sum(term_counts(model, self.joint_terms).values())
         self.lane_groups = int(groups or (1 if narrow else default_lane_groups(wp.get_device(dev), scratch, W, terms, n, dt_)))
         self.block_dim = settings.block_dim or ((width if narrow else 32 * self.lane_groups) if self.lanes
@@ -724,8 +696,8 @@ class Solver:
                               state.x_hist, self.h_step, dt(self.h), state.x_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
                                                      state.qd_hist2, state.order3, state.calm, self.q_tilde, m.dof, m.mass,
-                                                     m.mc, m.gravity, dt(self.h), self.h_step, state.status,
-                                                     int(self.settings.retract)], device=dev)  # fmt: skip
+                                                     m.mc, m.gravity, dt(self.h), self.h_step, state.status],
+                  device=dev)  # fmt: skip
 
     def _newton(self, state):
         """Every world's Newton solve: the fused kernel, or the staged kernels' loop."""
@@ -811,12 +783,11 @@ class Solver:
         has, joined = fused_flags(m, jt)
         st = self.settings
         kernel, Terms, Bracket, assemble_system = fused_kernel(
-            m.dtype, *has, scratch=self.scratch, n=m.num_dofs, max_registers=st.max_registers,
-            smem_spilling=st.smem_spilling, envelope=self.envelope, retract=bool(st.retract),
-            phase_clock=bool(st.phase_clock), cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
+            m.dtype, *has, scratch=self.scratch, n=m.num_dofs, envelope=self.envelope, phase_clock=bool(st.phase_clock),
+            cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
-            groups=self.lane_groups, per_block=self.worlds_per_block, **joined, defer=DEFER_ARMIJO,
-            quadratic=float(st.quadratic_stop), chord_stop=bool(st.chord_stop), hold=self.hold_worlds)  # fmt: skip
+            groups=self.lane_groups, per_block=self.worlds_per_block, **joined,
+            quadratic=float(st.quadratic_stop), hold=self.hold_worlds)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -824,7 +795,6 @@ class Solver:
         for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor"):
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
-        t.q_back = wp.zeros_like(self.q_trial) if DEFER_ARMIJO else self.q_trial
         t.drive_rest = m._int(jt["rest"])
         t.pri_lim, t.pri_drv, t.ang_joint, t.ang_lim = (m._int(jt[k]) for k in ("pri_lim", "pri_drv", "ang_joint",
                                                                                  "ang_lim"))  # fmt: skip
@@ -852,7 +822,7 @@ class Solver:
             setattr(k, name, getattr(state, name))
         k.velocity = state.coord_vel
         k.c_ref, k.s_ref = m.c_ref, m.s_ref
-        k.gravity, k.h, k.bdf2, k.bend = m.gravity, m.dtype(self.h), self.bdf2, int(st.retract)
+        k.gravity, k.h, k.bdf2 = m.gravity, m.dtype(self.h), self.bdf2
         k.hold, k.go = self._no_hold, self._go_all
         self._Bracket, self._brackets = Bracket, {}
         return kernel, t, k, assemble_system
@@ -891,15 +861,14 @@ class Solver:
         wp.launch(k["converge"], dim=W, inputs=[state.q, self.take, self.dq_max, dt(s.tol * self.h), self.alpha,
                                                 int(self.reuse_factor), self.chord, self.d_prev, self.active,
                                                 state.converged, state.iterations, s.max_iterations,
-                                                self.remaining, int(s.chord_stop)], device=dev)  # fmt: skip
+                                                self.remaining], device=dev)  # fmt: skip
 
     def _line_search_round(self, state):
         """Try α on every searching world; Armijo accepts or halves it (down to 2^-(max_line_search-1))."""
         m, k, dev, s = self.model, self.k, self.model.device, self.settings
         W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
         wp.launch(k["trial"], dim=(W, nb), inputs=[state.q, self.dq, m.dof, m.mass, m.mc, self.alpha, self.searching,
-                                                    self.q_trial, int(s.retract)],
-                  device=dev)  # fmt: skip
+                                                    self.q_trial], device=dev)  # fmt: skip
         self.E_trial.zero_()
         self.assemble(state, self.q_trial, self.E_trial, self.searching, 0)
         self.ls_remaining.zero_()

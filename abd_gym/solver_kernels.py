@@ -67,7 +67,7 @@ def kernels(dtype, envelope=False, packed=False):
         order3: wp.array2d(dtype=wp.int32), calm: wp.array(dtype=wp.int32), q_tilde: wp.array2d(dtype=vec12),
         dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
         mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype, h_step: wp.array(dtype=dtype),
-        status: wp.array(dtype=wp.int32), bend: int, w: int, b: int,
+        status: wp.array(dtype=wp.int32), w: int, b: int,
     ):  # fmt: skip
         """Implicit Euler: q̃ = qⁿ + h q̇ⁿ + h² (g, 0)  (M⁻¹f_g = (g, 0) exactly: gravity moves p only).
         BDF2 (ĥ = h_step[w] = 2h/3): q̃ = q̂ + ĥ v̂ + ĥ² (g, 0), q̂ = (4qⁿ − qⁿ⁻¹)/3, v̂ = (4q̇ⁿ − q̇ⁿ⁻¹)/3.
@@ -107,7 +107,7 @@ def kernels(dtype, envelope=False, packed=False):
         d = h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
         if order3[w, b] != 0 and calm[w] >= 2:
             d = h * (dtype(3.0) * (qd[w, b] - qd_hist[w, b]) + qd_hist2[w, b])
-        q[w, b] = wp.where(bend != 0, retract(qb, d, one, mass[w, b], mc[w, b], 1), qb + d)
+        q[w, b] = retract(qb, d, one, mass[w, b], mc[w, b], 1)
 
     @wp.kernel(module="unique")
     def predict(
@@ -115,12 +115,12 @@ def kernels(dtype, envelope=False, packed=False):
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
         order3: wp.array2d(dtype=wp.int32), calm: wp.array(dtype=wp.int32), q_tilde: wp.array2d(dtype=vec12),
         dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype,
-        h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32), bend: int,
+        h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """predict_body of body b of world w."""
         w, b = wp.tid()
         predict_body(q, qd, q_prev, q_hist, qd_hist, qd_hist2, order3, calm, q_tilde, dof, mass, mc, gravity, h, h_step,
-                     status, bend, w, b)  # fmt: skip
+                     status, w, b)  # fmt: skip
 
     # The Newton scratch of a world (or of a fused thread) is column w of n × n and n × 1 arrays with
     # one column per world or thread, stored flat: H's entry (i, j) at (i·n + j)·T + w, g's entry i
@@ -487,10 +487,9 @@ def kernels(dtype, envelope=False, packed=False):
     def trial(
         q: wp.array2d(dtype=vec12), dq: wp.array2d(dtype=dtype), dof: wp.array(dtype=wp.int32),
         mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), alpha: wp.array(dtype=dtype),
-        searching: wp.array(dtype=wp.int32), q_trial: wp.array2d(dtype=vec12), bend: int,
+        searching: wp.array(dtype=wp.int32), q_trial: wp.array2d(dtype=vec12),
     ):  # fmt: skip
-        """The trial point q + αΔq along the retraction's path (affine_body.retract; ``bend`` 0:
-        the straight line)."""
+        """The trial point q + αΔq along the retraction's path (affine_body.retract)."""
         w, b = wp.tid()
         if searching[w] == 0:
             return  # keeps an accepted trial point until it is committed
@@ -500,10 +499,7 @@ def kernels(dtype, envelope=False, packed=False):
             d = vec12()
             for r in range(12):
                 d[r] = dq[o + r, w]
-            if bend != 0:
-                qb = retract(qb, d, alpha[w], mass[w, b], mc[w, b], 0)
-            else:
-                qb = qb + alpha[w] * d
+            qb = retract(qb, d, alpha[w], mass[w, b], mc[w, b], 0)
         q_trial[w, b] = qb
 
     @wp.kernel(module="unique")
@@ -586,12 +582,10 @@ def kernels(dtype, envelope=False, packed=False):
         q: wp.array2d(dtype=vec12), take: wp.array(dtype=wp.int32), dq_max: wp.array(dtype=dtype), threshold: dtype,
         alpha: wp.array(dtype=dtype), reuse: int, chord: wp.array(dtype=wp.int32), d_prev: wp.array(dtype=dtype),
         active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-        max_iterations: int, remaining: wp.array(dtype=wp.int32), chord_stop: int,
+        max_iterations: int, remaining: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """‖Δq‖∞ below h·tol (or q's rounding), or a step whose energy change is below rounding:
         the step just taken was the last one needed.  At the iteration cap a world stops unconverged.
-        With ``chord_stop`` (SolverSettings.chord_stop), a reused factor's step whose contraction
-        predicts a next step under the tolerance also ends the solve.
         The next iteration reuses the factor after a full step taken whole (with ``reuse``), and
         keeps reusing it while the steps shrink 8× an iteration, and not after a reused factor's step
         was rejected (fused.chord_step)."""
@@ -610,19 +604,14 @@ def kernels(dtype, envelope=False, packed=False):
             chord[w] = wp.where(taken != 0 and dq_max[w] <= dtype(0.125) * d_prev[w], 1, -1)
         elif was_chord == 0:
             chord[w] = wp.where(taken != 0 and alpha[w] == one, reuse, 0)
-        dp = d_prev[w]
         d_prev[w] = dq_max[w]
         floor, rounding = noise_floor(q, w, threshold)
-        d = dq_max[w]
-        # (chord_stop: a reused factor's step whose contraction θ = d/d_prev leaves θ/(1 − θ)·d under
-        # the tolerance, as fused.take_step)
-        linear = chord_stop != 0 and was_chord > 0 and taken != 0 and d < dp and d * d < floor * (dp - d)
         if retry:
             if iterations[w] >= max_iterations:
                 active[w] = 0
             else:
                 wp.atomic_add(remaining, 0, 1)
-        elif dq_max[w] < floor or stalled or linear:
+        elif dq_max[w] < floor or stalled:
             converged[w] = 1
             active[w] = 0
         elif iterations[w] >= max_iterations:

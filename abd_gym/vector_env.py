@@ -96,10 +96,8 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
 Simulator options: ``device`` ("cpu", "cuda:0"; default ``$ABD_GYM_DEVICE`` or "cpu"), ``dtype``
 ("float32" or "float64") and ``integrator`` (the simulator's default, implicit Euler, unless given);
 the tasks' rewards and thresholds are calibrated with the defaults.  ``simulator_options``: more
-Simulator keyword arguments, e.g. ``{"tol": 1e-4}`` or ``{"chord_stop": True}`` (Newton's stop on
-a reused factor's contraction: CartPole-v0 under random actions 3.75 → 2.10 iterations a step, its
-float32 trajectory 8x further from a tight solve, results/quadratic_stop.md); an unknown name or a
-bad value is the Simulator's error.
+Simulator keyword arguments, e.g. ``{"tol": 1e-4}`` or ``{"quadratic_stop": 0.0}``; an unknown
+name or a bad value is the Simulator's error.
 
 A task subclasses :class:`ABDVectorEnv` and fills in its hooks (listed, with shapes and units, in
 the class docstring; docs/custom_task.md walks through a new task from scene to training).

@@ -32,7 +32,6 @@ def main():
     ap.add_argument("--steps", type=int, default=2)
     ap.add_argument("--block-dim", type=int, default=None)
     ap.add_argument("--lane-groups", type=int, default=None, help="lane groups a world (scratch lanes)")
-    ap.add_argument("--max-registers", type=int, default=0, help="CUDA register cap of the fused kernel (0: none)")
     ap.add_argument("--steps-per-launch", type=int, default=None, help="steps a launch (one-launch step)")
     ap.add_argument("--lineinfo", action="store_true", help="compile with line information (source-level profiles)")
     ap.add_argument("--phases", action="store_true", help="time the fused step's phases with the GPU's cycle counter")
@@ -50,8 +49,7 @@ def main():
     sim = Simulator(CASES[args.case]["scene"](), num_worlds=args.worlds, dt=0.01, device=args.device,
                     use_graph=args.phases or args.split, scratch=None if args.scratch == "auto" else args.scratch,
                     block_dim=args.block_dim, one_launch={"default": None, "one": True, "two": False}[args.launch],
-                    lane_groups=args.lane_groups, max_registers=args.max_registers,
-                    steps_per_launch=args.steps_per_launch)  # fmt: skip
+                    lane_groups=args.lane_groups, steps_per_launch=args.steps_per_launch)  # fmt: skip
     sim.solver.settings.phase_clock = args.phases
     sim.set_joint_state(random_states(args.case, args.worlds))
     sim.step(args.warmup)
@@ -67,7 +65,7 @@ def main():
         ms = (time.perf_counter() - t0) / args.steps * 1e3
         c = sim.solver.phase_cycles.numpy().sum(0) / (args.worlds * args.steps)
         print(f"{args.case} {sim.solver.scratch}/{sim.solver.block_dim} G{sim.solver.lane_groups} "
-              f"r{args.max_registers} S{sim.solver.steps_per_launch}: {args.worlds} worlds, "
+              f"S{sim.solver.steps_per_launch}: {args.worlds} worlds, "
               f"{ms * 1e3:.1f} us a step "
               f"(with the phase clock), cycles per world-step: " + ", ".join(f"{p} {v:,.0f}" for p, v in zip(PHASES, c)))
     if args.phases:

@@ -162,29 +162,6 @@ def test_lane_split_step_on_a_closed_loop(cpu_blocks):
     env.close()
 
 
-@pytest.mark.parametrize("scratch", ["global", "lanes"])
-def test_deferred_armijo_test_is_the_same_step(scratch, monkeypatch):
-    """solver.DEFER_ARMIJO: a Newton step that would be searched is taken whole and its Armijo test
-    made on the energy the next iteration assembles; where that fails, q is restored and the search
-    resumes at α = 1/2.  The same steps bit for bit, with the same iterations and factorisations, on
-    hard steps where searches backtrack (float32 double pendulums at dt 0.05 from up to 2.5 rad:
-    the staged solver takes 27 iterations at α < 1 in these 60 steps)."""
-    import abd_gym.solver
-
-    def run(defer):
-        monkeypatch.setattr(abd_gym.solver, "DEFER_ARMIJO", defer)
-        sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=16, dt=0.05, scratch=scratch)
-        sim.set_joint_state(np.random.default_rng(0).uniform(-2.5, 2.5, (16, 2)))
-        out = []
-        for _ in range(60):
-            sim.step()
-            out.append(np.concatenate([sim.body_q().reshape(16, -1), sim.newton_iterations()[:, None],
-                                       sim.newton_factorizations()[:, None]], axis=1))  # fmt: skip
-        return np.array(out)
-
-    np.testing.assert_array_equal(run(True), run(False))
-
-
 def _launches(sim, seed: int, counts, failed: int):
     """sim.step(n) for each n of ``counts`` from random joint states, each under new random controls;
     after the second, world 1's limit narrowed and world ``failed`` made non-finite.  Returns each

@@ -176,16 +176,6 @@ def test_quadratic_stop_ends_on_one_newton_step():
             ag.Simulator(mechanisms.double_pendulum(), quadratic_stop=bad)
 
 
-@pytest.mark.parametrize("fused", [True, False])
-def test_chord_stop_ends_on_a_contracting_reused_factor(fused):
-    """chord_stop (off by default): a reused factor's step whose contraction θ = d/d_prev leaves
-    θ/(1 − θ)·d under the tolerance ends the solve.  Under random cart forces at dt 0.02 (the
-    CartPole-v0 scene, float32) it takes markedly fewer iterations, every world converged."""
-    (its_on, x_on), (its_off, x_off) = (_forced_cartpoles(30, chord_stop=c, fused=fused) for c in (True, False))
-    assert its_on < 0.75 * its_off
-    np.testing.assert_allclose(x_on, x_off, atol=5e-3)
-
-
 def test_third_order_guess_only_under_a_steady_control():
     """Newton's initial guess extrapolates a body's velocity to third order where that would have
     guessed its last step better (State.order3) and the world's controls are those of its last two

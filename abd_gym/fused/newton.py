@@ -1,0 +1,357 @@
+"""A world's Newton solve (``solve_world``): each iteration zeroes its system, assembles E, g and
+(unless it reuses the factor) H, factors and solves H Δq = −g, then ``take_step``: the stop tests
+(‖Δq‖∞ under the tolerance; the predicted decrease −gᵀΔq under the energy's rounding; a fresh
+step under ``quadratic`` × q's rounding), the line search (Armijo's test
+E(q + αΔq) ≤ E(q) + 10⁻⁴ α gᵀΔq with rounding-level slack, α halved on rejection), the choice
+to reuse the factor (``chord_step``) and the update of q along the bodies' retraction."""
+import functools
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from .. import solver_kernels
+from ..constitutions import affine_body
+from ..solver_kernels import FAILED, OK
+from ..warp_ops import ENERGY, GRADIENT, HESSIAN, ops
+from .assembly import assembly
+from .clock import (PHASE_ZERO, PHASE_ASSEMBLE, PHASE_FACTOR, PHASE_SOLVE, PHASE_STEP, PHASE_STEP_ENERGY,
+                     PHASE_STEP_TRIAL, clock)  # fmt: skip
+from .factor import factor, warp_ldl_solve
+from .layout import KernelSpec, indexing
+from .structs import structs
+
+
+@functools.lru_cache(maxsize=None)
+def line_search(spec: KernelSpec):
+    """``search``: the line search along a Newton step (``trial`` points on the bodies'
+    retraction, ``armijo``'s test on the world's energy)."""
+    dtype, LANES, lanes, compact = spec.dtype, spec.LANES, spec.lanes, spec.compact
+    vec12 = ops(dtype).vec12
+    Terms = structs(dtype).Terms
+    retract_body = affine_body.kernels(dtype).retract
+    block_sync = indexing(spec).block_sync
+    assemble = assembly(spec).assemble
+    clock_now, tick = clock(spec).clock_now, clock(spec).tick
+    one, half = dtype(1.0), dtype(0.5)
+    EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
+
+    @wp.func
+    def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Any, step: Any, w: int, row: int,
+              s: int, T: int, alpha: dtype, lane: int):  # fmt: skip
+        """q_trial[row] = q[w] + α Δq along the retraction's path (affine_body.retract), Δq in
+        scratch column s of the flat ``step`` (T columns); lane ``lane`` of LANES moves bodies lane,
+        lane + LANES, … (then the block synchronises)."""
+        for b in range(lane, q.shape[1], LANES):
+            qb = q[w, b]
+            ob = t.dof[b]
+            if ob >= 0:
+                d = vec12()
+                for r in range(12):
+                    d[r] = step[(ob + r) * T + s]
+                qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b], 0)
+            q_trial[row, b] = qb
+        if wp.static(lanes):
+            block_sync()
+
+    @wp.func
+    def armijo(e0: dtype, e1: dtype, alpha: dtype, gdq: dtype):
+        """(accepted, stalled) for the trial energy e1 at step α: Armijo's test with rounding-level
+        slack; stalled when the decrease is below what the precision resolves."""
+        noise = dtype(16.0) * EPS * (wp.abs(e0) + wp.abs(e1))
+        if e1 <= e0 + dtype(1.0e-4) * alpha * gdq + noise and wp.isfinite(e1):
+            return 1, wp.where(e0 - e1 <= noise, 1, 0)
+        return 0, 0
+
+    @wp.func
+    def search(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
+               w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, skip: int, done: int, chord: int,
+               max_line_search: int, lane: int):  # fmt: skip
+        """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
+        factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
+        trial points go to row ``row`` of q_trial; s, B as in assemble, lane as in trial."""
+        c = clock_now()
+        alpha = one
+        accepted = int(0)
+        stalled = int(0)
+        if wp.static(compact):
+            # one trial and one energy in the code (a loop of tries, not a first try and a loop):
+            # each inlined copy of assemble's energy costs ~28 KB of a cart-pole kernel's SASS
+            tries = wp.where(skip != 0 or chord > 0, 1, max_line_search)
+            for _ls in range(tries):
+                trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
+                c = tick(t, w, lane, PHASE_STEP_TRIAL, c)
+                if skip != 0:
+                    accepted = 1
+                    stalled = done
+                    break
+                accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
+                c = tick(t, w, lane, PHASE_STEP_ENERGY, c)
+                if accepted != 0:
+                    break
+                alpha = alpha * half  # (a rejected reused-factor step's α is unused: chord_step retries)
+                if wp.static(lanes):
+                    # the next trial moves q_trial: every lane's energy must have read it first
+                    # (assemble ends on the joints' terms, with no barrier; without this one a
+                    # fast lane's next trial races a slow lane's energy, and the world's lanes
+                    # take different steps: a SliderCrank-v0 world in tests/test_graph.py)
+                    block_sync()
+        else:
+            trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
+            c = tick(t, w, lane, PHASE_STEP_TRIAL, c)
+            if skip != 0:
+                accepted = 1
+                stalled = done
+            elif chord > 0:
+                accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), one, gdq)
+                c = tick(t, w, lane, PHASE_STEP_ENERGY, c)
+            else:
+                for ls in range(max_line_search):
+                    if ls > 0:
+                        trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
+                        c = tick(t, w, lane, PHASE_STEP_TRIAL, c)
+                    accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
+                    c = tick(t, w, lane, PHASE_STEP_ENERGY, c)
+                    if accepted != 0:
+                        break
+                    alpha = alpha * half
+        return accepted, stalled, alpha
+
+    return SimpleNamespace(search=search)
+
+
+@functools.lru_cache(maxsize=None)
+def stepping(spec: KernelSpec):
+    """``take_step``: everything after a Newton direction (stop tests, line search, factor
+    reuse, update of q)."""
+    dtype, LANES, lanes = spec.dtype, spec.LANES, spec.lanes
+    vec12 = ops(dtype).vec12
+    Terms = structs(dtype).Terms
+    staged = solver_kernels.kernels(dtype, spec.envelope, spec.packed)
+    noise_floor, energy_noise = staged["noise_floor"], staged["energy_noise"]
+    block_sync = indexing(spec).block_sync
+    search = line_search(spec).search
+    one = dtype(1.0)
+    EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
+    QUAD = dtype(4.0 * float(spec.quadratic))  # × q's rounding (SolverSettings.quadratic_stop)
+
+    @wp.func
+    def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype, noise: dtype, chord: int):
+        """(skip, done): take the Newton step whole, without a line search, when it is under the
+        tolerance or when its predicted decrease −gᵀΔq is below what the energy's float rounding
+        can resolve (the search could only halve it on noise; ``noise``: solver_kernels.energy_noise);
+        done: the solve ends with it.  A step from a reused factor (chord) converges linearly: only
+        one under the tolerance ends it."""
+        unresolved = -gdq <= dtype(1600.0) * EPS * wp.abs(e0) or -gdq <= noise
+        # within 10x the noise floor the step is taken whole: in float32 the energy's rounding there
+        # exceeds the step's decrease (a joint's energy K/2‖Δx‖² at ‖Δx‖ ~ 1e-6 m is computed from
+        # positions rounded to ~6e-8 m), and a search halves good steps on noise (measured: double
+        # pendulums at dt 0.005 crawling at α = 1/32 where float64 takes α = 1 and converges in 2)
+        skip = dmax < dtype(10.0) * floor or unresolved
+        done = dmax < floor or (unresolved and dmax < dtype(1000.0) * floor and chord <= 0)
+        return wp.where(skip, 1, 0), wp.where(done, 1, 0)
+
+    @wp.func
+    def chord_step(chord: int, reuse: int, accepted: int, alpha: dtype, dmax: dtype, d_prev: dtype):
+        """(retry, chord) after an iteration; chord 1: the next iteration reuses the factor, 0: it
+        factors, −1: it factors and the step reuses no factor again.  A step from a reused factor is
+        tried at α = 1 only: rejected, it is not taken and the next iteration refactors at the same q
+        (retry 1), and the rest of the step refactors every iteration (where a reused factor fails,
+        the Hessian changes fast: alternating the two doubled a hard step's iterations, 13 → 22 on a
+        float32 double pendulum at dt 0.05).  The factor is reused after a full step taken whole,
+        and kept while the reused steps shrink at least 8× an iteration (they converge linearly, at
+        the rate the Hessian has changed; a slow rate would leave the solve's error near the
+        tolerance, where Newton's leaves it far below); a reused step that shrinks less also ends
+        reuse for the step (where float32's noise makes steps ~1e-3 that are taken whole, refactor
+        and reuse would otherwise alternate up to the iteration cap: 6 world-steps of 1,024 double
+        pendulums at dt 0.05 reached the 50-iteration cap without this rule)."""
+        if chord > 0:
+            if accepted == 0:
+                return 1, -1
+            return 0, wp.where(dmax <= dtype(0.125) * d_prev, 1, -1)
+        if chord < 0:
+            return 0, -1
+        return 0, wp.where(accepted != 0 and alpha == one, reuse, 0)
+
+    @wp.func
+    def end_iteration(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), w: int, row: int, accepted: int,
+                      stalled: int, dmax: dtype, floor: dtype, converged: wp.array(dtype=wp.int32),
+                      lane: int):  # fmt: skip
+        """Take the accepted trial point (row of q_trial) as world w's q; 1 when its solve is over.
+        A search that ran out takes no step: converged if the step was already near the tolerance.
+        (Steps within 10x the noise floor are taken whole, see whole_step.)  Lane-split: each lane
+        copies its bodies, lane 0 writes the flag."""
+        if accepted == 0:
+            if dmax < dtype(1000.0) * floor and lane == 0:
+                converged[w] = 1
+            return 1
+        for b in range(lane, q.shape[1], LANES):
+            q[w, b] = q_trial[row, b]
+        if dmax < floor or stalled != 0:
+            if lane == 0:
+                converged[w] = 1
+            return 1
+        return 0
+
+    @wp.func
+    def take_step(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
+                  w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, dmax: dtype, g_abs: dtype, threshold: dtype, chord: int,
+                  reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32),
+                  lane: int):  # fmt: skip
+        """Everything after a Newton direction (both layouts): the stop test, the line search, the
+        choice to reuse the factor next, and the update of q.  Returns (1 when the solve is over,
+        chord for the next iteration)."""
+        floor, rounding = noise_floor(q, w, threshold)
+        # a Newton step under quadratic_stop × q's rounding ends the solve if accepted at α = 1
+        quad = chord <= 0 and dmax < QUAD * rounding
+        skip, done = whole_step(e0, gdq, dmax, floor, energy_noise(rounding, g_abs), chord)
+        accepted, stalled, alpha = search(q, q_trial, t, step, g, H, w, row, s, B, e0, gdq, skip, done, chord,
+                                          max_line_search, lane)  # fmt: skip
+        if quad and accepted != 0 and alpha == one:
+            stalled = 1  # taken whole or by Armijo: Newton's next step would be rounding (quadratic_stop)
+        retry, chord_next = chord_step(chord, reuse, accepted, alpha, dmax, d_prev)
+        stop = int(0)
+        if retry == 0:
+            stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged, lane)
+        if wp.static(lanes):
+            block_sync()  # q is read whole by the next iteration
+        return stop, chord_next
+
+    return SimpleNamespace(take_step=take_step)
+
+
+@functools.lru_cache(maxsize=None)
+def newton(spec: KernelSpec):
+    """``solve_world``: a world's whole Newton solve (see its docstring)."""
+    dtype, N, NF, TRI, LANES, G, RL = spec.dtype, spec.N, spec.NF, spec.TRI, spec.LANES, spec.G, spec.RL
+    lanes, compact, envelope, warp_regs = spec.lanes, spec.compact, spec.envelope, spec.warp_regs
+    vec12 = ops(dtype).vec12
+    Terms = structs(dtype).Terms
+    staged = solver_kernels.kernels(dtype, envelope, spec.packed)
+    cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
+    reductions = staged["reductions"]
+    regs_ldl_solve = warp_ldl_solve(dtype, N, RL) if warp_regs else None
+    ldl_lanes, solve_lanes = factor(spec).ldl_lanes, factor(spec).solve_lanes
+    at = indexing(spec)
+    hrow, block_sync = at.hrow, at.block_sync
+    assemble = assembly(spec).assemble
+    take_step = stepping(spec).take_step
+    clock_now, tick = clock(spec).clock_now, clock(spec).tick
+    zero, one = dtype(0.0), dtype(1.0)
+
+    @wp.func
+    def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
+                    H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, s: int, T: int, row: int, threshold: dtype,
+                    max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
+                    iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
+                    converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
+        """World w's whole Newton solve, in scratch column s (of T) of the flat g, H, dq and row
+        ``row`` of q_trial; lane ``lane`` of LANES (one thread per world: 0 of 1).
+
+        With ``reuse``, an iteration after a full step (α = 1) keeps the Cholesky factor it left in H
+        and solves only the new gradient against it (a simplified-Newton step; see ``chord_step``).
+        Lane-split, every lane takes every branch (each decides from the same sums in the same
+        order) and lane 0 alone writes the world's counters."""
+        if lane == 0:
+            iterations[w] = 0
+            factorizations[w] = 0
+            converged[w] = 0
+        if status[w] != OK:
+            return 0
+        chord = int(0)  # 1: H holds the factor of an earlier iteration, reused for this one (chord_step)
+        d_prev = zero
+        nfact = int(0)
+        its = int(0)  # Newton iterations (solves) so far
+        for it in range(max_iterations):
+            c = clock_now()
+            if wp.static(G > 1):  # every group's copy (lanes: T = 1)
+                for cp in range(G):
+                    for i in range(lane, N, LANES):
+                        g[s + cp * TRI + i] = zero
+                    if chord <= 0:
+                        for p in range(lane, TRI, LANES):
+                            H[s + cp * TRI + p] = zero
+            else:
+                for i in range(lane, N, LANES):
+                    g[i * T + s] = zero
+                    if chord <= 0:
+                        j0 = int(0)
+                        if wp.static(envelope):
+                            j0 = t.first[i]
+                        p = (hrow(i) + j0) * T + s
+                        for j in range(j0, i + 1):
+                            H[p] = zero
+                            p += T
+            if wp.static(lanes):
+                block_sync()
+            c = tick(t, w, lane, PHASE_ZERO, c)
+            e0 = zero
+            ok = int(0)
+            gdq = zero
+            dmax = zero
+            g_abs = zero
+            if wp.static(compact):
+                # one call with the derivatives chosen at run time: a second inlined assemble
+                # (gradient only) would add ~54 KB of code
+                e0 = assemble(q, w, w, s, T, wp.where(chord > 0, GRADIENT, HESSIAN), t, g, H)
+            elif chord > 0:
+                e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
+            else:
+                e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
+            c = tick(t, w, lane, PHASE_ASSEMBLE, c)
+            if chord <= 0:
+                nfact += 1
+            if wp.static(warp_regs and G == 1):
+                block_sync()  # the factor reads every lane's rows
+                ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
+                c = tick(t, w, lane, PHASE_FACTOR, c)  # (the factor and the substitutions)
+                if ok != 0:
+                    ok, gdq, dmax, g_abs = reductions(g, dq, s, N, 1)
+                c = tick(t, w, lane, PHASE_SOLVE, c)
+            elif wp.static(warp_regs):
+                # lane groups: the first group's warp factors and solves (assemble_groups ended with a
+                # barrier), and passes ok to the others through slot N + NF + G of g
+                if lane < 32:
+                    ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
+                    if lane == 0:
+                        g[s + N + NF + G] = wp.where(ok != 0, one, zero)
+                block_sync()
+                ok = wp.where(g[s + N + NF + G] != zero, 1, 0)
+                c = tick(t, w, lane, PHASE_FACTOR, c)
+                if ok != 0:
+                    ok, gdq, dmax, g_abs = reductions(g, dq, s, N, 1)
+                c = tick(t, w, lane, PHASE_SOLVE, c)
+            elif wp.static(lanes):
+                block_sync()  # the factor and the solves read every lane's rows
+                ok = 1
+                if chord <= 0:
+                    ok = ldl_lanes(H, s, lane)
+                c = tick(t, w, lane, PHASE_FACTOR, c)
+                if ok != 0:
+                    ok, gdq, dmax, g_abs = solve_lanes(H, g, dq, s, lane)
+                c = tick(t, w, lane, PHASE_SOLVE, c)
+            elif chord > 0:
+                ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, N, T, t.first)
+                c = tick(t, w, lane, PHASE_SOLVE, c)
+            else:
+                ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, N, T, t.first)
+                c = tick(t, w, lane, PHASE_FACTOR, c)
+            if lane == 0:
+                factorizations[w] = nfact
+            if ok == 0:
+                if lane == 0:
+                    status[w] = FAILED
+                return 0
+            its += 1
+            if lane == 0:
+                iterations[w] = its
+            stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord, reuse,
+                                    d_prev, max_line_search, converged, lane)  # fmt: skip
+            c = tick(t, w, lane, PHASE_STEP, c)
+            if stop != 0:
+                return 0
+            d_prev = dmax
+        return 0
+
+    return SimpleNamespace(solve_world=solve_world)
