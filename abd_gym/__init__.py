@@ -9,6 +9,7 @@ from .warp_log import quiet_warp
 
 quiet_warp()  # before any kernel module loads
 
+from .plan import ExecutionPlan
 from .scene import Scene
 from .shapes import Box, Capsule, Cylinder, Inertia, Sphere
 from .simulator import Simulator
@@ -16,5 +17,5 @@ from .registration import register_envs
 
 register_envs()  # the abd_gym/ Gymnasium ids (entry points load lazily from abd_gym.envs)
 
-__all__ = ["Scene", "Simulator", "Box", "Sphere", "Capsule", "Cylinder", "Inertia"]
+__all__ = ["Scene", "Simulator", "ExecutionPlan", "Box", "Sphere", "Capsule", "Cylinder", "Inertia"]
 __version__ = "0.1.0"

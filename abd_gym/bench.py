@@ -22,6 +22,7 @@ import numpy as np
 import warp as wp
 
 from . import mechanisms
+from .plan import ExecutionPlan
 from .simulator import Simulator
 
 G = 9.81
@@ -87,7 +88,8 @@ def period_error(case, dt, dtype, device, amplitude=0.02):
 
 
 def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs):
-    """Time ``steps`` steps of ``num_worlds`` worlds (``sim_kwargs``: more Simulator options)."""
+    """Time ``steps`` steps of ``num_worlds`` worlds (``sim_kwargs``: more Simulator options, e.g.
+    ``plan``, an ExecutionPlan; the row records the resolved plan's choices)."""
     c = CASES[case]
     sim = Simulator(c["scene"](), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
     rng = np.random.default_rng(seed)
@@ -96,7 +98,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
         x0 = np.stack([rng.uniform(-0.5, 0.5, num_worlds), rng.uniform(-0.3, 0.3, num_worlds)], 1)
     sim.set_joint_state(x0)
     # sim.step(k) calls of k steps each (k = steps_per_launch where a launch can take several)
-    k = sim.solver.steps_per_launch if sim.solver.multi_step else 1
+    k = sim.plan.steps_per_launch if sim.solver.multi_step else 1
     steps = -(-steps // k) * k
     sim.step(3)  # compile and warm up
     sim.step(k)  # (and capture the k-step launch)
@@ -109,14 +111,14 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
     residual = float(sim.joint_violation().max())
     return dict(
         case=case, num_worlds=num_worlds, steps=steps, dt=dt, dtype=dtype, device=str(sim.device),
-        tol=sim.solver.settings.tol, integrator=sim.solver.settings.integrator, scratch=sim.solver.scratch,
+        tol=sim.solver.settings.tol, integrator=sim.solver.settings.integrator, scratch=sim.plan.scratch,
         seconds=elapsed, steps_per_second=steps / elapsed, world_steps_per_second=num_worlds * steps / elapsed,
         newton_iterations=float(sim.newton_iterations().mean()),
         newton_factorizations=float(sim.newton_factorizations().mean()), joint_residual=residual,
-        reuse_factor=sim.solver.reuse_factor, envelope=sim.solver.envelope,
+        reuse_factor=sim.solver.reuse_factor, envelope=sim.plan.envelope,
         converged_fraction=float(sim.converged().mean()), failed_worlds=int(sim.failed_worlds().size),
-        threads=sim.solver.threads, block_dim=sim.solver.block_dim, cpu_workers=len(sim.solver.newton_launches),
-        lane_groups=sim.solver.lane_groups, steps_per_launch=k, lockstep_warps=sim.solver.lockstep_warps,
+        threads=sim.plan.threads, block_dim=sim.plan.block_dim, cpu_workers=len(sim.solver.newton_launches),
+        lane_groups=sim.plan.lane_groups, steps_per_launch=k, lockstep_warps=sim.plan.lockstep_warps,
         memory_bytes_per_world=sim.memory_bytes()["total"] / num_worlds,
         unknowns=sim.model.num_dofs, constitutions=[c.NAME for c in sim.solver.parts],
     )  # fmt: skip
@@ -189,11 +191,11 @@ def main(argv=None):
                     for lg in args.lane_groups.split(",") for spl in args.steps_per_launch.split(",")
                     for lw in args.lockstep_warps.split(",")]  # fmt: skip
         for (scratch, tol, reuse, env, cw, lg, spl, lw), w in ((v, w) for v in variants for w in worlds):
+            plan = ExecutionPlan(scratch=None if scratch == "auto" else scratch, block_dim=args.block_dim,
+                                 envelope=env, cpu_workers=cw, lane_groups=lg, steps_per_launch=spl,
+                                 lockstep_warps=lw, threads=_thread_count(args.threads, w, args.device))  # fmt: skip
             runs = [time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol, integrator=args.integrator,
-                               scratch=None if scratch == "auto" else scratch, block_dim=args.block_dim,
-                               reuse_factor=reuse, envelope=env, cpu_workers=cw, lane_groups=lg,
-                               steps_per_launch=spl, lockstep_warps=lw,
-                               threads=_thread_count(args.threads, w, args.device))
+                               reuse_factor=reuse, plan=plan)
                     for _ in range(max(args.repeat, 1))]  # fmt: skip
             rows.append(max(runs, key=lambda r: r["world_steps_per_second"]))
             rows[-1]["repeats"] = len(runs)
@@ -266,8 +268,9 @@ def sweep_threads(argv=None):
                 if any(r["case"] == case and r["num_worlds"] == w and r["threads"] == T and spec != "all" for r in rows):
                     continue
                 for bd in (int(b) for b in args.block_dims.split(",")):
-                    r = time_steps(case, w, args.steps, args.dt, args.dtype, args.device, threads=T, block_dim=bd,
-                                   scratch=None if args.scratch == "auto" else args.scratch)  # fmt: skip
+                    scratch = None if args.scratch == "auto" else args.scratch
+                    plan = ExecutionPlan(threads=T, block_dim=bd, scratch=scratch)
+                    r = time_steps(case, w, args.steps, args.dt, args.dtype, args.device, plan=plan)
                     rows.append(r)
                     print(f"{case:16s} {args.scratch} worlds {w:8d} threads {T:8d} block {bd:4d}  "
                           f"{r['world_steps_per_second']:14,.0f} world-steps/s  iters {r['newton_iterations']:.2f}  "

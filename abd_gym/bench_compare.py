@@ -17,6 +17,7 @@ import numpy as np
 import warp as wp
 
 from . import mechanisms
+from .plan import ExecutionPlan
 from .simulator import Simulator
 
 CARTPOLE_XML = """
@@ -121,7 +122,7 @@ def ours_steps_per_second(case, num_worlds, steps, dt, device, dtype="float32", 
     sim.set_joint_state(x0)
     sim.step(3)
     sps = num_worlds * steps / fastest_run(sim, x0, steps, repeat)
-    return sps, float(sim.joint_violation().max()), sim.memory_bytes()["total"] / num_worlds, sim.solver.scratch
+    return sps, float(sim.joint_violation().max()), sim.memory_bytes()["total"] / num_worlds, sim.plan.scratch
 
 
 def main(argv=None):
@@ -153,9 +154,9 @@ def main(argv=None):
                 except ImportError:
                     pass
             for scratch in args.scratch.split(","):
+                plan = ExecutionPlan(scratch=None if scratch == "auto" else scratch)
                 ours, residual, mem, scratch = ours_steps_per_second(case, w, steps, args.dt, args.device,
-                                                                     repeat=args.repeat,
-                                                                     scratch=None if scratch == "auto" else scratch)
+                                                                     repeat=args.repeat, plan=plan)
                 rows.append(dict(case=case, num_worlds=w, scratch=scratch, abd_gym=ours, mujoco_warp=theirs,
                                  ratio=ours / theirs, joint_residual=residual, memory_bytes_per_world=mem))  # fmt: skip
                 print(f"{case:16s} {w:8d} worlds  abd_gym ({scratch}) {ours:14,.0f}  mujoco_warp {theirs:14,.0f} "

@@ -15,6 +15,7 @@ import warp as wp
 from . import graphs, kinematics, launches, rows
 from .coordinates import FIXED_CODE
 from .model import Model
+from .plan import ExecutionPlan
 from .scene import REVOLUTE, Scene
 from .solver import Solver, SolverSettings
 from .state import State
@@ -43,72 +44,43 @@ def _finite_array(name, values, shape):
 
 
 class Simulator:
-    """Step ``num_worlds`` copies of ``scene`` with implicit Euler (Newton on the incremental potential).
+    """Step ``num_worlds`` copies of ``scene`` by ``dt`` [s], each step a Newton solve of the
+    incremental potential (DESIGN.md §2)
 
-    ``dt`` [s]; ``integrator`` "implicit_euler" (default; first order, dissipative, the robust choice)
-    or "bdf2" (second order, far less numerical damping); ``dtype`` float32 (default) or float64; ``tol`` the Newton stop on ``‖Δq‖∞/h`` [m/s];
-    ``device`` "cpu" or "cuda:N" (default: $ABD_GYM_DEVICE, else "cpu"); ``use_graph`` (default on) replays
-    the step as one captured graph (a CUDA graph, or Warp's CPU command replay), its Newton and
-    line-search loops running as conditional loops on device flags: same arithmetic, far fewer
-    Python launches.  ``fused`` (default on) runs each world's whole Newton solve in one thread of
-    one kernel; ``threads`` (that kernel's thread count; each thread solves worlds s, s+T, …) and
-    ``block_dim`` (its CUDA block size) default to values measured on an H100.  ``scratch``: where the
-    fused step keeps a world's gradient, Hessian and Newton step (default, solver.default_scratch:
-    on a GPU "lanes" where the worlds fit it at once, and for worlds of more than 36 unknowns up to
-    4,096 worlds where one system fits a block's shared memory, else "shared" where it fits, else
-    "global"):
-    "global" (arrays, one column per thread), "shared" (a thread per world, its
-    system with H packed in its CUDA block's shared memory, where a block's systems fit in 47 KB: up
-    to 32 float32 threads of 24 unknowns) or "lanes" (``block_dim`` lanes per world, sharing its terms
-    and its factor: a CUDA block of 32, or 16 or 8 where more worlds of up to 36 unknowns must fit
-    the GPU at once, 2 or 4 worlds then sharing a warp; a block's systems in its 47 KB of shared
-    memory); same arithmetic, same trajectories to rounding.
-    ``reuse_factor``: Newton's reuse of a Cholesky factor (default: float32 only).  ``envelope``:
-    factor only the Hessian's envelope, the columns from each row's first coupled body on (default:
-    when the scene has one, e.g. a chain; same result as the dense factor).  ``cpu_workers``
-    (CPU only; default: one per core, each with at least 64 worlds): the fused step's threads run as
-    that many concurrent launches (Warp runs a launch's threads one after another), between the
-    step's captured phases before and after them.  ``one_launch``: the fused kernel also opens and
-    closes each world's step (prediction, velocities, joint coordinates), so a step is one launch;
-    False launches those as kernels of their own; default: with the lane-split step (measured).
-    ``lane_groups`` (``scratch="lanes"``): a world's lanes split into this many groups (a warp each
-    on a GPU, 32 lanes a group by default), each evaluating a share of the joints, limits and
-    drives into its own copy of the Newton system, summed before the factor.
-    ``steps_per_launch``: where a step is one launch of the lane-split kernel (``scratch="lanes"``
-    with ``one_launch``), ``step(n)`` takes up to this many steps a launch, each world's steps in
-    turn in its block.  ``lockstep_warps`` (``scratch="lanes"`` on a GPU): warps a CUDA block whose
-    worlds start each step of a launch together, so an SM's warps share the kernel's instruction
-    fetches (default: 8, 4 or 2 where the worlds fill whole blocks, and then 50 steps a launch;
-    ignored on the CPU).  ``quadratic_stop``: a Newton step from a fresh factor accepted whole (α = 1)
-    under this many times q's rounding floor ends the solve (its quadratic convergence would leave
-    rounding; float32 only in effect; 0: off).
+        q^{n+1} = argmin_q ½(q − q̃)ᵀM(q − q̃) + h²(Σ V_orth + Σ E_drive) + Σ E_joint + Σ E_limit
+
+    with q̃ the inertial prediction and h = dt (implicit Euler) or 2dt/3 (BDF2).
+
+    The physics: ``integrator`` "implicit_euler" (first order, dissipative, the robust choice) or
+    "bdf2" (second order, far less numerical damping); ``dtype`` "float32" or "float64";
+    ``device`` "cpu" or "cuda:N" (default: $ABD_GYM_DEVICE, else "cpu").  The Newton solve
+    (SolverSettings): it stops a world once ‖Δq‖∞/h < ``tol`` [m/s], after at most
+    ``max_iterations`` iterations of at most ``max_line_search`` Armijo trials each;
+    ``reuse_factor`` solves an iteration after a full step against the last Cholesky factor
+    (None: in float32 only); ``quadratic_stop``: a Newton step from a fresh factor accepted whole
+    (α = 1) under this many times q's rounding floor 4·eps·(1 + ‖q‖∞) ends the solve (float32
+    only in effect; 0: off).
+
+    How the step runs on the device (kernels, memory layout, launches, graphs) is ``plan``, an
+    ExecutionPlan (or a dict of its fields) whose None fields are derived from the device, the
+    number of worlds and the scene by rules measured on an H100 (abd_gym.plan); every plan gives
+    the same step to rounding.  ``Simulator.plan`` is the resolved plan.
     """
 
-    def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, device=None, dtype="float32",
-                 tol: float = 1e-5, max_iterations: int = 50, max_line_search: int = 12,
-                 use_graph: bool | None = None, fused: bool = True, integrator: str = "implicit_euler",
-                 threads: int | None = None, block_dim: int | None = None, scratch: str | None = None,
-                 reuse_factor: bool | None = None, envelope: bool | None = None, cpu_workers: int | None = None,
-                 one_launch: bool | None = None, lane_groups: int | None = None,
-                 steps_per_launch: int | None = None, quadratic_stop: float = 100.0,
-                 lockstep_warps: int | None = None):  # fmt: skip
+    def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "implicit_euler",
+                 dtype="float32", device=None, tol: float = 1e-5, max_iterations: int = 50,
+                 max_line_search: int = 12, reuse_factor: bool | None = None, quadratic_stop: float = 100.0,
+                 plan: ExecutionPlan | dict | None = None):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
-        if not (tol > 0):
-            raise ValueError(f"tol must be positive, got {tol!r}")
-        if not (isinstance(quadratic_stop, (int, float)) and math.isfinite(quadratic_stop) and quadratic_stop >= 0):
-            raise ValueError(f"quadratic_stop must be a finite number >= 0, got {quadratic_stop!r}")
+        settings = SolverSettings(tol=float(tol), max_iterations=int(max_iterations),
+                                  max_line_search=int(max_line_search), integrator=integrator,
+                                  reuse_factor=reuse_factor, quadratic_stop=quadratic_stop)  # fmt: skip
         self.scene = scene
         device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
         self.model = Model(scene, num_worlds, dtype=dtype, device=device)
         self.state = State(self.model)
-        self.solver = Solver(self.model, dt, SolverSettings(float(tol), int(max_iterations), int(max_line_search), bool(fused), integrator,
-                                                           threads, block_dim, scratch, reuse_factor=reuse_factor,
-                                                           envelope=envelope, cpu_workers=cpu_workers,
-                                                           one_launch=one_launch, lane_groups=lane_groups,
-                                                           steps_per_launch=steps_per_launch,
-                                                           quadratic_stop=float(quadratic_stop),
-                                                           lockstep_warps=lockstep_warps))  # fmt: skip
+        self.solver = Solver(self.model, dt, settings, plan)
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device
@@ -117,9 +89,8 @@ class Simulator:
         self._mass = np.broadcast_to(m.base_mass, (self.num_worlds, m.num_bodies)).copy()
         self._joint_bodies = (m.body_a.numpy()[: m.num_joints].copy(), m.body_b.numpy()[: m.num_joints].copy())
         self._limits = {}  # joint kind -> host copies of the limits' (lower, upper, strength), (W, limits)
-        self.use_graph = True if use_graph is None else bool(use_graph)
         self._set_mask = None
-        self._plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
+        self._tree_plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
         self._torch_views = {}
         self._host_views = {}
         self._cmds = {}  # recorded launches of the reset path, replayed with changed arguments (_replay)
@@ -128,12 +99,17 @@ class Simulator:
         self._warm = False
         self.reset()
 
+    @property
+    def plan(self) -> ExecutionPlan:
+        """The execution plan the step runs (every field resolved)."""
+        return self.solver.plan
+
     # ------------------------------------------------------------------ stepping
     def step(self, num_steps: int = 1):
         """Advance every world ``num_steps`` steps of ``dt`` (where a step is one launch, up to the
         solver's ``steps_per_launch`` a launch)."""
         for k in self.solver.launch_chunks(num_steps):
-            if self.use_graph and self._warm:
+            if self.plan.use_graph and self._warm:
                 if k not in self._graph:
                     # capture after one plain step, so every kernel is compiled and loaded; with the
                     # CPU's concurrent Newton launches (which a graph cannot hold), the phases around them
@@ -400,11 +376,11 @@ class Simulator:
 
     def _tree(self):
         """(forward kinematics' plan, its per-world angular-velocity scratch), made on first use."""
-        if self._plan is None:
+        if self._tree_plan is None:
             m = self.model
-            self._plan = kinematics.tree_plan(self.scene, m)
+            self._tree_plan = kinematics.tree_plan(self.scene, m)
             self._omega = wp.zeros((self.num_worlds, m.num_bodies), dtype=m.vec3, device=self.device)
-        return self._plan, self._omega
+        return self._tree_plan, self._omega
 
     def set_joint_state_where(self, mask: wp.array, xx: wp.array):
         """``set_joint_state`` of the worlds w with mask[w] != 0 (a device int32 (num_worlds,) array)

@@ -96,8 +96,9 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
 Simulator options: ``device`` ("cpu", "cuda:0"; default ``$ABD_GYM_DEVICE`` or "cpu"), ``dtype``
 ("float32" or "float64") and ``integrator`` (the simulator's default, implicit Euler, unless given);
 the tasks' rewards and thresholds are calibrated with the defaults.  ``simulator_options``: more
-Simulator keyword arguments, e.g. ``{"tol": 1e-4}`` or ``{"quadratic_stop": 0.0}``; an unknown
-name or a bad value is the Simulator's error.
+Simulator keyword arguments, e.g. ``{"tol": 1e-4}``, or ``{"plan": {"scratch": "global"}}`` (an
+``ExecutionPlan`` or a dict of its fields: how the step runs on the device); an unknown name or a
+bad value is the Simulator's error.
 
 A task subclasses :class:`ABDVectorEnv` and fills in its hooks (listed, with shapes and units, in
 the class docstring; docs/custom_task.md walks through a new task from scene to training).

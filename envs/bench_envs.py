@@ -19,14 +19,17 @@ import abd_gym  # noqa: F401 -- registers the abd_gym/ ids
 
 
 def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | None = "cpu", backend: str = "numpy",
-                         seed: int = 0, raw: bool = False, configure=None, repeat: int = 1):  # fmt: skip
+                         seed: int = 0, raw: bool = False, configure=None, repeat: int = 1,
+                         simulator_options: dict | None = None):  # fmt: skip
     """World-steps per second (``num_envs × steps / seconds``) of ``steps`` calls of ``step``; with
     ``repeat``, the fastest of ``repeat`` consecutive windows of ``steps`` calls in one env (each
     rate below likewise): on a GPU a small batch's env rate is set by the host's Python, and single
     windows were seen to vary by 2x from one run to the next.
 
-    ``task_id``: a registered id, with or without the ``abd_gym/`` namespace.  ``configure``: called
-    with the unwrapped env before its first step (e.g. to change ``env.sim.solver.settings``).  With ``raw``, returns
+    ``task_id``: a registered id, with or without the ``abd_gym/`` namespace.  ``simulator_options``:
+    more Simulator settings for the env (e.g. ``{"plan": ExecutionPlan(scratch="shared")}``).
+    ``configure``: called with the unwrapped env before its first step (e.g. to change
+    ``env.sim.solver.settings``).  With ``raw``, returns
     ``(env rate, simulator-alone rate, physics-time rate)``:
 
     - simulator alone: the env's simulator stepped ``frame_skip`` steps per env step by itself, after
@@ -44,7 +47,7 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
 
     def run(timed: bool):
         env = gym.make_vec(task_id, num_envs=num_envs, vectorization_mode="vector_entry_point", device=device,
-                           backend=backend)  # fmt: skip
+                           backend=backend, simulator_options=simulator_options)  # fmt: skip
         u = env.unwrapped
         if configure is not None:
             configure(u)

@@ -19,6 +19,7 @@ import warp as wp
 
 from abd_gym.bench import CASES
 from abd_gym.bench_compare import random_states
+from abd_gym.plan import ExecutionPlan
 from abd_gym.simulator import Simulator
 
 
@@ -46,11 +47,11 @@ def main():
         ap.error("--split times the device with CUDA events: give a CUDA --device")
     if args.lineinfo:
         wp.config.lineinfo = True
-    sim = Simulator(CASES[args.case]["scene"](), num_worlds=args.worlds, dt=0.01, device=args.device,
-                    use_graph=args.phases or args.split, scratch=None if args.scratch == "auto" else args.scratch,
-                    block_dim=args.block_dim, one_launch={"default": None, "one": True, "two": False}[args.launch],
-                    lane_groups=args.lane_groups, steps_per_launch=args.steps_per_launch)  # fmt: skip
-    sim.solver.settings.phase_clock = args.phases
+    plan = ExecutionPlan(use_graph=args.phases or args.split, scratch=None if args.scratch == "auto" else args.scratch,
+                         block_dim=args.block_dim, one_launch={"default": None, "one": True, "two": False}[args.launch],
+                         lane_groups=args.lane_groups, steps_per_launch=args.steps_per_launch,
+                         phase_clock=args.phases)  # fmt: skip
+    sim = Simulator(CASES[args.case]["scene"](), num_worlds=args.worlds, dt=0.01, device=args.device, plan=plan)
     sim.set_joint_state(random_states(args.case, args.worlds))
     sim.step(args.warmup)
     wp.synchronize_device(sim.device)
@@ -64,8 +65,8 @@ def main():
 
         ms = (time.perf_counter() - t0) / args.steps * 1e3
         c = sim.solver.phase_cycles.numpy().sum(0) / (args.worlds * args.steps)
-        print(f"{args.case} {sim.solver.scratch}/{sim.solver.block_dim} G{sim.solver.lane_groups} "
-              f"S{sim.solver.steps_per_launch}: {args.worlds} worlds, "
+        print(f"{args.case} {sim.plan.scratch}/{sim.plan.block_dim} G{sim.plan.lane_groups} "
+              f"S{sim.plan.steps_per_launch}: {args.worlds} worlds, "
               f"{ms * 1e3:.1f} us a step "
               f"(with the phase clock), cycles per world-step: " + ", ".join(f"{p} {v:,.0f}" for p, v in zip(PHASES, c)))
     if args.phases:
@@ -77,7 +78,7 @@ def main():
               f"max {per_world.max():,.0f}")
     if args.split:
         split(sim, args.steps)
-    print(f"{args.case}: {args.worlds} worlds, threads {sim.solver.threads}, block {sim.solver.block_dim}, "
+    print(f"{args.case}: {args.worlds} worlds, threads {sim.plan.threads}, block {sim.plan.block_dim}, "
           f"Newton iterations {sim.newton_iterations().mean():.2f}")
 
 
@@ -109,7 +110,7 @@ def split(sim, steps: int, copies: int = 20):
         wp.record_event(end)
         wp.synchronize_device(dev)
         us[name] = wp.get_event_elapsed_time(start, end) * 1e3 / (reps * copies)
-    launches = "one launch" if sim.solver.one_launch else "open and close launched around Newton"
+    launches = "one launch" if sim.plan.one_launch else "open and close launched around Newton"
     print(f"split (device time, {copies} steps a graph): step ({launches}) {us['step']:.1f} us; the open and close "
           f"kernels on their own {us['around']:.1f} us")
 

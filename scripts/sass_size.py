@@ -24,7 +24,7 @@ import warp as wp
 
 def build(case: str, lanes: int = 32, lineinfo: bool = False, groups: int = 1, out: str | None = None):
     """The compiled cubin's path and the generated .cu source of ``case``'s lane-split kernel, as
-    the solver builds it for a GPU (solver.fused_flags, the default SolverSettings), for sm_90, in
+    the solver builds it for a GPU (terms.fused_flags, the default SolverSettings), for sm_90, in
     ``out`` (a new temporary folder when None); ``lineinfo``: with line information and without
     #line directives (scripts/ncu_regions.py)."""
     if lineinfo:
@@ -33,7 +33,8 @@ def build(case: str, lanes: int = 32, lineinfo: bool = False, groups: int = 1, o
     from abd_gym.bench import CASES
     from abd_gym.fused import fused_kernel
     from abd_gym.model import Model
-    from abd_gym.solver import SolverSettings, fused_flags
+    from abd_gym.solver import SolverSettings
+    from abd_gym.terms import fused_flags
 
     if case in CASES:
         scene = CASES[case]["scene"]()

@@ -639,7 +639,8 @@ def ref(scene):
 def sims(scene):
     # one_launch=False: the fused kernel is Newton alone, so test_fused_step_assembles_the_same_system
     # can run one iteration on a loaded state (one_launch would open the step first: a new prediction)
-    return {dt: ag.Simulator(scene, num_worlds=2, dt=0.01, dtype=dt, one_launch=False) for dt in ("float64", "float32")}
+    plan = ag.ExecutionPlan(one_launch=False)
+    return {dt: ag.Simulator(scene, num_worlds=2, dt=0.01, dtype=dt, plan=plan) for dt in ("float64", "float32")}
 
 
 def move_subtree(q, bodies, R, c, d=np.zeros(3)):
@@ -855,15 +856,15 @@ def test_lane_split_assembly_matches_staged(scene, ref, lanes, groups):
     (which split a 12-row block unevenly) adds its share of the terms to its own copy (the bodies
     on the first, the joints, limits and drives, of every kind, on the other two), and the copies'
     sum is the whole system.  (A prismatic joint's limit and a drive on it ride on the joint's own
-    term, and a revolute joint's limit and drives are one term on its angle, solver.joint_terms:
+    term, and a revolute joint's limit and drives are one term on its angle, terms.joint_terms:
     five kinds of work are left.)"""
     import warp as wp
 
     before = wp.config.enable_cpu_blocks
     wp.config.enable_cpu_blocks = True
     try:
-        sim = ag.Simulator(scene, num_worlds=2, dt=0.01, dtype="float64", scratch="lanes", block_dim=lanes,
-                           device="cpu", lane_groups=groups)  # fmt: skip
+        sim = ag.Simulator(scene, num_worlds=2, dt=0.01, dtype="float64", device="cpu",
+                           plan=ag.ExecutionPlan(scratch="lanes", block_dim=lanes, lane_groups=groups))  # fmt: skip
         assert sim.solver.block_dim == lanes and sim.solver.lane_groups == groups
         sim.solver.fused_system(sim.state)  # builds the kernel and the groups' shares
         if groups > 1:
@@ -1108,7 +1109,7 @@ def test_prismatic_joint_to_a_fixed_body(rail_first):
     block = scene.add_body(ag.Box(half_extents=(0.1, 0.1, 0.1)), mass=0.7, position=(0.2, 0.0, 0.0))
     pair = (rail, block) if rail_first else (block, rail)
     scene.add_prismatic_joint(*pair, anchor=(0.0, 0.0, 0.0), axis=(1.0, 0.2, 0.0), strength_ratio=50.0)
-    sim = ag.Simulator(scene, num_worlds=2, dtype="float64", fused=False)
+    sim = ag.Simulator(scene, num_worlds=2, dtype="float64", plan=ag.ExecutionPlan(fused=False))
     m, s = sim.model, sim.solver
     rng = np.random.default_rng(41)
     q = sim.body_q().astype(np.float64)
@@ -1148,7 +1149,7 @@ def test_fused_rank_one_terms_between_free_bodies(parent_first):
     hinge = scene.add_revolute_joint(*pair, anchor=(0.0, 0.0, -0.5), axis=(0, 1, 0))
     scene.add_revolute_limit(hinge, lower=-0.2, upper=0.2, strength=1e3)
     scene.add_drive(hinge, "position", stiffness=40.0, damping=1.0, max_effort=100.0)
-    sim = ag.Simulator(scene, num_worlds=2, dtype="float64", fused=False)
+    sim = ag.Simulator(scene, num_worlds=2, dtype="float64", plan=ag.ExecutionPlan(fused=False))
     sim.set_joint_state([[0.3, 0.5], [-0.2, -0.45]])  # the limit acts in both worlds, the drive is linear
     sim.set_controls([[0.1], [-0.1]])
     E, g, H = assemble(sim)

@@ -11,7 +11,7 @@ def test_envelope_follows_the_joints():
     dense = ag.Simulator(mechanisms.double_pendulum(), num_worlds=1)
     assert not dense.model.envelope  # two coupled bodies: dense, the plain loops run
     chain = ag.Simulator(mechanisms.chain(4), num_worlds=1)
-    assert chain.model.envelope and chain.solver.envelope
+    assert chain.model.envelope and chain.plan.envelope
     np.testing.assert_array_equal(chain.model.first_np[::12], [0, 0, 12, 24])
     assert (chain.model.first_np.reshape(4, 12) == chain.model.first_np[::12, None]).all()
     # closing the chain on its first link (body 1): the last link's rows start at link 0
@@ -29,7 +29,7 @@ def test_envelope_factor_gives_the_dense_trajectory(fused):
     runs = {}
     for envelope in (False, True):
         sim = ag.Simulator(mechanisms.chain(5, length=0.2), num_worlds=2, dt=0.01, dtype="float64",
-                           envelope=envelope, fused=fused)  # fmt: skip
+                           plan=ag.ExecutionPlan(envelope=envelope, fused=fused))  # fmt: skip
         sim.set_joint_state(x0)
         sim.step(20)
         assert sim.converged().all()

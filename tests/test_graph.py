@@ -10,10 +10,10 @@ from abd_gym import mechanisms
 
 def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global", reuse_factor=None, cpu_workers=1,
          block_dim=None, one_launch=None, integrator="implicit_euler", lane_groups=None):  # fmt: skip
-    sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, use_graph=use_graph, fused=fused, dtype=dtype,
-                       threads=threads, scratch=scratch, reuse_factor=reuse_factor, cpu_workers=cpu_workers,
-                       block_dim=block_dim, one_launch=one_launch, integrator=integrator,
-                       lane_groups=lane_groups)  # fmt: skip
+    plan = ag.ExecutionPlan(use_graph=use_graph, fused=fused, threads=threads, scratch=scratch, cpu_workers=cpu_workers,
+                            block_dim=block_dim, one_launch=one_launch, lane_groups=lane_groups)  # fmt: skip
+    sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, dtype=dtype, reuse_factor=reuse_factor,
+                       integrator=integrator, plan=plan)  # fmt: skip
     rng = np.random.default_rng(3)
     sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
     out = []
@@ -94,7 +94,7 @@ def test_lane_split_step_matches_one_thread_per_world(lanes, groups, request):
         request.getfixturevalue("cpu_blocks")
     ref, sim0 = _run(True, dtype="float64")
     out, sim = _run(True, dtype="float64", scratch="lanes", block_dim=lanes, lane_groups=groups)
-    from abd_gym.solver import default_lane_groups
+    from abd_gym.plan import default_lane_groups
 
     cpu = wp.get_device(sim.device).is_cpu
     # (narrow worlds, under 32 lanes, take one group unless told)
@@ -145,7 +145,8 @@ def test_lane_split_step_on_a_closed_loop(cpu_blocks):
     torque = rng.uniform(-1, 1, (W, 1)) * env.max_effort
 
     def run(scratch, block_dim=None):
-        sim = ag.Simulator(env.scene, num_worlds=W, dt=env.dt, scratch=scratch, block_dim=block_dim)
+        plan = ag.ExecutionPlan(scratch=scratch, block_dim=block_dim)
+        sim = ag.Simulator(env.scene, num_worlds=W, dt=env.dt, plan=plan)
         assert sim.model.num_dofs == 36
         sim.set_joint_state(x, xd)
         sim.set_controls(torque)
@@ -191,8 +192,8 @@ def test_steps_in_one_launch_are_the_steps_one_by_one(scratch):
     import warp as wp
 
     def run(spl):
-        sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, scratch=scratch, one_launch=True,
-                           steps_per_launch=spl)  # fmt: skip
+        plan = ag.ExecutionPlan(scratch=scratch, one_launch=True, steps_per_launch=spl)
+        sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, plan=plan)
         return _launches(sim, 3, (7, 2, 7), failed=3), sim
 
     ref, sim1 = run(1)
@@ -215,8 +216,8 @@ def test_lockstep_blocks_are_the_same_step():
     import warp as wp
 
     def run(**kw):
-        sim = ag.Simulator(mechanisms.cartpole(), num_worlds=8, dt=0.01, scratch="lanes", lane_groups=1,
-                           steps_per_launch=7, **kw)  # fmt: skip
+        plan = ag.ExecutionPlan(scratch="lanes", lane_groups=1, steps_per_launch=7, **kw)
+        sim = ag.Simulator(mechanisms.cartpole(), num_worlds=8, dt=0.01, plan=plan)
         return _launches(sim, 5, (7, 3, 14), failed=5), sim
 
     ref, sim1 = run(block_dim=32, lockstep_warps=1)
@@ -234,8 +235,8 @@ def test_lockstep_blocks_are_the_same_step():
         assert sim.failed_worlds().tolist() == [5]
     # a held world (the vector env's autoreset) leaves its block's barrier to the others: they step
     # as in a launch without the hold, it keeps its state
-    free, held = (ag.Simulator(mechanisms.cartpole(), num_worlds=8, dt=0.01, scratch="lanes", lane_groups=1,
-                               block_dim=32, lockstep_warps=8, steps_per_launch=7) for _ in range(2))  # fmt: skip
+    plan = ag.ExecutionPlan(scratch="lanes", lane_groups=1, block_dim=32, lockstep_warps=8, steps_per_launch=7)
+    free, held = (ag.Simulator(mechanisms.cartpole(), num_worlds=8, dt=0.01, plan=plan) for _ in range(2))
     assert held.solver.enable_hold()
     for sim in (free, held):
         sim.set_joint_state(np.random.default_rng(6).uniform(-0.3, 0.3, (8, 2)))
@@ -247,9 +248,9 @@ def test_lockstep_blocks_are_the_same_step():
     np.testing.assert_array_equal(q[2], q0[2])
     np.testing.assert_array_equal(np.delete(q, 2, 0), np.delete(want, 2, 0))
     kw = dict(scratch="lanes", block_dim=32, lane_groups=1)
-    assert ag.Simulator(mechanisms.cartpole(), num_worlds=8, **kw).solver.lockstep_warps == 8
+    assert ag.Simulator(mechanisms.cartpole(), num_worlds=8, plan=ag.ExecutionPlan(**kw)).plan.lockstep_warps == 8
     with pytest.raises(ValueError, match="lockstep_warps=4: 6 worlds of 32 lanes do not fill whole blocks"):
-        ag.Simulator(mechanisms.cartpole(), num_worlds=6, lockstep_warps=4, **kw)
+        ag.Simulator(mechanisms.cartpole(), num_worlds=6, plan=ag.ExecutionPlan(lockstep_warps=4, **kw))
 
 
 def test_default_lockstep_warps():
@@ -260,7 +261,7 @@ def test_default_lockstep_warps():
 
     import warp as wp
 
-    from abd_gym.solver import default_lockstep_warps, default_steps_per_launch
+    from abd_gym.plan import default_lockstep_warps, default_steps_per_launch
 
     gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False)
     f32 = wp.float32
@@ -274,7 +275,7 @@ def test_default_lockstep_warps():
     assert default_steps_per_launch(8) == 50 and default_steps_per_launch(1) == 2
     for bad in (0, 9, 2.0):
         with pytest.raises(ValueError, match="lockstep_warps must be an integer from 1 to 8"):
-            ag.Simulator(mechanisms.pendulum(), num_worlds=1, lockstep_warps=bad)
+            ag.Simulator(mechanisms.pendulum(), num_worlds=1, plan=ag.ExecutionPlan(lockstep_warps=bad))
 
 
 def test_held_worlds_are_not_stepped():
@@ -286,7 +287,7 @@ def test_held_worlds_are_not_stepped():
     import warp as wp
 
     def make(sim=None, **kw):
-        sim = sim or ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, **kw)
+        sim = sim or ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, plan=ag.ExecutionPlan(**kw))
         rng = np.random.default_rng(3)
         sim.set_joint_state(rng.uniform(-0.3, 0.3, (4, 2)))
         sim.set_controls(rng.uniform(-10, 10, (4, 1)))
@@ -301,7 +302,7 @@ def test_held_worlds_are_not_stepped():
     assert not held.solver.holds  # built without the check unless asked, before the first step
     with pytest.raises(RuntimeError, match="before the first step"):
         held.solver.enable_hold()
-    held = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, **kw)
+    held = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, plan=ag.ExecutionPlan(**kw))
     assert held.solver.enable_hold() and held.solver.holds
     held = make(sim=held)
     hold = wp.array([0, 1, 0, 0], dtype=wp.int32, device=held.device)
@@ -332,7 +333,8 @@ def test_default_lane_groups_fill_the_gpu_once():
     takes 3 groups); 1 on the CPU and for the other layouts."""
     from types import SimpleNamespace
 
-    from abd_gym.solver import default_lane_groups, joint_terms, term_counts
+    from abd_gym.plan import default_lane_groups
+    from abd_gym.terms import joint_terms, term_counts
 
     gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False)
     assert [default_lane_groups(gpu, "lanes", w) for w in (1, 264, 265, 528, 529, 1024)] == [4, 4, 2, 2, 1, 1]
@@ -353,7 +355,7 @@ def test_lane_scratch_bytes():
     import warp as wp
 
     from abd_gym.fused import lanes_scratch_words
-    from abd_gym.solver import lanes_scratch_bytes
+    from abd_gym.plan import lanes_scratch_bytes
 
     assert lanes_scratch_words(24, 1) == 300 + 24 + 2 + 24
     assert lanes_scratch_words(24, 3) == 3 * 300 + (2 * 300 + 24 + 2 + 3 + 1) + 24
@@ -363,11 +365,11 @@ def test_lane_scratch_bytes():
 
 def test_steps_per_launch_must_be_positive():
     with pytest.raises(ValueError, match="steps_per_launch"):
-        ag.Simulator(mechanisms.pendulum(), num_worlds=1, steps_per_launch=0)
+        ag.Simulator(mechanisms.pendulum(), num_worlds=1, plan=ag.ExecutionPlan(steps_per_launch=0))
     with pytest.raises(ValueError, match="lane_groups"):
-        ag.Simulator(mechanisms.pendulum(), num_worlds=1, scratch="global", lane_groups=2)
+        ag.Simulator(mechanisms.pendulum(), num_worlds=1, plan=ag.ExecutionPlan(scratch="global", lane_groups=2))
     with pytest.raises(ValueError, match="lane_groups"):
-        ag.Simulator(mechanisms.pendulum(), num_worlds=1, scratch="lanes", lane_groups=-1)
+        ag.Simulator(mechanisms.pendulum(), num_worlds=1, plan=ag.ExecutionPlan(scratch="lanes", lane_groups=-1))
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
@@ -390,13 +392,13 @@ def test_shared_scratch_too_large_is_refused():
     import warp as wp
 
     with pytest.raises(ValueError, match="envelope"):
-        ag.Simulator(mechanisms.cartpole(), num_worlds=2, scratch="shared", envelope=True)
+        ag.Simulator(mechanisms.cartpole(), num_worlds=2, plan=ag.ExecutionPlan(scratch="shared", envelope=True))
     if not wp.get_device(ag.Simulator(mechanisms.pendulum(), num_worlds=1).device).is_cuda:
         pytest.skip("the shared-memory budget applies on CUDA only")
     with pytest.raises(ValueError, match="scratch='shared'"):
-        ag.Simulator(mechanisms.chain(20), num_worlds=2, scratch="shared")
+        ag.Simulator(mechanisms.chain(20), num_worlds=2, plan=ag.ExecutionPlan(scratch="shared"))
     with pytest.raises(ValueError, match="at most 32 fit"):
-        ag.Simulator(mechanisms.cartpole(), num_worlds=2, scratch="shared", block_dim=64)
+        ag.Simulator(mechanisms.cartpole(), num_worlds=2, plan=ag.ExecutionPlan(scratch="shared", block_dim=64))
 
 
 @pytest.mark.parametrize("one_launch", [True, False])
@@ -446,9 +448,9 @@ def test_threads_must_be_positive():
     import pytest
 
     with pytest.raises(ValueError, match="threads"):
-        ag.Simulator(mechanisms.cartpole(), num_worlds=2, threads=0)
+        ag.Simulator(mechanisms.cartpole(), num_worlds=2, plan=ag.ExecutionPlan(threads=0))
     with pytest.raises(ValueError, match="cpu_workers"):
-        ag.Simulator(mechanisms.cartpole(), num_worlds=2, cpu_workers=0)
+        ag.Simulator(mechanisms.cartpole(), num_worlds=2, plan=ag.ExecutionPlan(cpu_workers=0))
 
 
 def test_scratch_beyond_32_bit_indexing_is_refused():
@@ -457,20 +459,20 @@ def test_scratch_beyond_32_bit_indexing_is_refused():
     import pytest
 
     with pytest.raises(ValueError, match="exceeds 2\\*\\*31"):
-        ag.Simulator(mechanisms.chain(40), num_worlds=9400, fused=False)
+        ag.Simulator(mechanisms.chain(40), num_worlds=9400, plan=ag.ExecutionPlan(fused=False))
 
 
 def test_default_scratch_by_device_size_and_batch():
     """The layout a simulator picks: a thread per world on the CPU; on a GPU lanes for worlds of up
     to 36 unknowns while their warps fit it at once (32 lanes a world up to 8 warps an SM, then 16
     and 8 lanes: 1,056 / 2,112 / 4,224 worlds on 132 SMs), the shared scratch above that where 32
-    systems fit a block, else the global one (the measured crossovers, solver.default_scratch and
+    systems fit a block, else the global one (the measured crossovers, plan.default_scratch and
     default_lane_width)."""
     from types import SimpleNamespace
 
     import warp as wp
 
-    from abd_gym.solver import default_lane_width, default_scratch
+    from abd_gym.plan import default_lane_width, default_scratch
 
     gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False, sm_count=0)
     assert default_scratch(cpu, 24, wp.float32, True, 16) == "global"

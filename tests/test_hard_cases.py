@@ -166,7 +166,7 @@ def test_quadratic_stop_ends_on_one_newton_step():
     off, its_off, _ = _pendulums(quadratic_stop=0.0)
     assert its_on < 1.1 and its_off > its_on + 0.2
     np.testing.assert_allclose(on, off, atol=2e-5)
-    staged, its_staged, ref = _pendulums(fused=False)
+    staged, its_staged, ref = _pendulums(plan=ag.ExecutionPlan(fused=False))
     np.testing.assert_allclose(staged, on, atol=2e-5)
     assert abs(its_staged - its_on) < 0.02
     f64 = [_pendulums("float64", 30, quadratic_stop=q) for q in (0.0, 100.0)]

@@ -10,7 +10,8 @@ from abd_gym import mechanisms
 
 
 def _swing(integrator, dt=0.01, steps=300, fused=True):
-    sim = ag.Simulator(mechanisms.pendulum(), num_worlds=1, dt=dt, dtype="float64", integrator=integrator, fused=fused)
+    sim = ag.Simulator(mechanisms.pendulum(), num_worlds=1, dt=dt, dtype="float64", integrator=integrator,
+                       plan=ag.ExecutionPlan(fused=fused))  # fmt: skip
     sim.set_joint_state([[0.3]])
     e0 = sum(sim.energies().values())[0]
     xs = []

@@ -1,0 +1,382 @@
+"""How the step runs on a device: the execution plan, derived from device × batch × scene.
+
+What a physicist chooses (dt, integrator, dtype, tolerance, iteration budget) is the Simulator's
+and ``SolverSettings``'; everything here changes how the work is laid out on the device, never the
+arithmetic of a world's step (the layouts give the same trajectories to rounding, most of them bit
+for bit; tests/test_graph.py).  ``ExecutionPlan`` holds the choices, None meaning "derive it";
+``resolve_plan`` derives every None for a model (its device, number of worlds, unknowns, dtype and
+terms) by the ``default_*`` rules below, each measured where its docstring says, and refuses
+inconsistent choices with a ValueError naming the value.  An expert overrides any of them by
+passing a plan: ``Simulator(scene, plan=ExecutionPlan(scratch="global", threads=1024))``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .fused import lanes_scratch_words
+from .terms import joint_terms, term_counts
+
+SCRATCHES = ("global", "shared", "lanes")
+
+
+@dataclass(frozen=True)
+class ExecutionPlan:
+    """How the step runs on the device; None: derived by resolve_plan (Simulator.plan: the resolved plan)."""
+
+    # one kernel runs each world's whole Newton solve (fused.py); False: the staged kernels (the reference); None: True
+    fused: bool | None = None
+    # the fused step's g, H, Δq: "global" (a column a thread), "shared" (a thread a world, H packed in its block's
+    # shared memory) or "lanes" (block_dim lanes a world, its system packed); None: default_scratch
+    scratch: str | None = None
+    # fused-step threads, thread s solving worlds s, s + threads, … (not with "lanes"); None: default_threads
+    threads: int | None = None
+    # CUDA block size, lanes a world with "lanes"; None: default_block_dim / _block_dim_shared / default_lane_width
+    block_dim: int | None = None
+    # "lanes": groups of a world's lanes (a warp each on a GPU), each assembling a share of the terms;
+    # None: default_lane_groups
+    lane_groups: int | None = None
+    # "lanes" on a GPU, one group: warps a block whose worlds start each step together; None: default_lockstep_warps
+    lockstep_warps: int | None = None
+    # where a step is one launch of the lane-split kernel, steps a launch at most; None: default_steps_per_launch
+    steps_per_launch: int | None = None
+    # the fused kernel also opens and closes each world's step, so a step is one launch; None: with "lanes"
+    one_launch: bool | None = None
+    # factor only the Hessian's envelope (Model.first); None: where the scene has one ("shared", "lanes": never)
+    envelope: bool | None = None
+    # CPU: the fused step's threads as this many launches run at once on as many cores; None: default_cpu_workers
+    cpu_workers: int | None = None
+    # Simulator.step replays the step as a captured graph (CUDA graph, or Warp's CPU command replay); None: True
+    use_graph: bool | None = None
+    # profiling only: the fused step adds each phase's cycles to Solver.phase_cycles (fused.PHASES); None: False
+    phase_clock: bool | None = None
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def default_threads(device, num_worlds: int, cpu_workers: int = 1) -> int:
+    """Threads of the fused step.  On a GPU at most 256 per SM: measured on an H100
+    (``python -m abd_gym.bench threads``), 131,072 cart-poles step 3% slower on 33,792 threads
+    than on one thread per world, with the dense Newton scratch (n² values per thread, the
+    largest per-world array) shared 4 ways, so memory per world halves.  On the CPU, where Warp
+    runs a launch's threads one after another, 16, or one per worker where there are more."""
+    if device.is_cuda:
+        return min(num_worlds, 256 * device.sm_count)
+    return min(num_worlds, max(16, cpu_workers))
+
+
+def default_cpu_workers(num_worlds: int) -> int:
+    """Concurrent launches of the fused step on the CPU: one per core, each with at least 64 worlds.
+    Measured on a 2-core machine (``python -m abd_gym.bench --device cpu --cpu-workers 1,2``, 30
+    steps, best of 3, two runs): 2 workers step double pendulums 0.6-0.9x as fast as 1 at 16
+    worlds (the phases around the launches replay as two graphs instead of one), 1.4-1.5x at 64,
+    1.7x at 256 and 1.8x at 1,024; cart-poles 0.7-1.05x, 0.9-1.5x, 1.45-1.7x and 1.3-1.75x."""
+    return max(1, min(available_cores(), num_worlds // 64))
+
+
+def default_block_dim(device, threads: int) -> int:
+    """CUDA block size of the fused step: small blocks while there are few threads, so they spread
+    over every SM (each thread's solve is latency-bound; on an H100, 1,024 cart-poles step 1.9x
+    faster in blocks of 32 than of 256), 128 once every SM is busy."""
+    sms = device.sm_count if device.is_cuda else 1
+    return 32 if threads <= 32 * sms else 64 if threads <= 128 * sms else 128
+
+
+SHARED_BLOCK_BYTES = 48 * 1024 - 1024  # static shared memory a block, less Warp's own (its tile base)
+
+
+def shared_bytes_per_thread(n: int, dtype) -> int:
+    """A thread's Newton system in shared memory: H's packed lower triangle, g and Δq [bytes]."""
+    return (n * (n + 1) // 2 + 2 * n) * (4 if dtype == wp.float32 else 8)
+
+
+def default_block_dim_shared(n: int, dtype) -> int:
+    """Threads a block for scratch="shared": 32 (one warp) where their systems fit the block's
+    static shared memory; else as many as fit; 0 when not even one does."""
+    return min(32, SHARED_BLOCK_BYTES // shared_bytes_per_thread(n, dtype))
+
+
+def default_steps_per_launch(lockstep_warps: int = 1) -> int:
+    """Steps a launch where a step is one launch: 50 where the lane-split step's warps run in
+    lockstep blocks (``lockstep_warps`` > 1), else 2.  Measured on an H100 at 1,024 worlds
+    (results/session23/README.md), world-steps/s against 2 steps a launch in blocks of a warp:
+    lockstep blocks of 8 warps at 10 / 20 / 50 steps 1.09x / 1.12x / 1.14x cart-poles and 1.10x /
+    1.12x / 1.14x double pendulums; without lockstep 10 steps took 1.03x cart-poles (1.18x double
+    pendulums), 2,048 cart-poles at 16 lanes 0.90x: a launch's warps drift apart in the ~240 KB
+    kernel and the SM's instruction caches miss more (results/steps_per_launch_h100.md)."""
+    return 50 if lockstep_warps > 1 else 2
+
+
+def default_lockstep_warps(device, scratch: str, num_worlds: int, lanes: int, groups: int, n: int, dtype) -> int:
+    """Warps a block of the lane-split step on a GPU (ExecutionPlan.lockstep_warps): the most of 8
+    (LANE_WARPS_PER_SM, an SM's worth), 4, 2 that split the worlds into whole blocks (worlds ×
+    lanes a multiple of 32 × warps) whose systems fit the block's shared memory; 1 for one thread
+    a world, lane groups and the CPU."""
+    if scratch != "lanes" or groups != 1 or not getattr(device, "is_cuda", False) or lanes > 32:
+        return 1
+    return next(k for k in (8, 4, 2, 1) if k == 1 or (num_worlds * lanes % (32 * k) == 0 and lanes_scratch_bytes(
+        n, dtype, 1, 32 * k // lanes) <= SHARED_BLOCK_BYTES))  # fmt: skip
+
+
+# warps of the lane-split kernel an SM holds at once: its threads take ~255 registers (65,536 a SM)
+LANE_WARPS_PER_SM = 8
+
+
+def lanes_scratch_bytes(n: int, dtype, groups: int = 1, per_block: int = 1) -> int:
+    """Shared memory of a block of the lane-split step on CUDA: ``per_block`` worlds of ``n``
+    unknowns, each with ``groups`` copies of its system (fused.lanes_scratch_words)."""
+    return per_block * lanes_scratch_words(n, groups) * (4 if dtype == wp.float32 else 8)
+
+
+def default_lane_groups(device, scratch: str, num_worlds: int, terms: int = 3, n: int = 0, dtype=wp.float32) -> int:
+    """Lane groups a world of the lane-split step on a GPU: one for the bodies and one for each of
+    the world's ``terms`` (joints, limits and drives, term_counts), at most 4, else 2, else 1: the
+    most whose blocks (a warp a group) all fit on the GPU at once (LANE_WARPS_PER_SM), else the
+    launch runs in two waves.  Measured on an H100 (results/lane_groups_h100.md,
+    results/quadratic_stop.md): cart-poles / double pendulums, each with 2 terms, at 128 and 256
+    worlds in 3 groups 1.12x / 1.10x and 1.11x / 1.07x as fast as in 1 (4 groups, one idle,
+    1.07x / 1.06x and 1.05x / 1.02x); at 352 worlds 3-warp blocks no longer fit at once (2 a SM) and run 0.65x; 2
+    groups at 512 worlds 1.01x / 0.98x; at 1,024 worlds 2 groups run in two waves, 0.61x.  With
+    ``n`` unknowns: no more groups than a block's shared memory holds copies of the system.  The
+    CPU: 1."""
+    if scratch != "lanes" or not getattr(device, "is_cuda", False):
+        return 1
+    top = min(4, 1 + terms)
+    # a block's warps share an SM: LANE_WARPS_PER_SM // g blocks of g warps fit on one
+    return next(g for g in sorted({top, min(top, 2), 1}, reverse=True)
+                if g == 1 or (num_worlds <= LANE_WARPS_PER_SM // g * device.sm_count
+                              and lanes_scratch_bytes(n, dtype, g) <= SHARED_BLOCK_BYTES))  # fmt: skip
+
+
+def default_lane_width(device, num_worlds: int, dtype=wp.float32, n: int = 0) -> int:
+    """Lanes a world of the lane-split step on a GPU: for up to LANES_MAX_UNKNOWNS unknowns ``n``,
+    the most of 32, 16, 8 whose warps all fit on the GPU at once (LANE_WARPS_PER_SM; under 32
+    lanes, 32 // lanes worlds share a warp), else 0; for more, 32 up to WIDE_LANES_MAX_WORLDS
+    worlds where one world's system fits a block's shared memory, else 0.
+    A world's step is a chain of dependent work on its lanes, so the GPU runs ~8 warps an SM (its
+    registers' worth) each taking about as long whether it holds 1, 2 or 4 worlds: narrower worlds
+    pay only once one wave of full-width worlds no longer holds them.  Measured on an H100
+    (results/lane_width_h100.md), world-steps/s against a thread per world ("shared"): 2,048
+    worlds at 16 lanes 2.11x (cart-pole) / 2.35x (double pendulum), 4,096 at 8 lanes 1.68x / 1.90x;
+    at 1,024 worlds 16 lanes 0.96x / 0.92x of 32; at 8,192 worlds (8 lanes, two waves) 0.83x /
+    1.07x of shared.  float64: 32 lanes only (narrower worlds hold 2-3 rows of twice the registers
+    a lane; unmeasured)."""
+    room = LANE_WARPS_PER_SM * getattr(device, "sm_count", 0)
+    if n > LANES_MAX_UNKNOWNS:
+        fits = room and lanes_scratch_bytes(n, dtype) <= SHARED_BLOCK_BYTES
+        return 32 if fits and 0 < num_worlds <= WIDE_LANES_MAX_WORLDS else 0
+    widths = (32, 16, 8) if dtype == wp.float32 else (32,)
+    return next((L for L in widths if 0 < num_worlds and -(-num_worlds * L // 32) <= room), 0)
+
+
+# the most unknowns of a world that the default lane-split step gives 16 or 8 lanes where 32 would
+# not fit the GPU at once (three free bodies: the closed-loop tasks FourBar-v0 and SliderCrank-v0,
+# measured); larger worlds take 32 lanes, up to WIDE_LANES_MAX_WORLDS worlds.  H100, 5-link chains
+# (60 unknowns; results/session22), world-steps/s: 2,048 worlds at 16 lanes 4.68 M against 9.64 M
+# at 32 (and 4.47 M shared); 4,096 worlds at 8 lanes 4.17 M, at 32 9.07 M, shared 5.54 M; 16,384
+# at 32 lanes 6.42 M against shared 8.35 M.  10-link chains (120 unknowns, no shared scratch):
+# 32 lanes 3.4x / 2.4x the global step at 1,024 / 2,048 worlds.
+LANES_MAX_UNKNOWNS = 36
+WIDE_LANES_MAX_WORLDS = 4096
+# past those worlds, a chain's systems in shared memory where this many fit a block (fewer threads
+# than a warp): H100, 5-link chains (6 a block) 2.7x / 1.84x / 1.51x / 1.07x the global step at
+# 1,024 / 8,192 / 16,384 / 65,536 worlds; 10-link chains (1 a block) 1.06x at 4,096 but 0.51x at
+# 16,384 (results/session22).  Worlds of up to 36 unknowns keep the rule of 32 (their measured one).
+SHARED_MIN_SYSTEMS = 6
+
+
+def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int = 0) -> str:
+    """On a GPU, for up to LANES_MAX_UNKNOWNS unknowns (a cart-pole, a double pendulum, a four-bar
+    or slider-crank linkage): "lanes" where the worlds' warps fit the GPU at once
+    (default_lane_width: up to 4,224 worlds on an H100's 132 SMs), where one thread per world
+    leaves most SMs idle; for more (chains): "lanes" at 32 lanes up to WIDE_LANES_MAX_WORLDS worlds
+    where a world's system fits a block's shared memory; else "shared" where a block of 32
+    threads' systems fits its shared memory (float32), or for worlds of more than
+    LANES_MAX_UNKNOWNS unknowns SHARED_MIN_SYSTEMS of them; else "global".  Measured on an H100
+    (``python -m abd_gym.bench --scratch global,shared,lanes``): shared 1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on
+    double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast as shared on both at 1,024
+    worlds (results/bench_h100_lanes_rows.*), and narrower lanes 1.7-2.4x at 2,048 and 4,096
+    (results/lane_width_h100.md); for the 36 unknowns of FourBar-v0's and SliderCrank-v0's
+    scenes, lanes 6.6x / 9.0x as fast as global at 1,024 worlds, 4.5x / 6.7x at 2,048 and 2.9x /
+    3.2x at 4,096 (results/session20/README.md)."""
+    if not (fused and device.is_cuda):
+        return "global"
+    if default_lane_width(device, num_worlds, dtype, n):
+        return "lanes"
+    fit = default_block_dim_shared(n, dtype)
+    if fit >= 32 or (n > LANES_MAX_UNKNOWNS and fit >= SHARED_MIN_SYSTEMS):
+        return "shared"
+    return "global"
+
+
+# the one-launch step (one_launch None): with the lane-split step only.  On an H100
+# (scripts/profile_step.py --split, device time) the five kernels that open and close a step took
+# 27 us of an 80 us step of 1,024 cart-poles (lanes), which one launch cut to 61 us (double
+# pendulums 56 -> 39 us); with a thread per world (16,384 worlds, "shared") one launch was no
+# faster on cart-poles (209 us both) and slower on double pendulums (143 -> 155 us): each thread
+# then walks its world's bodies and joints in turn, where the separate kernels spread them over threads
+
+
+def resolve_plan(plan, model) -> ExecutionPlan:
+    """``plan`` (an ExecutionPlan, a dict of its fields, or None) for ``model`` (its device,
+    num_worlds, num_dofs, dtype and scene), every None derived: the plan a Solver runs.  Resolving
+    a resolved plan returns it unchanged.  Raises ValueError on a bad or inconsistent value."""
+    plan = _as_plan(plan)
+    _check_values(plan)
+    device, W, n, dtype = wp.get_device(model.device), model.num_worlds, model.num_dofs, model.dtype
+    fused = True if plan.fused is None else bool(plan.fused)
+    scratch = plan.scratch or default_scratch(device, n, dtype, fused, W)
+    if scratch != "global" and not fused:
+        raise ValueError(f"scratch={scratch!r} needs the fused step (fused=True)")
+    lanes, shared = scratch == "lanes", scratch == "shared"
+    if (shared or lanes) and plan.envelope:
+        raise ValueError(f"scratch={scratch!r} factors densely (H packed): it takes envelope=False or None")
+    if plan.lane_groups not in (None, 1) and not lanes:
+        raise ValueError(f"lane_groups={plan.lane_groups!r} needs scratch='lanes'")
+    workers, threads = _threads(plan, device, W, fused, scratch)
+    block_dim, groups = _blocks(plan, model, device, scratch, threads)
+    lock = _lockstep(plan, device, W, scratch, block_dim, groups, n, dtype)
+    envelope = model.envelope if plan.envelope is None else plan.envelope
+    steps = int(plan.steps_per_launch or default_steps_per_launch(lock))
+    out = ExecutionPlan(fused=fused, scratch=scratch, threads=threads, block_dim=block_dim, lane_groups=groups,
+                        lockstep_warps=lock, steps_per_launch=steps,
+                        one_launch=bool(fused and (lanes if plan.one_launch is None else plan.one_launch)),
+                        envelope=bool(not (shared or lanes) and envelope), cpu_workers=workers,
+                        use_graph=True if plan.use_graph is None else bool(plan.use_graph),
+                        phase_clock=bool(plan.phase_clock))  # fmt: skip
+    _check_memory(out, device, n, dtype)
+    return out
+
+
+def worlds_per_block(plan: ExecutionPlan, device) -> int:
+    """Worlds a CUDA block of a resolved lane-split plan: 32 // block_dim where worlds of under 32
+    lanes (a power of two, one group) share a warp (fused.world_funcs), times lockstep_warps; else 1."""
+    L = plan.block_dim
+    share = plan.scratch == "lanes" and device.is_cuda and L < 32 and not L & (L - 1) and plan.lane_groups == 1
+    return (32 // L if share else 1) * plan.lockstep_warps
+
+
+def _as_plan(plan) -> ExecutionPlan:
+    if plan is None:
+        return ExecutionPlan()
+    if isinstance(plan, ExecutionPlan):
+        return plan
+    if isinstance(plan, dict):
+        names = {f.name for f in dataclasses.fields(ExecutionPlan)}
+        unknown = sorted(set(plan) - names)
+        if unknown:
+            raise ValueError(f"plan has no field {unknown[0]!r}: ExecutionPlan's fields are {sorted(names)}")
+        return ExecutionPlan(**plan)
+    raise ValueError(f"plan must be an ExecutionPlan, a dict of its fields or None, got {plan!r}")
+
+
+def _positive(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value > 0
+
+
+def _check_values(plan: ExecutionPlan):
+    """Each field's own range (their consistency is resolve_plan's)."""
+    for name in ("fused", "one_launch", "envelope", "use_graph", "phase_clock"):
+        value = getattr(plan, name)
+        if value is not None and not isinstance(value, (bool, np.bool_)):
+            raise ValueError(f"{name} must be True, False or None, got {value!r}")
+    if plan.scratch is not None and plan.scratch not in SCRATCHES:
+        raise ValueError(f"scratch must be 'global', 'shared' or 'lanes', got {plan.scratch!r}")
+    if plan.cpu_workers is not None and not _positive(plan.cpu_workers):
+        raise ValueError(f"cpu_workers must be a positive integer or None, got {plan.cpu_workers!r}")
+    if plan.threads is not None and not _positive(plan.threads):
+        raise ValueError(f"threads must be a positive integer, got {plan.threads!r}")
+    if plan.block_dim is not None and not _positive(plan.block_dim):
+        raise ValueError(f"block_dim must be a positive integer or None, got {plan.block_dim!r}")
+    if plan.lane_groups is not None and not _positive(plan.lane_groups):
+        raise ValueError(f"lane_groups must be a positive integer or None, got {plan.lane_groups!r}")
+    if plan.steps_per_launch is not None and not _positive(plan.steps_per_launch):
+        raise ValueError(f"steps_per_launch must be a positive integer or None, got {plan.steps_per_launch!r}")
+    lock = plan.lockstep_warps
+    if lock is not None and not (_positive(lock) and lock <= LANE_WARPS_PER_SM):
+        raise ValueError(f"lockstep_warps must be an integer from 1 to {LANE_WARPS_PER_SM} or None, got {lock!r}")
+
+
+def _threads(plan: ExecutionPlan, device, W: int, fused: bool, scratch: str):
+    """(CPU workers, threads) of the step: concurrent launches on the CPU's fused thread-per-world
+    step (else 1); its threads, at most one per world (else one per world: the staged step's
+    scratch columns, the lane-split step's blocks)."""
+    workers = 1
+    if device.is_cpu and fused and scratch != "lanes":
+        workers = default_cpu_workers(W) if plan.cpu_workers is None else int(plan.cpu_workers)
+    if not fused or scratch == "lanes":
+        return workers, W
+    T = default_threads(device, W, workers) if plan.threads is None else plan.threads
+    if scratch == "shared" and device.is_cuda and plan.threads is None:
+        T = W  # a system in shared memory lives as long as its block: no scratch to keep small
+    return workers, int(min(T, W))
+
+
+def _blocks(plan: ExecutionPlan, model, device, scratch: str, threads: int):
+    """(block_dim, lane_groups): lanes a world and their groups for the lane-split step (narrow
+    worlds where the GPU must hold more of them at once, one group each), the threads a block
+    whose systems fit its shared memory for "shared" on CUDA, default_block_dim otherwise."""
+    W, n, dtype = model.num_worlds, model.num_dofs, model.dtype
+    lanes = scratch == "lanes"
+    width = plan.block_dim or (lanes and default_lane_width(device, W, dtype, n)) or 32
+    narrow = lanes and width < 32
+    terms = sum(term_counts(model, joint_terms(model)).values())
+    groups = int(plan.lane_groups or (1 if narrow else default_lane_groups(device, scratch, W, terms, n, dtype)))
+    block_dim = plan.block_dim or ((width if narrow else 32 * groups) if lanes else default_block_dim(device, threads))
+    if scratch == "shared" and device.is_cuda:
+        fit = default_block_dim_shared(n, dtype)
+        block_dim = plan.block_dim or fit
+        if not 1 <= block_dim <= fit:
+            per = shared_bytes_per_thread(n, dtype)
+            raise ValueError(f"scratch='shared': {block_dim or 1} thread(s) of {n} unknowns need "
+                             f"{max(block_dim, 1) * per} B of shared memory a block, more than its "
+                             f"{SHARED_BLOCK_BYTES} B; at most {fit} fit (block_dim), else use "
+                             "scratch='global'")  # fmt: skip
+    if lanes and not 1 <= block_dim <= 256:
+        raise ValueError(f"scratch='lanes' takes 1 to 256 lanes a world (block_dim), got {block_dim!r}")
+    if lanes and device.is_cpu and not wp.config.enable_cpu_blocks:
+        return 1, 1  # Warp runs a CPU block's threads as one unless cooperative blocks are on
+    if lanes and block_dim % groups:
+        raise ValueError(f"scratch='lanes': {block_dim} lanes a world (block_dim) do not split into "
+                         f"{groups} equal groups (lane_groups)")  # fmt: skip
+    return int(block_dim), groups
+
+
+def _lockstep(plan: ExecutionPlan, device, W: int, scratch: str, L: int, groups: int, n: int, dtype) -> int:
+    """Warps a lockstep block: only where a block's warps are worlds of one group on a GPU (narrow
+    worlds sharing a warp, or a warp a world); else 1."""
+    lanes = scratch == "lanes" and device.is_cuda and groups == 1
+    if not (lanes and (L == 32 or (L < 32 and not L & (L - 1)))):
+        return 1
+    lock = plan.lockstep_warps
+    if lock is None:
+        return default_lockstep_warps(device, scratch, W, L, groups, n, dtype)
+    if W * L % (32 * lock):
+        raise ValueError(f"lockstep_warps={lock}: {W} worlds of {L} lanes do not fill whole blocks of {lock} "
+                         "warps (worlds × lanes a multiple of 32 × lockstep_warps)")  # fmt: skip
+    return int(lock)
+
+
+def _check_memory(plan: ExecutionPlan, device, n: int, dtype):
+    """A lane-split block's systems within its shared memory; the flat scratch within 32-bit indices."""
+    if plan.scratch == "lanes" and device.is_cuda:
+        per_block = worlds_per_block(plan, device)
+        need = lanes_scratch_bytes(n, dtype, plan.lane_groups, per_block)
+        if need > SHARED_BLOCK_BYTES:
+            raise ValueError(f"scratch='lanes': a block of {per_block} world(s) of {n} unknowns in "
+                             f"{plan.lane_groups} lane group(s) needs {need} B of shared memory, more than its "
+                             f"{SHARED_BLOCK_BYTES} B: take 32 lanes a world (block_dim=32), lane_groups=1 and "
+                             "lockstep_warps=1, or scratch='shared' or 'global'")  # fmt: skip
+    if n * n * plan.threads >= 2**31:  # the flat scratch is indexed with 32-bit integers
+        raise ValueError(f"the Newton scratch of {plan.threads} columns of {n} unknowns exceeds 2**31 entries: use the "
+                         "fused step (fused=True, its threads reuse their scratch) or fewer worlds")  # fmt: skip

@@ -1,0 +1,71 @@
+"""The execution plan: what the library derives from device × batch × scene, overridden as one
+object; the Simulator's own parameters are the physics and the Newton method."""
+import dataclasses
+import inspect
+
+import numpy as np
+import pytest
+
+import abd_gym as ag
+from abd_gym import mechanisms
+from abd_gym.plan import ExecutionPlan, resolve_plan
+from abd_gym.solver import SolverSettings
+
+
+def test_simulator_takes_the_physics_and_one_plan():
+    params = [p for p in inspect.signature(ag.Simulator).parameters if p != "self"]
+    assert len(params) <= 12 and "plan" in params
+    assert [f.name for f in dataclasses.fields(SolverSettings)] == ["tol", "max_iterations", "max_line_search",
+                                                                    "integrator", "reuse_factor", "quadratic_stop"]
+
+
+def test_resolved_plan_has_every_choice_and_resolves_to_itself():
+    """Simulator.plan: every field derived (no None); resolving it again, or passing it (or a dict of
+    its fields) to another simulator, gives the same plan."""
+    sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4)
+    plan = sim.plan
+    assert all(getattr(plan, f.name) is not None for f in dataclasses.fields(plan))
+    assert resolve_plan(plan, sim.model) == plan
+    assert ag.Simulator(mechanisms.cartpole(), num_worlds=4, plan=plan).plan == plan
+    assert ag.Simulator(mechanisms.cartpole(), num_worlds=4, plan=dataclasses.asdict(plan)).plan == plan
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        plan.threads = 2
+
+
+def test_an_override_keeps_the_rest_derived():
+    """A plan naming one choice: that choice is kept, the others are derived as without it."""
+    default = ag.Simulator(mechanisms.double_pendulum(), num_worlds=4).plan
+    plan = ag.Simulator(mechanisms.double_pendulum(), num_worlds=4, plan=ExecutionPlan(threads=2)).plan
+    assert plan.threads == 2 and dataclasses.replace(plan, threads=default.threads) == default
+    staged = ag.Simulator(mechanisms.double_pendulum(), num_worlds=4, plan={"fused": False}).plan
+    assert not staged.fused and staged.scratch == "global" and not staged.one_launch
+
+
+def test_plan_without_graph_steps_the_same():
+    """use_graph=False: the step runs as plain launches, none captured, to the same state."""
+    sims = [ag.Simulator(mechanisms.cartpole(), num_worlds=2, plan=ExecutionPlan(use_graph=g)) for g in (True, False)]
+    for sim in sims:
+        sim.set_joint_state([[0.1, 0.2], [-0.1, 0.3]])
+        sim.step(5)
+    assert sims[0]._graph and not sims[1]._graph
+    np.testing.assert_array_equal(sims[0].body_q(), sims[1].body_q())
+
+
+@pytest.mark.parametrize("plan, match", [(dict(scratch="tiled"), "scratch must be .* got 'tiled'"),
+                                         (dict(fused="yes"), "fused must be True, False or None, got 'yes'"),
+                                         (dict(block_dim=0), "block_dim must be a positive integer or None, got 0"),
+                                         (dict(fused=False, scratch="lanes"), "scratch='lanes' needs the fused step"),
+                                         (dict(max_registers=64), "plan has no field 'max_registers'"),
+                                         ("lanes", "plan must be an ExecutionPlan")])  # fmt: skip
+def test_bad_plans_are_refused_naming_the_value(plan, match):
+    with pytest.raises(ValueError, match=match):
+        ag.Simulator(mechanisms.pendulum(), num_worlds=1, plan=plan)
+
+
+def test_bad_settings_are_refused_before_the_model_is_built():
+    for kw, match in ((dict(tol=0.0), "tol"), (dict(integrator="rk4"), "integrator"),
+                      (dict(quadratic_stop=float("inf")), "quadratic_stop")):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            ag.Simulator(mechanisms.pendulum(), **kw)
+    with pytest.raises(TypeError):
+        ag.Simulator(mechanisms.pendulum(), 1, 0.01, "cpu")  # (everything after dt by name)
