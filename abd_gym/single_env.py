@@ -5,8 +5,6 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
-from .simulator import Simulator
-from .vector_env import ABDVectorEnv
 
 
 class ABDEnv(gym.Env):
@@ -19,11 +17,13 @@ class ABDEnv(gym.Env):
     simulator and ``env.vector_env`` the one-world batched env.
     """
 
-    vector_class: type[ABDVectorEnv] = ABDVectorEnv
+    vector_class: type  # the task's ABDVectorEnv subclass, set by each task
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
+        if not isinstance(getattr(cls, "vector_class", None), type):
+            raise TypeError(f"{cls.__name__} must set vector_class to its task's ABDVectorEnv subclass")
         cls.metadata = {"render_modes": ["rgb_array"], "render_fps": cls.vector_class.metadata["render_fps"]}
 
     def __init__(self, render_mode: str | None = None, device="cpu", **kwargs):
@@ -35,7 +35,8 @@ class ABDEnv(gym.Env):
         self.render_mode = render_mode
 
     @property
-    def sim(self) -> Simulator:
+    def sim(self):
+        """The one-world env's ``Simulator``."""
         return self.vector_env.sim
 
     @staticmethod

@@ -121,6 +121,7 @@ from .outcome import batch_info, outcome
 from .pending import PendingMask
 from .randomize import RANDOMIZE_KEYS, Parameters  # noqa: F401 (RANDOMIZE_KEYS: the randomize option's keys)
 from .simulator import Simulator
+from .single_env import ABDEnv  # noqa: F401 (re-exported: a task module imports both classes from here)
 from .task import Task
 
 __all__ = ["ABDVectorEnv", "ABDEnv", "AutoresetMode"]
@@ -485,12 +486,3 @@ class ABDVectorEnv(Task, VectorEnv):
 
     def close_extras(self, **kwargs):
         self._renderer = None
-
-
-def __getattr__(name):
-    """``ABDEnv``, re-exported from :mod:`abd_gym.single_env` on first use (that module imports this one)."""
-    if name == "ABDEnv":
-        from .single_env import ABDEnv
-
-        return ABDEnv
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
