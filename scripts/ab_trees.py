@@ -24,7 +24,7 @@ def rates(path):
     """{(case, worlds): world-steps/s} of a bench.json, and {("env TASK", envs): env-steps/s} of its env rows."""
     with open(path) as f:
         result = json.load(f)
-    out = {(r["case"], int(r["worlds"])): float(r["world_steps_per_second"]) for r in result.get("simulator", [])}
+    out = {(r["case"], int(r["num_worlds"])): float(r["world_steps_per_second"]) for r in result.get("simulator", [])}
     out.update({("env " + r["task"], int(r["num_envs"])): float(r["env_steps_per_second"]) for r in result.get("envs", [])})
     return out
 

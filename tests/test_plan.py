@@ -34,8 +34,9 @@ def test_resolved_plan_has_every_choice_and_resolves_to_itself():
 
 def test_an_override_keeps_the_rest_derived():
     """A plan naming one choice: that choice is kept, the others are derived as without it."""
-    default = ag.Simulator(mechanisms.double_pendulum(), num_worlds=4).plan
-    plan = ag.Simulator(mechanisms.double_pendulum(), num_worlds=4, plan=ExecutionPlan(threads=2)).plan
+    # a thread per world ("global"), where a thread count applies on every device
+    default = ag.Simulator(mechanisms.double_pendulum(), num_worlds=4, plan=ExecutionPlan(scratch="global")).plan
+    plan = ag.Simulator(mechanisms.double_pendulum(), num_worlds=4, plan=ExecutionPlan(scratch="global", threads=2)).plan
     assert plan.threads == 2 and dataclasses.replace(plan, threads=default.threads) == default
     staged = ag.Simulator(mechanisms.double_pendulum(), num_worlds=4, plan={"fused": False}).plan
     assert not staged.fused and staged.scratch == "global" and not staged.one_launch
