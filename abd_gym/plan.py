@@ -315,6 +315,10 @@ def _threads(plan: ExecutionPlan, device, W: int, fused: bool, scratch: str):
     if device.is_cpu and fused and scratch != "lanes":
         workers = default_cpu_workers(W) if plan.cpu_workers is None else int(plan.cpu_workers)
     if not fused or scratch == "lanes":
+        if plan.threads is not None and plan.threads != W:
+            step = "the lane-split step runs a block a world" if fused else "the staged step keeps a column a world"
+            raise ValueError(f"threads={plan.threads!r} applies to a thread per world (scratch 'global' or 'shared'): "
+                             f"{step}")
         return workers, W
     T = default_threads(device, W, workers) if plan.threads is None else plan.threads
     if scratch == "shared" and device.is_cuda and plan.threads is None:

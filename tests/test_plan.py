@@ -38,6 +38,8 @@ def test_an_override_keeps_the_rest_derived():
     default = ag.Simulator(mechanisms.double_pendulum(), num_worlds=4, plan=ExecutionPlan(scratch="global")).plan
     plan = ag.Simulator(mechanisms.double_pendulum(), num_worlds=4, plan=ExecutionPlan(scratch="global", threads=2)).plan
     assert plan.threads == 2 and dataclasses.replace(plan, threads=default.threads) == default
+    with pytest.raises(ValueError, match="threads=2 applies to a thread per world"):
+        ag.Simulator(mechanisms.double_pendulum(), num_worlds=4, plan=ExecutionPlan(scratch="lanes", threads=2))
     staged = ag.Simulator(mechanisms.double_pendulum(), num_worlds=4, plan={"fused": False}).plan
     assert not staged.fused and staged.scratch == "global" and not staged.one_launch
 
