@@ -45,7 +45,7 @@ def _finite_array(name, values, shape):
 
 class Simulator:
     """Step ``num_worlds`` copies of ``scene`` by ``dt`` [s], each step a Newton solve of the
-    incremental potential (DESIGN.md §2)
+    incremental potential (docs/design.md §2)
 
         q^{n+1} = argmin_q ½(q − q̃)ᵀM(q − q̃) + h²(Σ V_orth + Σ E_drive) + Σ E_joint + Σ E_limit
 

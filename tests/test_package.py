@@ -64,7 +64,12 @@ def test_the_wheel_holds_only_the_abd_gym_namespace_and_trains_from_any_director
     environment, ``abd-gym-train cartpole_ppo`` runs from a folder that has no configs/."""
     import zipfile
 
-    cmd = [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(tmp_path), str(REPO)]
+    import shutil
+
+    src = tmp_path / "src"  # a copy: setuptools builds in the source folder (build/, *.egg-info)
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(".git", "build", "runs", "results", "*.egg-info", "__pycache__",
+                                                             ".gpu", "ab_base", ".pytest_cache"))  # fmt: skip
+    cmd = [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(tmp_path), str(src)]
     out = subprocess.run(cmd, capture_output=True, text=True)
     if out.returncode:
         pytest.skip(f"pip wheel could not build here: {out.stderr.strip()[-300:]}")
