@@ -108,12 +108,12 @@ def default_block_dim_shared(n: int, dtype) -> int:
 
 def default_steps_per_launch(lockstep_warps: int = 1) -> int:
     """Steps a launch where a step is one launch: 50 where the lane-split step's warps run in
-    lockstep blocks (``lockstep_warps`` > 1), else 2.  Measured on an H100 at 1,024 worlds
-    (results/session23/README.md), world-steps/s against 2 steps a launch in blocks of a warp:
+    lockstep blocks (``lockstep_warps`` > 1), else 2.  Measured on an H100 at 1,024 worlds,
+    world-steps/s against 2 steps a launch in blocks of a warp:
     lockstep blocks of 8 warps at 10 / 20 / 50 steps 1.09x / 1.12x / 1.14x cart-poles and 1.10x /
     1.12x / 1.14x double pendulums; without lockstep 10 steps took 1.03x cart-poles (1.18x double
     pendulums), 2,048 cart-poles at 16 lanes 0.90x: a launch's warps drift apart in the ~240 KB
-    kernel and the SM's instruction caches miss more (results/steps_per_launch_h100.md)."""
+    kernel and the SM's instruction caches miss more."""
     return 50 if lockstep_warps > 1 else 2
 
 
@@ -142,8 +142,7 @@ def default_lane_groups(device, scratch: str, num_worlds: int, terms: int = 3, n
     """Lane groups a world of the lane-split step on a GPU: one for the bodies and one for each of
     the world's ``terms`` (joints, limits and drives, term_counts), at most 4, else 2, else 1: the
     most whose blocks (a warp a group) all fit on the GPU at once (LANE_WARPS_PER_SM), else the
-    launch runs in two waves.  Measured on an H100 (results/lane_groups_h100.md,
-    results/quadratic_stop.md): cart-poles / double pendulums, each with 2 terms, at 128 and 256
+    launch runs in two waves.  Measured on an H100: cart-poles / double pendulums, each with 2 terms, at 128 and 256
     worlds in 3 groups 1.12x / 1.10x and 1.11x / 1.07x as fast as in 1 (4 groups, one idle,
     1.07x / 1.06x and 1.05x / 1.02x); at 352 worlds 3-warp blocks no longer fit at once (2 a SM) and run 0.65x; 2
     groups at 512 worlds 1.01x / 0.98x; at 1,024 worlds 2 groups run in two waves, 0.61x.  With
@@ -165,8 +164,8 @@ def default_lane_width(device, num_worlds: int, dtype=wp.float32, n: int = 0) ->
     worlds where one world's system fits a block's shared memory, else 0.
     A world's step is a chain of dependent work on its lanes, so the GPU runs ~8 warps an SM (its
     registers' worth) each taking about as long whether it holds 1, 2 or 4 worlds: narrower worlds
-    pay only once one wave of full-width worlds no longer holds them.  Measured on an H100
-    (results/lane_width_h100.md), world-steps/s against a thread per world ("shared"): 2,048
+    pay only once one wave of full-width worlds no longer holds them.  Measured on an H100,
+    world-steps/s against a thread per world ("shared"): 2,048
     worlds at 16 lanes 2.11x (cart-pole) / 2.35x (double pendulum), 4,096 at 8 lanes 1.68x / 1.90x;
     at 1,024 worlds 16 lanes 0.96x / 0.92x of 32; at 8,192 worlds (8 lanes, two waves) 0.83x /
     1.07x of shared.  float64: 32 lanes only (narrower worlds hold 2-3 rows of twice the registers
@@ -182,7 +181,7 @@ def default_lane_width(device, num_worlds: int, dtype=wp.float32, n: int = 0) ->
 # the most unknowns of a world that the default lane-split step gives 16 or 8 lanes where 32 would
 # not fit the GPU at once (three free bodies: the closed-loop tasks FourBar-v0 and SliderCrank-v0,
 # measured); larger worlds take 32 lanes, up to WIDE_LANES_MAX_WORLDS worlds.  H100, 5-link chains
-# (60 unknowns; results/session22), world-steps/s: 2,048 worlds at 16 lanes 4.68 M against 9.64 M
+# (60 unknowns), world-steps/s: 2,048 worlds at 16 lanes 4.68 M against 9.64 M
 # at 32 (and 4.47 M shared); 4,096 worlds at 8 lanes 4.17 M, at 32 9.07 M, shared 5.54 M; 16,384
 # at 32 lanes 6.42 M against shared 8.35 M.  10-link chains (120 unknowns, no shared scratch):
 # 32 lanes 3.4x / 2.4x the global step at 1,024 / 2,048 worlds.
@@ -191,7 +190,7 @@ WIDE_LANES_MAX_WORLDS = 4096
 # past those worlds, a chain's systems in shared memory where this many fit a block (fewer threads
 # than a warp): H100, 5-link chains (6 a block) 2.7x / 1.84x / 1.51x / 1.07x the global step at
 # 1,024 / 8,192 / 16,384 / 65,536 worlds; 10-link chains (1 a block) 1.06x at 4,096 but 0.51x at
-# 16,384 (results/session22).  Worlds of up to 36 unknowns keep the rule of 32 (their measured one).
+# 16,384.  Worlds of up to 36 unknowns keep the rule of 32 (their measured one).
 SHARED_MIN_SYSTEMS = 6
 
 
@@ -205,10 +204,9 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
     LANES_MAX_UNKNOWNS unknowns SHARED_MIN_SYSTEMS of them; else "global".  Measured on an H100
     (``python -m abd_gym.bench --scratch global,shared,lanes``): shared 1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on
     double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast as shared on both at 1,024
-    worlds (results/bench_h100_lanes_rows.*), and narrower lanes 1.7-2.4x at 2,048 and 4,096
-    (results/lane_width_h100.md); for the 36 unknowns of FourBar-v0's and SliderCrank-v0's
+    worlds, and narrower lanes 1.7-2.4x at 2,048 and 4,096; for the 36 unknowns of FourBar-v0's and SliderCrank-v0's
     scenes, lanes 6.6x / 9.0x as fast as global at 1,024 worlds, 4.5x / 6.7x at 2,048 and 2.9x /
-    3.2x at 4,096 (results/session20/README.md)."""
+    3.2x at 4,096."""
     if not (fused and device.is_cuda):
         return "global"
     if default_lane_width(device, num_worlds, dtype, n):

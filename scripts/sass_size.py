@@ -7,11 +7,10 @@ Each argument is a bench case (abd_gym.bench.CASES) or a registered task id.  Th
 as the solver builds it for a GPU (fused_kernel with scratch="lanes", the scene's fused terms) and
 compiled by NVRTC for sm_90 (``wp.compile_aot_module``, no driver needed); printed: the bytes of
 SASS (the ELF's .text sections), registers a thread and the stack frame (from .nv.info).  At 1,024
-worlds a world's step is a chain that runs its code about once, so code bytes track its time
-(results/session20/README.md).  ``--by-function`` (needs pyelftools) splits the bytes by the
+worlds a world's step is a chain that runs its code about once, so code bytes track its time.  ``--by-function`` (needs pyelftools) splits the bytes by the
 generated function each instruction's line is in, built with line information: the innermost
 function only (Warp's array and arithmetic helpers count as array.h, builtin.h, …), not the inline
-chain (scripts/ncu_regions.py has that, with nvdisasm)."""
+chain (nvdisasm on the cubin gives that)."""
 import argparse
 import collections
 import os
@@ -26,7 +25,7 @@ def build(case: str, lanes: int = 32, lineinfo: bool = False, groups: int = 1, o
     """The compiled cubin's path and the generated .cu source of ``case``'s lane-split kernel, as
     the solver builds it for a GPU (terms.fused_flags, the default SolverSettings), for sm_90, in
     ``out`` (a new temporary folder when None); ``lineinfo``: with line information and without
-    #line directives (scripts/ncu_regions.py)."""
+    #line directives (for a profiler's source view)."""
     if lineinfo:
         wp.config.lineinfo = True
         wp.config.line_directives = False
