@@ -120,7 +120,7 @@ def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs)
         threads=sim.plan.threads, block_dim=sim.plan.block_dim, cpu_workers=len(sim.solver.newton_launches),
         lane_groups=sim.plan.lane_groups, steps_per_launch=k, lockstep_warps=sim.plan.lockstep_warps,
         memory_bytes_per_world=sim.memory_bytes()["total"] / num_worlds,
-        unknowns=sim.model.num_dofs, constitutions=[c.NAME for c in sim.solver.parts],
+        unknowns=sim.model.num_dofs, constitutions=[c.name for c in sim.solver.parts],
     )  # fmt: skip
 
 

@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 
 from . import coordinates, fused
-from .constitutions import REGISTRY
+from .constitutions import REGISTRY, affine_body, drive
 from .fused import PHASES, fused_kernel
 from .plan import ExecutionPlan, resolve_plan, worlds_per_block
 from .scene import FIXED, PRISMATIC, REVOLUTE
@@ -85,26 +85,22 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     return _POOLS[workers]
 
 
-# relative cost of a term in an assembly (thousands of cycles a world-step, the cart-pole's phase
-# clock on an H100, the baseline of results/trial_gradient_h100_dropped.md): the bodies' by rows.
-# (A prismatic joint's cost with its limit and drive in its own term is unmeasured, so a cart-pole's
-# groups are balanced on the joint's alone; "angle", a revolute joint's limit and drives on one
-# angle, is a drive's, unmeasured.)
-WORK_COST = {"bodies": 14.0, "revolute": 9.0, "fixed": 13.0, "prismatic": 13.0, "revolute_limit": 6.0,
-             "prismatic_limit": 6.0, "drive": 10.0, "angle": 10.0}  # fmt: skip
+# a term's cost in an assembly: its constitution's ``work`` (protocol.Constitution); an angle term,
+# a revolute joint's folded limit and drives on one angle, weighs a drive's (unmeasured)
+ANGLE_WORK = 10.0
 
 
 def lane_work(counts: dict, groups: int, row_lanes: int, num_dofs: int):
     """Each lane group's terms: (kinds (groups, M), indices (groups, M), counts (groups,)), int32,
-    kinds as fused.WORK_*.  The bodies go to group 0 (by rows, ceil(n / row_lanes) passes); each
-    term, costliest first (WORK_COST), to the group with the least cost so far (ties: the lowest
-    group), so the busiest group's chain is short; a group's terms in kind order, then index."""
-    kinds = {"revolute": fused.WORK_REVOLUTE, "fixed": fused.WORK_FIXED, "prismatic": fused.WORK_PRISMATIC,
-             "revolute_limit": fused.WORK_REVOLUTE_LIMIT, "prismatic_limit": fused.WORK_PRISMATIC_LIMIT,
-             "drive": fused.WORK_DRIVE, "angle": fused.WORK_ANGLE}  # fmt: skip
+    kinds as fused.WORK_KINDS.  The bodies go to group 0 (by rows, ceil(n / row_lanes) passes); each
+    term, costliest first (its constitution's work), to the group with the least cost so far (ties:
+    the lowest group), so the busiest group's chain is short; a group's terms in kind order, then
+    index."""
+    cost = {c.name: c.work for c in REGISTRY} | {"angle": ANGLE_WORK}
+    kinds = fused.WORK_KINDS
     load = [0.0] * groups
-    load[0] = WORK_COST["bodies"] * -(-num_dofs // max(row_lanes, 1))
-    items = sorted(((WORK_COST[name], kinds[name], i) for name in kinds for i in range(counts.get(name, 0))),
+    load[0] = cost[affine_body.NAME] * -(-num_dofs // max(row_lanes, 1))
+    items = sorted(((cost[name], kinds[name], i) for name in kinds for i in range(counts.get(name, 0))),
                    key=lambda it: (-it[0], it[1], it[2]))  # fmt: skip
     share = [[] for _ in range(groups)]
     for cost, kind, i in items:
@@ -434,15 +430,14 @@ class Solver:
         the arrays are never reallocated, so a captured graph stays valid)."""
         m = self.model
         jt = self.joint_terms
-        has, joined = fused_flags(m, jt)
+        own, folds = fused_flags(m, jt)
         st = self.settings
         kernel, Terms, Bracket, assemble_system = fused_kernel(
-            m.dtype, *has, scratch=self.scratch, n=m.num_dofs, envelope=self.envelope,
+            m.dtype, own, folds, scratch=self.scratch, n=m.num_dofs, envelope=self.envelope,
             phase_clock=self.plan.phase_clock,
             cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
-            groups=self.lane_groups, per_block=self.worlds_per_block, **joined,
-            quadratic=float(st.quadratic_stop), hold=self.hold_worlds)  # fmt: skip
+            groups=self.lane_groups, per_block=self.worlds_per_block, quadratic=float(st.quadratic_stop), hold=self.hold_worlds)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -450,12 +445,10 @@ class Solver:
         for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor"):
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
-        t.drive_rest = m._int(jt["rest"])
-        t.pri_lim, t.pri_drv, t.ang_joint, t.ang_lim = (m._int(jt[k]) for k in ("pri_lim", "pri_drv", "ang_joint",
-                                                                                 "ang_lim"))  # fmt: skip
-        # (an unused 1 × 2 placeholder where no joint has an angle term, as Model._int pads)
-        t.ang_drv = wp.array(jt["ang_drv"] if joined["rev_angles"] else np.full((1, 2), -1, np.int32), dtype=wp.int32,
-                             device=m.device)  # fmt: skip
+        t.drive_rest = m._int(jt["rest"][drive.NAME])
+        t.ang_joint = m._int(jt["joints"][REVOLUTE])
+        for (name, kind), a in jt["folds"].items():
+            setattr(t, f"fold_{name}_{kind}", self._fold_array(a))
         t.h_step = self.h_step
         t.rev_ids, t.fix_ids, t.pri_ids = m.joint_ids[REVOLUTE], m.joint_ids[FIXED], m.joint_ids[PRISMATIC]
         t.rlim_ids, t.plim_ids = m.limit_joint_ids[REVOLUTE], m.limit_joint_ids[PRISMATIC]
@@ -480,6 +473,13 @@ class Solver:
         k.hold, k.go = self._no_hold, self._go_all
         self._Bracket, self._brackets = Bracket, {}
         return kernel, t, k, assemble_system
+
+    def _fold_array(self, a: np.ndarray) -> wp.array:
+        """A Terms fold array (terms.joint_terms' folds): int32 on the device; where it has no joint
+        term, an unused placeholder of one row of −1 (as Model._int pads)."""
+        if len(a) == 0:
+            a = np.full((1,) + a.shape[1:], -1, np.int32)
+        return wp.array(a, dtype=wp.int32, device=self.model.device)
 
     def _bracket(self, base, hold, go):
         """``base`` (the Bracket) with these hold and go arrays (None: hold none, step all); one kept

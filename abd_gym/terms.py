@@ -1,70 +1,77 @@
-"""The fused step's terms for a model's scene: which joints, limits and drives it evaluates, and
-which limits and drives ride on their joint's own term (a prismatic joint's limit and drive on its
-displacement, a revolute joint's limit and drives on its angle).  Read by the execution plan (the
-number of terms sets the default lane groups) and by the solver (the kernel's flags and arrays).
+"""The fused step's terms for a model's scene, from the constitution registry: which constitutions
+have fused terms of their own, and which coordinate terms (limits, drives) ride on their joint's
+coordinate term instead (protocol.Constitution.slots).  Read by the execution plan (the number of
+terms sets the default lane groups) and by the solver (the kernel's spec and arrays).
+
+A joint kind's coordinate term: a prismatic joint's own term (fused.prismatic_term, every
+prismatic joint); a revolute joint's angle term (fused.angle_term, a term beside its point-joint
+term, for the revolute joints with a folded instance).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from .scene import FIXED, PRISMATIC, REVOLUTE
+from .constitutions import COORDINATE, JOINT, REGISTRY
+from .scene import PRISMATIC, REVOLUTE
 
-
-def fused_flags(model, jt: dict | None = None):
-    """What fused_kernel is built with for ``model``'s scene: (its positional has_* flags: revolute,
-    fixed and prismatic joints, revolute and prismatic limits left with terms of their own, drives
-    with terms of their own; the keyword flags pri_limits, pri_drives, rev_angles), from
-    ``joint_terms`` (``jt``, computed when not given)."""
-    jt = joint_terms(model) if jt is None else jt
-    fuse_lim, fuse_drv = bool((jt["pri_lim"] >= 0).any()), bool((jt["pri_drv"] >= 0).any())
-    angles = len(jt["ang_joint"]) > 0
-    m = model
-    has = (m.joint_count[REVOLUTE] > 0, m.joint_count[FIXED] > 0, m.joint_count[PRISMATIC] > 0,
-           len(m.limit_joints[REVOLUTE]) > 0 and not angles, len(m.limit_joints[PRISMATIC]) > 0 and not fuse_lim,
-           len(jt["rest"]) > 0)  # fmt: skip
-    return has, dict(pri_limits=fuse_lim, pri_drives=fuse_drv, rev_angles=angles)
+# the angle term's joint kind (a term of its own, "angle" in term_counts)
+ANGLE = REVOLUTE
 
 
 def joint_terms(model) -> dict:
-    """How the fused step groups the limits and drives with their joints.  ``pri_lim``, ``pri_drv``:
-    for each prismatic joint (Model.joint_ids order) its limit and the first drive on it, or −1
-    (fused.prismatic_term; H100: 1.17x cart-poles at 1,024 worlds, results/fused_prismatic_h100.md);
-    ``ang_joint``, ``ang_lim``, ``ang_drv`` (A, 2): the revolute joints with a limit or a drive, each
-    with its limit (index of the revolute limits) and up to two drives, or −1 (fused.angle_term);
-    ``rest``: the drives left for terms of their own, in order."""
-    drive_joint = [int(j) for j in model.drive_joint.numpy()[: model.num_drives]]
-    out = {}
-    taken = set()
+    """How the fused step folds the coordinate terms into their joints' terms, each coordinate
+    constitution in registry order, each instance in order onto its joint's next free slot:
+
+    - ``joints``: {joint kind: joint ids of its coordinate terms} (prismatic: Model.joint_ids
+      order, H100: 1.17x cart-poles at 1,024 worlds, results/fused_prismatic_h100.md; revolute: the
+      joints with a folded instance, ascending);
+    - ``folds``: {(name, joint kind): int32 (joint terms,) for one slot, else (joint terms, slots),
+      the instances folded on each, or −1};
+    - ``rest``: {name: the instances left with terms of their own, in order}."""
+    kind_of = {int(j): kind for kind in (REVOLUTE, PRISMATIC)
+               for j in model.joint_ids[kind].numpy()[: model.joint_count[kind]]}  # fmt: skip
+    taken, rest = {}, {}
+    for c in (c for c in REGISTRY if c.kind == COORDINATE):
+        rest[c.name] = []
+        for k, j in enumerate(int(j) for j in c.instances(model)):
+            on = taken.setdefault((c.name, kind_of.get(j)), {}).setdefault(j, [])
+            if len(on) < c.slots.get(kind_of.get(j), 0):
+                on.append(k)
+            else:
+                rest[c.name].append(k)
     pri = [int(j) for j in model.joint_ids[PRISMATIC].numpy()[: model.joint_count[PRISMATIC]]]
-    at = {j: k for k, j in enumerate(pri)}
-    out["pri_lim"] = np.full(len(pri), -1, np.int32)
-    for kl, j in enumerate(model.limit_joints[PRISMATIC]):
-        out["pri_lim"][at[int(j)]] = kl
-    out["pri_drv"] = np.full(len(pri), -1, np.int32)
-    for kd, j in enumerate(drive_joint):
-        if j in at and out["pri_drv"][at[j]] < 0:
-            out["pri_drv"][at[j]] = kd
-            taken.add(kd)
-    rev = set(int(j) for j in model.joint_ids[REVOLUTE].numpy()[: model.joint_count[REVOLUTE]])
-    lims = {int(j): kl for kl, j in enumerate(model.limit_joints[REVOLUTE])}
-    drives = {}
-    for kd, j in enumerate(drive_joint):
-        if j in rev and len(drives.setdefault(j, [])) < 2:
-            drives[j].append(kd)
-            taken.add(kd)
-    joints = sorted(set(lims) | set(drives))
-    out["ang_joint"] = np.array(joints, np.int32)
-    out["ang_lim"] = np.array([lims.get(j, -1) for j in joints], np.int32)
-    out["ang_drv"] = np.array([(drives.get(j, []) + [-1, -1])[:2] for j in joints], np.int32).reshape(-1, 2)
-    out["rest"] = [kd for kd in range(model.num_drives) if kd not in taken]
-    return out
+    ang = sorted({j for (_, kind), on in taken.items() if kind == ANGLE for j in on})
+    joints = {PRISMATIC: pri, ANGLE: ang}
+    folds = {}
+    for c in (c for c in REGISTRY if c.kind == COORDINATE):
+        for kind, slots in c.slots.items():
+            on = taken.get((c.name, kind), {})
+            a = np.array([(on.get(j, []) + [-1] * slots)[:slots] for j in joints[kind]], np.int32)
+            folds[c.name, kind] = a.reshape(-1, slots)[:, 0] if slots == 1 else a.reshape(-1, slots)
+    return {"joints": {kind: np.array(v, np.int32) for kind, v in joints.items()}, "folds": folds, "rest": rest}
+
+
+def fused_flags(model, jt: dict | None = None):
+    """What fused_kernel is built with for ``model``'s scene, from ``joint_terms`` (``jt``,
+    computed when not given): (``own``: the names of the joint and coordinate constitutions with
+    fused terms of their own, in registry order; ``folds``: the (name, joint kind) of the coordinate
+    terms folded into a joint's term somewhere in the scene, in registry order)."""
+    jt = joint_terms(model) if jt is None else jt
+    counts = term_counts(model, jt)
+    own = tuple(c.name for c in REGISTRY if c.kind in (JOINT, COORDINATE) and counts[c.name] > 0)
+    folds = tuple(key for key, a in jt["folds"].items() if (a >= 0).any())
+    return own, folds
 
 
 def term_counts(model, jt: dict) -> dict:
     """The fused step's terms of each kind (lane_work's ``counts``), given joint_terms' grouping
-    ``jt``: the limits and drives on a joint's own term are no terms of their own."""
-    m, angles = model, len(jt["ang_joint"]) > 0
-    return {"revolute": m.joint_count[REVOLUTE], "fixed": m.joint_count[FIXED], "prismatic": m.joint_count[PRISMATIC],
-            "revolute_limit": len(m.limit_joints[REVOLUTE]) * (not angles),
-            "prismatic_limit": len(m.limit_joints[PRISMATIC]) * (not bool((jt["pri_lim"] >= 0).any())),
-            "drive": len(jt["rest"]), "angle": len(jt["ang_joint"])}  # fmt: skip
+    ``jt``: {constitution name: its terms of their own, "angle": the angle terms}; the limits and
+    drives folded into a joint's term are no terms of their own."""
+    out = {}
+    for c in REGISTRY:
+        if c.kind == JOINT:
+            out[c.name] = model.joint_count[c.joint]
+        elif c.kind == COORDINATE:
+            out[c.name] = len(jt["rest"][c.name])
+    out["angle"] = len(jt["joints"][ANGLE])
+    return out

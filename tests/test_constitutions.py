@@ -763,10 +763,10 @@ def compare(sim, ref, case, rtol, check_active=True):
     cols = sim.solver.cols
     n = ref.n
     for part in sim.solver.parts:
-        names = PART_TERMS.get(part.NAME, (part.NAME,))
+        names = PART_TERMS.get(part.name, (part.name,))
         # float32 PD drives: the force a(x − x0), a = k + d/h (250 and 2000 here), loses a·|x|·ε₃₂ to the
         # rounding of x (the multi-turn angle is near 2π + ...): ~1e-4 of a 2 N·m force, so 10x the tolerance.
-        tol = 10 * rtol if part.NAME == "drive" and sim.model.dtype == wp.float32 else rtol
+        tol = 10 * rtol if part.name == "drive" and sim.model.dtype == wp.float32 else rtol
         E, g, H = assemble(sim, [part])
         for w in range(W):
             for name in names:
@@ -775,9 +775,9 @@ def compare(sim, ref, case, rtol, check_active=True):
             g_ref = sum(want[w][name][1] for name in names)
             H_ref = sum(want[w][name][2] for name in names)
             scale = max(np.linalg.norm(want[w][nm][1]) for nm in names) + 1e-300
-            assert close(g[w], g_ref, tol, atol=tol * 1e-6 * scale), (part.NAME, w, g[w], g_ref)
-            assert close(H[w], H_ref, tol), (part.NAME, w)
-            if check_active and part.NAME not in ("revolute_limit", "prismatic_limit"):
+            assert close(g[w], g_ref, tol, atol=tol * 1e-6 * scale), (part.name, w, g[w], g_ref)
+            assert close(H[w], H_ref, tol), (part.name, w)
+            if check_active and part.name not in ("revolute_limit", "prismatic_limit"):
                 assert np.linalg.norm(g_ref) > 0
     E, g, H = assemble(sim)
     for w in range(W):
@@ -1115,7 +1115,7 @@ def test_prismatic_joint_to_a_fixed_body(rail_first):
     q = sim.body_q().astype(np.float64)
     q[:, block] += rng.normal(scale=0.05, size=(2, 12))
     sim.state.q.assign(q)
-    (part,) = [c for c in s.parts if c.NAME == "prismatic_joint"]
+    (part,) = [c for c in s.parts if c.name == "prismatic_joint"]
     E, g, H = assemble(sim, [part])
     fr = {k: getattr(m, k).numpy()[0, 0] for k in ("c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b")}
     K = m.K.numpy()[0, 0]

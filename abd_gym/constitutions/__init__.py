@@ -1,7 +1,14 @@
-"""One module per constitution: its formula (docstring), float64 NumPy reference and Warp kernel.
+"""One module per constitution: its formula (docstring), float64 NumPy reference, Warp evaluators
+and its declaration, ``CONSTITUTION`` (``protocol.Constitution``).
 
-``REGISTRY`` lists the modules; a scene compiles only the ones it uses.
+``REGISTRY`` lists the declarations, in the staged step's order (its energy columns); a scene
+compiles only the ones it uses.  A coordinate term (a limit, a drive) is folded into its joint's
+fused term after the ones before it here.
 """
 from . import affine_body, drive, fixed_joint, prismatic_joint, prismatic_limit, revolute_joint, revolute_limit
+from .protocol import BODY, COORDINATE, JOINT, Constitution
 
-REGISTRY = (affine_body, revolute_joint, prismatic_joint, fixed_joint, revolute_limit, prismatic_limit, drive)
+REGISTRY = tuple(m.CONSTITUTION for m in (affine_body, revolute_joint, prismatic_joint, fixed_joint, revolute_limit,
+                                          prismatic_limit, drive))  # fmt: skip
+
+__all__ = ["BODY", "COORDINATE", "JOINT", "REGISTRY", "Constitution"]

@@ -23,6 +23,7 @@ import warp as wp
 
 from .. import affine
 from ..warp_ops import HESSIAN, ops
+from .protocol import BODY, Constitution
 
 UID = 1
 NAME = "affine_body"
@@ -343,3 +344,7 @@ def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     wp.launch(body_terms, dim=dim, inputs=[q, ctx.q_tilde, model.free, model.dof, model.mass, model.mc, model.S,
                                            model.kv, ctx.h_step, int(physical), active, derivs, col_inertia,
                                            cols["orthogonality"], E, g, H], device=model.device)  # fmt: skip
+
+
+# work: a pass of the lanes over the bodies' rows (Solver.lane_work)
+CONSTITUTION = Constitution(NAME, UID, BODY, (inertia_np, orthogonality_np), terms, launch, work=14.0)

@@ -22,8 +22,10 @@ import warp as wp
 
 from ..angles import angle_ops
 from ..warp_ops import ops
+from .protocol import COORDINATE, Constitution
 
 NAME = "drive"
+UID = None  # libuipc has no drive constitution
 EFFORT, POSITION, VELOCITY = 0, 1, 2
 MODES = {"effort": EFFORT, "position": POSITION, "velocity": VELOCITY}
 
@@ -194,3 +196,58 @@ def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
                       m.n_a, m.b_a, m.n_b, m.b_b, state.c_prev, state.s_prev, m.drive_mode, m.drive_stiffness,
                       m.drive_damping, m.drive_max_effort, state.control, state.unwrapped, state.x_anchor,
                       ctx.h_step, int(physical), active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip
+
+
+# drives a joint's term folds: one on a prismatic joint's displacement, two on a revolute joint's
+# angle (a position and an effort drive on one motor); more keep terms of their own
+SLOTS = {"prismatic": 1, "revolute": 2}
+
+
+@functools.lru_cache(maxsize=None)
+def fold(dtype):
+    """Drives folded into their joint's term (protocol.Constitution.fold): ``drive_at``, a drive's
+    (E, E′, E″) at its joint's coordinate inside ĥ², and one fold per joint kind."""
+    from ..fused.structs import structs
+
+    Terms = structs(dtype).Terms
+    drive_scalar = kernel(dtype).scalar
+    REV_SLOTS = SLOTS["revolute"]
+
+    @wp.func
+    def drive_at(t: Terms, w: int, j: int, kd: int, x: dtype, hw: dtype):
+        """(E, E′, E″) of drive kd on joint j at its coordinate x, inside ĥ² (drive.scalar from the
+        joint's coordinate at the step's start, Terms.unwrapped)."""
+        ed, dd, ddd = drive_scalar(x, t.unwrapped[w, j], t.drive_mode[kd], t.control[w, kd], t.fmax[w, kd], t.kp[w, kd],
+                                   t.kd[w, kd], t.x_anchor[w, j], hw)  # fmt: skip
+        h2 = hw * hw
+        return h2 * ed, h2 * dd, h2 * ddd
+
+    @wp.func
+    def prismatic(t: Terms, w: int, j: int, a: int, x: dtype, e: dtype, de: dtype, dde: dtype):
+        """Joint term a's drive, if it has one, at the displacement x."""
+        kd = t.fold_drive_prismatic[a]
+        if kd >= 0:
+            ed, dd, ddd = drive_at(t, w, j, kd, x, t.h_step[w])
+            e += ed
+            de += dd
+            dde += ddd
+        return e, de, dde
+
+    @wp.func
+    def revolute(t: Terms, w: int, j: int, a: int, x: dtype, hw: dtype, e: dtype, de: dtype, dde: dtype):
+        """Joint term a's drives at the multi-turn angle x_prev + δ (x = δ)."""
+        for slot in range(REV_SLOTS):
+            kd = t.fold_drive_revolute[a, slot]
+            if kd >= 0:
+                ed, d1, d2 = drive_at(t, w, j, kd, t.unwrapped[w, j] + x, hw)
+                e += ed
+                de += d1
+                dde += d2
+        return e, de, dde
+
+    return SimpleNamespace(drive_at=drive_at, prismatic=prismatic, revolute=revolute)
+
+
+CONSTITUTION = Constitution(NAME, UID, COORDINATE, drive_np, terms, launch, work=10.0,
+                            instances=lambda model: [int(j) for j in model.drive_joint.numpy()[: model.num_drives]],
+                            slots=SLOTS, fold=fold)  # fmt: skip

@@ -4,7 +4,8 @@ Four points fixed in both bodies, ``anchor`` and ``anchor + L·e_k`` (k = x, y, 
 joint's ``half_length`` [m]), must coincide: ``E = K/2 Σ_p ‖x_i(P_p) − x_j(P_p)‖²`` [J],
 ``K = strength_ratio·(m_i + m_j)``; linear constraints, exact PSD Hessian.
 """
-from ._point_joint import launch_points, point_joint_np  # noqa: F401
+from ._point_joint import launch_points, point_joint_np
+from .protocol import JOINT, Constitution
 
 UID = 25
 NAME = "fixed_joint"
@@ -18,3 +19,6 @@ def terms(model, physical=False):
 
 def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     launch_points(model, KIND, NUM_POINTS, q, E, g, H, active, derivs, cols[NAME])
+
+
+CONSTITUTION = Constitution(NAME, UID, JOINT, point_joint_np, terms, launch, work=13.0, joint=KIND)

@@ -18,6 +18,7 @@ import warp as wp
 
 from .. import affine
 from ..warp_ops import HESSIAN, ops
+from .protocol import JOINT, Constitution
 
 UID = 20
 NAME = "prismatic_joint"
@@ -159,3 +160,6 @@ def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     wp.launch(kernel(m.dtype).kernel, dim=(m.num_worlds, m.joint_count[KIND]),
               inputs=[q, m.joint_ids[KIND], m.body_a, m.body_b, m.dof, m.c_a, m.c_b, m.t_a, m.t_b, m.n_a, m.n_b,
                       m.b_a, m.b_b, m.K, active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip
+
+
+CONSTITUTION = Constitution(NAME, UID, JOINT, prismatic_joint_np, terms, launch, work=13.0, joint=KIND)

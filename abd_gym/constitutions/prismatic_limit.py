@@ -17,6 +17,7 @@ import warp as wp
 
 from ..angles import angle_ops, prismatic_displacement_np
 from ..warp_ops import ops
+from .protocol import COORDINATE, Constitution
 
 UID = 669
 NAME = "prismatic_limit"
@@ -127,3 +128,29 @@ def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     wp.launch(kernel(m.dtype).kernel, dim=(m.num_worlds, len(m.limit_joints[KIND])),
               inputs=[q, m.limit_joint_ids[KIND], m.body_a, m.body_b, m.dof, m.c_a, m.c_b, m.t_a,
                       *m.limit_params[KIND], active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip
+
+
+@functools.lru_cache(maxsize=None)
+def fold(dtype):
+    """The limit folded into its prismatic joint's term (protocol.Constitution.fold)."""
+    from ..fused.structs import structs
+
+    Terms = structs(dtype).Terms
+    cubic = kernel(dtype).cubic
+
+    @wp.func
+    def prismatic(t: Terms, w: int, j: int, a: int, x: dtype, e: dtype, de: dtype, dde: dtype):
+        """Joint term a's limit, if it has one, at the displacement x (prismatic_limit.cubic)."""
+        kl = t.fold_prismatic_limit_prismatic[a]
+        if kl >= 0:
+            el, dl, ddl = cubic(x, t.plim_lo[w, kl], t.plim_up[w, kl], t.plim_s[w, kl])
+            e += el
+            de += dl
+            dde += ddl
+        return e, de, dde
+
+    return SimpleNamespace(prismatic=prismatic)
+
+
+CONSTITUTION = Constitution(NAME, UID, COORDINATE, prismatic_limit_np, terms, launch, work=6.0,
+                            instances=lambda model: model.limit_joints[KIND], slots={KIND: 1}, fold=fold)  # fmt: skip

@@ -6,7 +6,8 @@ fixed in both bodies at scene creation and must coincide:
 A penalty added to the incremental potential as it is (not inside h²), so its physical
 stiffness is K/h² and the joint stays equally tight at any step size.
 """
-from ._point_joint import launch_points, point_joint_np  # noqa: F401
+from ._point_joint import launch_points, point_joint_np
+from .protocol import JOINT, Constitution
 
 UID = 18
 NAME = "revolute_joint"
@@ -20,3 +21,6 @@ def terms(model, physical=False):
 
 def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     launch_points(model, KIND, NUM_POINTS, q, E, g, H, active, derivs, cols[NAME])
+
+
+CONSTITUTION = Constitution(NAME, UID, JOINT, point_joint_np, terms, launch, work=9.0, joint=KIND)

@@ -18,6 +18,7 @@ import warp as wp
 
 from ..angles import angle_ops, revolute_angle_np
 from ..warp_ops import ops
+from .protocol import COORDINATE, Constitution
 
 UID = 670
 NAME = "revolute_limit"
@@ -129,3 +130,29 @@ def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
               inputs=[q, m.limit_joint_ids[KIND], m.body_a, m.body_b, m.dof, m.n_a, m.b_a, m.n_b, m.b_b,
                       state.theta0, state.c_prev, state.s_prev, *m.limit_params[KIND], active, derivs, cols[NAME],
                       E, g, H], device=m.device)  # fmt: skip
+
+
+@functools.lru_cache(maxsize=None)
+def fold(dtype):
+    """The limit folded into its revolute joint's angle term (protocol.Constitution.fold)."""
+    from ..fused.structs import structs
+
+    Terms = structs(dtype).Terms
+    cubic = kernel(dtype).cubic
+
+    @wp.func
+    def revolute(t: Terms, w: int, j: int, a: int, x: dtype, hw: dtype, e: dtype, de: dtype, dde: dtype):
+        """Joint term a's limit, if it has one, at x = θ0 + δ (revolute_limit.cubic)."""
+        kl = t.fold_revolute_limit_revolute[a]
+        if kl >= 0:
+            el, d1, d2 = cubic(t.theta0[w, j] + x, t.rlim_lo[w, kl], t.rlim_up[w, kl], t.rlim_s[w, kl])
+            e += el
+            de += d1
+            dde += d2
+        return e, de, dde
+
+    return SimpleNamespace(revolute=revolute)
+
+
+CONSTITUTION = Constitution(NAME, UID, COORDINATE, revolute_limit_np, terms, launch, work=6.0,
+                            instances=lambda model: model.limit_joints[KIND], slots={KIND: 1}, fold=fold)  # fmt: skip

@@ -35,7 +35,7 @@ its ``wp.func`` functions (data flows down this list):
 - ``structs``: the kernel's struct arguments (``Terms``, ``Bracket``);
 - ``clock``: the phase clock (profiling, compiled out unless ``phase_clock``);
 - ``puts``: adding a term's gradient and Hessian blocks to the scratch;
-- ``terms``: each constitution's term;
+- ``terms``: each constitution's term (coordinate terms folded into their joint's, as the registry declares);
 - ``assembly``: a world's incremental potential, gradient and Hessian, per layout;
 - ``factor``: the lane-split L D Lᵀ factor and substitutions;
 - ``newton``: the Newton iteration, line search and stop tests of a world's solve;
@@ -45,9 +45,9 @@ from .clock import PHASES, WORLD_PHASES
 from .factor import warp_ldl_solve
 from .kernel import fused_kernel
 from .layout import KernelSpec, block_sync, lane_index, lanes_scratch_words, shared_array, world_funcs
-from .structs import (WORK_ANGLE, WORK_DRIVE, WORK_FIXED, WORK_PRISMATIC, WORK_PRISMATIC_LIMIT, WORK_REVOLUTE,
-                      WORK_REVOLUTE_LIMIT)  # fmt: skip
+from .structs import (WORK_ANGLE, WORK_DRIVE, WORK_FIXED, WORK_KINDS, WORK_PRISMATIC, WORK_PRISMATIC_LIMIT,
+                      WORK_REVOLUTE, WORK_REVOLUTE_LIMIT)  # fmt: skip
 
-__all__ = ["PHASES", "WORLD_PHASES", "WORK_ANGLE", "WORK_DRIVE", "WORK_FIXED", "WORK_PRISMATIC",
+__all__ = ["PHASES", "WORLD_PHASES", "WORK_ANGLE", "WORK_DRIVE", "WORK_FIXED", "WORK_KINDS", "WORK_PRISMATIC",
            "WORK_PRISMATIC_LIMIT", "WORK_REVOLUTE", "WORK_REVOLUTE_LIMIT", "KernelSpec", "block_sync", "fused_kernel",
            "lane_index", "lanes_scratch_words", "shared_array", "warp_ldl_solve", "world_funcs"]

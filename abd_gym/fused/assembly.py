@@ -15,6 +15,7 @@ from typing import Any
 import warp as wp
 
 from ..constitutions import affine_body
+from ..scene import REVOLUTE
 from ..warp_ops import HESSIAN, ops
 from .clock import (PHASE_ASSEMBLE_BODIES, PHASE_ASSEMBLE_REVOLUTE, PHASE_ASSEMBLE_FIXED, PHASE_ASSEMBLE_PRISMATIC,
                      PHASE_ASSEMBLE_LIMITS, PHASE_ASSEMBLE_DRIVES, clock)  # fmt: skip
@@ -30,8 +31,9 @@ def lane_assembly(spec: KernelSpec):
     """The lanes' assembly: ``lane_bodies`` (the bodies by rows) and ``assemble_groups`` (lane
     groups, each its share of the terms in its own copy of g and H)."""
     dtype, N, NF, TRI, LANES, G, RL = spec.dtype, spec.N, spec.NF, spec.TRI, spec.LANES, spec.G, spec.RL
-    has_rev, has_fix, has_pri, has_rlim = spec.has_rev, spec.has_fix, spec.has_pri, spec.has_rlim
-    has_plim, has_drive, rev_angles = spec.has_plim, spec.has_drive, spec.rev_angles
+    has_rev, has_fix, has_pri = spec.has("revolute_joint"), spec.has("fixed_joint"), spec.has("prismatic_joint")
+    has_rlim, has_plim, has_drive = spec.has("revolute_limit"), spec.has("prismatic_limit"), spec.has("drive")
+    rev_angles = len(spec.folded(REVOLUTE)) > 0
     vec12 = ops(dtype).vec12
     Terms = structs(dtype).Terms
     body_grad, hessian_parts = affine_body.kernels(dtype).body_grad, affine_body.kernels(dtype).hessian_parts
@@ -159,8 +161,9 @@ def assembly(spec: KernelSpec):
     """``assemble(q, qr, w, s, B, derivs, t, g, H)``: the incremental potential of world w at
     q[qr] and, per ``derivs``, its gradient and Hessian added to scratch column s (of B)."""
     dtype, G, lanes = spec.dtype, spec.G, spec.lanes
-    has_rev, has_fix, has_pri, has_rlim = spec.has_rev, spec.has_fix, spec.has_pri, spec.has_rlim
-    has_plim, has_drive, rev_angles = spec.has_plim, spec.has_drive, spec.rev_angles
+    has_rev, has_fix, has_pri = spec.has("revolute_joint"), spec.has("fixed_joint"), spec.has("prismatic_joint")
+    has_rlim, has_plim, has_drive = spec.has("revolute_limit"), spec.has("prismatic_limit"), spec.has("drive")
+    rev_angles = len(spec.folded(REVOLUTE)) > 0
     vec12 = ops(dtype).vec12
     Terms = structs(dtype).Terms
     lane_bodies, assemble_groups = lane_assembly(spec).lane_bodies, lane_assembly(spec).assemble_groups

@@ -155,10 +155,16 @@ def lanes_kernel(spec: KernelSpec):
 
 
 @functools.lru_cache(maxsize=None)
-def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch="global", n=0,
-                 envelope=False, phase_clock=False, cuda=False, block=0, bracket=True, groups=1, per_block=1,
-                 pri_limits=False, pri_drives=False, rev_angles=False, quadratic=0.0, hold=False):  # fmt: skip
+def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False, phase_clock=False, cuda=False,
+                 block=0, bracket=True, groups=1, per_block=1, quadratic=0.0, hold=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
+
+    ``own``: the names of the joint and coordinate constitutions with terms of their own; ``folds``:
+    the (name, joint kind) of the coordinate terms folded into a joint's term (a prismatic joint's
+    limit and a drive on it, on the displacement and frames the joint has loaded, prismatic_term; a
+    revolute joint's limit and up to two drives on it, one term on its angle, its cos, sin,
+    increment and gradient computed once, angle_term), each with one put of the summed gradient;
+    both in registry order, as terms.fused_flags gives them.
 
     ``scratch``: "global": a thread per world, its g, H, Δq in global arrays (one column per thread);
     "shared": a thread per world as "global", H's lower triangle packed (n(n+1)/2 words) and, built
@@ -181,20 +187,13 @@ def fused_kernel(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive
     of 8 or 16 lanes side by side in a warp, so a warp's instructions serve 4 or 2 worlds at once.
     A block of several warps starts each step of a launch (``steps``) at a barrier of the whole
     block: its warps then run each stretch of the kernel's code together (Solver.lockstep_warps).
-    ``pri_limits`` / ``pri_drives``: a prismatic joint's limit / one drive on it are evaluated in
-    the joint's own term (``Terms.pri_lim``, ``pri_drv``; prismatic_term), on the displacement and
-    frames the joint has loaded, with one put of the summed gradient; the limits and drives left
-    (``has_plim``, ``has_drive``: ``Terms.drive_rest``) keep terms of their own.  ``rev_angles``:
-    a revolute joint's limit and up to two drives on it are one term on the joint's angle
-    (``Terms.ang_joint``, ``ang_lim``, ``ang_drv``; angle_term), its cos, sin, increment and
-    gradient computed once; ``has_rlim`` then has no limits left.  ``quadratic``
+    ``quadratic``
     (SolverSettings.quadratic_stop): a Newton step from a fresh factor accepted at α = 1 under this
     many times q's rounding floor ends the solve (take_step).  ``hold`` (with
     ``bracket``): the step leaves alone the worlds of Bracket.hold and, while Bracket.go[0] is 0,
     every world (step_world; a vector env's step graph), a check that a scene stepped on its own
     does not carry."""
-    spec = KernelSpec(dtype, has_rev, has_fix, has_pri, has_rlim, has_plim, has_drive, scratch, n, envelope,
-                      phase_clock, cuda, block, bracket, groups, per_block, pri_limits, pri_drives, rev_angles,
-                      quadratic, hold)  # fmt: skip
+    spec = KernelSpec(dtype, tuple(own), tuple(folds), scratch, n, envelope, phase_clock, cuda, block, bracket, groups,
+                      per_block, quadratic, hold)  # fmt: skip
     kernel = lanes_kernel(spec) if spec.lanes else thread_kernel(spec)
     return kernel, structs(dtype).Terms, structs(dtype).Bracket, assembly_kernel(spec)

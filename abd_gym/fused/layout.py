@@ -15,6 +15,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from .. import solver_kernels
+from ..constitutions import REGISTRY
 
 
 @wp.func_native("WP_TILE_SYNC();")
@@ -90,12 +91,8 @@ class KernelSpec:
     from them (upper case: N unknowns a world, LANES threads a world, …)."""
 
     dtype: type
-    has_rev: bool
-    has_fix: bool
-    has_pri: bool
-    has_rlim: bool
-    has_plim: bool
-    has_drive: bool
+    own: tuple = ()
+    folds: tuple = ()
     scratch: str = "global"
     n: int = 0
     envelope: bool = False
@@ -105,9 +102,6 @@ class KernelSpec:
     bracket: bool = True
     groups: int = 1
     per_block: int = 1
-    pri_limits: bool = False
-    pri_drives: bool = False
-    rev_angles: bool = False
     quadratic: float = 0.0
     hold: bool = False
 
@@ -116,6 +110,15 @@ class KernelSpec:
             raise ValueError(f"{self.LANES} lanes a world do not split into {self.G} equal groups")
         if self.WPB > 1 and self.G > 1:
             raise ValueError("lane groups take a block per world (per_block 1)")
+
+    def has(self, name: str) -> bool:
+        """Whether constitution ``name`` has fused terms of its own (terms.fused_flags)."""
+        return name in self.own
+
+    def folded(self, joint_kind: str) -> tuple:
+        """The coordinate constitutions folded into joints of ``joint_kind``'s terms, in registry
+        order (terms.fused_flags)."""
+        return tuple(c for c in REGISTRY if (c.name, joint_kind) in self.folds)
 
     @property
     def lanes(self) -> bool:

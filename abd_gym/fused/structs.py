@@ -6,11 +6,34 @@ from types import SimpleNamespace
 
 import warp as wp
 
+from ..constitutions import COORDINATE, REGISTRY
 from ..warp_ops import ops
 
 # the kinds of Terms.work's items (a lane group's joints, limits and drives)
 WORK_REVOLUTE, WORK_FIXED, WORK_PRISMATIC, WORK_REVOLUTE_LIMIT, WORK_PRISMATIC_LIMIT, WORK_DRIVE = 1, 2, 3, 4, 5, 6
-WORK_ANGLE = 7  # a revolute joint's limit and drives on its one angle (fused_kernel's rev_angles)
+WORK_ANGLE = 7  # a revolute joint's folded limit and drives on its one angle (fused.angle_term)
+# the kind of each term of its own (terms.term_counts' keys), the order of a lane group's share
+WORK_KINDS = {"revolute_joint": WORK_REVOLUTE, "fixed_joint": WORK_FIXED, "prismatic_joint": WORK_PRISMATIC,
+              "revolute_limit": WORK_REVOLUTE_LIMIT, "prismatic_limit": WORK_PRISMATIC_LIMIT, "drive": WORK_DRIVE,
+              "angle": WORK_ANGLE}  # fmt: skip
+
+
+def fold_fields() -> dict:
+    """Terms' fields of the coordinate terms folded on joint terms, in registry order: for each
+    coordinate constitution and joint kind it sits on, ``fold_<name>_<kind>`` (int32: joint term
+    a's instances, or −1; (joint terms,) for one slot, else (joint terms, slots))."""
+    return {c.fold_field(kind): wp.array(dtype=wp.int32) if slots == 1 else wp.array2d(dtype=wp.int32)
+            for c in REGISTRY if c.kind == COORDINATE for kind, slots in c.slots.items()}  # fmt: skip
+
+
+def _after(fields: dict, name: str, more: dict) -> dict:
+    """``fields`` with ``more`` inserted after field ``name``."""
+    out = {}
+    for k, v in fields.items():
+        out[k] = v
+        if k == name:
+            out.update(more)
+    return out
 
 
 @functools.lru_cache(maxsize=None)
@@ -19,7 +42,6 @@ def structs(dtype):
     o = ops(dtype)
     vec3, vec12, mat33 = o.vec3, o.vec12, o.mat33
 
-    @wp.struct
     class Terms:
         """Everything the incremental potential reads besides q: model, joint history, controls."""
 
@@ -61,12 +83,9 @@ def structs(dtype):
         c_prev: wp.array2d(dtype=dtype)
         s_prev: wp.array2d(dtype=dtype)
         drive_joint: wp.array(dtype=wp.int32)
-        drive_rest: wp.array(dtype=wp.int32)  # the drives with a term of their own (has_drive)
-        pri_lim: wp.array(dtype=wp.int32)  # prismatic joint k's limit (pri_limits), or −1
-        pri_drv: wp.array(dtype=wp.int32)  # a drive on prismatic joint k (pri_drives), or −1
-        ang_joint: wp.array(dtype=wp.int32)  # angle term a's revolute joint (rev_angles)
-        ang_lim: wp.array(dtype=wp.int32)  # its limit (index of rlim_ids), or −1
-        ang_drv: wp.array2d(dtype=wp.int32)  # up to two drives on it, or −1
+        drive_rest: wp.array(dtype=wp.int32)  # the drives with a term of their own
+        ang_joint: wp.array(dtype=wp.int32)  # angle term a's revolute joint
+        # (here: fold_fields, the coordinate terms folded on each joint term)
         drive_mode: wp.array(dtype=wp.int32)
         kp: wp.array2d(dtype=dtype)
         kd: wp.array2d(dtype=dtype)
@@ -80,6 +99,9 @@ def structs(dtype):
         work_kind: wp.array2d(dtype=wp.int32)
         work_idx: wp.array2d(dtype=wp.int32)
         work_n: wp.array(dtype=wp.int32)
+
+    Terms.__annotations__ = _after(Terms.__annotations__, "ang_joint", fold_fields())
+    Terms = wp.struct(Terms)
 
     @wp.struct
     class Bracket:

@@ -4,9 +4,9 @@ scratch column s (of B) of g and H through ``puts``:
 
 - ``body_term``: body b's inertia ½(q − q̃)ᵀM(q − q̃) and orthogonality h²·κ·vol·‖AAᵀ − I‖²_F;
 - ``point_term``: a revolute (2 points) or fixed (4 points) joint, K/2 Σ‖x_a − x_b‖²;
-- ``prismatic_term``: a prismatic joint and, fused into it, its limit and a drive on its
-  displacement x;
-- ``angle_term``: a revolute joint's limit and drives on its angle x = θ0 + δ;
+- ``prismatic_term``: a prismatic joint and the coordinate terms folded into it (its limit, a
+  drive) on its displacement x;
+- ``angle_term``: the coordinate terms folded on a revolute joint (its limit, drives) on its angle;
 - ``rlim_term``, ``plim_term``, ``drive_term``: limits and drives with terms of their own.
 
 The drives' energies are inside ĥ² (ĥ: the world's step, Terms.h_step).  The formulas are the
@@ -20,24 +20,39 @@ import warp as wp
 
 from ..angles import angle_ops
 from ..constitutions import _point_joint, affine_body, drive, prismatic_joint, prismatic_limit, revolute_limit
+from ..scene import PRISMATIC, REVOLUTE
 from ..warp_ops import HESSIAN, ops
 from .layout import KernelSpec
 from .puts import prismatic_puts, puts
 from .structs import structs
 
 
+# coordinate constitutions one joint term folds at most: a joint term calls its folds as this
+# many static calls, in order (not a static loop: Warp resolves a wp.static() that reads a loop
+# variable only at code generation, after the kernel cache's hash, so two scenes folding different
+# constitutions would share one cached kernel)
+MAX_FOLDS = 4
+
+
+def fold_slots(folds: list) -> list:
+    """``folds`` padded with None to MAX_FOLDS."""
+    if len(folds) > MAX_FOLDS:
+        raise ValueError(f"{len(folds)} coordinate terms folded on one joint kind: raise fused.terms.MAX_FOLDS")
+    return list(folds) + [None] * (MAX_FOLDS - len(folds))
+
+
 @functools.lru_cache(maxsize=None)
 def terms(spec: KernelSpec):
-    """The bodies' and joints' terms: ``body_term``, ``point_term``, ``prismatic_term`` (with its
-    fused limit and drive), and ``drive_at``, a drive's energy at a joint's coordinate."""
-    dtype, pri_limits, pri_drives = spec.dtype, spec.pri_limits, spec.pri_drives
+    """The bodies' and joints' terms: ``body_term``, ``point_term``, ``prismatic_term`` (with the
+    coordinate terms folded on it)."""
+    dtype = spec.dtype
+    folds = [c.fold(dtype).prismatic for c in spec.folded(PRISMATIC)]
+    f0, f1, f2, f3 = fold_slots(folds)
     vec12 = ops(dtype).vec12
     Terms = structs(dtype).Terms
     body_grad = affine_body.kernels(dtype).body_grad
     point_eval_kron = _point_joint.kernel(dtype).eval_kron
     prismatic_grad = prismatic_joint.kernel(dtype).grad
-    plim_cubic = prismatic_limit.kernel(dtype).cubic
-    drive_scalar = drive.kernel(dtype).scalar
     pri_displacement, pri_displacement_grad = angle_ops(dtype).displacement, angle_ops(dtype).displacement_grad
     p = puts(spec)
     put_grad, put_body, put_kron_pair, put_outer_pair = p.put_grad, p.put_body, p.put_kron_pair, p.put_outer_pair
@@ -69,21 +84,12 @@ def terms(spec: KernelSpec):
         return ej
 
     @wp.func
-    def drive_at(t: Terms, w: int, j: int, kd: int, x: dtype, hw: dtype):
-        """(E, E′, E″) of drive kd on joint j at its coordinate x, inside ĥ² (drive.scalar from the
-        joint's coordinate at the step's start, Terms.unwrapped): a drive in its joint's term."""
-        ed, dd, ddd = drive_scalar(x, t.unwrapped[w, j], t.drive_mode[kd], t.control[w, kd], t.fmax[w, kd], t.kp[w, kd],
-                                   t.kd[w, kd], t.x_anchor[w, j], hw)  # fmt: skip
-        h2 = hw * hw
-        return h2 * ed, h2 * dd, h2 * ddd
-
-    @wp.func
     def prismatic_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
                        H: Any, kp: int):  # fmt: skip
-        """Prismatic joint kp (of pri_ids) and, with pri_limits / pri_drives, its limit and a drive
-        on it: their energies E(x) of the displacement x add E'∇x to the joint's gradient before its
-        one put, and E''∇x∇xᵀ to its Hessian (limit.cubic, drive.scalar: the arithmetic of
-        plim_term and drive_term on the same x and ∇x)."""
+        """Prismatic joint kp (of pri_ids) and the coordinate terms folded on it (spec.folds: its
+        limit, a drive; each constitution's fold, in registry order): their energies E(x) of the
+        displacement x add E'∇x to the joint's gradient before its one put, and E''∇x∇xᵀ to its
+        Hessian (the arithmetic of plim_term and drive_term on the same x and ∇x)."""
         j = t.pri_ids[kp]
         qi = q[qr, t.body_a[j]]
         qj = q[qr, t.body_b[j]]
@@ -99,22 +105,16 @@ def terms(spec: KernelSpec):
         dde = zero
         gxi = vec12()
         gxj = vec12()
-        if wp.static(pri_limits or pri_drives):
+        if wp.static(len(folds) > 0):
             x = pri_displacement(qi, qj, ca, cb, ta)
-            if wp.static(pri_limits):
-                kl = t.pri_lim[kp]
-                if kl >= 0:
-                    el, dl, ddl = plim_cubic(x, t.plim_lo[w, kl], t.plim_up[w, kl], t.plim_s[w, kl])
-                    ej += el
-                    de += dl
-                    dde += ddl
-            if wp.static(pri_drives):
-                kd = t.pri_drv[kp]
-                if kd >= 0:
-                    ed, dd, ddd = drive_at(t, w, j, kd, x, t.h_step[w])
-                    ej += ed
-                    de += dd
-                    dde += ddd
+            if wp.static(f0 is not None):
+                ej, de, dde = wp.static(f0)(t, w, j, kp, x, ej, de, dde)
+            if wp.static(f1 is not None):
+                ej, de, dde = wp.static(f1)(t, w, j, kp, x, ej, de, dde)
+            if wp.static(f2 is not None):
+                ej, de, dde = wp.static(f2)(t, w, j, kp, x, ej, de, dde)
+            if wp.static(f3 is not None):
+                ej, de, dde = wp.static(f3)(t, w, j, kp, x, ej, de, dde)
             if derivs != 0 and (de != zero or dde != zero):
                 gxi, gxj = pri_displacement_grad(qi, qj, ca, cb, ta)
                 gi = gi + de * gxi
@@ -125,12 +125,12 @@ def terms(spec: KernelSpec):
             if derivs == HESSIAN:
                 prismatic_hessian(H, s, B, oi, oj, qi, qj, ca, cb, ta, t.t_b[w, j], t.n_a[w, j], t.n_b[w, j],
                                   t.b_a[w, j], t.b_b[w, j], t.K[w, j])  # fmt: skip
-                if wp.static(pri_limits or pri_drives):
+                if wp.static(len(folds) > 0):
                     if dde != zero:
                         put_outer_pair(H, s, B, oi, oj, gxi, gxj, dde)
         return ej
 
-    return SimpleNamespace(body_term=body_term, point_term=point_term, drive_at=drive_at, prismatic_term=prismatic_term)
+    return SimpleNamespace(body_term=body_term, point_term=point_term, prismatic_term=prismatic_term)
 
 
 @functools.lru_cache(maxsize=None)
@@ -140,22 +140,24 @@ def coordinate_terms(spec: KernelSpec):
     dtype = spec.dtype
     vec12 = ops(dtype).vec12
     Terms = structs(dtype).Terms
-    rlim_parts, rlim_cubic = revolute_limit.kernel(dtype).parts, revolute_limit.kernel(dtype).cubic
+    rlim_parts = revolute_limit.kernel(dtype).parts
+    folds = [c.fold(dtype).revolute for c in spec.folded(REVOLUTE)]
+    f0, f1, f2, f3 = fold_slots(folds)
     an = angle_ops(dtype)
     cos_sin, delta_theta, theta_grad = an.cos_sin, an.delta_theta, an.theta_grad
     plim_parts = prismatic_limit.kernel(dtype).parts
     drive_parts = drive.kernel(dtype).parts
-    drive_at = terms(spec).drive_at
     put_rank1 = puts(spec).put_rank1
     zero = dtype(0.0)
 
     @wp.func
     def angle_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
                    H: Any, a: int, hw: dtype):  # fmt: skip
-        """Angle term a (rev_angles): revolute joint j's limit, on x = θ0 + δ, and its drives, on
-        x = x_prev + δ (δ = ΔΘ(q, q^{t−1}), the one increment both read), their E′ and E″ summed into
-        one put of E′∇θ and E″∇θ∇θᵀ (revolute_limit.cubic, drive.scalar: the arithmetic of rlim_term
-        and drive_term on the same angle); ∇θ only where they are not zero."""
+        """Angle term a: the coordinate terms folded on revolute joint j (spec.folds, each
+        constitution's fold in registry order: its limit, on x = θ0 + δ, its drives, on x = x_prev +
+        δ; δ = ΔΘ(q, q^{t−1}), the one increment all read), their E′ and E″ summed into one put of
+        E′∇θ and E″∇θ∇θᵀ (the arithmetic of rlim_term and drive_term on the same angle); ∇θ only
+        where they are not zero."""
         j = t.ang_joint[a]
         qi = q[qr, t.body_a[j]]
         qj = q[qr, t.body_b[j]]
@@ -168,19 +170,14 @@ def coordinate_terms(spec: KernelSpec):
         e = zero
         de = zero
         dde = zero
-        kl = t.ang_lim[a]
-        if kl >= 0:
-            el, d1, d2 = rlim_cubic(t.theta0[w, j] + dl, t.rlim_lo[w, kl], t.rlim_up[w, kl], t.rlim_s[w, kl])
-            e += el
-            de += d1
-            dde += d2
-        for slot in range(2):
-            kd = t.ang_drv[a, slot]
-            if kd >= 0:
-                ed, d1, d2 = drive_at(t, w, j, kd, t.unwrapped[w, j] + dl, hw)
-                e += ed
-                de += d1
-                dde += d2
+        if wp.static(f0 is not None):
+            e, de, dde = wp.static(f0)(t, w, j, a, dl, hw, e, de, dde)
+        if wp.static(f1 is not None):
+            e, de, dde = wp.static(f1)(t, w, j, a, dl, hw, e, de, dde)
+        if wp.static(f2 is not None):
+            e, de, dde = wp.static(f2)(t, w, j, a, dl, hw, e, de, dde)
+        if wp.static(f3 is not None):
+            e, de, dde = wp.static(f3)(t, w, j, a, dl, hw, e, de, dde)
         if derivs != 0 and (de != zero or dde != zero):
             gi, gj = theta_grad(qi, qj, na, ba, nb, bb, c, sn)
             put_rank1(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, de, dde)
