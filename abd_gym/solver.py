@@ -1,4 +1,4 @@
-"""Implicit Euler as a Newton solve of the incremental potential (DESIGN.md §2).
+"""Implicit Euler as a Newton solve of the incremental potential (docs/design.md §2).
 
     E(q) = ½(q − q̃)ᵀM(q − q̃) + h²(Σ V_orth + Σ E_drive) + Σ E_joint + Σ E_limit
 
@@ -56,7 +56,7 @@ class SolverSettings:
     # Newton's next step would be below that rounding (float32 cart-poles and double pendulums at
     # dt 0.01: first steps up to 3e-4 m, the next at most 1.3e-7 m).  It acts in float32 (1e-4 m
     # for q ~ 1); in float64 the tolerance h·tol is far above the rounding and the stop stays the
-    # step under the tolerance.  0: off.  results/quadratic_stop.md
+    # step under the tolerance.  0: off.
     quadratic_stop: float = 100.0
 
     def __post_init__(self):

@@ -23,7 +23,7 @@ def joint_terms(model) -> dict:
     constitution in registry order, each instance in order onto its joint's next free slot:
 
     - ``joints``: {joint kind: joint ids of its coordinate terms} (prismatic: Model.joint_ids
-      order, H100: 1.17x cart-poles at 1,024 worlds, results/fused_prismatic_h100.md; revolute: the
+      order, H100: 1.17x cart-poles at 1,024 worlds; revolute: the
       joints with a folded instance, ascending);
     - ``folds``: {(name, joint kind): int32 (joint terms,) for one slot, else (joint terms, slots),
       the instances folded on each, or −1};

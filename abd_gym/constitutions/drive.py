@@ -204,12 +204,9 @@ SLOTS = {"prismatic": 1, "revolute": 2}
 
 
 @functools.lru_cache(maxsize=None)
-def fold(dtype):
+def fold(dtype, Terms):
     """Drives folded into their joint's term (protocol.Constitution.fold): ``drive_at``, a drive's
     (E, E′, E″) at its joint's coordinate inside ĥ², and one fold per joint kind."""
-    from ..fused.structs import structs
-
-    Terms = structs(dtype).Terms
     drive_scalar = kernel(dtype).scalar
     REV_SLOTS = SLOTS["revolute"]
 

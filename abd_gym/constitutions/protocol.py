@@ -40,9 +40,11 @@ class Constitution:
     JOINT: ``joint``, the joint kind it constrains.
 
     COORDINATE: ``instances(model)``, each instance's joint (instance order); ``slots``, for each
-    joint kind it sits on, how many instances on one joint the joint's term folds; ``fold(dtype)``,
-    a namespace with one ``wp.func`` per joint kind of ``slots``, named as the kind, that adds to
-    the running E, E′, E″ of joint term a (joint j, world w) its folded instances at the joint's
+    joint kind it sits on, how many instances on one joint the joint's term folds;
+    ``fold(dtype, Terms)`` (Terms: the fused step's struct, fused.structs, which carries each
+    coordinate term's fold index fields ``fold_<name>_<kind>`` and its parameters), a namespace
+    with one ``wp.func`` per joint kind of ``slots``, named as the kind, that adds to the running
+    E, E′, E″ of joint term a (joint j, world w) its folded instances at the joint's
     coordinate x and returns the sums:
 
     - ``revolute(t: Terms, w, j, a, x, hw, e, de, dde) -> (e, de, dde)``: x the step's angle

@@ -133,11 +133,8 @@ def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
 
 
 @functools.lru_cache(maxsize=None)
-def fold(dtype):
+def fold(dtype, Terms):
     """The limit folded into its revolute joint's angle term (protocol.Constitution.fold)."""
-    from ..fused.structs import structs
-
-    Terms = structs(dtype).Terms
     cubic = kernel(dtype).cubic
 
     @wp.func

@@ -78,7 +78,7 @@ def thread_kernel(spec: KernelSpec):
         as concurrent launches, each with its own scratch (g, H, dq: Tw columns) and its own run of
         worlds, so they share no cache lines; s0 + c is the thread's row of q_trial.  (One step a
         launch: a loop of steps around step_world cost 12% at 16,384 and 131,072 cart-poles on an
-        H100, results/steps_per_launch_h100.md.)"""
+        H100.)"""
         c = wp.tid()
         s = c + s0
         if wp.static(in_smem):

@@ -188,7 +188,7 @@ class KernelSpec:
     def compact(self) -> bool:
         """Compact code where a world's step is a latency-bound chain (lanes): blocks of a term in
         loops of selected arguments, one inlined assemble per mode (cart-pole's kernel 414 KB of
-        SASS -> 291 KB, 1,024 worlds 5% faster on an H100, results/code_size_h100.md); a thread
+        SASS -> 291 KB, 1,024 worlds 5% faster on an H100); a thread
         per world (throughput-bound) keeps the branches, whose selects cost it 1-5% there."""
         return self.lanes
 

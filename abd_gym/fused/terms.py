@@ -46,7 +46,7 @@ def terms(spec: KernelSpec):
     """The bodies' and joints' terms: ``body_term``, ``point_term``, ``prismatic_term`` (with the
     coordinate terms folded on it)."""
     dtype = spec.dtype
-    folds = [c.fold(dtype).prismatic for c in spec.folded(PRISMATIC)]
+    folds = [c.fold(dtype, structs(dtype).Terms).prismatic for c in spec.folded(PRISMATIC)]
     f0, f1, f2, f3 = fold_slots(folds)
     vec12 = ops(dtype).vec12
     Terms = structs(dtype).Terms
@@ -141,7 +141,7 @@ def coordinate_terms(spec: KernelSpec):
     vec12 = ops(dtype).vec12
     Terms = structs(dtype).Terms
     rlim_parts = revolute_limit.kernel(dtype).parts
-    folds = [c.fold(dtype).revolute for c in spec.folded(REVOLUTE)]
+    folds = [c.fold(dtype, structs(dtype).Terms).revolute for c in spec.folded(REVOLUTE)]
     f0, f1, f2, f3 = fold_slots(folds)
     an = angle_ops(dtype)
     cos_sin, delta_theta, theta_grad = an.cos_sin, an.delta_theta, an.theta_grad
