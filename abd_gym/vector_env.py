@@ -305,7 +305,10 @@ class ABDVectorEnv(Task, VectorEnv):
         """The constructor arguments (the device as resolved) and the env's state (``_snapshot``):
         a copy is built anew from them (a fresh simulator, kernels from Warp's cache) and then
         steps as this env does, bit for bit.  Device-side machinery (captured graphs, pinned
-        buffers, compiled outcome) is rebuilt on use."""
+        buffers, compiled outcome) is rebuilt on use: on a GPU with Torch the copy's first steps
+        run before its step graph is captured, with the task's outcome eager where this env's is
+        compiled, so observations and rewards may then differ from this env's by float32 rounding
+        (the physics does not)."""
         args, kwargs = self._init_args
         return {"args": args, "kwargs": dict(kwargs, device=str(self.device)), "snapshot": self._snapshot()}
 

@@ -1,5 +1,7 @@
 """Envs pickle and deep-copy: a copy is rebuilt from the constructor arguments and the state, and
-then steps as the original does, bit for bit (observations, rewards, flags, infos, resets)."""
+then steps as the original does, bit for bit (observations, rewards, flags, infos, resets; on a
+GPU with Torch, the physics bit for bit and the task's outcome to rounding while the copy's step
+graph is built: test_torch_backend_copies_step_alike)."""
 import copy
 import pickle
 
@@ -86,8 +88,23 @@ def test_vector_env_copy_on_the_device_autoreset_path_and_bdf2():
 
 
 def test_torch_backend_copies_step_alike():
+    """The Torch backend's copy: its physics bit for bit.  On a GPU the original replays its step
+    graph, with the task's outcome compiled by torch.compile, while the copy's first steps run
+    before its own graph is captured, with the outcome eager: FourBar-v0's observations and rewards
+    then agree to float32 rounding (an H100 measured 1.5e-8 / 1.2e-7 at most), not bit for bit."""
     pytest.importorskip("torch")
     env = gym.make_vec("abd_gym/FourBar-v0", num_envs=2, vectorization_mode="vector_entry_point", backend="torch")
     env.reset(seed=0)
     _same_future(env, [], 3)
-    _same_future(env, [pickle.loads(pickle.dumps(env))], 10)
+    if not env.unwrapped.device.is_cuda:
+        _same_future(env, [pickle.loads(pickle.dumps(env))], 10)
+        return
+    copy_ = pickle.loads(pickle.dumps(env))
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        a = rng.uniform(env.action_space.low, env.action_space.high, env.action_space.shape).astype(np.float32)
+        ref, out = _numpy(env.step(a)), _numpy(copy_.step(a))
+        np.testing.assert_array_equal(env.unwrapped.sim.body_q(), copy_.unwrapped.sim.body_q())
+        np.testing.assert_allclose(out[0], ref[0], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(out[1], ref[1], rtol=0, atol=1e-6)
+        assert data_equivalence(ref[2:4], out[2:4], exact=True)
