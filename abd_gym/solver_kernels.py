@@ -15,20 +15,25 @@ from .warp_ops import ops
 # world status codes
 OK, FAILED = 0, 1
 
+# the names kernels() returns
+_PUBLIC = (
+    "predict", "start", "newton_direction", "h_row", "cholesky_solve", "factored_solve", "reductions",
+    "noise_floor", "energy_noise", "trial", "accept", "commit", "converge", "finalize", "open_step", "open_body",
+    "predict_body", "finalize_body",
+)  # fmt: skip
+
 
 @functools.lru_cache(maxsize=None)
-def kernels(dtype, envelope=False, packed=False):
-    """The per-world Newton kernels for ``dtype``; ``envelope``: the Cholesky factor and solves skip
-    the columns left of each row's first non-zero (``Model.first``), for block-banded scenes;
-    ``packed``: H's lower triangle stored packed, row i from i(i+1)/2 (n(n+1)/2 words a column
-    instead of n², for a scratch in shared memory; the dense loops only)."""
-    if packed and envelope:
-        raise ValueError("the packed Newton scratch has the dense factor only (envelope=False)")
+def _scalars(dtype):
+    """(vec3, vec12, 0, 1, machine epsilon) of ``dtype``."""
     o = ops(dtype)
-    vec3, vec12 = o.vec3, o.vec12
-    zero, one = dtype(0.0), dtype(1.0)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
-    retract = affine_body.kernels(dtype).retract
+    return o.vec3, o.vec12, dtype(0.0), dtype(1.0), EPS
+
+
+@functools.lru_cache(maxsize=None)
+def _rows(packed):
+    """h_row: where a row of H starts in a scratch column, square or ``packed``."""
 
     @wp.func
     def h_row(i: int, n: int):
@@ -37,6 +42,14 @@ def kernels(dtype, envelope=False, packed=False):
         if wp.static(packed):
             return (i * (i + 1)) >> 1
         return i * n
+
+    return h_row
+
+
+@functools.lru_cache(maxsize=None)
+def _noise_funcs(dtype):
+    """The Newton stop and the energy's noise, from the rounding of q."""
+    vec3, vec12, zero, one, EPS = _scalars(dtype)
 
     @wp.func
     def noise_floor(q: wp.array2d(dtype=vec12), w: int, threshold: dtype):
@@ -59,6 +72,16 @@ def kernels(dtype, envelope=False, packed=False):
         this is noise, and a line search on it only halves the step (measured: float32 double
         pendulums at dt 0.002 and 0.005 spent up to 15 iterations at α = 1/32 on such steps)."""
         return rounding * g_abs
+
+    return dict(noise_floor=noise_floor, energy_noise=energy_noise)
+
+
+@functools.lru_cache(maxsize=None)
+def _predict_funcs(dtype):
+    """A step's opening (open_body, open_step) and its prediction and initial guess (predict_body,
+    predict)."""
+    vec3, vec12, zero, one, EPS = _scalars(dtype)
+    retract = affine_body.kernels(dtype).retract
 
     @wp.func
     def predict_body(
@@ -122,40 +145,112 @@ def kernels(dtype, envelope=False, packed=False):
         predict_body(q, qd, q_prev, q_hist, qd_hist, qd_hist2, order3, calm, q_tilde, dof, mass, mc, gravity, h, h_step,
                      status, w, b)  # fmt: skip
 
-    # The Newton scratch of a world (or of a fused thread) is column w of n × n and n × 1 arrays with
-    # one column per world or thread, stored flat: H's entry (i, j) at (i·n + j)·T + w, g's entry i
-    # at i·T + w (T columns; neighbouring threads read neighbouring words).  Flat 1-D indices, kept
-    # as running offsets in the loops: with 3-D indexing every access cost three multiplies and
-    # three negative-index tests, half of all the instructions the fused step executed (Nsight
-    # Compute, cart-pole, H100).
+    @wp.func
+    def open_body(
+        q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
+        fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype),
+        control: wp.array2d(dtype=dtype), control_prev: wp.array2d(dtype=dtype), calm: wp.array(dtype=wp.int32),
+        w: int, b: int, clear: int,
+    ):  # fmt: skip
+        """A world with a non-finite q or q̇ fails; each world's effective step: ĥ = 2h/3 for BDF2,
+        but h (an implicit Euler step) for a world without a past step (``fresh``).  BDF2 started
+        from a past invented as "the velocity was constant" takes a first velocity of (2/3)h·a for
+        h·a, an O(h) error it never loses (measured: first-order global error); an implicit Euler
+        first step is O(h²) accurate, which keeps BDF2 second order.  (Body 0 sets the world's.)
+        ``calm``: the steps in a row, up to 2, whose controls are the last step's (predict_body
+        extrapolates the last accelerations to third order only across steps of one control).
+        ``clear``: the world is no longer fresh (else the step's close clears it: the fused step)."""
+        if b == 0:
+            same = int(1)
+            for d in range(control.shape[1]):
+                if control[w, d] != control_prev[w, d]:
+                    same = 0
+                control_prev[w, d] = control[w, d]
+            calm[w] = wp.where(same != 0 and fresh[w] == 0, wp.min(calm[w] + 1, 2), 0)
+            he = h
+            if bdf2 != 0 and fresh[w] == 0:
+                he = dtype(2.0) * h / dtype(3.0)
+            h_step[w] = he
+            if clear != 0:
+                fresh[w] = 0
+        if not (wp.isfinite(q[w, b]) and wp.isfinite(qd[w, b])):
+            status[w] = FAILED
+
+    @wp.kernel(module="unique")
+    def open_step(
+        q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
+        fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype),
+        control: wp.array2d(dtype=dtype), control_prev: wp.array2d(dtype=dtype), calm: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """open_body of body b of world w."""
+        w, b = wp.tid()
+        open_body(q, qd, status, fresh, h, bdf2, h_step, control, control_prev, calm, w, b, 1)
+
+    return dict(predict_body=predict_body, predict=predict, open_body=open_body, open_step=open_step)
+
+
+@functools.lru_cache(maxsize=None)
+def _finalize_funcs(dtype):
+    """A step's close: velocities and history (finalize_body, finalize)."""
+    vec3, vec12, zero, one, EPS = _scalars(dtype)
 
     @wp.func
-    def cholesky_envelope(H: wp.array(dtype=dtype), w: int, n: int, T: int, first: wp.array(dtype=wp.int32)):
-        """H = L Lᵀ in place on H's lower triangle (flat, column w of T); 0 when H is not positive
-        definite.  Row i starts at column first[i]: L has H's envelope (Cholesky fills nothing left
-        of a row's first non-zero), so the skipped products are exact zeros and the result is the
-        dense one."""
-        R = n * T
-        for j in range(n):
-            fj = first[j]
-            rj = j * R + w
-            s = H[rj + j * T]
-            for k in range(fj, j):
-                a = H[rj + k * T]
-                s -= a * a
-            if not (s > zero) or not wp.isfinite(s):
-                return 0
-            d = wp.sqrt(s)
-            H[rj + j * T] = d
-            for i in range(j + 1, n):
-                fi = first[i]
-                if fi <= j:
-                    ri = i * R + w
-                    t = H[ri + j * T]
-                    for k in range(wp.max(fi, fj), j):
-                        t -= H[ri + k * T] * H[rj + k * T]
-                    H[ri + j * T] = t / d
-        return 1
+    def finalize_body(
+        q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
+        order3: wp.array2d(dtype=wp.int32), dof: wp.array(dtype=wp.int32), h: dtype, h_step: wp.array(dtype=dtype),
+        status: wp.array(dtype=wp.int32), w: int, b: int,
+    ):  # fmt: skip
+        """q̇ⁿ⁺¹ = (qⁿ⁺¹ − qⁿ)/h, or (3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹)/(2h) for a BDF2 step; the history shifts.
+        ``order3``: whether the third-order extrapolation of the velocity (predict_body) would have
+        guessed q̇ⁿ⁺¹ better than the second-order one (its third difference smaller than the
+        second).  A failed world keeps its last good state."""
+        if status[w] != OK:
+            q[w, b] = q_prev[w, b]
+            return
+        if dof[b] >= 0:
+            # one division, not twelve (a vector over a scalar divides each entry: ~150 instructions
+            # of the fused step's code, run once a step)
+            dx = q[w, b] - q_prev[w, b]
+            v = dx * (one / h)
+            if h_step[w] < h:
+                # the differences first: 3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹ cancels to ~eps·|q| in float32
+                v = (dtype(3.0) * dx - (q_prev[w, b] - q_hist[w, b])) * (one / (dtype(2.0) * h))
+            v0 = qd[w, b]
+            v1 = qd_hist[w, b]
+            d2 = v - dtype(2.0) * v0 + v1
+            d3 = d2 - (v0 - dtype(2.0) * v1 + qd_hist2[w, b])
+            order3[w, b] = wp.where(wp.max(wp.abs(d3)) < wp.max(wp.abs(d2)), 1, 0)
+            qd_hist2[w, b] = v1
+            qd_hist[w, b] = v0
+            qd[w, b] = v
+        q_hist[w, b] = q_prev[w, b]
+
+    @wp.kernel(module="unique")
+    def finalize(
+        q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
+        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
+        order3: wp.array2d(dtype=wp.int32), dof: wp.array(dtype=wp.int32), h: dtype, h_step: wp.array(dtype=dtype),
+        status: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """finalize_body of body b of world w."""
+        w, b = wp.tid()
+        finalize_body(q, q_prev, qd, q_hist, qd_hist, qd_hist2, order3, dof, h, h_step, status, w, b)
+
+    return dict(finalize_body=finalize_body, finalize=finalize)
+
+
+# The Newton scratch of a world (or of a fused thread) is column w of n × n and n × 1 arrays with
+# one column per world or thread, stored flat: H's entry (i, j) at (i·n + j)·T + w, g's entry i
+# at i·T + w (T columns; neighbouring threads read neighbouring words).  Flat 1-D indices, kept
+# as running offsets in the loops: with 3-D indexing every access cost three multiplies and
+# three negative-index tests, half of all the instructions the fused step executed (Nsight
+# Compute, cart-pole, H100).
+
+
+@functools.lru_cache(maxsize=None)
+def _tile_row(dtype):
+    """tile_row: a row of a tile below the diagonal solved against the diagonal tile's factor."""
 
     @wp.func
     def tile_row(H: wp.array(dtype=dtype), r: int, c: int, T: int, t0: dtype, t1: dtype, t2: dtype, t3: dtype,
@@ -171,6 +266,16 @@ def kernels(dtype, envelope=False, packed=False):
         H[r + c + T] = x1
         H[r + c + 2 * T] = x2
         H[r + c + 3 * T] = (t3 - x0 * l30 - x1 * l31 - x2 * l32) * i3
+
+    return tile_row
+
+
+@functools.lru_cache(maxsize=None)
+def _cholesky_dense(dtype, packed):
+    """cholesky_dense: the dense factor by 4 × 4 tiles (square or ``packed`` scratch)."""
+    vec3, vec12, zero, one, EPS = _scalars(dtype)
+    h_row = _rows(packed)
+    tile_row = _tile_row(dtype)
 
     @wp.func
     def cholesky_dense(H: wp.array(dtype=dtype), w: int, n: int, T: int):
@@ -309,13 +414,14 @@ def kernels(dtype, envelope=False, packed=False):
             J += 4
         return 1
 
-    @wp.func
-    def cholesky(H: wp.array(dtype=dtype), w: int, n: int, T: int, first: wp.array(dtype=wp.int32)):
-        """H = L Lᵀ in place (flat, column w of T; ``envelope``: within Model.first's envelope); 0
-        when H is not positive definite."""
-        if wp.static(envelope):
-            return cholesky_envelope(H, w, n, T, first)
-        return cholesky_dense(H, w, n, T)
+    return cholesky_dense
+
+
+@functools.lru_cache(maxsize=None)
+def _solve_funcs(dtype, envelope, packed):
+    """The triangular solves of a factored H and the direction's reductions."""
+    vec3, vec12, zero, one, EPS = _scalars(dtype)
+    h_row = _rows(packed)
 
     @wp.func
     def solve_dense(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, n: int,
@@ -438,6 +544,52 @@ def kernels(dtype, envelope=False, packed=False):
         substitute(L, g, dq, w, n, T, first)
         return reductions(g, dq, w, n, T)
 
+    return dict(substitute=substitute, reductions=reductions, factored_solve=factored_solve)
+
+
+@functools.lru_cache(maxsize=None)
+def _factor_funcs(dtype, envelope, packed):
+    """H's Cholesky factor (the ``envelope`` or the dense one) and the solve through it."""
+    vec3, vec12, zero, one, EPS = _scalars(dtype)
+    cholesky_dense = _cholesky_dense(dtype, packed)
+    factored_solve = _solve_funcs(dtype, envelope, packed)["factored_solve"]
+
+    @wp.func
+    def cholesky_envelope(H: wp.array(dtype=dtype), w: int, n: int, T: int, first: wp.array(dtype=wp.int32)):
+        """H = L Lᵀ in place on H's lower triangle (flat, column w of T); 0 when H is not positive
+        definite.  Row i starts at column first[i]: L has H's envelope (Cholesky fills nothing left
+        of a row's first non-zero), so the skipped products are exact zeros and the result is the
+        dense one."""
+        R = n * T
+        for j in range(n):
+            fj = first[j]
+            rj = j * R + w
+            s = H[rj + j * T]
+            for k in range(fj, j):
+                a = H[rj + k * T]
+                s -= a * a
+            if not (s > zero) or not wp.isfinite(s):
+                return 0
+            d = wp.sqrt(s)
+            H[rj + j * T] = d
+            for i in range(j + 1, n):
+                fi = first[i]
+                if fi <= j:
+                    ri = i * R + w
+                    t = H[ri + j * T]
+                    for k in range(wp.max(fi, fj), j):
+                        t -= H[ri + k * T] * H[rj + k * T]
+                    H[ri + j * T] = t / d
+        return 1
+
+    @wp.func
+    def cholesky(H: wp.array(dtype=dtype), w: int, n: int, T: int, first: wp.array(dtype=wp.int32)):
+        """H = L Lᵀ in place (flat, column w of T; ``envelope``: within Model.first's envelope); 0
+        when H is not positive definite."""
+        if wp.static(envelope):
+            return cholesky_envelope(H, w, n, T, first)
+        return cholesky_dense(H, w, n, T)
+
     @wp.func
     def cholesky_solve(H: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int,
                        n: int, T: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
@@ -448,6 +600,31 @@ def kernels(dtype, envelope=False, packed=False):
         if cholesky(H, w, n, T, first) == 0:
             return 0, zero, zero, zero
         return factored_solve(H, g, dq, w, n, T, first)
+
+    return dict(cholesky=cholesky, cholesky_solve=cholesky_solve)
+
+
+@functools.lru_cache(maxsize=None)
+def _direction_kernels(dtype, envelope, packed):
+    """The staged solve's start and its Newton direction of every active world."""
+    vec3, vec12, zero, one, EPS = _scalars(dtype)
+    cholesky = _factor_funcs(dtype, envelope, packed)["cholesky"]
+    factored_solve = _solve_funcs(dtype, envelope, packed)["factored_solve"]
+
+    @wp.kernel(module="unique")
+    def start(
+        status: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
+        converged: wp.array(dtype=wp.int32), take: wp.array(dtype=wp.int32), chord: wp.array(dtype=wp.int32),
+        factorizations: wp.array(dtype=wp.int32),
+    ):  # fmt: skip
+        """A world takes part in the solve while healthy."""
+        w = wp.tid()
+        factorizations[w] = 0
+        active[w] = wp.where(status[w] == OK, 1, 0)
+        iterations[w] = 0
+        converged[w] = 0
+        take[w] = 0
+        chord[w] = 0
 
     @wp.kernel(module="unique")
     def newton_direction(
@@ -482,6 +659,17 @@ def kernels(dtype, envelope=False, packed=False):
         gdq[w] = s
         dq_max[w] = m
         g_abs[w] = ga
+
+    return dict(start=start, newton_direction=newton_direction)
+
+
+@functools.lru_cache(maxsize=None)
+def _search_kernels(dtype):
+    """The staged line search: trial point, Armijo test, commit, convergence."""
+    vec3, vec12, zero, one, EPS = _scalars(dtype)
+    retract = affine_body.kernels(dtype).retract
+    noise_floor = _noise_funcs(dtype)["noise_floor"]
+    energy_noise = _noise_funcs(dtype)["energy_noise"]
 
     @wp.kernel(module="unique")
     def trial(
@@ -619,109 +807,20 @@ def kernels(dtype, envelope=False, packed=False):
         else:
             wp.atomic_add(remaining, 0, 1)
 
-    @wp.kernel(module="unique")
-    def start(
-        status: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-        converged: wp.array(dtype=wp.int32), take: wp.array(dtype=wp.int32), chord: wp.array(dtype=wp.int32),
-        factorizations: wp.array(dtype=wp.int32),
-    ):  # fmt: skip
-        """A world takes part in the solve while healthy."""
-        w = wp.tid()
-        factorizations[w] = 0
-        active[w] = wp.where(status[w] == OK, 1, 0)
-        iterations[w] = 0
-        converged[w] = 0
-        take[w] = 0
-        chord[w] = 0
+    return dict(trial=trial, accept=accept, commit=commit, converge=converge)
 
-    @wp.func
-    def finalize_body(
-        q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
-        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
-        order3: wp.array2d(dtype=wp.int32), dof: wp.array(dtype=wp.int32), h: dtype, h_step: wp.array(dtype=dtype),
-        status: wp.array(dtype=wp.int32), w: int, b: int,
-    ):  # fmt: skip
-        """q̇ⁿ⁺¹ = (qⁿ⁺¹ − qⁿ)/h, or (3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹)/(2h) for a BDF2 step; the history shifts.
-        ``order3``: whether the third-order extrapolation of the velocity (predict_body) would have
-        guessed q̇ⁿ⁺¹ better than the second-order one (its third difference smaller than the
-        second).  A failed world keeps its last good state."""
-        if status[w] != OK:
-            q[w, b] = q_prev[w, b]
-            return
-        if dof[b] >= 0:
-            # one division, not twelve (a vector over a scalar divides each entry: ~150 instructions
-            # of the fused step's code, run once a step)
-            dx = q[w, b] - q_prev[w, b]
-            v = dx * (one / h)
-            if h_step[w] < h:
-                # the differences first: 3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹ cancels to ~eps·|q| in float32
-                v = (dtype(3.0) * dx - (q_prev[w, b] - q_hist[w, b])) * (one / (dtype(2.0) * h))
-            v0 = qd[w, b]
-            v1 = qd_hist[w, b]
-            d2 = v - dtype(2.0) * v0 + v1
-            d3 = d2 - (v0 - dtype(2.0) * v1 + qd_hist2[w, b])
-            order3[w, b] = wp.where(wp.max(wp.abs(d3)) < wp.max(wp.abs(d2)), 1, 0)
-            qd_hist2[w, b] = v1
-            qd_hist[w, b] = v0
-            qd[w, b] = v
-        q_hist[w, b] = q_prev[w, b]
 
-    @wp.kernel(module="unique")
-    def finalize(
-        q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12),
-        q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
-        order3: wp.array2d(dtype=wp.int32), dof: wp.array(dtype=wp.int32), h: dtype, h_step: wp.array(dtype=dtype),
-        status: wp.array(dtype=wp.int32),
-    ):  # fmt: skip
-        """finalize_body of body b of world w."""
-        w, b = wp.tid()
-        finalize_body(q, q_prev, qd, q_hist, qd_hist, qd_hist2, order3, dof, h, h_step, status, w, b)
-
-    @wp.func
-    def open_body(
-        q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
-        fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype),
-        control: wp.array2d(dtype=dtype), control_prev: wp.array2d(dtype=dtype), calm: wp.array(dtype=wp.int32),
-        w: int, b: int, clear: int,
-    ):  # fmt: skip
-        """A world with a non-finite q or q̇ fails; each world's effective step: ĥ = 2h/3 for BDF2,
-        but h (an implicit Euler step) for a world without a past step (``fresh``).  BDF2 started
-        from a past invented as "the velocity was constant" takes a first velocity of (2/3)h·a for
-        h·a, an O(h) error it never loses (measured: first-order global error); an implicit Euler
-        first step is O(h²) accurate, which keeps BDF2 second order.  (Body 0 sets the world's.)
-        ``calm``: the steps in a row, up to 2, whose controls are the last step's (predict_body
-        extrapolates the last accelerations to third order only across steps of one control).
-        ``clear``: the world is no longer fresh (else the step's close clears it: the fused step)."""
-        if b == 0:
-            same = int(1)
-            for d in range(control.shape[1]):
-                if control[w, d] != control_prev[w, d]:
-                    same = 0
-                control_prev[w, d] = control[w, d]
-            calm[w] = wp.where(same != 0 and fresh[w] == 0, wp.min(calm[w] + 1, 2), 0)
-            he = h
-            if bdf2 != 0 and fresh[w] == 0:
-                he = dtype(2.0) * h / dtype(3.0)
-            h_step[w] = he
-            if clear != 0:
-                fresh[w] = 0
-        if not (wp.isfinite(q[w, b]) and wp.isfinite(qd[w, b])):
-            status[w] = FAILED
-
-    @wp.kernel(module="unique")
-    def open_step(
-        q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
-        fresh: wp.array(dtype=wp.int32), h: dtype, bdf2: int, h_step: wp.array(dtype=dtype),
-        control: wp.array2d(dtype=dtype), control_prev: wp.array2d(dtype=dtype), calm: wp.array(dtype=wp.int32),
-    ):  # fmt: skip
-        """open_body of body b of world w."""
-        w, b = wp.tid()
-        open_body(q, qd, status, fresh, h, bdf2, h_step, control, control_prev, calm, w, b, 1)
-
-    return dict(
-        predict=predict, start=start, newton_direction=newton_direction, h_row=h_row, cholesky_solve=cholesky_solve,
-        factored_solve=factored_solve, reductions=reductions,
-        noise_floor=noise_floor, energy_noise=energy_noise, trial=trial, accept=accept, commit=commit,
-        converge=converge, finalize=finalize, open_step=open_step, open_body=open_body, predict_body=predict_body,
-        finalize_body=finalize_body,
-    )  # fmt: skip
+@functools.lru_cache(maxsize=None)
+def kernels(dtype, envelope=False, packed=False):
+    """The per-world Newton kernels for ``dtype``; ``envelope``: the Cholesky factor and solves skip
+    the columns left of each row's first non-zero (``Model.first``), for block-banded scenes;
+    ``packed``: H's lower triangle stored packed, row i from i(i+1)/2 (n(n+1)/2 words a column
+    instead of n², for a scratch in shared memory; the dense loops only)."""
+    if packed and envelope:
+        raise ValueError("the packed Newton scratch has the dense factor only (envelope=False)")
+    found = {**_noise_funcs(dtype), **_predict_funcs(dtype), **_finalize_funcs(dtype), "h_row": _rows(packed)}
+    found.update(_solve_funcs(dtype, envelope, packed))
+    found.update(_factor_funcs(dtype, envelope, packed))
+    found.update(_direction_kernels(dtype, envelope, packed))
+    found.update(_search_kernels(dtype))
+    return {name: found[name] for name in _PUBLIC}
