@@ -57,8 +57,8 @@ class Model:
             raise ValueError("the scene has no free (non-fixed) body")
         self.num_bodies, self.num_free = len(bodies), len(free)
         self.num_dofs = 12 * len(free)
-        self.dof = self._int(dof)
-        self.free = self._int(free)
+        self.dof = self.int_array(dof)
+        self.free = self.int_array(free)
         self.gravity = self.vec3(*scene.gravity)
         self.base_mass = np.array([b.mass for b in bodies])
         self.base_mc = np.array([b.mass * b.moments.com for b in bodies])
@@ -74,9 +74,9 @@ class Model:
         # ---- joints: frames in each body's local coordinates at creation (q_ref)
         nj = self.num_joints = len(joints)
         self.joint_kind_np = np.array([_KIND_CODE[j.kind] for j in joints], dtype=np.int32)
-        self.body_a = self._int([j.body_a for j in joints])
-        self.body_b = self._int([j.body_b for j in joints])
-        self.joint_kind = self._int(self.joint_kind_np)
+        self.body_a = self.int_array([j.body_a for j in joints])
+        self.body_b = self.int_array([j.body_b for j in joints])
+        self.joint_kind = self.int_array(self.joint_kind_np)
         # the Hessian's envelope: row i's first non-zero column, from the body pairs the joints (and
         # their limits and drives) couple; a chain in scene order is block-banded, and Cholesky
         # fills nothing outside the envelope, so a 20-link chain factors in O(n·12²), not O(n³)
@@ -88,7 +88,7 @@ class Model:
                 block_first[hi // 12] = min(block_first[hi // 12], lo)
         self.first_np = np.repeat(np.array(block_first, dtype=np.int32), 12)
         self.envelope = bool(self.first_np.any())  # False: the Hessian is dense, the plain loops run
-        self.first = self._int(self.first_np)
+        self.first = self.int_array(self.first_np)
         frames = np.zeros((8, max(nj, 1), 3))
         pts = np.zeros((2, max(nj, 1), 4, 3))
         K = np.zeros(max(nj, 1))
@@ -117,7 +117,7 @@ class Model:
         self.pts_a, self.pts_b = (self._world(p, self.vec3) for p in pts)
         self.K = self._world(K)
         self.c_ref, self.s_ref = (self._world(v) for v in cs_ref)
-        self.joint_ids = {kind: self._int(scene.joints_of(kind)) for kind in (REVOLUTE, PRISMATIC, FIXED)}
+        self.joint_ids = {kind: self.int_array(scene.joints_of(kind)) for kind in (REVOLUTE, PRISMATIC, FIXED)}
         self.joint_count = {kind: len(scene.joints_of(kind)) for kind in (REVOLUTE, PRISMATIC, FIXED)}
 
         # ---- limits (per kind, in joint order)
@@ -127,19 +127,21 @@ class Model:
             self.limit_joints[kind] = ids
             vals = np.array([[joints[k].attributes[f"limit/{a}"] for k in ids] for a in ("lower", "upper", "strength")])
             self.limit_params[kind] = [self._world(v.reshape(-1)) for v in vals.reshape(3, -1)]
-        self.limit_joint_ids = {kind: self._int(v) for kind, v in self.limit_joints.items()}
+        self.limit_joint_ids = {kind: self.int_array(v) for kind, v in self.limit_joints.items()}
 
         # ---- drives
         drives = scene.drives
         self.num_drives = len(drives)
-        self.drive_joint = self._int([d.joint for d in drives])
-        self.drive_mode = self._int([drive_mod.MODES[d.mode] for d in drives])
+        self.drive_joint = self.int_array([d.joint for d in drives])
+        self.drive_mode = self.int_array([drive_mod.MODES[d.mode] for d in drives])
         self.drive_stiffness = self._world(np.array([d.stiffness for d in drives]))
         self.drive_damping = self._world(np.array([d.damping for d in drives]))
         self.drive_max_effort = self._world(np.array([min(d.max_effort, 1e30) for d in drives]))
 
     # ------------------------------------------------------------------ helpers
-    def _int(self, values):
+    def int_array(self, values):
+        """``values`` as a flat int32 device array (one unused 0 where there are none: a kernel
+        argument must be an array even where it is never read)."""
         v = np.asarray(values, dtype=np.int32).reshape(-1)
         return wp.array(v if v.size else np.zeros(1, np.int32), dtype=wp.int32, device=self.device)
 

@@ -319,7 +319,7 @@ class Solver:
             return [(self._fused_newton, self.capturable)]
         if self.capturable:
             return [(self._whole_step, True)]
-        return [(self._open, True), (self._newton, False), (self._close, True)]
+        return [(self.open_step, True), (self.newton, False), (self.close_step, True)]
 
     def step_phases(self, steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None) -> list:
         """(part, capturable) pairs for ``steps`` steps: the one launch of multi_step (or of a step
@@ -331,11 +331,11 @@ class Solver:
         return self.phases()
 
     def _whole_step(self, state):
-        self._open(state)
-        self._newton(state)
-        self._close(state)
+        self.open_step(state)
+        self.newton(state)
+        self.close_step(state)
 
-    def _open(self, state):
+    def open_step(self, state):
         """Before Newton: each world's step opened, the joints' references, the prediction q̃."""
         m, k, dev = self.model, self.k, self.model.device
         W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
@@ -352,7 +352,7 @@ class Solver:
                                                      m.mc, m.gravity, dt(self.h), self.h_step, state.status],
                   device=dev)  # fmt: skip
 
-    def _newton(self, state):
+    def newton(self, state):
         """Every world's Newton solve: the fused kernel, or the staged kernels' loop."""
         m, k, dev = self.model, self.k, self.model.device
         W = m.num_worlds
@@ -364,7 +364,7 @@ class Solver:
             self.remaining.fill_(1)
             wp.capture_while(self.remaining, self._newton_iteration, state=state)
 
-    def _close(self, state):
+    def close_step(self, state):
         """After Newton: velocities and histories, then the joint coordinates."""
         m, k, dev = self.model, self.k, self.model.device
         W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
@@ -445,8 +445,8 @@ class Solver:
         for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor"):
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
-        t.drive_rest = m._int(jt["rest"][drive.NAME])
-        t.ang_joint = m._int(jt["joints"][REVOLUTE])
+        t.drive_rest = m.int_array(jt["rest"][drive.NAME])
+        t.ang_joint = m.int_array(jt["joints"][REVOLUTE])
         for (name, kind), a in jt["folds"].items():
             setattr(t, f"fold_{name}_{kind}", self._fold_array(a))
         t.h_step = self.h_step
@@ -476,7 +476,7 @@ class Solver:
 
     def _fold_array(self, a: np.ndarray) -> wp.array:
         """A Terms fold array (terms.joint_terms' folds): int32 on the device; where it has no joint
-        term, an unused placeholder of one row of −1 (as Model._int pads)."""
+        term, an unused placeholder of one row of −1 (as Model.int_array pads)."""
         if len(a) == 0:
             a = np.full((1,) + a.shape[1:], -1, np.int32)
         return wp.array(a, dtype=wp.int32, device=self.model.device)

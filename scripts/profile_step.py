@@ -84,14 +84,14 @@ def main():
 
 def split(sim, steps: int, copies: int = 20):
     """Device time of the captured step, and of the kernels that open and close a step when they run
-    as launches of their own (Solver._open, _close; with one_launch the fused kernel does their
+    as launches of their own (Solver.open_step, close_step; with one_launch the fused kernel does their
     work): each captured ``copies`` times in one graph, so a replay's host cost is spread over
     ``copies`` steps, and timed by CUDA events over ``steps`` steps."""
     solver, state, dev = sim.solver, sim.state, sim.device
 
     def around():
-        solver._open(state)
-        solver._close(state)
+        solver.open_step(state)
+        solver.close_step(state)
 
     graphs = {}
     for name, part in (("step", lambda: solver.step(state)), ("around", around)):

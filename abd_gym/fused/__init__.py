@@ -25,7 +25,7 @@ the same numbers.  Meant for few worlds, where one thread per world leaves most 
 waiting on each thread's chain of dependent loads.
 
 ``bracket`` (``Solver.one_launch``): the kernel also opens and closes each world's step (the
-kernels of ``Solver._open`` and ``_close`` as functions, a body or a joint per lane), so a step is
+kernels of ``Solver.open_step`` and ``close_step`` as functions, a body or a joint per lane), so a step is
 one launch.
 
 The stages, one module each, each a factory cached on the kernel's ``KernelSpec`` that returns

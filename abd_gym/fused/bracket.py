@@ -1,6 +1,6 @@
 """Opening and closing a world's step inside the fused kernel (``bracket``): ``open_world`` runs
-``Solver._open``'s kernels (the finite check, the joints' references, the prediction q̃ and the
-initial guess), ``close_world`` ``Solver._close``'s (velocities, histories, joint coordinates),
+``Solver.open_step``'s kernels (the finite check, the joints' references, the prediction q̃ and the
+initial guess), ``close_world`` ``Solver.close_step``'s (velocities, histories, joint coordinates),
 a body or a joint per lane; ``step_world`` composes them around the solve."""
 import functools
 from types import SimpleNamespace
@@ -33,7 +33,7 @@ def world_step(spec: KernelSpec):
     @wp.func
     def open_world(q: wp.array2d(dtype=vec12), t: Terms, k: Bracket, status: wp.array(dtype=wp.int32), w: int,
                    lane: int):  # fmt: skip
-        """Solver._open's kernels for world w (bracket=True): open_step, begin_step and predict, a body
+        """Solver.open_step's kernels for world w (bracket=True): open_step, begin_step and predict, a body
         or joint per lane (all of them for one thread per world), with a barrier after each: the
         references read q before the initial guess moves it, and the prediction reads the world's
         status and step."""
@@ -64,7 +64,7 @@ def world_step(spec: KernelSpec):
     @wp.func
     def close_world(q: wp.array2d(dtype=vec12), t: Terms, k: Bracket, status: wp.array(dtype=wp.int32), w: int,
                     lane: int):  # fmt: skip
-        """Solver._close's kernels for world w (bracket=True): finalize a body per lane, then, once
+        """Solver.close_step's kernels for world w (bracket=True): finalize a body per lane, then, once
         the world's q is final, its joints' coordinates (a healthy world's only)."""
         if wp.static(lanes):
             block_sync()

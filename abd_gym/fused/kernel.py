@@ -176,7 +176,7 @@ def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False,
     ``bracket``: the kernel also opens each world's step before its solve (the finite check, the
     joints' references, the prediction q̃ and the initial guess) and closes it after (velocities,
     histories, joint coordinates), so a step is one launch; else those run as kernels of their own
-    (``Solver._open``, ``Solver._close``).
+    (``Solver.open_step``, ``Solver.close_step``).
     ``groups`` (lanes only): the world's ``block`` lanes split into this many groups of
     block/groups lanes (a warp each on a GPU), each group evaluating its own share of the terms
     (``Terms.work``: the bodies on group 0, each joint, limit and drive on one group, balanced by
