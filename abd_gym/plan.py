@@ -28,7 +28,7 @@ SCRATCHES = ("global", "shared", "lanes")
 class ExecutionPlan:
     """How the step runs on the device; None: derived by resolve_plan (Simulator.plan: the resolved plan)."""
 
-    # one kernel runs each world's whole Newton solve (fused.py); False: the staged kernels (the reference); None: True
+    # one kernel runs each world's whole Newton solve (abd_gym/fused); False: the staged kernels (the reference); None: True
     fused: bool | None = None
     # the fused step's g, H, Δq: "global" (a column a thread), "shared" (a thread a world, H packed in its block's
     # shared memory) or "lanes" (block_dim lanes a world, its system packed); None: default_scratch

@@ -65,7 +65,7 @@ def _box_along(scene, p0, p1, mass, name, width=0.02, fixed=False):
 class FourBarVectorEnv(ABDVectorEnv):
     """Batched FourBar-v0 (see the module docstring)."""
 
-    # per-world target phase φ*(t) = phase0 + speed·t [rad], drawn per episode (_draw_task)
+    # per-world target phase φ*(t) = phase0 + speed·t [rad], drawn per episode (draw_task)
     task_state = (("target_phase0", 1), ("target_speed", 1))
 
     dt, frame_skip = 0.01, 2

@@ -60,7 +60,7 @@ class ReacherVectorEnv(ABDVectorEnv):
     reset_option_keys = ("target",)
     render_plane, render_center, render_width, render_size = "xy", (0.0, 0.0), 0.5, (400, 400)
     target_radius = (0.03, 0.2)  # m
-    task_state = (("target", 2),)  # (N, 2) [m], drawn per episode (_draw_task)
+    task_state = (("target", 2),)  # (N, 2) [m], drawn per episode (draw_task)
 
     def __init__(self, num_envs=1, *, lengths=(0.1, 0.11), masses=(0.1, 0.1), max_torque=0.2, damping=0.02, **kwargs):
         self.lengths, self.masses, self.max_torque, self.damping = lengths, masses, max_torque, damping
