@@ -12,7 +12,7 @@ def link_shape(length, width=0.04):
     return Box(half_extents=(width / 2, width / 2, length / 2))
 
 
-def chain(num_links=2, length=0.5, mass=1.0, strength_ratio=100.0, gravity=(0, 0, -9.81), masses=None,
+def chain(num_links=2, length=0.5, mass=1.0, strength_ratio=None, gravity=(0, 0, -9.81), masses=None,
           limit=None) -> Scene:  # fmt: skip
     """A chain of ``num_links`` links hanging from a fixed base by hinges about +y.
 

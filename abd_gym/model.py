@@ -92,6 +92,7 @@ class Model:
         frames = np.zeros((8, max(nj, 1), 3))
         pts = np.zeros((2, max(nj, 1), 4, 3))
         K = np.zeros(max(nj, 1))
+        ratios = scene.strength_ratios()
         cs_ref = np.zeros((2, max(nj, 1)))
         for k, j in enumerate(joints):
             A, B = bodies[j.body_a], bodies[j.body_b]
@@ -106,7 +107,7 @@ class Model:
             for p, x in enumerate(world_pts):
                 pts[0, k, p] = A.to_local_point(x)
                 pts[1, k, p] = B.to_local_point(x)
-            K[k] = j.strength_ratio * (A.mass + B.mass)
+            K[k] = ratios[k] * (A.mass + B.mass)
             qpair = np.concatenate([A.q(), B.q()])
             (c, *_), (s, *_) = angles.cos_sin_np(qpair, frames[4, k], frames[6, k], frames[5, k], frames[7, k])
             cs_ref[:, k] = c, s

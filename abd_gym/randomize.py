@@ -40,7 +40,7 @@ class Parameters:
         self.scene, self.sim = scene, sim
         self.free_bodies = [k for k, b in enumerate(scene.bodies) if not b.fixed]
         self.nominal_mass = np.array([b.mass for b in scene.bodies])
-        self.nominal_ratio = np.array([j.strength_ratio for j in scene.joints])
+        self.nominal_ratio = scene.strength_ratios()
         self.limited = [k for k, j in enumerate(scene.joints) if j.has_limit]
         self.body_mass = np.broadcast_to(self.nominal_mass, (W, scene.num_bodies)).copy()
         self.strength_ratio = np.broadcast_to(self.nominal_ratio, (W, scene.num_joints)).copy()

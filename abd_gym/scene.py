@@ -24,6 +24,13 @@ UID_REVOLUTE_LIMIT = 670
 REVOLUTE, PRISMATIC, FIXED = "revolute", "prismatic", "fixed"
 DRIVE_MODES = ("effort", "position", "velocity")
 
+# κ/ρ [Pa/(kg/m³) = m²/s²] of a body whose stiffness is derived: the square of the speed at which a
+# deformation of A travels through the body (316 m/s), so a body's deformation modes keep the same
+# frequency relative to its motion whatever its density; κ = 1e8 Pa at 1000 kg/m³
+STIFFNESS_PER_DENSITY = 1e5
+# a joint's derived strength ratio keeps K = ratio·(m_i + m_j) at least this times the mass it carries
+LOAD_STRENGTH_RATIO = 100.0
+
 
 def _vec3(name, value, unit=False):
     v = np.asarray(value, dtype=np.float64).reshape(-1)
@@ -96,11 +103,16 @@ class Body:
     rotation: np.ndarray
     linear_velocity: np.ndarray
     angular_velocity: np.ndarray
-    stiffness: float  # orthogonality stiffness κ [Pa]
+    stiffness: float  # orthogonality stiffness κ [Pa], resolved (see Scene.add_body)
 
     @property
     def mass(self) -> float:
         return self.moments.mass
+
+    @property
+    def density(self) -> float:
+        """Mean density m/vol [kg/m³]."""
+        return self.moments.mass / self.shape.volume()
 
     def q(self) -> np.ndarray:
         """12-vector (p, a1, a2, a3) of the body's initial pose."""
@@ -126,7 +138,7 @@ class Joint:
     body_b: int
     anchor: np.ndarray  # world, at creation [m]
     frame: np.ndarray  # rows t̂, n̂, b̂ in world coordinates at creation
-    strength_ratio: float
+    strength_ratio: float | None  # None: derived from the load (Scene.strength_ratios)
     half_length: float  # axis points at anchor ± half_length·t̂ [m]
     name: str
     attributes: dict = field(default_factory=dict)  # "limit/lower", "limit/upper", "limit/strength"
@@ -170,28 +182,35 @@ class Scene:
         linear_velocity=(0.0, 0.0, 0.0),
         angular_velocity=(0.0, 0.0, 0.0),
         fixed: bool = False,
-        stiffness: float = 1e8,
+        stiffness: float | None = None,
         name: str | None = None,
     ) -> int:
         """Add an affine body; returns its index.
 
         ``mass`` [kg] overrides ``density`` [kg/m³]; ``stiffness`` is the orthogonality κ [Pa] of
-        ``V(A) = κ·vol·‖A Aᵀ − I‖²_F``.  A fixed body is kinematic: it carries no unknowns.
+        ``V(A) = κ·vol·‖A Aᵀ − I‖²_F``.  By default ``κ = STIFFNESS_PER_DENSITY·ρ`` with
+        ``ρ = m/vol`` the body's mean density (1e5 m²/s² · ρ: κ = 1e8 Pa at 1000 kg/m³), so the
+        deformation modes' stiffness 4κ·vol relative to their inertia S = m·∫x xᵀdV/vol does not
+        depend on the density.  A fixed body is kinematic: it carries no unknowns.
         """
         if not isinstance(shape, Shape):
             raise ValueError(f"shape must be an abd_gym shape (Box, Sphere, ...), got {shape!r}")
         if mass is not None:
             _finite("mass", mass, positive=True)
         _finite("density", density, positive=True)
-        _finite("stiffness", stiffness, positive=True)
+        if stiffness is not None:
+            _finite("stiffness", stiffness, positive=True)
         name = name or f"body{len(self.bodies)}"
         if any(b.name == name for b in self.bodies):
             raise ValueError(f"a body named {name!r} already exists")
+        moments = shape.moments(mass=mass, density=density)
+        if stiffness is None:
+            stiffness = STIFFNESS_PER_DENSITY * moments.mass / shape.volume()
         self.bodies.append(
             Body(
                 name=name,
                 shape=shape,
-                moments=shape.moments(mass=mass, density=density),
+                moments=moments,
                 fixed=bool(fixed),
                 position=_vec3("position", position),
                 rotation=rotation_matrix(rotation),
@@ -219,7 +238,8 @@ class Scene:
             raise ValueError(f"a joint needs two different bodies, got {a!r} twice")
         if self.bodies[ia].fixed and self.bodies[ib].fixed:
             raise ValueError(f"joint between two fixed bodies {a!r} and {b!r} has no effect")
-        _finite("strength_ratio", strength_ratio, positive=True)
+        if strength_ratio is not None:
+            strength_ratio = _finite("strength_ratio", strength_ratio, positive=True)
         anchor = _vec3("anchor", anchor)
         frame = axis_frame(axis)
         if half_length is None:
@@ -233,7 +253,7 @@ class Scene:
                 body_b=ib,
                 anchor=anchor,
                 frame=frame,
-                strength_ratio=float(strength_ratio),
+                strength_ratio=strength_ratio,
                 half_length=float(half_length),
                 name=name or f"{kind}{len(self.joints)}",
                 meta={"constitution_uid": uid, "extra_constitution_uids": []},
@@ -241,19 +261,20 @@ class Scene:
         )
         return len(self.joints) - 1
 
-    def add_revolute_joint(self, a, b, anchor, axis, strength_ratio=100.0, half_length=None, name=None) -> int:
+    def add_revolute_joint(self, a, b, anchor, axis, strength_ratio=None, half_length=None, name=None) -> int:
         """Hinge about ``axis`` through ``anchor`` (UID 18); returns the joint index.
 
         Two points on the axis, ``anchor ± half_length·t̂``, are fixed in both bodies and must
-        coincide: ``E = K/2 Σ‖x_a(P) − x_b(P)‖²``, ``K = strength_ratio·(m_a + m_b)``.
+        coincide: ``E = K/2 Σ‖x_a(P) − x_b(P)‖²``, ``K = strength_ratio·(m_a + m_b)`` [kg].
+        ``strength_ratio=None`` derives it from the load the joint carries (``strength_ratios``).
         """
         return self._add_joint(REVOLUTE, a, b, anchor, axis, strength_ratio, half_length, name, UID_REVOLUTE_JOINT)
 
-    def add_prismatic_joint(self, a, b, anchor, axis, strength_ratio=100.0, name=None) -> int:
+    def add_prismatic_joint(self, a, b, anchor, axis, strength_ratio=None, name=None) -> int:
         """Slider along ``axis`` through ``anchor`` (UID 20, the seed's C0..C3)."""
         return self._add_joint(PRISMATIC, a, b, anchor, axis, strength_ratio, 1.0, name, UID_PRISMATIC_JOINT)
 
-    def add_fixed_joint(self, a, b, anchor=None, strength_ratio=100.0, half_length=None, name=None) -> int:
+    def add_fixed_joint(self, a, b, anchor=None, strength_ratio=None, half_length=None, name=None) -> int:
         """Weld: four points (anchor and anchor + L·e_k) fixed in both bodies must coincide."""
         if anchor is None:
             anchor = 0.5 * (self.bodies[self.body_index(a)].position + self.bodies[self.body_index(b)].position)
@@ -334,3 +355,70 @@ class Scene:
 
     def joints_of(self, kind):
         return [k for k, j in enumerate(self.joints) if j.kind == kind]
+
+    # ------------------------------------------------------------------ joint strengths
+    def strength_ratios(self) -> np.ndarray:
+        """(num_joints,) the strength ratio γ of each joint, ``K = γ·(m_i + m_j)`` [kg].
+
+        An explicit ``strength_ratio`` is returned as given.  A derived one is
+        ``γ = LOAD_STRENGTH_RATIO·max(1, M/(m_i + m_j))`` with ``M`` [kg] the mass the joint carries
+        (``supported_masses``): K ≥ 100·M, so the joint's gap under the load's weight is
+        ``M·g·h²/K ≤ g·h²/100`` (0.01 mm at h = 0.01 s), and K = 100·(m_i + m_j) where the joint
+        carries no more than its own two bodies.
+        """
+        load = self.supported_masses()
+        out = np.empty(self.num_joints)
+        for k, j in enumerate(self.joints):
+            if j.strength_ratio is not None:
+                out[k] = j.strength_ratio
+            else:
+                own = self.bodies[j.body_a].mass + self.bodies[j.body_b].mass
+                out[k] = LOAD_STRENGTH_RATIO * max(1.0, load[k] / own)
+        return out
+
+    def supported_masses(self) -> np.ndarray:
+        """(num_joints,) the free mass [kg] each joint carries, through the joint graph (bodies the
+        nodes, joints the edges, every fixed body one ground node):
+
+        - a joint whose removal splits its bodies apart carries the side away from the ground (of a
+          mechanism with no fixed body, the lighter side);
+        - a joint on a loop shares the load with the loop's other joints in proportions the graph
+          does not tell, so it is counted as carrying all that hangs together with it: the free mass
+          of its bodies' component once the ground is removed (an upper bound, which errs stiff).
+        """
+        ground = -1
+        node = [ground if b.fixed else k for k, b in enumerate(self.bodies)]
+        mass = {k: b.mass for k, b in enumerate(self.bodies) if not b.fixed}
+        edges = [(node[j.body_a], node[j.body_b]) for j in self.joints]
+
+        def component(start, skip_edge=None, skip_ground=False):
+            seen, todo = {start}, [start]
+            while todo:
+                n = todo.pop()
+                for e, (a, b) in enumerate(edges):
+                    if e == skip_edge or n not in (a, b):
+                        continue
+                    other = b if n == a else a
+                    if other not in seen and not (skip_ground and other == ground):
+                        seen.add(other)
+                        todo.append(other)
+            return seen
+
+        def free_mass(nodes):
+            return sum(mass.get(n, 0.0) for n in nodes)
+
+        out = np.zeros(self.num_joints)
+        for e, (a, b) in enumerate(edges):
+            side_a = component(a, skip_edge=e)
+            if b not in side_a:  # a bridge
+                side_b = component(b, skip_edge=e)
+                if ground in side_a:
+                    out[e] = free_mass(side_b)
+                elif ground in side_b:
+                    out[e] = free_mass(side_a)
+                else:
+                    out[e] = min(free_mass(side_a), free_mass(side_b))
+            else:
+                start = b if a == ground else a
+                out[e] = free_mass(component(start, skip_ground=True))
+        return out

@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 
 import numpy as np
 import warp as wp
 
-from . import graphs, kinematics, launches, rows
+from . import conditioning, graphs, kinematics, launches, rows
 from .coordinates import FIXED_CODE
+from .inputs import check_joint_state
+from .inputs import finite_array as _finite_array
 from .model import Model
 from .plan import ExecutionPlan
 from .scene import REVOLUTE, Scene
@@ -27,20 +30,6 @@ def _skew(w):
     out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
     out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
     return out
-
-
-def _finite_array(name, values, shape):
-    a = np.asarray(values, dtype=np.float64)
-    try:
-        a = np.broadcast_to(a, shape)
-    except ValueError:
-        raise ValueError(f"{name} must have shape {shape}, got {np.shape(values)}") from None
-    if np.isfinite(a).all():  # the common case, without argwhere's cost
-        return a
-    bad = np.argwhere(~np.isfinite(a))
-    if bad.size:
-        raise ValueError(f"{name} has a non-finite value {a[tuple(bad[0])]} at index {tuple(bad[0].tolist())}")
-    return a
 
 
 class Simulator:
@@ -79,16 +68,20 @@ class Simulator:
         self.scene = scene
         device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
         self.model = Model(scene, num_worlds, dtype=dtype, device=device)
+        for message in conditioning.unsolvable(scene, float(dt), "float32" if self.model.np_dtype == np.float32 else "float64"):
+            warnings.warn(message, RuntimeWarning, stacklevel=2)
         self.state = State(self.model)
         self.solver = Solver(self.model, dt, settings, plan)
         self.dt = float(dt)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device
         m = self.model
-        self._ratio = np.broadcast_to([j.strength_ratio for j in scene.joints], (self.num_worlds, m.num_joints)).copy()
+        self._ratio = np.broadcast_to(scene.strength_ratios(), (self.num_worlds, m.num_joints)).copy()
         self._mass = np.broadcast_to(m.base_mass, (self.num_worlds, m.num_bodies)).copy()
         self._joint_bodies = (m.body_a.numpy()[: m.num_joints].copy(), m.body_b.numpy()[: m.num_joints].copy())
-        self._limits = {}  # joint kind -> host copies of the limits' (lower, upper, strength), (W, limits)
+        # joint kind -> host copies of the limits' (lower, upper, strength), (W, limits)
+        self._limits = {kind: [np.broadcast_to([scene.joints[k].attributes[f"limit/{a}"] for k in ids], (self.num_worlds, len(ids))).copy()
+                               for a in ("lower", "upper", "strength")] for kind, ids in m.limit_joints.items()}  # fmt: skip
         self._set_mask = None
         self._tree_plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
         self._torch_views = {}
@@ -323,10 +316,11 @@ class Simulator:
         """
         idx = self._worlds(worlds)
         nb = self.model.num_bodies
-        p = _finite_array("positions", positions, (len(idx), nb, 3))
-        R = _finite_array("rotations", rotations, (len(idx), nb, 3, 3))
-        v = _finite_array("linear_velocities", 0.0 if linear_velocities is None else linear_velocities, (len(idx), nb, 3))
-        w = _finite_array("angular_velocities", 0.0 if angular_velocities is None else angular_velocities, (len(idx), nb, 3))
+        at = dict(worlds=idx, items=[b.name for b in self.scene.bodies], item="body")
+        p = _finite_array("positions", positions, (len(idx), nb, 3), **at)
+        R = _finite_array("rotations", rotations, (len(idx), nb, 3, 3), **at)
+        v = _finite_array("linear_velocities", 0.0 if linear_velocities is None else linear_velocities, (len(idx), nb, 3), **at)
+        w = _finite_array("angular_velocities", 0.0 if angular_velocities is None else angular_velocities, (len(idx), nb, 3), **at)
         q = np.concatenate([p, R.reshape(len(idx), nb, 9)], axis=-1)
         qd = np.concatenate([v, (_skew(w) @ R).reshape(len(idx), nb, 9)], axis=-1)
         fixed = np.array([b.fixed for b in self.scene.bodies])
@@ -357,14 +351,20 @@ class Simulator:
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
         """Forward kinematics for tree mechanisms (kinematics.py, on the device): joint coordinates
         (N, num_joints) [rad, m] and rates, from the scene's zero pose.  Joints that close a loop
-        are left to the solver."""
+        are left to the solver.
+
+        Refused with a ValueError naming the joint, the world and the value (nothing is written): a
+        non-finite value, a limited joint outside its limit's
+        [lower, upper], a revolute rate that turns the joint by π or more in one step."""
         idx = self._worlds(worlds)
         m = self.model
         nj, N = m.num_joints, len(idx)
-        x = _finite_array("coordinates", coordinates, (N, nj))
-        xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj))
+        at = dict(worlds=idx, items=[j.name for j in self.scene.joints], item="joint")
+        x = _finite_array("coordinates", coordinates, (N, nj), **at)
+        xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj), **at)
         if N == 0:
             return
+        check_joint_state(self.scene, x, xd, idx, self.dt, self._limit_bounds())
         idx_dev = rows.indices(idx, self._stage)
         # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
         # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
@@ -373,6 +373,12 @@ class Simulator:
         self._replay("restart", *kinematics.restart_launch(*self._tree(), self.state, m, self.solver, idx_dev, xx, N,
                                                            self.dt))  # fmt: skip
         self.state.time[idx] = 0.0
+
+    def _limit_bounds(self):
+        """{joint index: (lower (W,), upper (W,))} of the limited joints, from the host copies."""
+        m = self.model
+        return {j: (self._limits[kind][0][:, c], self._limits[kind][1][:, c])
+                for kind, ids in m.limit_joints.items() for c, j in enumerate(ids)}  # fmt: skip
 
     def _tree(self):
         """(forward kinematics' plan, its per-world angular-velocity scratch), made on first use."""
@@ -455,8 +461,6 @@ class Simulator:
             raise ValueError(f"joint {joint!r} has no limit")
         col = m.limit_joints[kind].index(j)
         idx = self._worlds(worlds)
-        if kind not in self._limits:  # host copy of (lower, upper, strength), read from the device once
-            self._limits[kind] = [a.numpy().astype(np.float64) for a in m.limit_params[kind]]
         host = self._limits[kind]
         new = [h[idx, col].copy() for h in host]
         for k, (val, name) in enumerate(zip((lower, upper, strength), ("lower", "upper", "strength"))):

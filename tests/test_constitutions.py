@@ -1140,17 +1140,25 @@ def test_fused_rank_one_terms_between_free_bodies(parent_first):
     """Limits and PD drives between two free bodies, with the joint's body i before or after body j
     in the unknowns: the fused step adds their E''∇x∇xᵀ blocks entry by entry (fused.put_outer, each
     ordering of the pair its own branch) and must match the staged kernels' assembly."""
-    scene = ag.Scene(gravity=(0.0, 0.0, -9.81))
-    base = scene.add_body(ag.Box(half_extents=(0.1, 0.1, 0.1)), fixed=True)
-    a = scene.add_body(ag.Box(half_extents=(0.02, 0.02, 0.25)), mass=1.0, position=(0.0, 0.0, -0.25))
-    b = scene.add_body(ag.Box(half_extents=(0.02, 0.02, 0.25)), mass=0.5, position=(0.0, 0.0, -0.75))
-    scene.add_revolute_joint(base, a, anchor=(0.0, 0.0, 0.0), axis=(0, 1, 0))
-    pair = (a, b) if parent_first else (b, a)
-    hinge = scene.add_revolute_joint(*pair, anchor=(0.0, 0.0, -0.5), axis=(0, 1, 0))
-    scene.add_revolute_limit(hinge, lower=-0.2, upper=0.2, strength=1e3)
-    scene.add_drive(hinge, "position", stiffness=40.0, damping=1.0, max_effort=100.0)
-    sim = ag.Simulator(scene, num_worlds=2, dtype="float64", plan=ag.ExecutionPlan(fused=False))
-    sim.set_joint_state([[0.3, 0.5], [-0.2, -0.45]])  # the limit acts in both worlds, the drive is linear
+    def build(limit):
+        scene = ag.Scene(gravity=(0.0, 0.0, -9.81))
+        base = scene.add_body(ag.Box(half_extents=(0.1, 0.1, 0.1)), fixed=True)
+        a = scene.add_body(ag.Box(half_extents=(0.02, 0.02, 0.25)), mass=1.0, position=(0.0, 0.0, -0.25))
+        b = scene.add_body(ag.Box(half_extents=(0.02, 0.02, 0.25)), mass=0.5, position=(0.0, 0.0, -0.75))
+        scene.add_revolute_joint(base, a, anchor=(0.0, 0.0, 0.0), axis=(0, 1, 0))
+        pair = (a, b) if parent_first else (b, a)
+        hinge = scene.add_revolute_joint(*pair, anchor=(0.0, 0.0, -0.5), axis=(0, 1, 0))
+        if limit:
+            scene.add_revolute_limit(hinge, lower=-0.2, upper=0.2, strength=1e3)
+        scene.add_drive(hinge, "position", stiffness=40.0, damping=1.0, max_effort=100.0)
+        return scene
+
+    # poses past the limit's bound (the limit acts in both worlds, the drive is linear), placed by
+    # a twin without the limit: set_joint_state refuses a joint outside its limit
+    twin = ag.Simulator(build(limit=False), num_worlds=2, dtype="float64", plan=ag.ExecutionPlan(fused=False))
+    twin.set_joint_state([[0.3, 0.5], [-0.2, -0.45]])
+    sim = ag.Simulator(build(limit=True), num_worlds=2, dtype="float64", plan=ag.ExecutionPlan(fused=False))
+    sim.set_body_states(twin.body_positions(), twin.body_rotations())
     sim.set_controls([[0.1], [-0.1]])
     E, g, H = assemble(sim)
     assert E[:, sim.solver.cols["revolute_limit"]].min() > 0

@@ -1,0 +1,57 @@
+"""Bad input to the state setters: a ValueError that names the argument, the world, the joint or
+body and the value, and no world changed."""
+import numpy as np
+import pytest
+
+import abd_gym as ag
+from abd_gym import mechanisms
+
+
+@pytest.fixture(scope="module")
+def sim():
+    scene = mechanisms.chain(2)
+    scene.add_revolute_limit(1, -1.0, 1.0, 1e3)
+    return ag.Simulator(scene, num_worlds=3, dt=0.01)
+
+
+def test_non_finite_joint_state_names_world_and_joint(sim):
+    x = np.zeros((3, 2))
+    x[2, 1] = np.nan
+    with pytest.raises(ValueError, match=r"coordinates has a non-finite value nan in world 2, joint 'revolute1'"):
+        sim.set_joint_state(x)
+    with pytest.raises(ValueError, match=r"velocities has a non-finite value inf in world 1, joint 'revolute0'"):
+        sim.set_joint_state(np.zeros((2, 2)), [[0.0, 0.0], [np.inf, 0.0]], worlds=[0, 1])
+
+
+def test_non_finite_body_state_names_world_and_body(sim):
+    q = sim.body_q()
+    p, R = q[..., :3].copy(), q[..., 3:].reshape(3, 3, 3, 3).copy()
+    p[1, 2, 0] = np.inf
+    with pytest.raises(ValueError, match=r"positions has a non-finite value inf in world 1, body 'link1'"):
+        sim.set_body_states(p, R)
+
+
+def test_joint_outside_its_limit_is_refused(sim):
+    with pytest.raises(ValueError, match=r"joint 'revolute1' in world 0 is at 1\.2, outside its limit \[-1\.0, 1\.0\]"):
+        sim.set_joint_state([[0.0, 1.2]], worlds=[0])
+    sim.set_limit(1, lower=-1.5, upper=1.5, worlds=[0])  # per-world bounds are the ones checked
+    sim.set_joint_state([[0.0, 1.2]], worlds=[0])
+    with pytest.raises(ValueError, match=r"in world 1 is at 1\.2"):
+        sim.set_joint_state([[0.0, 1.2]], worlds=[1])
+
+
+def test_rate_that_turns_pi_in_a_step_is_refused(sim):
+    """|ẋ|·dt ≥ π: 314.2 rad/s at dt 0.01 is refused, 300 rad/s is accepted."""
+    with pytest.raises(ValueError, match=r"velocities: revolute joint 'revolute0' in world 2 has rate 1e\+25 rad/s"):
+        sim.set_joint_state(np.zeros((3, 2)), [[0.0, 0.0], [0.0, 0.0], [1e25, 0.0]])
+    with pytest.raises(ValueError, match=r"rate -315\.0 rad/s"):
+        sim.set_joint_state(np.zeros((3, 2)), [[0.0, -315.0], [0.0, 0.0], [0.0, 0.0]])
+    sim.set_joint_state(np.zeros((3, 2)), [[300.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+
+
+def test_a_refused_state_changes_no_world(sim):
+    sim.set_joint_state([[0.1, 0.2], [0.3, 0.4], [0.5, 0.6]])
+    before = sim.body_q()
+    with pytest.raises(ValueError):
+        sim.set_joint_state([[0.0, 0.0], [0.0, 0.0], [0.0, 4.0]])
+    np.testing.assert_array_equal(sim.body_q(), before)
