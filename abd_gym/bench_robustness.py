@@ -13,14 +13,16 @@ default settings (only the scene and dt are chosen).  Per run it reports:
   max_t E(t) − E(0) of each world's total energy E (the sum of ``energies()``: kinetic, gravity,
   orthogonality, joints, limits), relative to the world's swing energy S = E(0) − min_t V_g(t),
   its energy above the lowest gravity potential it visits (for a conservative world, its largest
-  kinetic plus elastic energy; T(0) where gravity does no work);
+  kinetic plus elastic energy; T(0) where gravity does no work), and ``ΔE at end``, the mean
+  (E(end) − E(0)) / S (the energy a run kept);
 - ``gap``: the largest joint residual ``joint_violation()`` [mm];
 - ``overshoot``: the largest excursion of a limited joint past its bound (multi-turn angle [rad],
   displacement [m]), and its ratio to the estimate of docs/design.md §3.3 with the world's whole
   swing energy arriving at the limit: (S/s)^(1/3) rad for a revolute limit of strength s,
   w·(S/s)^(1/3) m for a prismatic one of range width w;
 - ``iterations``: Newton iterations a step, mean and max;
-- ``refused`` / ``warned``: the simulator raised an error / issued a warning when built.
+- ``refused`` / ``warned``: the simulator raised an error when built or given the initial
+  state / issued a warning then.
 
 Prints a table, writes ``robustness.json`` to --out and, with --md PATH or --write-doc, the
 Markdown report (docs/robustness.md).
@@ -28,7 +30,6 @@ Markdown report (docs/robustness.md).
 import argparse
 import datetime
 import json
-import math
 import os
 import platform
 import sys
@@ -322,7 +323,8 @@ def table(rows) -> str:
         over = "–" if "overshoot" not in r else \
             f"{r['overshoot']:.3g} {r['overshoot_unit']} ({r['overshoot_over_bound']:.2f})"
         build = "warned: " + "; ".join(r["warnings"]) if r["warnings"] else "ok"
-        lines.append(head + f" {_cell_reported(r)} | {r['silent']} | {gain[0]} | {gain[1]} | {final} | {r['gap_mm']:.3g} | "
+        lines.append(head + f" {_cell_reported(r)} | {r['silent']} | {gain[0]} | {gain[1]} | {final} | "
+                     f"{r['gap_mm']:.3g} | "
                      f"{over} | {_its(r)} | {build} |")  # fmt: skip
     return "\n".join(lines)
 
@@ -394,7 +396,8 @@ def main(argv=None):
                args.dtypes.split(","), args.device, args.steps, args.seed)  # fmt: skip
     gpu = args.device.startswith("cuda")
     argv = sys.argv[1:] if argv is None else list(argv)
-    result = dict(command=" ".join(["python -m abd_gym.bench robustness"] + argv), device=args.device,
+    shown = [a for i, a in enumerate(argv) if a != "--out" and (i == 0 or argv[i - 1] != "--out")]  # not the JSON's
+    result = dict(command=" ".join(["python -m abd_gym.bench robustness"] + shown), device=args.device,
                   device_name=wp.get_device(args.device).name if gpu else platform.processor() or platform.machine(),
                   date=datetime.date.today().isoformat(), warp=wp.config.version, worlds=args.worlds, seed=args.seed,
                   seconds=time.perf_counter() - t0, rows=rows)  # fmt: skip
