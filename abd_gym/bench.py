@@ -4,6 +4,7 @@
     python -m abd_gym.bench compare ...    (against MuJoCo Warp: bench_compare.py)
     python -m abd_gym.bench accuracy ...   (speed against error: bench_accuracy.py)
     python -m abd_gym.bench threads ...    (fused step's thread count and block size: sweep_threads)
+    python -m abd_gym.bench robustness ... (hard cases with default settings: bench_robustness.py)
 
 For a double pendulum and a cart-pole it times ``Simulator.step`` (after warm-up, synchronised)
 and reports world-steps per second, steps per second, mean Newton iterations, the largest joint
@@ -138,6 +139,10 @@ def main(argv=None):
         from .bench_accuracy import main as accuracy
 
         return accuracy(argv[1:])
+    if argv and argv[0] == "robustness":
+        from .bench_robustness import main as robustness
+
+        return robustness(argv[1:])
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--worlds", default=None, help="comma-separated world counts (default: 1..64 on CPU, 1..65536 on GPU)")

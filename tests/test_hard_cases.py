@@ -1,10 +1,19 @@
 """Numerical stability on hard cases, under implicit Euler and BDF2: each must finish with no NaN,
 no energy gain (both integrators only dissipate here), a bounded joint residual, and Newton
-converged in every world."""
+converged in every world.
+
+The hard-case suite (the cases of ``python -m abd_gym.bench robustness``, 8 worlds each, every
+integrator and dtype, default settings) asserts what a user must be able to rely on: every step
+converged or its world reported, no silent energy gain above 5% of a world's swing energy in a
+conservative scene, joint gaps in millimetres, limits that hold, no failure on 1:1000 mass
+ratios in float32, and settings or states that cannot work announced."""
+import functools
+
 import numpy as np
 import pytest
 
 import abd_gym as ag
+from abd_gym import bench_robustness as rb
 from abd_gym import mechanisms
 
 
@@ -204,3 +213,107 @@ def test_third_order_guess_only_under_a_steady_control():
     np.testing.assert_array_equal(sim.state.qd_hist2.numpy()[2], sim.state.qd.numpy()[2])
     sim.step()
     assert sim.state.calm.numpy().tolist() == [1, 1, 0, 2]  # (held once; a world with no past counts from its first step)
+
+
+# ---------------------------------------------------------------- the hard-case suite
+
+SUITE_WORLDS = 8
+SUITE_SECONDS = {"chain20": 2.0}  # shorter than the report's run, to keep the suite quick
+RUNS = [(c.name, dt) for c in rb.cases() for dt in c.dts]
+GRID = [(name, dt, integrator, dtype) for name, dt in RUNS for integrator in rb.INTEGRATORS for dtype in rb.DTYPES]
+
+
+def _ids(grid):
+    return [f"{name}-dt{dt:g}-{integrator}-{dtype}" for name, dt, integrator, dtype in grid]
+
+
+def suite(names=None, dtypes=rb.DTYPES, exclude=()):
+    """Parametrise over the runs of the cases ``names`` (default: all) in ``dtypes``, less the
+    (case, dt) pairs in ``exclude``."""
+    grid = [g for g in GRID if (names is None or g[0] in names) and g[3] in dtypes and g[:2] not in exclude]
+    return pytest.mark.parametrize("name,dt,integrator,dtype", grid, ids=_ids(grid))
+
+
+@functools.lru_cache(maxsize=None)
+def _scene(name):
+    return rb.case(name).scene()
+
+
+@functools.lru_cache(maxsize=None)
+def _row(name, dt, integrator, dtype):
+    """One run of the report's harness (shared by every assertion on it)."""
+    seconds = SUITE_SECONDS.get(name)
+    steps = None if seconds is None else int(round(seconds / dt))
+    return rb.run_case(rb.case(name), dt, integrator, dtype, worlds=SUITE_WORLDS, steps=steps, scene=_scene(name))
+
+
+def _describe(r):
+    return rb.line(r)
+
+
+@suite()
+def test_no_step_is_committed_unconverged_and_unreported(name, dt, integrator, dtype):
+    """Every world-step ends converged, or its world is reported (or the simulator refused the
+    setting or the state when given it)."""
+    r = _row(name, dt, integrator, dtype)
+    assert r["refused"] or r["silent"] == 0, _describe(r)
+
+
+CONSERVATIVE = [c.name for c in rb.cases() if c.conservative]
+
+
+@suite(CONSERVATIVE)
+def test_no_silent_energy_gain(name, dt, integrator, dtype):
+    """In a scene where no force does work, no world that was not reported ends any step with
+    more than 5% of its swing energy S = E(0) − min_t V_g(t) above its initial energy (limits
+    engaging and releasing included)."""
+    r = _row(name, dt, integrator, dtype)
+    assert r["refused"] or r["gain_worlds"] == 0, _describe(r)
+
+
+# dt 0.03 under a 1000:1 load and absurd rates are left out: the issue sets the 5 mm goal for the
+# load at dt 0.01, and absurd rates must be refused or reported (below).
+GAP_CASES = [n for n in rb.CASE_NAMES if n != "absurd_rates"]
+
+
+@suite(GAP_CASES, exclude=[("heavy_under_light", 0.03)])
+def test_joint_gaps_stay_under_5_mm(name, dt, integrator, dtype):
+    """Joints hold to millimetres in every hard case with default strengths, including a 1000 kg
+    link hanging under a 1 kg one at dt 0.01 (the issue's goal: ≤ 5 mm) and strength ratios down
+    to 1."""
+    r = _row(name, dt, integrator, dtype)
+    assert r["refused"] or r["gap_mm"] <= 5.0, _describe(r)
+
+
+@suite(["spin_into_limit", "prismatic_slam", "slider_crank"])
+def test_limits_hold(name, dt, integrator, dtype):
+    """A joint that reaches its limit stops within the overshoot estimate of docs/design.md §3.3
+    with the world's whole swing energy S arriving there: (S/s)^(1/3) rad for a revolute limit,
+    w·(S/s)^(1/3) m for a prismatic one (a link spun at 50 rad/s must not pass through ±3.1 rad)."""
+    r = _row(name, dt, integrator, dtype)
+    assert r["refused"] or r["overshoot_over_bound"] <= 1.0, _describe(r)
+
+
+@suite(["light_under_heavy", "heavy_under_light"], dtypes=("float32",))
+def test_mass_ratio_1_to_1000_never_fails_in_float32(name, dt, integrator, dtype):
+    """A 0.001 kg link under a 1 kg one and 1000 kg under 1 kg, at dt 0.01 and 0.03 in float32:
+    no world fails (the issue's goal for dt ≤ 0.03)."""
+    r = _row(name, dt, integrator, dtype)
+    assert r["refused"] is None and r["reported"] == 0, _describe(r)
+
+
+@suite([n for n in rb.CASE_NAMES if n.startswith("strength_")])
+def test_unworkable_strengths_are_announced(name, dt, integrator, dtype):
+    """A strength ratio from 1 to 1e8 either steps every world or is announced when the
+    simulator is built (a warning or an error): worlds that fail under a setting that was
+    accepted in silence are not allowed."""
+    r = _row(name, dt, integrator, dtype)
+    assert r["refused"] or r["warnings"] or r["reported"] == 0, _describe(r)
+
+
+@suite(["absurd_rates"])
+def test_absurd_rates_are_refused_or_reported(name, dt, integrator, dtype):
+    """Joint rates up to 1e9 rad/s cannot be stepped at dt 0.01 (10^7 rad a step): the state is
+    refused, or every world is reported."""
+    r = _row(name, dt, integrator, dtype)
+    assert r["refused"] or r["reported"] == r["worlds"], _describe(r)
