@@ -43,8 +43,9 @@ class SolverSettings:
     max_iterations: int = 50
     # Armijo trials a Newton step at most (α halved down to 2^-(max_line_search − 1))
     max_line_search: int = 12
-    # "implicit_euler" (first order, dissipative) or "bdf2" (second order, far less numerical damping)
-    integrator: str = "implicit_euler"
+    # "bdf2" (second order, far less numerical damping; implicit Euler steps where a world's state was
+    # just set or a limit acts, docs/design.md §2.2) or "implicit_euler" (first order, dissipative)
+    integrator: str = "bdf2"
     # after a full Newton step taken whole, solve the next iteration's gradient against the same
     # Cholesky factor (a simplified-Newton step, tried at α = 1, kept while it converges 8× per
     # iteration); False: factor at every iteration.  None: in float32 only, where rounding bounds
