@@ -9,6 +9,7 @@ import functools
 import warp as wp
 
 from .angles import angle_ops
+from .solver_kernels import RESTART
 from .warp_ops import ops
 
 REVOLUTE_CODE, PRISMATIC_CODE, FIXED_CODE = 0, 1, 2
@@ -23,7 +24,14 @@ def kernels(dtype):
 @functools.lru_cache(maxsize=None)
 def funcs(dtype):
     """(begin_joint, joint_coordinates, close_joint): one joint of one world each (for the fused step)."""
-    return _build(dtype)[2:]
+    return _build(dtype)[2:5]
+
+
+@functools.lru_cache(maxsize=None)
+def restart_funcs(dtype):
+    """(limit_engaged, restart_engaged): a BDF2 world's history restarts where a limit is engaged
+    (solver_kernels.open_body)."""
+    return _build(dtype)[5:]
 
 
 @functools.lru_cache(maxsize=None)
@@ -179,4 +187,32 @@ def _build(dtype):
             unwrapped[w, j] = x
         x_anchor[w, j] = anchor(unwrapped, x_hist, bdf2 != 0, w, j)
 
-    return begin_step, coordinates, begin_joint, joint_coordinates, close_joint
+    @wp.func
+    def limit_engaged(coord: wp.array2d(dtype=dtype), lim_ids: wp.array(dtype=wp.int32), lo: wp.array2d(dtype=dtype),
+                      up: wp.array2d(dtype=dtype), count: int, w: int):  # fmt: skip
+        """1 where one of world w's ``count`` limits (joint lim_ids[k], bounds lo[w, k] ≤ x ≤ up[w, k])
+        has its joint's coordinate x = coord[w, j] outside its bounds (its energy not zero), else 0."""
+        engaged = int(0)
+        for k in range(count):
+            x = coord[w, lim_ids[k]]
+            if x < lo[w, k] or x > up[w, k]:
+                engaged = 1
+        return engaged
+
+    @wp.kernel(module="unique")
+    def restart_engaged(
+        coord: wp.array2d(dtype=dtype), status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32),
+        rlim_ids: wp.array(dtype=wp.int32), rlim_lo: wp.array2d(dtype=dtype), rlim_up: wp.array2d(dtype=dtype),
+        num_rlim: int, plim_ids: wp.array(dtype=wp.int32), plim_lo: wp.array2d(dtype=dtype),
+        plim_up: wp.array2d(dtype=dtype), num_plim: int,
+    ):  # fmt: skip
+        """A healthy world w with a limit engaged at the end of its step restarts its BDF2 history
+        (fresh[w] = RESTART; solver_kernels.open_body)."""
+        w = wp.tid()
+        if status[w] != 0:
+            return
+        if limit_engaged(coord, rlim_ids, rlim_lo, rlim_up, num_rlim, w) + limit_engaged(
+                coord, plim_ids, plim_lo, plim_up, num_plim, w) != 0:  # fmt: skip
+            fresh[w] = RESTART
+
+    return begin_step, coordinates, begin_joint, joint_coordinates, close_joint, limit_engaged, restart_engaged

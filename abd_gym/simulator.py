@@ -40,8 +40,10 @@ class Simulator:
 
     with q̃ the inertial prediction and h = dt (implicit Euler) or 2dt/3 (BDF2).
 
-    The physics: ``integrator`` "implicit_euler" (first order, dissipative, the robust choice) or
-    "bdf2" (second order, far less numerical damping); ``dtype`` "float32" or "float64";
+    The physics: ``integrator`` "bdf2" (the default: second order, far less numerical damping; a
+    world takes implicit Euler steps where its state was just set or a limit acts, so that no
+    impact gains energy) or "implicit_euler" (first order, dissipative: a free pendulum visibly
+    loses its swing); ``dtype`` "float32" or "float64";
     ``device`` "cpu" or "cuda:N" (default: $ABD_GYM_DEVICE, else "cpu").  The Newton solve
     (SolverSettings): it stops a world once ‖Δq‖∞/h < ``tol`` [m/s], after at most
     ``max_iterations`` iterations of at most ``max_line_search`` Armijo trials each;
@@ -56,7 +58,7 @@ class Simulator:
     the same step to rounding.  ``Simulator.plan`` is the resolved plan.
     """
 
-    def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "implicit_euler",
+    def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "bdf2",
                  dtype="float32", device=None, tol: float = 1e-5, max_iterations: int = 50,
                  max_line_search: int = 12, reuse_factor: bool | None = None, quadratic_stop: float = 100.0,
                  plan: ExecutionPlan | dict | None = None):  # fmt: skip

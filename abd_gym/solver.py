@@ -43,8 +43,9 @@ class SolverSettings:
     max_iterations: int = 50
     # Armijo trials a Newton step at most (α halved down to 2^-(max_line_search − 1))
     max_line_search: int = 12
-    # "implicit_euler" (first order, dissipative) or "bdf2" (second order, far less numerical damping)
-    integrator: str = "implicit_euler"
+    # "bdf2" (second order, far less numerical damping; implicit Euler steps where a world's state was
+    # just set or a limit acts, docs/design.md §2.2) or "implicit_euler" (first order, dissipative)
+    integrator: str = "bdf2"
     # after a full Newton step taken whole, solve the next iteration's gradient against the same
     # Cholesky factor (a simplified-Newton step, tried at α = 1, kept while it converges 8× per
     # iteration); False: factor at every iteration.  None: in float32 only, where rounding bounds
@@ -196,6 +197,8 @@ class Solver:
         self.k = solver_kernels(dt_, self.envelope)
         self._fused = None  # (kernel, struct of arrays), built on the first fused step
         self.begin_step, self.coordinates = coordinates.kernels(dt_)
+        # BDF2 restarts a world's history where a limit is engaged (solver_kernels.open_body)
+        self.restarts = bool(self.bdf2 and any(model.limit_joints.values()))
         self._restart_cmds = {}  # restart_joints' recorded launches
 
     def _columns(self, physical):
@@ -372,6 +375,12 @@ class Solver:
                                                       state.qd_hist2, state.order3, m.dof, dt(self.h), self.h_step,
                                                       state.status], device=dev)  # fmt: skip
         self.update_coordinates(state, accumulate=True)
+        if self.restarts:
+            lim = {kind: (m.limit_joint_ids[kind], *m.limit_params[kind][:2], len(m.limit_joints[kind]))
+                   for kind in (REVOLUTE, PRISMATIC)}  # fmt: skip
+            wp.launch(coordinates.restart_funcs(dt)[1], dim=W,
+                      inputs=[state.coord, state.status, state.fresh, *lim[REVOLUTE], *lim[PRISMATIC]],
+                      device=dev)  # fmt: skip
 
     def _fused_newton(self, state, steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
         """The fused kernel: Newton for every world; with one_launch, the whole step, ``steps`` of

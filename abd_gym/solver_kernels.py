@@ -14,6 +14,18 @@ from .warp_ops import ops
 
 # world status codes
 OK, FAILED = 0, 1
+# State.fresh: 0, the world's next step is a BDF2 step (under BDF2); RESET, its state was set (it has
+# no past) or a limit was engaged at the end of the step before its last; RESTART, a limit was
+# engaged at the end of its last step (coordinates.restart_engaged).  Either makes the next step an
+# implicit Euler one (open_body).
+RESET, RESTART = 1, 2
+
+
+@wp.func
+def keep_restart(fresh: wp.array(dtype=wp.int32), w: int):
+    """World w's step has begun: RESTART becomes RESET (one more implicit Euler step after the last
+    step that ends with a limit engaged), RESET becomes 0."""
+    fresh[w] = wp.where(fresh[w] == RESTART, RESET, 0)
 
 # the names kernels() returns
 _PUBLIC = (
@@ -153,13 +165,21 @@ def _predict_funcs(dtype):
         w: int, b: int, clear: int,
     ):  # fmt: skip
         """A world with a non-finite q or q̇ fails; each world's effective step: ĥ = 2h/3 for BDF2,
-        but h (an implicit Euler step) for a world without a past step (``fresh``).  BDF2 started
-        from a past invented as "the velocity was constant" takes a first velocity of (2/3)h·a for
-        h·a, an O(h) error it never loses (measured: first-order global error); an implicit Euler
-        first step is O(h²) accurate, which keeps BDF2 second order.  (Body 0 sets the world's.)
-        ``calm``: the steps in a row, up to 2, whose controls are the last step's (predict_body
-        extrapolates the last accelerations to third order only across steps of one control).
-        ``clear``: the world is no longer fresh (else the step's close clears it: the fused step)."""
+        but h (an implicit Euler step) for a world whose history restarts (``fresh`` nonzero):
+        - its state was set, so it has no past.  BDF2 started from a past invented as "the velocity
+          was constant" takes a first velocity of (2/3)h·a for h·a, an O(h) error it never loses
+          (measured: first-order global error); an implicit Euler first step is O(h²) accurate,
+          which keeps BDF2 second order.
+        - a limit was engaged at the end of one of its last two steps (coordinates.restart_engaged).
+          A stiff limit's impulse acts within a step or two; BDF2's two-step history would span it,
+          and its velocity q̇ⁿ⁺¹ = (3qⁿ⁺¹ − 4qⁿ + qⁿ⁻¹)/(2h) then keeps changing after the impulse with
+          no force acting (free motion carries q̇ⁿ⁺¹ − q̇ⁿ = (q̇ⁿ − q̇ⁿ⁻¹)/3 on, adding half of the last
+          step's change), so a world leaves a limit faster than it arrived.  Implicit Euler steps
+          while a limit acts and one step after it releases leave a history of free motion.
+        (Body 0 sets the world's.)  ``calm``: the steps in a row, up to 2, whose controls are the
+        last step's (predict_body extrapolates the last accelerations to third order only across
+        steps of one control).  ``clear``: the world's step has begun (keep_restart; else the
+        step's close does it: the fused step)."""
         if b == 0:
             same = int(1)
             for d in range(control.shape[1]):
@@ -172,7 +192,7 @@ def _predict_funcs(dtype):
                 he = dtype(2.0) * h / dtype(3.0)
             h_step[w] = he
             if clear != 0:
-                fresh[w] = 0
+                keep_restart(fresh, w)
         if not (wp.isfinite(q[w, b]) and wp.isfinite(qd[w, b])):
             status[w] = FAILED
 

@@ -32,8 +32,9 @@ class State:
         self.control_prev = wp.zeros_like(self.control)
         self.calm = wp.zeros(W, dtype=wp.int32, device=dev)
         self.status = wp.zeros(W, dtype=wp.int32, device=dev)
-        # 1: the world has no past step (new, or its state was just set); its next step is an
-        # implicit Euler step even under BDF2 (see solver_kernels.open_step)
+        # nonzero: the world's next step is an implicit Euler step even under BDF2 (solver_kernels.
+        # open_body): RESET (1), it has no past step (new, or its state was just set) or a limit
+        # released one step ago; RESTART (2), a limit was engaged at the end of its last step
         self.fresh = wp.ones(W, dtype=wp.int32, device=dev)
         self.iterations = wp.zeros(W, dtype=wp.int32, device=dev)
         self.factorizations = wp.zeros(W, dtype=wp.int32, device=dev)

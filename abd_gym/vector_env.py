@@ -94,7 +94,7 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   else the first 16), drawn headless by :mod:`abd_gym.render`.
 
 Simulator options: ``device`` ("cpu", "cuda:0"; default ``$ABD_GYM_DEVICE`` or "cpu"), ``dtype``
-("float32" or "float64") and ``integrator`` (the simulator's default, implicit Euler, unless given);
+("float32" or "float64") and ``integrator`` (the simulator's default, BDF2, unless given);
 the tasks' rewards and thresholds are calibrated with the defaults.  ``simulator_options``: more
 Simulator keyword arguments, e.g. ``{"tol": 1e-4}``, or ``{"plan": {"scratch": "global"}}`` (an
 ``ExecutionPlan`` or a dict of its fields: how the step runs on the device); an unknown name or a

@@ -108,7 +108,8 @@ def test_default_tolerance_matches_exact_implicit_euler():
     (float32 rounding; implicit Euler's own error against the true motion here is ~0.07 rad)."""
 
     def trajectory(dtype, tol):
-        sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, dt=0.01, dtype=dtype, tol=tol)
+        sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, dt=0.01, dtype=dtype, tol=tol,
+                           integrator="implicit_euler")
         sim.set_joint_state([[1.0, -0.5], [2.0, 1.0]])
         out = []
         for _ in range(100):
@@ -126,7 +127,7 @@ def _forced_cartpoles(steps, **kw):
     converged each step: the mean Newton iterations a step and the final joint coordinates."""
     from abd_gym.envs.cartpole import build_cart_scene
 
-    sim = ag.Simulator(build_cart_scene(), num_worlds=16, dt=0.02, **kw)
+    sim = ag.Simulator(build_cart_scene(), num_worlds=16, dt=0.02, integrator="implicit_euler", **kw)
     rng = np.random.default_rng(0)
     sim.set_joint_state(np.c_[np.zeros(16), rng.uniform(-0.2, 0.2, 16)])
     its = []
@@ -153,7 +154,8 @@ def _pendulums(dtype="float32", steps=60, **kw):
     over ``steps`` steps, mean Newton iterations, and the simulator."""
     from abd_gym.bench_compare import random_states
 
-    sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=16, dt=0.01, dtype=dtype, **kw)
+    sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=16, dt=0.01, dtype=dtype, integrator="implicit_euler",
+                       **kw)
     sim.set_joint_state(random_states("double_pendulum", 16))
     out, its = [], []
     for _ in range(steps):
@@ -193,7 +195,7 @@ def test_third_order_guess_only_under_a_steady_control():
     reset starts a world with no past (order3 0, q̇ⁿ⁻² = q̇, calm 0 after its first step)."""
     from abd_gym.bench_compare import random_states
 
-    sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01)
+    sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, integrator="implicit_euler")
     sim.set_joint_state(random_states("cartpole", 4))
     its = []
     for _ in range(40):

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from .. import coordinates, solver_kernels
-from ..solver_kernels import OK
+from ..solver_kernels import OK, RESTART, keep_restart
 from ..warp_ops import ops
 from .clock import (PHASE_OPEN, PHASE_CLOSE, PHASE_OPEN_BODIES, PHASE_OPEN_JOINTS, PHASE_OPEN_PREDICT,
                      PHASE_CLOSE_FINALIZE, PHASE_CLOSE_JOINTS, clock)  # fmt: skip
@@ -26,6 +26,10 @@ def world_step(spec: KernelSpec):
     staged = solver_kernels.kernels(dtype, spec.envelope, spec.packed)
     open_body, predict_body, finalize_body = staged["open_body"], staged["predict_body"], staged["finalize_body"]
     begin_joint, _, close_joint = coordinates.funcs(dtype)
+    limit_engaged = coordinates.restart_funcs(dtype)[0]
+    # the scene's limits, by kind: a term of their own or folded into their joint's
+    has_rlim, has_plim = (spec.has(name) or any(f[0] == name for f in spec.folds)
+                          for name in ("revolute_limit", "prismatic_limit"))  # fmt: skip
     block_sync = indexing(spec).block_sync
     clock_now, tick = clock(spec).clock_now, clock(spec).tick
     solve_world = newton(spec).solve_world
@@ -65,13 +69,16 @@ def world_step(spec: KernelSpec):
     def close_world(q: wp.array2d(dtype=vec12), t: Terms, k: Bracket, status: wp.array(dtype=wp.int32), w: int,
                     lane: int):  # fmt: skip
         """Solver.close_step's kernels for world w (bracket=True): finalize a body per lane, then, once
-        the world's q is final, its joints' coordinates (a healthy world's only)."""
+        the world's q is final, its joints' coordinates (a healthy world's only); under BDF2, a world
+        with a limit engaged restarts its history (coordinates.restart_engaged)."""
         if wp.static(lanes):
             block_sync()
         c = clock_now()
         for b in range(lane, q.shape[1], LANES):
             finalize_body(q, k.q_prev, k.qd, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, t.dof, k.h, t.h_step, status, w,
                           b)  # fmt: skip
+        if lane == 0:
+            keep_restart(k.fresh, w)  # (fresh is read by this step's open only, before its first barrier)
         if wp.static(lanes):
             block_sync()
         c = tick(t, w, lane, PHASE_CLOSE_FINALIZE, c)
@@ -80,8 +87,18 @@ def world_step(spec: KernelSpec):
                 close_joint(q, k.q_prev, t.body_a, t.body_b, t.joint_kind, t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b,
                             t.b_b, t.theta0, t.c_prev, t.s_prev, k.c_ref, k.s_ref, k.h, k.bdf2, k.coord, k.velocity,
                             t.unwrapped, k.x_hist, t.x_anchor, w, j)  # fmt: skip
-        if lane == 0:
-            k.fresh[w] = 0  # (read by this step's open only, before its first barrier)
+        if wp.static(has_rlim or has_plim):
+            if k.bdf2 != 0 and status[w] == OK:
+                if wp.static(lanes):
+                    block_sync()  # the coordinates, by other lanes
+                if lane == 0:
+                    engaged = int(0)
+                    if wp.static(has_rlim):
+                        engaged += limit_engaged(k.coord, t.rlim_ids, t.rlim_lo, t.rlim_up, t.rlim_ids.shape[0], w)
+                    if wp.static(has_plim):
+                        engaged += limit_engaged(k.coord, t.plim_ids, t.plim_lo, t.plim_up, t.plim_ids.shape[0], w)
+                    if engaged != 0:
+                        k.fresh[w] = RESTART  # (solver_kernels.open_body)
         tick(t, w, lane, PHASE_CLOSE_JOINTS, c)  # (lane 0's joints: no barrier follows them)
 
     @wp.func
