@@ -16,9 +16,9 @@ Reward: a dense version of the classic −1 per step: r = −(L − h)/(2L) with
   L = 2 m the chain length, so −1 hanging straight down, rising towards 0 as the tip rises; 0 on
   the step that reaches the goal.  Per step in [−1, 0], episode return in [−500, 0]; every step
   costs, so reaching the goal fast pays.
-Termination: the tip rises more than 0.5 m above the shoulder.  (The classic asks for one link
-  length; implicit Euler's numerical damping at this step size makes that nearly unreachable with
-  a 4 N·m elbow.)  Truncation at 500 steps (25 s); ``reward_threshold`` −100.
+Termination: the tip rises more than 0.5 m above the shoulder (the classic asks for one link
+  length; the config and threshold are set for 0.5 m).  Truncation at 500 steps (25 s);
+  ``reward_threshold`` −100.
 Reset: θ1, θ2, θ̇1, θ̇2 ~ U(−0.1, 0.1) each.
 Step: dt = 0.01 s, five simulator steps per env step (0.05 s, 20 Hz).
 """
