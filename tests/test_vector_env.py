@@ -10,6 +10,7 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 import abd_gym  # noqa: F401 -- registers the ids
+from abd_gym import WorldStatus
 from abd_gym.registration import TASKS, env_ids
 from abd_gym.vector_env import ABDVectorEnv
 from abd_gym.envs.cartpole import CartPoleVectorEnv
@@ -208,7 +209,8 @@ def test_per_world_reset_leaves_other_worlds_untouched():
 @pytest.mark.parametrize("backend", ["numpy", "torch"])
 def test_a_failed_world_is_reported_and_autoreset(backend):
     """A world whose state goes non-finite: terminated with zero observation and reward, flagged in
-    info["sim_failed"] (False for the others, which step on as in an untouched env), and reset by
+    info["sim_failed"] with its cause in info["sim_status"] (NONFINITE; False and OK for the others,
+    which step on as in an untouched env), and reset by
     the NEXT_STEP autoreset."""
     if backend == "torch":
         pytest.importorskip("torch")
@@ -227,6 +229,8 @@ def test_a_failed_world_is_reported_and_autoreset(backend):
     robs, rr, *_ = ref.step(a)
     failed = np.asarray(info["sim_failed"].cpu() if hasattr(info["sim_failed"], "cpu") else info["sim_failed"])
     assert failed.tolist() == [False, False, True, False]
+    status = np.asarray(info["sim_status"].cpu() if hasattr(info["sim_status"], "cpu") else info["sim_status"])
+    assert status.tolist() == [WorldStatus.OK, WorldStatus.OK, WorldStatus.NONFINITE, WorldStatus.OK]
     assert te[2] and not te[[0, 1, 3]].any()
     assert not obs[2].any() and r[2] == 0.0
     np.testing.assert_allclose(obs[[0, 1, 3]], robs[[0, 1, 3]], atol=1e-6)
