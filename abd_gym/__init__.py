@@ -13,9 +13,10 @@ from .plan import ExecutionPlan
 from .scene import Scene
 from .shapes import Box, Capsule, Cylinder, Inertia, Sphere
 from .simulator import Simulator
+from .status import WorldStatus
 from .registration import register_envs
 
 register_envs()  # the abd_gym/ Gymnasium ids (entry points load lazily from abd_gym.envs)
 
-__all__ = ["Scene", "Simulator", "ExecutionPlan", "Box", "Sphere", "Capsule", "Cylinder", "Inertia"]
+__all__ = ["Scene", "Simulator", "ExecutionPlan", "Box", "Sphere", "Capsule", "Cylinder", "Inertia", "WorldStatus"]
 __version__ = "0.1.0"

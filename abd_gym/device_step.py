@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from . import env_kernels, step_graph
-from .outcome import batch_info, outcome
+from .outcome import batch_info, outcome, world_status
 
 
 def _own_code(method):
@@ -202,6 +202,7 @@ class DeviceStep:
             fn = self.task_outcome
             self.outcome_fn = torch.compile(_own_code(fn), dynamic=False) if self.compile_outcome else fn
         obs, reward, term, info_values = self.outcome_fn(a)
+        info_values = dict(info_values, sim_status=world_status(env))
         steps = -1 if env.max_episode_steps is None else env.max_episode_steps
         mailed = slot is not None
         wp.launch(env_kernels.finish_step(mailed), dim=N,

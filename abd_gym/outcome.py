@@ -27,6 +27,14 @@ def failed_mask(env):
     return env.sim.view(env.sim.state.status, "torch") != 0
 
 
+def world_status(env):
+    """(N,) int32 backend array (a copy): each world's status code (``Simulator.world_status``,
+    abd_gym.WorldStatus)."""
+    if env.xp is np:
+        return env.sim.world_status()
+    return env.sim.view(env.sim.state.status, "torch").clone()
+
+
 def outcome(env, a, pend=None):
     """Observation, reward, terminated, truncated, failed and info values of the step ``env`` just
     took with the clipped actions ``a``; ``pend``: a backend bool mask of the worlds reset in this
@@ -42,7 +50,7 @@ def outcome(env, a, pend=None):
         truncated = env.episodes.elapsed >= env.max_episode_steps
     else:
         truncated = env.episodes.all_false()
-    info_values = env.info(obs)
+    info_values = dict(env.info(obs), sim_status=world_status(env))
     zero = failed
     if pend is not None:
         terminated, truncated, zero = terminated & ~pend, truncated & ~pend, failed | pend

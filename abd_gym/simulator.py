@@ -231,17 +231,31 @@ class Simulator:
         out["total"] = sum(out.values())
         return out
 
+    def world_status(self) -> np.ndarray:
+        """(num_worlds,) int32 copy of each world's status code (abd_gym.WorldStatus: OK, NONFINITE,
+        BREAKDOWN, UNCONVERGED).  A world not OK kept the state it had before the step that set the
+        code and is not stepped until reset, set_joint_state or set_body_states writes it."""
+        return np.array(self.view(self.state.status, "numpy"), dtype=np.int32)
+
     def failed_worlds(self) -> np.ndarray:
-        """Indices of worlds whose state went non-finite or whose system broke; reset them."""
+        """Indices of the worlds whose status is not OK (world_status): their state went non-finite,
+        their system broke down or their solve did not converge; reset or set them."""
         return np.flatnonzero(self.view(self.state.status, "numpy") != 0)
 
     def converged(self) -> np.ndarray:
-        """(num_worlds,) bool: the last step's Newton solve met the tolerance."""
+        """(num_worlds,) bool: the last step's Newton solve met the tolerance (False for a world not
+        OK)."""
         return self.state.converged.numpy().astype(bool)
 
     def newton_iterations(self) -> np.ndarray:
         """(num_worlds,) Newton iterations used in the last step."""
         return self.state.iterations.numpy().copy()
+
+    def newton_retried(self) -> np.ndarray:
+        """(num_worlds,) bool: the last step's solve, which reused the factor, did not converge within
+        its budget and was started again from its initial guess with a fresh factor at every
+        iteration (``newton_iterations`` counts both)."""
+        return self.state.retried.numpy().astype(bool)
 
     def newton_factorizations(self) -> np.ndarray:
         """(num_worlds,) Cholesky factorisations in the last step: the iterations less those that

@@ -9,7 +9,9 @@ Cholesky (one thread per world), backtracks on E (Armijo), and stops a world onc
 a full step taken whole assembles only the gradient and solves it against the last factor (a
 simplified-Newton step: two triangular solves instead of a factorisation; tried at α = 1, kept
 while the steps shrink 8× an iteration, else the next iteration factors again).  Worlds that
-have converged or failed drop out of the remaining iterations.
+have converged or failed drop out of the remaining iterations.  A world that does not converge
+within its budget is retried from a fresh factor at every iteration where it reused the factor,
+else its step is rejected (status.WorldStatus.UNCONVERGED; docs/design.md §4.1).
 """
 from __future__ import annotations
 
@@ -39,7 +41,8 @@ class SolverSettings:
 
     # Newton stops a world once its step scaled to a velocity, ‖Δq‖∞/h, is under tol [m/s]
     tol: float = 1e-5
-    # Newton iterations a step at most (a world at the cap stops unconverged)
+    # Newton iterations a step (a world that reused the factor gets as many again from a fresh factor at
+    # every iteration; one still unconverged has its step rejected: status.WorldStatus.UNCONVERGED)
     max_iterations: int = 50
     # Armijo trials a Newton step at most (α halved down to 2^-(max_line_search − 1))
     max_line_search: int = 12
@@ -138,6 +141,9 @@ class Solver:
         self.cols = self._columns(physical=False)
         self.report_cols = self._columns(physical=True)
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
+        # Newton's initial guess of every free body (predict_body): a retry from a fresh factor starts
+        # again from it (fused.solve_world, solver_kernels.converge)
+        self.q_guess = wp.zeros_like(self.q_tilde)
         cuda = wp.get_device(dev).is_cuda
         # the resolved plan's choices, as the step's code reads them
         self.fused, self.scratch, self.one_launch = plan.fused, plan.scratch, plan.one_launch
@@ -188,6 +194,8 @@ class Solver:
         self.d_prev = wp.zeros(W, dtype=dt_, device=dev)
         self.gdq, self.dq_max, self.alpha, self.g_abs = (wp.zeros(W, dtype=dt_, device=dev) for _ in range(4))
         self.active, self.searching, self.take = (wp.zeros(W, dtype=wp.int32, device=dev) for _ in range(3))
+        # the staged solve's iteration budget per world, and whether its retry from a fresh factor is left
+        self.cap, self.spare = (wp.zeros(W, dtype=wp.int32, device=dev) for _ in range(2))
         self.all_active = wp.ones(W, dtype=wp.int32, device=dev)
         self.hold_worlds = False  # the one-launch step checks hold and go (enable_hold)
         self._no_hold = wp.zeros(W, dtype=wp.int32, device=dev)  # the fused step's default hold and go
@@ -351,8 +359,8 @@ class Solver:
                               state.theta0, state.c_prev, state.s_prev, self.all_active, state.unwrapped,
                               state.x_hist, self.h_step, dt(self.h), state.x_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
-                                                     state.qd_hist2, state.order3, state.calm, self.q_tilde, m.dof, m.mass,
-                                                     m.mc, m.gravity, dt(self.h), self.h_step, state.status],
+                                                     state.qd_hist2, state.order3, state.calm, self.q_tilde, self.q_guess,
+                                                     m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step, state.status],
                   device=dev)  # fmt: skip
 
     def newton(self, state):
@@ -363,7 +371,10 @@ class Solver:
             self._fused_newton(state)
         else:
             wp.launch(k["start"], dim=W, inputs=[state.status, self.active, state.iterations, state.converged,
-                                                 self.take, self.chord, state.factorizations], device=dev)  # fmt: skip
+                                                 self.take, self.chord, state.factorizations, self.cap,
+                                                 self.settings.max_iterations, self.spare, int(self.reuse_factor),
+                                                 state.retried],
+                      device=dev)  # fmt: skip
             self.remaining.fill_(1)
             wp.capture_while(self.remaining, self._newton_iteration, state=state)
 
@@ -451,9 +462,10 @@ class Solver:
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
             setattr(t, name, getattr(m, name))
-        for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor"):
+        for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor", "retried"):
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
+        t.q_guess = self.q_guess
         t.drive_rest = m.int_array(jt["rest"][drive.NAME])
         t.ang_joint = m.int_array(jt["joints"][REVOLUTE])
         for (name, kind), a in jt["folds"].items():
@@ -514,17 +526,18 @@ class Solver:
         self.assemble(state, state.q, self.E, self.active, HESSIAN)
         wp.launch(k["newton_direction"], dim=W, inputs=[self.H_flat, self.L_flat, self.g_flat, m.num_dofs, m.first, self.active,
                                                         self.chord, self.dq_flat, self.gdq, self.dq_max, self.g_abs, state.status,
-                                                        state.factorizations], device=dev)  # fmt: skip
+                                                        state.factorizations, self.searching, self.take, self.spare],
+                  device=dev)  # fmt: skip
         self.alpha.fill_(1.0)
-        wp.copy(self.searching, self.active)
         self.ls_remaining.fill_(1)
         wp.capture_while(self.ls_remaining, self._line_search_round, state=state)
         wp.launch(k["commit"], dim=(W, nb), inputs=[state.q, self.q_trial, self.take], device=dev)
         self.remaining.zero_()
-        wp.launch(k["converge"], dim=W, inputs=[state.q, self.take, self.dq_max, dt(s.tol * self.h), self.alpha,
-                                                int(self.reuse_factor), self.chord, self.d_prev, self.active,
-                                                state.converged, state.iterations, s.max_iterations,
-                                                self.remaining], device=dev)  # fmt: skip
+        wp.launch(k["converge"], dim=W, inputs=[state.q, self.q_guess, self.take, self.dq_max, dt(s.tol * self.h),
+                                                self.alpha, int(self.reuse_factor), self.chord, self.d_prev, self.active,
+                                                state.converged, state.iterations, s.max_iterations, m.dof, self.cap,
+                                                self.spare, state.retried, state.status, self.remaining],
+                  device=dev)  # fmt: skip
 
     def _line_search_round(self, state):
         """Try α on every searching world; Armijo accepts or halves it (down to 2^-(max_line_search-1))."""

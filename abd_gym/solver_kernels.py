@@ -10,10 +10,12 @@ import numpy as np
 import warp as wp
 
 from .constitutions import affine_body
+from .status import BREAKDOWN, NONFINITE, OK, UNCONVERGED
 from .warp_ops import ops
 
-# world status codes
-OK, FAILED = 0, 1
+# a step that ends a solve is within this many times the noise floor of the point it reached (the
+# stop rules allow up to 1000× the floor of the point it left, which moves by at most the step)
+SETTLED = 2000.0
 # State.fresh: 0, the world's next step is a BDF2 step (under BDF2); RESET, its state was set (it has
 # no past) or a limit was engaged at the end of the step before its last; RESTART, a limit was
 # engaged at the end of its last step (coordinates.restart_engaged).  Either makes the next step an
@@ -26,6 +28,7 @@ def keep_restart(fresh: wp.array(dtype=wp.int32), w: int):
     """World w's step has begun: RESTART becomes RESET (one more implicit Euler step after the last
     step that ends with a limit engaged), RESET becomes 0."""
     fresh[w] = wp.where(fresh[w] == RESTART, RESET, 0)
+
 
 # the names kernels() returns
 _PUBLIC = (
@@ -100,7 +103,7 @@ def _predict_funcs(dtype):
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
         order3: wp.array2d(dtype=wp.int32), calm: wp.array(dtype=wp.int32), q_tilde: wp.array2d(dtype=vec12),
-        dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
+        q_guess: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
         mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype, h_step: wp.array(dtype=dtype),
         status: wp.array(dtype=wp.int32), w: int, b: int,
     ):  # fmt: skip
@@ -117,7 +120,8 @@ def _predict_funcs(dtype):
         (float32 cart-poles at dt 0.01: 1.87 -> 1.02 Newton iterations a step); across a change of
         control its jerk is the change's, and guessed 1.05-1.3x more iterations on CartPole-v0,
         Reacher-v0 and DoublePendulumCart-v0 under random actions.  After
-        a reset q̇ⁿ⁻² = q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ."""
+        a reset q̇ⁿ⁻² = q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ.  A free body's guess is also
+        kept in ``q_guess``, where a retry from a fresh factor starts (fused.solve_world, converge)."""
         qb = q[w, b]
         q_prev[w, b] = qb
         if dof[b] < 0 or status[w] != OK:
@@ -142,20 +146,23 @@ def _predict_funcs(dtype):
         d = h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
         if order3[w, b] != 0 and calm[w] >= 2:
             d = h * (dtype(3.0) * (qd[w, b] - qd_hist[w, b]) + qd_hist2[w, b])
-        q[w, b] = retract(qb, d, one, mass[w, b], mc[w, b], 1)
+        guess = retract(qb, d, one, mass[w, b], mc[w, b], 1)
+        q[w, b] = guess
+        q_guess[w, b] = guess
 
     @wp.kernel(module="unique")
     def predict(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
         order3: wp.array2d(dtype=wp.int32), calm: wp.array(dtype=wp.int32), q_tilde: wp.array2d(dtype=vec12),
-        dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype,
-        h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32),
+        q_guess: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
+        mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype, h_step: wp.array(dtype=dtype),
+        status: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """predict_body of body b of world w."""
         w, b = wp.tid()
-        predict_body(q, qd, q_prev, q_hist, qd_hist, qd_hist2, order3, calm, q_tilde, dof, mass, mc, gravity, h, h_step,
-                     status, w, b)  # fmt: skip
+        predict_body(q, qd, q_prev, q_hist, qd_hist, qd_hist2, order3, calm, q_tilde, q_guess, dof, mass, mc, gravity, h,
+                     h_step, status, w, b)  # fmt: skip
 
     @wp.func
     def open_body(
@@ -194,7 +201,7 @@ def _predict_funcs(dtype):
             if clear != 0:
                 keep_restart(fresh, w)
         if not (wp.isfinite(q[w, b]) and wp.isfinite(qd[w, b])):
-            status[w] = FAILED
+            status[w] = NONFINITE
 
     @wp.kernel(module="unique")
     def open_step(
@@ -635,11 +642,16 @@ def _direction_kernels(dtype, envelope, packed):
     def start(
         status: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
         converged: wp.array(dtype=wp.int32), take: wp.array(dtype=wp.int32), chord: wp.array(dtype=wp.int32),
-        factorizations: wp.array(dtype=wp.int32),
+        factorizations: wp.array(dtype=wp.int32), cap: wp.array(dtype=wp.int32), max_iterations: int,
+        spare: wp.array(dtype=wp.int32), reuse: int, retried: wp.array(dtype=wp.int32),
     ):  # fmt: skip
-        """A world takes part in the solve while healthy."""
+        """A world takes part in the solve while healthy, with a budget (``cap``) of max_iterations
+        and, with ``reuse``, a retry from a fresh factor (``spare``, converge)."""
         w = wp.tid()
         factorizations[w] = 0
+        cap[w] = max_iterations
+        spare[w] = reuse
+        retried[w] = 0
         active[w] = wp.where(status[w] == OK, 1, 0)
         iterations[w] = 0
         converged[w] = 0
@@ -652,12 +664,16 @@ def _direction_kernels(dtype, envelope, packed):
         first: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), chord: wp.array(dtype=wp.int32),
         dq: wp.array(dtype=dtype), gdq: wp.array(dtype=dtype), dq_max: wp.array(dtype=dtype),
         g_abs: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
+        searching: wp.array(dtype=wp.int32), take: wp.array(dtype=wp.int32), spare: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """Newton direction of every active world, from H's Cholesky factor (kept in L) or, for a
-        world whose iteration reuses the last factor (chord), from L as it is; a world whose
-        system is bad is flagged.  Flat scratch, one column per world."""
+        world whose iteration reuses the last factor (chord), from L as it is; the worlds with a
+        direction start their line search (``searching``).  A world whose system breaks down ends
+        its budget (take −2: converge retries a solve that reused the factor) or, without a retry
+        left, is flagged BREAKDOWN.  Flat scratch, one column per world."""
         w = wp.tid()
         T = active.shape[0]
+        searching[w] = 0
         if active[w] == 0:
             return
         ok = int(1)
@@ -673,9 +689,13 @@ def _direction_kernels(dtype, envelope, packed):
         if ok != 0:
             ok, s, m, ga = factored_solve(L, g, dq, w, n, T, first)
         if ok == 0:
-            status[w] = FAILED
-            active[w] = 0
+            if spare[w] != 0:
+                take[w] = -2
+            else:
+                status[w] = BREAKDOWN
+                active[w] = 0
             return
+        searching[w] = 1
         gdq[w] = s
         dq_max[w] = m
         g_abs[w] = ga
@@ -723,8 +743,8 @@ def _search_kernels(dtype):
         one whose predicted decrease the energy's rounding cannot show, is accepted without it).
 
         Energies equal to within rounding count as no increase (the float32 noise floor); a world
-        whose search runs out takes no step and stops: converged if its Newton step was already
-        within 1000× the tolerance, else reported as not converged.  A step from a reused factor
+        whose search runs out takes no step: it stops converged if its Newton step was already
+        within 1000× the tolerance, else its budget ends (take −1, see converge).  A step from a reused factor
         (chord) is tried at α = 1 only and ends the solve only under the tolerance; rejected, it is
         not taken (take 0) and the next iteration refactors.  A Newton step (fresh factor) accepted at
         α = 1 that is under ``quadratic`` × q's rounding floor (4·eps·(1 + ‖q‖∞)) also ends it
@@ -769,9 +789,10 @@ def _search_kernels(dtype):
             take[w] = 0
         elif a <= min_alpha:
             searching[w] = 0
-            take[w] = 0
-            active[w] = 0
+            take[w] = -1
             if dq_max[w] < dtype(1000.0) * floor:
+                take[w] = 0
+                active[w] = 0
                 converged[w] = 1
         else:
             alpha[w] = a * dtype(0.5)
@@ -782,27 +803,38 @@ def _search_kernels(dtype):
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), take: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         w, b = wp.tid()
-        if take[w] != 0:
+        if take[w] > 0:
             q[w, b] = q_trial[w, b]
 
     @wp.kernel(module="unique")
     def converge(
-        q: wp.array2d(dtype=vec12), take: wp.array(dtype=wp.int32), dq_max: wp.array(dtype=dtype), threshold: dtype,
-        alpha: wp.array(dtype=dtype), reuse: int, chord: wp.array(dtype=wp.int32), d_prev: wp.array(dtype=dtype),
-        active: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-        max_iterations: int, remaining: wp.array(dtype=wp.int32),
+        q: wp.array2d(dtype=vec12), q_guess: wp.array2d(dtype=vec12), take: wp.array(dtype=wp.int32),
+        dq_max: wp.array(dtype=dtype), threshold: dtype, alpha: wp.array(dtype=dtype), reuse: int,
+        chord: wp.array(dtype=wp.int32), d_prev: wp.array(dtype=dtype), active: wp.array(dtype=wp.int32),
+        converged: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32), max_iterations: int,
+        dof: wp.array(dtype=wp.int32),
+        cap: wp.array(dtype=wp.int32), spare: wp.array(dtype=wp.int32), retried: wp.array(dtype=wp.int32),
+        status: wp.array(dtype=wp.int32), remaining: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """‖Δq‖∞ below h·tol (or q's rounding), or a step whose energy change is below rounding:
-        the step just taken was the last one needed.  At the iteration cap a world stops unconverged.
-        The next iteration reuses the factor after a full step taken whole (with ``reuse``), and
-        keeps reusing it while the steps shrink 8× an iteration, and not after a reused factor's step
-        was rejected (fused.chord_step)."""
+        the step just taken was the last one needed.  The next iteration reuses the factor after a
+        full step taken whole (with ``reuse``), and keeps reusing it while the steps shrink 8× an
+        iteration, and not after a reused factor's step was rejected (fused.chord_step).
+
+        A world's budget ends at ``cap`` iterations, when its line search ran out (take −1) or when
+        its system broke down (take −2, newton_direction).  With
+        a retry left (``spare``: the solve may reuse the factor) it then starts again from its initial guess (``q_guess``) with
+        max_iterations more, a fresh factor at every one (chord −1): the iterations reuse = 0 would
+        have taken.  At the end of that budget, or of a solve without reuse, the world's step is
+        rejected (status UNCONVERGED; finalize keeps qⁿ).  The staged twin of fused.solve_world."""
         w = wp.tid()
         if active[w] == 0:
             return
-        iterations[w] = iterations[w] + 1
         taken = take[w]
+        if taken != -2:  # (a system that broke down took no iteration)
+            iterations[w] = iterations[w] + 1
         stalled = taken == 2
+        ran_out = taken < 0
         take[w] = 0
         was_chord = chord[w]
         retry = was_chord > 0 and taken == 0
@@ -814,16 +846,23 @@ def _search_kernels(dtype):
             chord[w] = wp.where(taken != 0 and alpha[w] == one, reuse, 0)
         d_prev[w] = dq_max[w]
         floor, rounding = noise_floor(q, w, threshold)
-        if retry:
-            if iterations[w] >= max_iterations:
-                active[w] = 0
-            else:
-                wp.atomic_add(remaining, 0, 1)
-        elif dq_max[w] < floor or stalled:
+        stalled = stalled and dq_max[w] < dtype(SETTLED) * floor  # (fused.settled)
+        if not (retry or ran_out) and (dq_max[w] < floor or stalled):
             converged[w] = 1
             active[w] = 0
-        elif iterations[w] >= max_iterations:
-            active[w] = 0
+        elif ran_out or iterations[w] >= cap[w]:
+            if spare[w] != 0:
+                spare[w] = 0
+                retried[w] = 1
+                cap[w] = iterations[w] + max_iterations
+                chord[w] = -1
+                for b in range(q.shape[1]):
+                    if dof[b] >= 0:
+                        q[w, b] = q_guess[w, b]
+                wp.atomic_add(remaining, 0, 1)
+            else:
+                status[w] = UNCONVERGED
+                active[w] = 0
         else:
             wp.atomic_add(remaining, 0, 1)
 

@@ -2,7 +2,7 @@
 
 ``q``/``qd``/``q_prev`` (W, bodies) vec12; per joint (W, joints): the seed's ``θ0`` and
 cos/sin θ of ``q^{t−1}``, the coordinate x, its rate, and the multi-turn angle (displacement
-for sliders); per drive (W, drives) the control; per world a status (0 ok, 1 failed), Newton
+for sliders); per drive (W, drives) the control; per world a status (status.WorldStatus), Newton
 iterations and Cholesky factorisations used in the last step, and whether it converged.
 """
 from __future__ import annotations
@@ -39,6 +39,8 @@ class State:
         self.iterations = wp.zeros(W, dtype=wp.int32, device=dev)
         self.factorizations = wp.zeros(W, dtype=wp.int32, device=dev)
         self.converged = wp.ones(W, dtype=wp.int32, device=dev)
+        # 1: the last step's solve was started again from a fresh factor (Solver: a retry)
+        self.retried = wp.zeros(W, dtype=wp.int32, device=dev)
         self.time = np.zeros(W)  # seconds since the world's last reset (host bookkeeping)
 
     def snapshot(self) -> dict:

@@ -72,10 +72,11 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   did not move), the device refuses that step and every step after it, and the next ``step`` or
   ``reset`` raises, having taken back the host's bookkeeping of both calls (clocks, autoreset
   queues); the env then goes on as if the batch had never been passed.  Elsewhere the call given
-  the batch raises before anything is stepped.  A world whose solve fails
+  the batch raises before anything is stepped.  A world whose step was rejected
   (``Simulator.failed_worlds``, or a non-finite observation) is terminated, reported in
-  ``info["sim_failed"]`` (a bool per world, in every step's info) and gets a zero observation and
-  reward; the autoreset (or your masked reset) brings it back.
+  ``info["sim_failed"]`` (a bool per world, in every step's info) with the simulator's cause in
+  ``info["sim_status"]`` (an int32 ``abd_gym.WorldStatus`` code per world) and gets a zero
+  observation and reward; the autoreset (or your masked reset) brings it back.
 * observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
   and chosen above what the task reaches (rates: ``velocity_bound`` = 100 rad/s or m/s).
 * per-world physical parameters: ``randomize={...}`` (constructor or ``reset`` option, sticky:

@@ -13,7 +13,7 @@ import pytest
 import warp as wp
 
 import abd_gym as ag
-from abd_gym import affine, angles
+from abd_gym import WorldStatus, affine, angles
 from abd_gym.constitutions import affine_body, drive, prismatic_joint, prismatic_limit, revolute_limit
 from abd_gym.constitutions._point_joint import point_joint_np
 from abd_gym.scene import axis_frame
@@ -1074,7 +1074,9 @@ def test_fused_step_assembles_the_same_system(sims, ref, dtype, rtol):
         s._fused_newton(sim.state)
     finally:
         s.settings.max_iterations = saved
-    assert not sim.state.status.numpy().any()
+    # (a one-iteration budget ends unconverged: the step is rejected, the system stays as assembled)
+    assert set(sim.state.status.numpy().tolist()) <= {int(WorldStatus.OK), int(WorldStatus.UNCONVERGED)}
+    sim.state.status.zero_()  # (the module's simulators are shared)
     assert (sim.state.iterations.numpy() == 1).all()
     g, Hraw = s.gradient().astype(np.float64), s.hessian().astype(np.float64)
     for w in range(2):

@@ -208,12 +208,16 @@ def test_worlds_are_independent_and_a_failed_world_is_reset():
     bad.step(30)
     np.testing.assert_allclose(bad.body_q()[1], q_ref[1], atol=1e-9)
 
-    # a world blown up by an absurd velocity is caught the same way
+    # a world given an absurd body velocity is reported the same way, and keeps its state
     sim = ag.Simulator(scene, num_worlds=2, dt=0.01)
-    sim.set_joint_state([[0.5, 0.2], [0.5, 0.2]], [[0.0, 0.0], [1e25, 1e25]])
+    sim.set_joint_state([[0.5, 0.2], [0.5, 0.2]])
+    p, R = sim.body_positions(), sim.body_rotations()
+    sim.set_body_states(p[1:], R[1:], linear_velocities=np.full((1, 3, 3), 1e25), worlds=[1])
+    q_set = sim.body_q()[1].copy()
     sim.step(2)
     assert sim.failed_worlds().tolist() == [1]
     assert np.isfinite(sim.body_q()[0]).all()
+    np.testing.assert_array_equal(sim.body_q()[1], q_set)
 
 
 def test_setting_some_worlds_writes_only_their_rows():

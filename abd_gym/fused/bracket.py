@@ -8,7 +8,8 @@ from types import SimpleNamespace
 import warp as wp
 
 from .. import coordinates, solver_kernels
-from ..solver_kernels import OK, RESTART, keep_restart
+from ..solver_kernels import RESTART, keep_restart
+from ..status import OK
 from ..warp_ops import ops
 from .clock import (PHASE_OPEN, PHASE_CLOSE, PHASE_OPEN_BODIES, PHASE_OPEN_JOINTS, PHASE_OPEN_PREDICT,
                      PHASE_CLOSE_FINALIZE, PHASE_CLOSE_JOINTS, clock)  # fmt: skip
@@ -59,7 +60,7 @@ def world_step(spec: KernelSpec):
                 block_sync()
         c = tick(t, w, lane, PHASE_OPEN_JOINTS, c)
         for b in range(lane, nb, LANES):
-            predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.dof, t.mass,
+            predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.q_guess, t.dof, t.mass,
                          t.mc, k.gravity, k.h, t.h_step, status, w, b)  # fmt: skip
         if wp.static(lanes):
             block_sync()

@@ -13,7 +13,7 @@ import warp as wp
 
 from .. import solver_kernels
 from ..constitutions import affine_body
-from ..solver_kernels import FAILED, OK
+from ..status import BREAKDOWN, OK, UNCONVERGED
 from ..warp_ops import ENERGY, GRADIENT, HESSIAN, ops
 from .assembly import assembly
 from .clock import (PHASE_ZERO, PHASE_ASSEMBLE, PHASE_FACTOR, PHASE_SOLVE, PHASE_STEP, PHASE_STEP_ENERGY,
@@ -135,6 +135,7 @@ def stepping(spec: KernelSpec):
     one = dtype(1.0)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
     QUAD = dtype(4.0 * float(spec.quadratic))  # × q's rounding (SolverSettings.quadratic_stop)
+    SETTLED = dtype(solver_kernels.SETTLED)
 
     @wp.func
     def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype, noise: dtype, chord: int):
@@ -178,14 +179,18 @@ def stepping(spec: KernelSpec):
     def end_iteration(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), w: int, row: int, accepted: int,
                       stalled: int, dmax: dtype, floor: dtype, converged: wp.array(dtype=wp.int32),
                       lane: int):  # fmt: skip
-        """Take the accepted trial point (row of q_trial) as world w's q; 1 when its solve is over.
-        A search that ran out takes no step: converged if the step was already near the tolerance.
-        (Steps within 10x the noise floor are taken whole, see whole_step.)  Lane-split: each lane
-        copies its bodies, lane 0 writes the flag."""
+        """Take the accepted trial point (row of q_trial) as world w's q; 1 when its solve is over
+        (converged), 2 when its search ran out away from convergence, else 0.  A search that ran out
+        takes no step: converged if the step was already within 1000× the floor, where float32's
+        energy cannot resolve the decrease a correct step makes.  (Steps within 10x the noise floor
+        are taken whole, see whole_step.)  Lane-split: each lane copies its bodies, lane 0 writes the
+        flag."""
         if accepted == 0:
-            if dmax < dtype(1000.0) * floor and lane == 0:
-                converged[w] = 1
-            return 1
+            if dmax < dtype(1000.0) * floor:
+                if lane == 0:
+                    converged[w] = 1
+                return 1
+            return 2
         for b in range(lane, q.shape[1], LANES):
             q[w, b] = q_trial[row, b]
         if dmax < floor or stalled != 0:
@@ -195,13 +200,28 @@ def stepping(spec: KernelSpec):
         return 0
 
     @wp.func
+    def settled(q: wp.array2d(dtype=vec12), w: int, dmax: dtype, threshold: dtype, converged: wp.array(dtype=wp.int32),
+                lane: int):  # fmt: skip
+        """1 if a step that ended the solve (its floors read at the point it left) is also within
+        SETTLED × the floor of the point it reached, else 0 (the solve goes on; lane 0 clears the
+        flag).  The floors scale with ‖q‖∞: from an absurd initial guess (a world spinning at 1e9
+        rad/s: ‖q‖∞ ~ 1e7) a 25 m step is under q's rounding there, and would end the solve with
+        the joints 2.5 m apart.  Run once a solve."""
+        floor, rounding = noise_floor(q, w, threshold)
+        if dmax < SETTLED * floor:
+            return 1
+        if lane == 0:
+            converged[w] = 0
+        return 0
+
+    @wp.func
     def take_step(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                   w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, dmax: dtype, g_abs: dtype, threshold: dtype, chord: int,
                   reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32),
                   lane: int):  # fmt: skip
         """Everything after a Newton direction (both layouts): the stop test, the line search, the
-        choice to reuse the factor next, and the update of q.  Returns (1 when the solve is over,
-        chord for the next iteration)."""
+        choice to reuse the factor next, and the update of q.  Returns (end_iteration's 1 when the
+        solve converged, 2 when its search ran out, else 0; chord for the next iteration)."""
         floor, rounding = noise_floor(q, w, threshold)
         # a Newton step under quadratic_stop × q's rounding ends the solve if accepted at α = 1
         quad = chord <= 0 and dmax < QUAD * rounding
@@ -216,6 +236,8 @@ def stepping(spec: KernelSpec):
             stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged, lane)
         if wp.static(lanes):
             block_sync()  # q is read whole by the next iteration
+        if stop == 1 and accepted != 0:
+            stop = settled(q, w, dmax, threshold, converged, lane)
         return stop, chord_next
 
     return SimpleNamespace(take_step=take_step)
@@ -251,19 +273,28 @@ def newton(spec: KernelSpec):
 
         With ``reuse``, an iteration after a full step (α = 1) keeps the Cholesky factor it left in H
         and solves only the new gradient against it (a simplified-Newton step; see ``chord_step``).
-        Lane-split, every lane takes every branch (each decides from the same sums in the same
-        order) and lane 0 alone writes the world's counters."""
+        The solve's budget is max_iterations; it also ends where the line search runs out away from
+        convergence or the factor breaks down.  A solve with ``reuse`` then starts again from its
+        initial guess (t.q_guess, kept by predict_body) with max_iterations more, factoring at every
+        one (chord −1): the iterations ``reuse`` = 0 would have taken, so factor reuse never commits
+        a step that a fresh factor would reject.  A solve that ends its last budget unconverged is
+        rejected (status UNCONVERGED, or BREAKDOWN; close_world keeps qⁿ).  The counts include the
+        retry's iterations.  Lane-split, every lane takes every branch (each decides from the same
+        sums in the same order) and lane 0 alone writes the world's counters."""
         if lane == 0:
             iterations[w] = 0
             factorizations[w] = 0
             converged[w] = 0
+            t.retried[w] = 0
         if status[w] != OK:
             return 0
         chord = int(0)  # 1: H holds the factor of an earlier iteration, reused for this one (chord_step)
         d_prev = zero
         nfact = int(0)
         its = int(0)  # Newton iterations (solves) so far
-        for it in range(max_iterations):
+        cap = max_iterations  # the budget
+        spare = reuse  # 1: a budget from a fresh factor is left
+        while its < cap:
             c = clock_now()
             if wp.static(G > 1):  # every group's copy (lanes: T = 1)
                 for cp in range(G):
@@ -339,18 +370,32 @@ def newton(spec: KernelSpec):
                 c = tick(t, w, lane, PHASE_FACTOR, c)
             if lane == 0:
                 factorizations[w] = nfact
-            if ok == 0:
+            stop = int(3)  # 3: the factor or the solve broke down
+            if ok != 0:
+                its += 1
                 if lane == 0:
-                    status[w] = FAILED
+                    iterations[w] = its
+                stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord,
+                                        reuse, d_prev, max_line_search, converged, lane)  # fmt: skip
+                c = tick(t, w, lane, PHASE_STEP, c)
+            if stop == 1:
                 return 0
-            its += 1
-            if lane == 0:
-                iterations[w] = its
-            stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord, reuse,
-                                    d_prev, max_line_search, converged, lane)  # fmt: skip
-            c = tick(t, w, lane, PHASE_STEP, c)
-            if stop != 0:
-                return 0
+            if stop >= 2 or its == cap:
+                if spare == 0:
+                    if lane == 0:
+                        status[w] = wp.where(stop == 3, BREAKDOWN, UNCONVERGED)
+                    return 0
+                # the retry: reuse's budget spent, or its iterates broke down or stalled
+                spare = 0
+                chord = -1
+                cap = its + max_iterations
+                if lane == 0:
+                    t.retried[w] = 1
+                for b in range(lane, q.shape[1], LANES):
+                    if t.dof[b] >= 0:
+                        q[w, b] = t.q_guess[w, b]
+                if wp.static(lanes):
+                    block_sync()
             d_prev = dmax
         return 0
 

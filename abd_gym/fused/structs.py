@@ -46,6 +46,7 @@ def structs(dtype):
         """Everything the incremental potential reads besides q: model, joint history, controls."""
 
         q_tilde: wp.array2d(dtype=vec12)
+        q_guess: wp.array2d(dtype=vec12)  # Newton's initial guess, where a retry restarts (solve_world)
         free: wp.array(dtype=wp.int32)
         dof: wp.array(dtype=wp.int32)
         first: wp.array(dtype=wp.int32)  # the Hessian's envelope (Model.first)
@@ -93,6 +94,7 @@ def structs(dtype):
         control: wp.array2d(dtype=dtype)
         unwrapped: wp.array2d(dtype=dtype)
         x_anchor: wp.array2d(dtype=dtype)
+        retried: wp.array(dtype=wp.int32)  # State.retried
         clock: wp.array2d(dtype=wp.int64)  # (W, len(PHASES)) with phase_clock, else unused
         # lane groups: group c's joints, limits and drives, (kind WORK_*, index in its kind) for
         # it < work_n[c] (Solver.lane_work); unused with one group

@@ -1,0 +1,115 @@
+"""Per-world failure semantics: a step is converged, retried from a fresh factor, or rejected
+and reported (abd_gym.WorldStatus); a rejected world keeps its state and the others step on."""
+import numpy as np
+import pytest
+
+import abd_gym as ag
+from abd_gym import WorldStatus, mechanisms
+
+PLANS = {"default": None, "staged": dict(fused=False), "global": dict(scratch="global"), "lanes": dict(scratch="lanes")}
+
+
+def _poses(sim):
+    """(positions, rotations) of every body of every world."""
+    return sim.body_positions().copy(), sim.body_rotations().copy()
+
+
+@pytest.mark.parametrize("dtype,plan", [("float32", "default"), ("float32", "staged"), ("float32", "global"),
+                                        ("float32", "lanes"), ("float64", "default"), ("float64", "staged")])
+def test_a_world_spun_at_1e9_rad_s_is_rejected_and_the_others_step_on(dtype, plan):
+    """A world set spinning at 1e9 rad/s (h·ω = 1e7 rad a step) is reported: in float64 its first
+    step does not converge and is rejected; in float32, where the rounding of such a state is
+    metres, by its second step at the latest.  The step that reports it leaves its state as it was,
+    it is not stepped again, and the other worlds are bit-identical to a batch stepped without it."""
+    scene = mechanisms.double_pendulum()
+
+    def batch(spin):
+        sim = ag.Simulator(scene, num_worlds=3, dt=0.01, dtype=dtype, plan=PLANS[plan])
+        sim.set_joint_state([[0.5, 0.2], [0.3, -0.4], [-0.2, 0.1]], [[0.0, 1.0], [2.0, 0.0], [0.0, 0.0]])
+        if spin:
+            p, R = _poses(sim)
+            sim.set_body_states(p[1:2], R[1:2], angular_velocities=np.full((1, 3, 3), 1e9), worlds=[1])
+        return sim
+
+    ref, bad = batch(False), batch(True)
+    reported = None
+    for k in range(4):
+        q_before = bad.body_q()[1].copy()
+        ref.step()
+        bad.step()
+        status = bad.world_status()
+        assert status[[0, 2]].tolist() == [WorldStatus.OK] * 2
+        if reported is None and status[1] != WorldStatus.OK:
+            reported = k
+            assert status[1] in (WorldStatus.UNCONVERGED, WorldStatus.BREAKDOWN) and not bad.converged()[1]
+            np.testing.assert_array_equal(bad.body_q()[1], q_before)
+        if reported is not None:
+            assert bad.failed_worlds().tolist() == [1]
+            np.testing.assert_array_equal(bad.body_q()[1], q_before)
+        np.testing.assert_array_equal(bad.body_q()[[0, 2]], ref.body_q()[[0, 2]])
+        np.testing.assert_array_equal(bad.joint_coordinates()[[0, 2]], ref.joint_coordinates()[[0, 2]])
+    assert reported == 0 if dtype == "float64" else reported is not None and reported <= 1
+    # set again, the world steps as the others do
+    bad.set_joint_state([[0.3, -0.4]], [[2.0, 0.0]], worlds=[1])
+    assert bad.world_status().tolist() == [WorldStatus.OK] * 3
+    bad.step(2)
+    assert bad.failed_worlds().size == 0 and bad.converged().all()
+
+
+@pytest.mark.parametrize("plan", ["default", "staged", "lanes"])
+def test_a_stalled_reused_factor_is_retried_as_a_fresh_factor_solve(plan):
+    """A float32 link spinning at 10-50 rad/s into a revolute limit at ±3.1 rad (strength 1e5, BDF2,
+    dt 0.002): where Newton with a reused factor stalls, the step is solved again from the initial
+    guess with a fresh factor at every iteration, and equals bit for bit the step taken with
+    reuse_factor=False from the same state; a step neither solve converges is rejected (the world
+    keeps qⁿ).  No committed step is unconverged."""
+    W = 64
+    scene = mechanisms.pendulum(limit=(-3.1, 3.1, 1e5))
+    kw = dict(num_worlds=W, dt=0.002, integrator="bdf2", dtype="float32", plan=PLANS[plan])
+    sim = ag.Simulator(scene, **kw)
+    fresh = ag.Simulator(scene, reuse_factor=False, **kw)
+    rng = np.random.default_rng(0)
+    rates = rng.uniform(10, 50, W) * rng.choice([-1, 1], W)
+    sim.set_joint_state(2.0 * np.sign(rates)[:, None], rates[:, None])
+    retried = rejected = 0
+    for _ in range(120):
+        fresh.state.restore(sim.state.snapshot())
+        ok = sim.world_status() == WorldStatus.OK
+        q_before = sim.body_q()
+        sim.step()
+        fresh.step()
+        status = sim.world_status()
+        done = ok & (status == WorldStatus.OK)
+        assert sim.converged()[done].all()
+        again = ok & sim.newton_retried()
+        np.testing.assert_array_equal(sim.body_q()[again], fresh.body_q()[again])
+        np.testing.assert_array_equal(status[again], fresh.world_status()[again])
+        dropped = ok & (status != WorldStatus.OK)
+        np.testing.assert_array_equal(sim.body_q()[dropped], q_before[dropped])
+        retried += int(again.sum())
+        rejected += int(dropped.sum())
+    assert retried >= 3  # the case exercises the retry
+    assert rejected < retried + 3
+
+
+def test_factor_reuse_off_rejects_without_a_retry():
+    """Without factor reuse (float64's default) there is no retry: a step that does not converge in
+    max_iterations is rejected at once, and newton_retried stays False."""
+    sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, dt=0.01, dtype="float64", max_iterations=1)
+    sim.set_joint_state([[1.0, -0.5], [0.5, 0.0]], [[5.0, -5.0], [0.0, 3.0]])
+    q0 = sim.body_q().copy()
+    sim.step()
+    assert sim.world_status().tolist() == [WorldStatus.UNCONVERGED] * 2
+    assert not sim.newton_retried().any() and sim.newton_iterations().tolist() == [1, 1]
+    np.testing.assert_array_equal(sim.body_q(), q0)
+
+
+def test_status_codes_are_named():
+    """The codes are the documented IntEnum's; a non-finite state is NONFINITE."""
+    assert [int(s) for s in WorldStatus] == [0, 1, 2, 3]
+    sim = ag.Simulator(mechanisms.pendulum(), num_worlds=2, dt=0.01, dtype="float64")
+    q = sim.state.q.numpy()
+    q[0, 1, 0] = np.inf
+    sim.state.q.assign(q)
+    sim.step()
+    assert [WorldStatus(c).name for c in sim.world_status()] == ["NONFINITE", "OK"]
