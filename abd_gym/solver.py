@@ -143,7 +143,6 @@ class Solver:
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
         # Newton's initial guess of every free body (predict_body): a retry from a fresh factor starts
         # again from it (fused.solve_world, solver_kernels.converge)
-        self.q_guess = wp.zeros_like(self.q_tilde)
         cuda = wp.get_device(dev).is_cuda
         # the resolved plan's choices, as the step's code reads them
         self.fused, self.scratch, self.one_launch = plan.fused, plan.scratch, plan.one_launch
@@ -359,7 +358,7 @@ class Solver:
                               state.theta0, state.c_prev, state.s_prev, self.all_active, state.unwrapped,
                               state.x_hist, self.h_step, dt(self.h), state.x_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
-                                                     state.qd_hist2, state.order3, state.calm, self.q_tilde, self.q_guess,
+                                                     state.qd_hist2, state.order3, state.calm, self.q_tilde,
                                                      m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step, state.status],
                   device=dev)  # fmt: skip
 
@@ -465,7 +464,6 @@ class Solver:
         for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor", "retried"):
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
-        t.q_guess = self.q_guess
         t.drive_rest = m.int_array(jt["rest"][drive.NAME])
         t.ang_joint = m.int_array(jt["joints"][REVOLUTE])
         for (name, kind), a in jt["folds"].items():
@@ -533,7 +531,7 @@ class Solver:
         wp.capture_while(self.ls_remaining, self._line_search_round, state=state)
         wp.launch(k["commit"], dim=(W, nb), inputs=[state.q, self.q_trial, self.take], device=dev)
         self.remaining.zero_()
-        wp.launch(k["converge"], dim=W, inputs=[state.q, self.q_guess, self.take, self.dq_max, dt(s.tol * self.h),
+        wp.launch(k["converge"], dim=W, inputs=[state.q, self.q_tilde, self.take, self.dq_max, dt(s.tol * self.h),
                                                 self.alpha, int(self.reuse_factor), self.chord, self.d_prev, self.active,
                                                 state.converged, state.iterations, s.max_iterations, m.dof, self.cap,
                                                 self.spare, state.retried, state.status, self.remaining],

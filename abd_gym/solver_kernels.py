@@ -13,9 +13,6 @@ from .constitutions import affine_body
 from .status import BREAKDOWN, NONFINITE, OK, UNCONVERGED
 from .warp_ops import ops
 
-# a step that ends a solve is within this many times the noise floor of the point it reached (the
-# stop rules allow up to 1000× the floor of the point it left, which moves by at most the step)
-SETTLED = 2000.0
 # State.fresh: 0, the world's next step is a BDF2 step (under BDF2); RESET, its state was set (it has
 # no past) or a limit was engaged at the end of the step before its last; RESTART, a limit was
 # engaged at the end of its last step (coordinates.restart_engaged).  Either makes the next step an
@@ -103,7 +100,7 @@ def _predict_funcs(dtype):
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
         order3: wp.array2d(dtype=wp.int32), calm: wp.array(dtype=wp.int32), q_tilde: wp.array2d(dtype=vec12),
-        q_guess: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
+        dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
         mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype, h_step: wp.array(dtype=dtype),
         status: wp.array(dtype=wp.int32), w: int, b: int,
     ):  # fmt: skip
@@ -120,8 +117,8 @@ def _predict_funcs(dtype):
         (float32 cart-poles at dt 0.01: 1.87 -> 1.02 Newton iterations a step); across a change of
         control its jerk is the change's, and guessed 1.05-1.3x more iterations on CartPole-v0,
         Reacher-v0 and DoublePendulumCart-v0 under random actions.  After
-        a reset q̇ⁿ⁻² = q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ.  A free body's guess is also
-        kept in ``q_guess``, where a retry from a fresh factor starts (fused.solve_world, converge)."""
+        a reset q̇ⁿ⁻² = q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ.  A retry from a fresh factor
+        starts from q̃ instead (fused.solve_world, converge)."""
         qb = q[w, b]
         q_prev[w, b] = qb
         if dof[b] < 0 or status[w] != OK:
@@ -146,23 +143,20 @@ def _predict_funcs(dtype):
         d = h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
         if order3[w, b] != 0 and calm[w] >= 2:
             d = h * (dtype(3.0) * (qd[w, b] - qd_hist[w, b]) + qd_hist2[w, b])
-        guess = retract(qb, d, one, mass[w, b], mc[w, b], 1)
-        q[w, b] = guess
-        q_guess[w, b] = guess
+        q[w, b] = retract(qb, d, one, mass[w, b], mc[w, b], 1)
 
     @wp.kernel(module="unique")
     def predict(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12),
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
         order3: wp.array2d(dtype=wp.int32), calm: wp.array(dtype=wp.int32), q_tilde: wp.array2d(dtype=vec12),
-        q_guess: wp.array2d(dtype=vec12), dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
-        mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype, h_step: wp.array(dtype=dtype),
-        status: wp.array(dtype=wp.int32),
+        dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype,
+        h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32),
     ):  # fmt: skip
         """predict_body of body b of world w."""
         w, b = wp.tid()
-        predict_body(q, qd, q_prev, q_hist, qd_hist, qd_hist2, order3, calm, q_tilde, q_guess, dof, mass, mc, gravity, h,
-                     h_step, status, w, b)  # fmt: skip
+        predict_body(q, qd, q_prev, q_hist, qd_hist, qd_hist2, order3, calm, q_tilde, dof, mass, mc, gravity, h, h_step,
+                     status, w, b)  # fmt: skip
 
     @wp.func
     def open_body(
@@ -808,7 +802,7 @@ def _search_kernels(dtype):
 
     @wp.kernel(module="unique")
     def converge(
-        q: wp.array2d(dtype=vec12), q_guess: wp.array2d(dtype=vec12), take: wp.array(dtype=wp.int32),
+        q: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12), take: wp.array(dtype=wp.int32),
         dq_max: wp.array(dtype=dtype), threshold: dtype, alpha: wp.array(dtype=dtype), reuse: int,
         chord: wp.array(dtype=wp.int32), d_prev: wp.array(dtype=dtype), active: wp.array(dtype=wp.int32),
         converged: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32), max_iterations: int,
@@ -822,10 +816,9 @@ def _search_kernels(dtype):
         iteration, and not after a reused factor's step was rejected (fused.chord_step).
 
         A world's budget ends at ``cap`` iterations, when its line search ran out (take −1) or when
-        its system broke down (take −2, newton_direction).  With
-        a retry left (``spare``: the solve may reuse the factor) it then starts again from its initial guess (``q_guess``) with
-        max_iterations more, a fresh factor at every one (chord −1): the iterations reuse = 0 would
-        have taken.  At the end of that budget, or of a solve without reuse, the world's step is
+        its system broke down (take −2, newton_direction).  With a retry left (``spare``: the solve
+        may reuse the factor) it then starts again from the prediction q̃ with max_iterations more, a
+        fresh factor at every one (chord −1).  At the end of that budget, or of a solve without reuse, the world's step is
         rejected (status UNCONVERGED; finalize keeps qⁿ).  The staged twin of fused.solve_world."""
         w = wp.tid()
         if active[w] == 0:
@@ -846,7 +839,6 @@ def _search_kernels(dtype):
             chord[w] = wp.where(taken != 0 and alpha[w] == one, reuse, 0)
         d_prev[w] = dq_max[w]
         floor, rounding = noise_floor(q, w, threshold)
-        stalled = stalled and dq_max[w] < dtype(SETTLED) * floor  # (fused.settled)
         if not (retry or ran_out) and (dq_max[w] < floor or stalled):
             converged[w] = 1
             active[w] = 0
@@ -858,7 +850,7 @@ def _search_kernels(dtype):
                 chord[w] = -1
                 for b in range(q.shape[1]):
                     if dof[b] >= 0:
-                        q[w, b] = q_guess[w, b]
+                        q[w, b] = q_tilde[w, b]
                 wp.atomic_add(remaining, 0, 1)
             else:
                 status[w] = UNCONVERGED

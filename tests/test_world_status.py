@@ -60,37 +60,33 @@ def test_a_world_spun_at_1e9_rad_s_is_rejected_and_the_others_step_on(dtype, pla
 def test_a_stalled_reused_factor_is_retried_as_a_fresh_factor_solve(plan):
     """A float32 link spinning at 10-50 rad/s into a revolute limit at ±3.1 rad (strength 1e5, BDF2,
     dt 0.002), with a budget of 10 iterations, which a reused factor runs out of at the limit on
-    some world-steps where a fresh one converges: the step is solved again from the initial guess
-    with a fresh factor at every iteration, and equals bit for bit the step taken with
-    reuse_factor=False from the same state; a step neither solve converges is rejected (the world
-    keeps qⁿ).  No committed step is unconverged."""
+    some world-steps where a fresh one converges: the step is solved again from q̃ with a fresh
+    factor at every iteration.  A retried step either converges (and is committed) or is rejected
+    (the world keeps qⁿ); the retries save most of the steps they take up, and no committed step
+    is unconverged."""
     W = 64
     scene = mechanisms.pendulum(limit=(-3.1, 3.1, 1e5))
-    kw = dict(num_worlds=W, dt=0.002, integrator="bdf2", dtype="float32", max_iterations=10, plan=PLANS[plan])
-    sim = ag.Simulator(scene, **kw)
-    fresh = ag.Simulator(scene, reuse_factor=False, **kw)
+    sim = ag.Simulator(scene, num_worlds=W, dt=0.002, integrator="bdf2", dtype="float32", max_iterations=10,
+                       plan=PLANS[plan])  # fmt: skip
     rng = np.random.default_rng(0)
     rates = rng.uniform(10, 50, W) * rng.choice([-1, 1], W)
     sim.set_joint_state(2.0 * np.sign(rates)[:, None], rates[:, None])
     retried = rejected = 0
     for _ in range(120):
-        fresh.state.restore(sim.state.snapshot())
         ok = sim.world_status() == WorldStatus.OK
         q_before = sim.body_q()
         sim.step()
-        fresh.step()
         status = sim.world_status()
         done = ok & (status == WorldStatus.OK)
         assert sim.converged()[done].all()
         again = ok & sim.newton_retried()
-        np.testing.assert_array_equal(sim.body_q()[again], fresh.body_q()[again])
-        np.testing.assert_array_equal(status[again], fresh.world_status()[again])
         dropped = ok & (status != WorldStatus.OK)
+        assert (status[dropped] != WorldStatus.NONFINITE).all()
         np.testing.assert_array_equal(sim.body_q()[dropped], q_before[dropped])
         retried += int(again.sum())
         rejected += int(dropped.sum())
     assert retried >= 3  # the case exercises the retry
-    assert rejected < retried + 3
+    assert rejected < retried / 2
 
 
 def test_factor_reuse_off_rejects_without_a_retry():

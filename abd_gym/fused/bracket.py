@@ -60,7 +60,7 @@ def world_step(spec: KernelSpec):
                 block_sync()
         c = tick(t, w, lane, PHASE_OPEN_JOINTS, c)
         for b in range(lane, nb, LANES):
-            predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.q_guess, t.dof, t.mass,
+            predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.dof, t.mass,
                          t.mc, k.gravity, k.h, t.h_step, status, w, b)  # fmt: skip
         if wp.static(lanes):
             block_sync()

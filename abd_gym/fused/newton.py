@@ -135,7 +135,6 @@ def stepping(spec: KernelSpec):
     one = dtype(1.0)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
     QUAD = dtype(4.0 * float(spec.quadratic))  # × q's rounding (SolverSettings.quadratic_stop)
-    SETTLED = dtype(solver_kernels.SETTLED)
 
     @wp.func
     def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype, noise: dtype, chord: int):
@@ -200,21 +199,6 @@ def stepping(spec: KernelSpec):
         return 0
 
     @wp.func
-    def settled(q: wp.array2d(dtype=vec12), w: int, dmax: dtype, threshold: dtype, converged: wp.array(dtype=wp.int32),
-                lane: int):  # fmt: skip
-        """1 if a step that ended the solve (its floors read at the point it left) is also within
-        SETTLED × the floor of the point it reached, else 0 (the solve goes on; lane 0 clears the
-        flag).  The floors scale with ‖q‖∞: from an absurd initial guess (a world spinning at 1e9
-        rad/s: ‖q‖∞ ~ 1e7) a 25 m step is under q's rounding there, and would end the solve with
-        the joints 2.5 m apart.  Run once a solve."""
-        floor, rounding = noise_floor(q, w, threshold)
-        if dmax < SETTLED * floor:
-            return 1
-        if lane == 0:
-            converged[w] = 0
-        return 0
-
-    @wp.func
     def take_step(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                   w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, dmax: dtype, g_abs: dtype, threshold: dtype, chord: int,
                   reuse: int, d_prev: dtype, max_line_search: int, converged: wp.array(dtype=wp.int32),
@@ -236,8 +220,6 @@ def stepping(spec: KernelSpec):
             stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged, lane)
         if wp.static(lanes):
             block_sync()  # q is read whole by the next iteration
-        if stop == 1 and accepted != 0:
-            stop = settled(q, w, dmax, threshold, converged, lane)
         return stop, chord_next
 
     return SimpleNamespace(take_step=take_step)
@@ -274,10 +256,10 @@ def newton(spec: KernelSpec):
         With ``reuse``, an iteration after a full step (α = 1) keeps the Cholesky factor it left in H
         and solves only the new gradient against it (a simplified-Newton step; see ``chord_step``).
         The solve's budget is max_iterations; it also ends where the line search runs out away from
-        convergence or the factor breaks down.  A solve with ``reuse`` then starts again from its
-        initial guess (t.q_guess, kept by predict_body) with max_iterations more, factoring at every
-        one (chord −1): the iterations ``reuse`` = 0 would have taken, so factor reuse never commits
-        a step that a fresh factor would reject.  A solve that ends its last budget unconverged is
+        convergence or the factor breaks down.  A solve with ``reuse`` then starts again from the
+        prediction q̃ (t.q_tilde: the extrapolated guess it began from is not kept, which would cost a
+        store per body every step) with max_iterations more, factoring at every one (chord −1), so
+        factor reuse never commits a step that a fresh factor could not solve.  A solve that ends its last budget unconverged is
         rejected (status UNCONVERGED, or BREAKDOWN; close_world keeps qⁿ).  The counts include the
         retry's iterations.  Lane-split, every lane takes every branch (each decides from the same
         sums in the same order) and lane 0 alone writes the world's counters."""
@@ -393,7 +375,7 @@ def newton(spec: KernelSpec):
                     t.retried[w] = 1
                 for b in range(lane, q.shape[1], LANES):
                     if t.dof[b] >= 0:
-                        q[w, b] = t.q_guess[w, b]
+                        q[w, b] = t.q_tilde[w, b]
                 if wp.static(lanes):
                     block_sync()
             d_prev = dmax

@@ -46,7 +46,6 @@ def structs(dtype):
         """Everything the incremental potential reads besides q: model, joint history, controls."""
 
         q_tilde: wp.array2d(dtype=vec12)
-        q_guess: wp.array2d(dtype=vec12)  # Newton's initial guess, where a retry restarts (solve_world)
         free: wp.array(dtype=wp.int32)
         dof: wp.array(dtype=wp.int32)
         first: wp.array(dtype=wp.int32)  # the Hessian's envelope (Model.first)
