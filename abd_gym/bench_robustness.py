@@ -4,9 +4,8 @@ Each case is a scene, a step dt and a batch of worlds with random initial states
 fixed seed, run for a fixed number of steps under each integrator and dtype with the simulator's
 default settings (only the scene and dt are chosen).  Per run it reports:
 
-- ``reported``: worlds that ``failed_worlds()`` listed at any step (with their ``world_status()``
-  codes where the simulator has it); a reported world's later steps are left out of every
-  other column;
+- ``reported``: worlds whose ``world_status()`` left OK at any step (with the causes, by
+  ``WorldStatus`` name); a reported world's later steps are left out of every other column;
 - ``silent``: world-steps whose Newton solve ended unconverged (``converged()`` False) on a world
   that was not reported: a step committed with nothing said;
 - ``gain > 5%`` and ``worst gain`` (conservative cases only: no drive acts): the energy gain
@@ -44,6 +43,7 @@ from . import mechanisms
 from .scene import Scene
 from .shapes import Box
 from .simulator import Simulator
+from .status import WorldStatus
 
 INTEGRATORS = ("implicit_euler", "bdf2")
 DTYPES = ("float32", "float64")
@@ -206,7 +206,6 @@ def run_case(c: Case, dt, integrator="implicit_euler", dtype="float32", worlds=6
 
 def _measure(sim, scene, steps, row):
     W = sim.num_worlds
-    status_of = getattr(sim, "world_status", None)
     limits = _limits(scene)
     e = sim.energies()
     E0, Vmin = sum(e.values()), e["gravity"].copy()
@@ -221,17 +220,14 @@ def _measure(sim, scene, steps, row):
     t0 = time.perf_counter()
     for k in range(steps):
         sim.step()
-        failed = np.zeros(W, bool)
-        failed[sim.failed_worlds()] = True
-        if status_of is not None:
-            status = np.asarray(status_of())
-            failed |= status != 0
+        status = sim.world_status()
+        failed = status != WorldStatus.OK
         new = failed & alive
         if new.any():
             reported_at[new] = k
             for w in np.flatnonzero(new):
-                code = int(status[w]) if status_of is not None else -1
-                causes[code] = causes.get(code, 0) + 1
+                cause = WorldStatus(int(status[w])).name
+                causes[cause] = causes.get(cause, 0) + 1
         alive &= ~failed
         silent += int((~sim.converged() & alive).sum())
         iters.append(np.where(alive, sim.newton_iterations(), -1))
@@ -304,8 +300,8 @@ def _its(r):
 def _cell_reported(r):
     if not r["reported"]:
         return "0"
-    causes = ", ".join(f"{n}×{k}" for k, n in r["causes"].items() if k != "-1")
-    return f"{r['reported']} (step {r['first_report_step'] + 1}{'; status ' + causes if causes else ''})"
+    causes = ", ".join(f"{n}× {k}" for k, n in r["causes"].items())
+    return f"{r['reported']} (step {r['first_report_step'] + 1}; {causes})"
 
 
 def table(rows) -> str:
@@ -348,9 +344,9 @@ steps {result['worlds']} worlds from random initial states (seed {result['seed']
 
 ## Columns
 
-- **reported**: worlds that `failed_worlds()` listed at any step (the step of the first, and the
-  `world_status()` codes with their counts where the simulator reports them). A reported world's
-  later steps are left out of the other columns.
+- **reported**: worlds whose `world_status()` left `OK` at any step (the step of the first, and
+  the causes, `abd_gym.WorldStatus` names, with their counts). A reported world's later steps are
+  left out of the other columns.
 - **silent**: world-steps whose Newton solve ended unconverged (`converged()` False) in a world
   that was not reported: steps committed with nothing said. The goal is 0.
 - **gain > 5%** and **worst gain** (conservative cases, where no drive acts): the gain
