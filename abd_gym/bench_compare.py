@@ -19,6 +19,7 @@ import warp as wp
 from . import mechanisms
 from .plan import ExecutionPlan
 from .simulator import Simulator
+from .solver import SolverSettings
 
 CARTPOLE_XML = """
 <mujoco>
@@ -137,6 +138,8 @@ def main(argv=None):
     ap.add_argument("--scratch", default="auto", help="comma-separated layouts of our fused step: auto (the "
                     "simulator's default), global, shared, lanes (each timed against the same MuJoCo Warp run)")
     ap.add_argument("--repeat", type=int, default=3, help="time each engine this many times and keep its fastest")
+    ap.add_argument("--integrator", default=None, help="our integrator: bdf2 or implicit_euler (default: the "
+                    "simulator's)")
     ap.add_argument("--out", default="bench_out")
     args = ap.parse_args(argv)
     gpu = args.device.startswith("cuda")
@@ -144,6 +147,7 @@ def main(argv=None):
     alone = args.ours_only if args.ours_only is not None else ("1048576" if gpu else "")
     alone = [int(w) for w in alone.split(",") if w]
     steps = args.steps or (100 if gpu else 10)
+    integrator = {} if args.integrator is None else {"integrator": args.integrator}
     rows = []
     for case in args.cases.split(","):
         for w in worlds + alone:
@@ -156,15 +160,15 @@ def main(argv=None):
             for scratch in args.scratch.split(","):
                 plan = ExecutionPlan(scratch=None if scratch == "auto" else scratch)
                 ours, residual, mem, scratch = ours_steps_per_second(case, w, steps, args.dt, args.device,
-                                                                     repeat=args.repeat, plan=plan)
+                                                                     repeat=args.repeat, plan=plan, **integrator)
                 rows.append(dict(case=case, num_worlds=w, scratch=scratch, abd_gym=ours, mujoco_warp=theirs,
                                  ratio=ours / theirs, joint_residual=residual, memory_bytes_per_world=mem))  # fmt: skip
                 print(f"{case:16s} {w:8d} worlds  abd_gym ({scratch}) {ours:14,.0f}  mujoco_warp {theirs:14,.0f} "
                       f"world-steps/s  ratio {ours / theirs:.3f}  residual {residual:.1e} m  {mem:,.0f} B/world",
                       flush=True)  # fmt: skip
     result = dict(device=args.device, device_name=wp.get_device(args.device).name, dt=args.dt, steps=steps,
-                  repeat=args.repeat, rows=rows)  # fmt: skip
-    lines = [f"Device: {result['device_name']}, dt = {args.dt}", "",
+                  repeat=args.repeat, integrator=args.integrator or SolverSettings.integrator, rows=rows)  # fmt: skip
+    lines = [f"Device: {result['device_name']}, dt = {args.dt}, abd_gym's {result['integrator']}", "",
              "| mechanism | worlds | abd_gym step | abd_gym world-steps/s | MuJoCo Warp world-steps/s | ratio "
              "| joint residual [m] | abd_gym memory [B/world] |", "|---|---:|---|---:|---:|---:|---:|---:|"]  # fmt: skip
     for r in rows:
