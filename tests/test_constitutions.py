@@ -639,8 +639,10 @@ def ref(scene):
 def sims(scene):
     # one_launch=False: the fused kernel is Newton alone, so test_fused_step_assembles_the_same_system
     # can run one iteration on a loaded state (one_launch would open the step first: a new prediction)
+    # implicit Euler: the reference's h (a BDF2 step's ĥ = 2h/3 is checked by its own test)
     plan = ag.ExecutionPlan(one_launch=False)
-    return {dt: ag.Simulator(scene, num_worlds=2, dt=0.01, dtype=dt, plan=plan) for dt in ("float64", "float32")}
+    return {dt: ag.Simulator(scene, num_worlds=2, dt=0.01, dtype=dt, integrator="implicit_euler", plan=plan)
+            for dt in ("float64", "float32")}
 
 
 def move_subtree(q, bodies, R, c, d=np.zeros(3)):
@@ -863,7 +865,7 @@ def test_lane_split_assembly_matches_staged(scene, ref, lanes, groups):
     before = wp.config.enable_cpu_blocks
     wp.config.enable_cpu_blocks = True
     try:
-        sim = ag.Simulator(scene, num_worlds=2, dt=0.01, dtype="float64", device="cpu",
+        sim = ag.Simulator(scene, num_worlds=2, dt=0.01, dtype="float64", device="cpu", integrator="implicit_euler",
                            plan=ag.ExecutionPlan(scratch="lanes", block_dim=lanes, lane_groups=groups))  # fmt: skip
         assert sim.solver.block_dim == lanes and sim.solver.lane_groups == groups
         sim.solver.fused_system(sim.state)  # builds the kernel and the groups' shares
