@@ -192,7 +192,7 @@ def kernels(dtype):
                         x_hist, h_step, h, x_anchor, k, j)  # fmt: skip
         for j in range(num_joints):
             joint_coordinates(q, q_prev, qd, body_a, body_b, kind, c_a, c_b, t_a, n_a, b_a, n_b, b_b, theta0, c_prev,
-                              s_prev, h, 0, 1, coord, coord_vel, unwrapped, x_hist, k, j)  # fmt: skip
+                              s_prev, h, h_step, 0, 1, coord, coord_vel, unwrapped, x_hist, k, j)  # fmt: skip
         for j in range(num_joints):
             u = xx[i, 0, j]
             unwrapped[k, j] = u

@@ -570,7 +570,7 @@ class Solver:
         return wp.launch(self.coordinates, dim=(m.num_worlds, m.num_joints),
                          inputs=[state.q, state.q_prev, state.qd, m.body_a, m.body_b, m.joint_kind, m.c_a, m.c_b, m.t_a,
                                  m.n_a, m.b_a, m.n_b, m.b_b, state.theta0, state.c_prev, state.s_prev, m.dtype(self.h),
-                                 state.status, mask, int(accumulate), int(rate_from_qd), state.coord, state.coord_vel,
+                                 self.h_step, state.status, mask, int(accumulate), int(rate_from_qd), state.coord, state.coord_vel,
                                  state.unwrapped, state.x_hist], device=m.device, record_cmd=record)  # fmt: skip
 
     def restart_joints(self, state, mask):

@@ -435,7 +435,7 @@ def test_ppo_learns_cartpole(tmp_path):
     from abd_gym.agents.common import build_eval_env, evaluate
 
     path = CONFIG_DIR / "cartpole_ppo.yaml"
-    cfg = load_config(path, ["n_timesteps=24000", "eval_episodes=10"])
+    cfg = load_config(path, ["n_timesteps=32000", "eval_episodes=10"])
     summary = agent_train.train(cfg, config_name="cartpole_ppo", run_dir=tmp_path / "run", progress_bar=False)
 
     class _Random:

@@ -86,7 +86,7 @@ def world_step(spec: KernelSpec):
         if status[w] == OK:
             for j in range(lane, t.joint_kind.shape[0], LANES):
                 close_joint(q, k.q_prev, t.body_a, t.body_b, t.joint_kind, t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b,
-                            t.b_b, t.theta0, t.c_prev, t.s_prev, k.c_ref, k.s_ref, k.h, k.bdf2, k.coord, k.velocity,
+                            t.b_b, t.theta0, t.c_prev, t.s_prev, k.c_ref, k.s_ref, k.h, t.h_step, k.bdf2, k.coord, k.velocity,
                             t.unwrapped, k.x_hist, t.x_anchor, w, j)  # fmt: skip
         if wp.static(has_rlim or has_plim):
             if k.bdf2 != 0 and status[w] == OK:
