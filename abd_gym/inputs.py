@@ -59,3 +59,17 @@ def check_joint_state(scene, x, xd, worlds, dt, limits):
             i = int(np.argmax(bad))
             raise ValueError(f"coordinates: joint {names[k]!r} in world {int(worlds[i])} is at {float(x[i, k])!r}, outside its "
                              f"limit [{float(lo[i])!r}, {float(up[i])!r}]")  # fmt: skip
+
+
+def check_body_spin(scene, omega, worlds, dt):
+    """Raise a ValueError where a free body's angular velocity ω (N, bodies, 3) [rad/s] turns it by π
+    or more in one step of ``dt`` [s] (|ω|·dt ≥ π): the step's incremental joint angles lie in
+    (−π, π], and a turn that large leaves A's Newton solve starting from a state whose rounding is
+    metres."""
+    free = np.array([not b.fixed for b in scene.bodies], dtype=bool)
+    fast = (np.linalg.norm(omega, axis=-1) * dt >= math.pi) & free
+    if fast.any():
+        i, b = np.argwhere(fast)[0]
+        raise ValueError(f"angular_velocities: body {scene.bodies[b].name!r} in world {int(worlds[i])} turns at "
+                         f"{float(np.linalg.norm(omega[i, b]))!r} rad/s, which turns it by pi or more in one step of "
+                         f"{dt} s (|omega| < {math.pi / dt:.4g})")  # fmt: skip

@@ -15,7 +15,7 @@ import warp as wp
 
 from . import conditioning, graphs, kinematics, launches, rows
 from .coordinates import FIXED_CODE
-from .inputs import check_joint_state
+from .inputs import check_body_spin, check_joint_state
 from .inputs import finite_array as _finite_array
 from .model import Model
 from .plan import ExecutionPlan
@@ -329,6 +329,9 @@ class Simulator:
         """Set poses (N, bodies, 3) and (N, bodies, 3, 3) [and velocities] of the worlds listed (default all).
 
         Fixed bodies keep their scene pose.  The joint-angle history restarts: q^{t−1} = q.
+        Refused with a ValueError naming the world and body (nothing is written): a non-finite value,
+        or an angular velocity that turns a body by π or more in one step (|ω|·dt ≥ π), which
+        neither a joint's incremental angle nor the step's rotation of A can represent.
         """
         idx = self._worlds(worlds)
         nb = self.model.num_bodies
@@ -337,6 +340,7 @@ class Simulator:
         R = _finite_array("rotations", rotations, (len(idx), nb, 3, 3), **at)
         v = _finite_array("linear_velocities", 0.0 if linear_velocities is None else linear_velocities, (len(idx), nb, 3), **at)
         w = _finite_array("angular_velocities", 0.0 if angular_velocities is None else angular_velocities, (len(idx), nb, 3), **at)
+        check_body_spin(self.scene, w, idx, self.dt)
         q = np.concatenate([p, R.reshape(len(idx), nb, 9)], axis=-1)
         qd = np.concatenate([v, (_skew(w) @ R).reshape(len(idx), nb, 9)], axis=-1)
         fixed = np.array([b.fixed for b in self.scene.bodies])
