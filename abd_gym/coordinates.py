@@ -51,14 +51,16 @@ def _build(dtype):
         return unwrapped[w, j]
 
     @wp.func
-    def step_rate(d: dtype, d_prev: dtype, h: dtype, h_step: dtype):
+    def step_rate(d: dtype, unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype), h: dtype,
+                  h_step: wp.array(dtype=dtype), w: int, j: int):  # fmt: skip
         """A coordinate's rate at the end of a step [rad/s or m/s] from its increment d = xⁿ⁺¹ − xⁿ:
         d/h after an implicit Euler step; after a BDF2 step (h_step = 2h/3 < h) BDF2's own
-        (3xⁿ⁺¹ − 4xⁿ + xⁿ⁻¹)/(2h) = (3d − d_prev)/(2h), d_prev = xⁿ − xⁿ⁻¹, as the bodies' q̇ is: the
-        quotient d/h is the step's mean rate, half a step behind (under a constant force, 5/6 of
-        the rate after the second step)."""
-        if h_step < h:
-            return (dtype(3.0) * d - d_prev) / (dtype(2.0) * h)
+        (3xⁿ⁺¹ − 4xⁿ + xⁿ⁻¹)/(2h) = (3d − (xⁿ − xⁿ⁻¹))/(2h) (xⁿ, xⁿ⁻¹: unwrapped, x_hist before the
+        step's update), as the bodies' q̇ is: the quotient d/h is the step's mean rate, half a step
+        behind (under a constant force, 5/6 of the rate after the second step).  The history is
+        read only after a BDF2 step."""
+        if h_step[w] < h:
+            return (dtype(3.0) * d - (unwrapped[w, j] - x_hist[w, j])) / (dtype(2.0) * h)
         return d / h
 
     @wp.func
@@ -121,7 +123,7 @@ def _build(dtype):
             c, s = cos_sin(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j])
             d = delta_theta(c, s, c_prev[w, j], s_prev[w, j])
             coord[w, j] = theta0[w, j] + d
-            velocity[w, j] = step_rate(d, unwrapped[w, j] - x_hist[w, j], h, h_step[w])
+            velocity[w, j] = step_rate(d, unwrapped, x_hist, h, h_step, w, j)
             if rate_from_qd != 0:
                 gi, gj = theta_grad(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], c, s)
                 velocity[w, j] = wp.dot(gi, qd[w, body_a[j]]) + wp.dot(gj, qd[w, body_b[j]])
@@ -132,7 +134,7 @@ def _build(dtype):
             x = displacement(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
             xp = displacement(q_prev[w, body_a[j]], q_prev[w, body_b[j]], c_a[w, j], c_b[w, j], t_a[w, j])
             coord[w, j] = x
-            velocity[w, j] = step_rate(x - xp, unwrapped[w, j] - x_hist[w, j], h, h_step[w])
+            velocity[w, j] = step_rate(x - xp, unwrapped, x_hist, h, h_step, w, j)
             if rate_from_qd != 0:
                 gi, gj = displacement_grad(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
                 velocity[w, j] = wp.dot(gi, qd[w, body_a[j]]) + wp.dot(gj, qd[w, body_b[j]])
@@ -184,7 +186,7 @@ def _build(dtype):
             c, s = cos_sin(qi, qj, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j])
             d = delta_theta(c, s, c_prev[w, j], s_prev[w, j])
             coord[w, j] = theta0[w, j] + d
-            velocity[w, j] = step_rate(d, unwrapped[w, j] - x_hist[w, j], h, h_step[w])
+            velocity[w, j] = step_rate(d, unwrapped, x_hist, h, h_step, w, j)
             x_hist[w, j] = unwrapped[w, j]
             unwrapped[w, j] = unwrapped[w, j] + d
             c_prev[w, j] = c
@@ -194,7 +196,7 @@ def _build(dtype):
             x = displacement(qi, qj, c_a[w, j], c_b[w, j], t_a[w, j])
             xp = displacement(q_prev[w, body_a[j]], q_prev[w, body_b[j]], c_a[w, j], c_b[w, j], t_a[w, j])
             coord[w, j] = x
-            velocity[w, j] = step_rate(x - xp, unwrapped[w, j] - x_hist[w, j], h, h_step[w])
+            velocity[w, j] = step_rate(x - xp, unwrapped, x_hist, h, h_step, w, j)
             x_hist[w, j] = unwrapped[w, j]
             unwrapped[w, j] = x
         x_anchor[w, j] = anchor(unwrapped, x_hist, bdf2 != 0, w, j)
