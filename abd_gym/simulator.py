@@ -253,7 +253,7 @@ class Simulator:
 
     def newton_retried(self) -> np.ndarray:
         """(num_worlds,) bool: the last step's solve, which reused the factor, did not converge within
-        its budget and was started again from its initial guess with a fresh factor at every
+        its budget and was started again from the prediction q̃ with a fresh factor at every
         iteration (``newton_iterations`` counts both)."""
         return self.state.retried.numpy().astype(bool)
 

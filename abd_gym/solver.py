@@ -140,9 +140,9 @@ class Solver:
         self.parts = [c for c in REGISTRY if c.terms(model)]
         self.cols = self._columns(physical=False)
         self.report_cols = self._columns(physical=True)
+        # the prediction q̃ (predict_body), where a retry from a fresh factor starts (fused.solve_world,
+        # solver_kernels.converge)
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
-        # Newton's initial guess of every free body (predict_body): a retry from a fresh factor starts
-        # again from it (fused.solve_world, solver_kernels.converge)
         cuda = wp.get_device(dev).is_cuda
         # the resolved plan's choices, as the step's code reads them
         self.fused, self.scratch, self.one_launch = plan.fused, plan.scratch, plan.one_launch
