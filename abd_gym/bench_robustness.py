@@ -119,7 +119,7 @@ def _slider_crank():
 
 
 def cases():
-    """The hard cases of issue 30, in report order."""
+    """The hard cases, in report order."""
     spin = lambda: mechanisms.pendulum(limit=(-3.1, 3.1, 1e5))  # noqa: E731
     out = [
         Case("light_under_heavy", lambda: mechanisms.chain(2, masses=[1.0, 0.001]), _angles(-1.5, 1.5, 2), (0.01, 0.03),
