@@ -22,9 +22,10 @@ import numpy as np
 SOLVABLE = {"float32": (1e6, 5e8), "float64": (5e9, 1e10)}
 
 
-def joint_numbers(scene) -> np.ndarray:
-    """(num_joints,) K/m of each joint: K = γ·(m_i + m_j) over its lighter free body's mass."""
-    ratios = scene.strength_ratios()
+def joint_numbers(scene, ratios=None) -> np.ndarray:
+    """(num_joints,) K/m of each joint: K = γ·(m_i + m_j) over its lighter free body's mass
+    (``ratios``: the scene's strength_ratios(), if already at hand)."""
+    ratios = scene.strength_ratios() if ratios is None else ratios
     out = np.zeros(scene.num_joints)
     for k, j in enumerate(scene.joints):
         a, b = scene.bodies[j.body_a], scene.bodies[j.body_b]
@@ -47,10 +48,11 @@ def unsolvable(scene, dt: float, dtype: str) -> list[str]:
     ``dtype`` ("float32" or "float64") solves at step ``dt`` [s]."""
     joint_max, body_max = SOLVABLE[dtype]
     out = []
-    for k, n in enumerate(joint_numbers(scene)):
+    ratios = scene.strength_ratios()  # (the joint graph's search, once)
+    for k, n in enumerate(joint_numbers(scene, ratios)):
         if n > joint_max:
             j = scene.joints[k]
-            ratio = scene.strength_ratios()[k]
+            ratio = ratios[k]
             out.append(f"joint {j.name!r}: strength ratio {ratio:.3g} gives K/m = {n:.3g} against its lighter body, "
                        f"above the {joint_max:.0e} that {dtype} solves reliably: lower strength_ratio below "
                        f"{ratio * joint_max / n:.3g}" + (" or use float64" if dtype == "float32" else ""))  # fmt: skip
