@@ -148,6 +148,20 @@ class Joint:
     def has_limit(self) -> bool:
         return "limit/lower" in self.attributes
 
+    @property
+    def damping(self) -> float:
+        """Passive joint damping [N·m·s/rad or N·s/m] (Scene.set_joint_passive)."""
+        return self.attributes.get("passive/damping", 0.0)
+
+    @property
+    def armature(self) -> float:
+        """Inertia on the joint coordinate [kg·m² or kg] (Scene.set_joint_passive)."""
+        return self.attributes.get("passive/armature", 0.0)
+
+    @property
+    def has_passive(self) -> bool:
+        return self.damping > 0.0 or self.armature > 0.0
+
 
 @dataclass
 class Drive:
@@ -314,6 +328,26 @@ class Scene:
     def add_prismatic_limit(self, joint, lower, upper, strength=1e3):
         """Prismatic joint limit (UID 669): ``E = s((x−u)/(u−l))³`` above, mirrored below [J]."""
         self._add_limit(joint, PRISMATIC, UID_PRISMATIC_LIMIT, lower, upper, strength)
+
+    # ------------------------------------------------------------------ passive joint terms
+    def set_joint_passive(self, joint, damping=0.0, armature=0.0):
+        """Passive dynamics of a revolute or prismatic joint's coordinate x (MuJoCo's joint
+        ``damping`` and ``armature``), terms of the incremental potential with no control input:
+
+        - damping ``d`` [N·m·s/rad or N·s/m]: the force ``−d ẋ``;
+        - armature ``a`` [kg·m² or kg]: an inertia on the coordinate, kinetic energy ``½ a ẋ²`` (a
+          motor's rotor seen through its gear), with no weight.
+
+        Both are implicit: ``E = a/(2ĥ²)·(x − x̂ − ĥ v̂)² + d/(2ĥ)·(x − x̂)²`` inside ĥ², with x̂ and v̂
+        the step's predicted coordinate and rate (docs/design.md).  Setting both to 0 removes them.
+        """
+        j = self.joints[self.joint_index(joint)]
+        if j.kind not in (REVOLUTE, PRISMATIC):
+            raise ValueError(f"passive terms act on revolute or prismatic joints, joint {j.name!r} is {j.kind}")
+        damping = _finite("damping", damping, nonnegative=True)
+        armature = _finite("armature", armature, nonnegative=True)
+        j.attributes["passive/damping"] = damping
+        j.attributes["passive/armature"] = armature
 
     # ------------------------------------------------------------------ drives
     def add_drive(self, joint, mode="effort", stiffness=0.0, damping=0.0, max_effort=math.inf, name=None) -> int:
