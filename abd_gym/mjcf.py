@@ -213,11 +213,11 @@ class _Importer:
                 refuse.append(f"mocap body {self.body_names[b]!r}")
             if m.body_gravcomp[b] != 0:
                 refuse.append(f"gravcomp on body {self.body_names[b]!r}")
-        kinds = {mj.mjtJoint.mjJNT_FREE: "free", mj.mjtJoint.mjJNT_BALL: "ball"}
+        kinds = {int(mj.mjtJoint.mjJNT_FREE): "free", int(mj.mjtJoint.mjJNT_BALL): "ball"}
         for j in self._kept_joints():
             where = f"joint {self.joint_names[j]!r} of body {self.body_names[m.jnt_bodyid[j]]!r}"
-            if m.jnt_type[j] in kinds:
-                refuse.append(f"{kinds[m.jnt_type[j]]} {where} (abd_gym has hinge and slide joints only)")
+            if int(m.jnt_type[j]) in kinds:
+                refuse.append(f"{kinds[int(m.jnt_type[j])]} {where} (abd_gym has hinge and slide joints only)")
                 continue
             if m.jnt_stiffness[j] != 0:
                 refuse.append(f"stiffness {m.jnt_stiffness[j]} on {where}")
