@@ -166,7 +166,7 @@ class _Importer:
         self.skipped = []
         self._refuse_unsupported()
         self.d = self._pose_at_zero()
-        gravity = np.zeros(3) if m.opt.disableflags & self.mj.mjtDisableBit.mjDSBL_GRAVITY else m.opt.gravity
+        gravity = np.zeros(3) if int(m.opt.disableflags) & int(self.mj.mjtDisableBit.mjDSBL_GRAVITY) else m.opt.gravity
         self.scene = Scene(gravity=np.array(gravity, dtype=np.float64))
         self._bodies()
         self._joints()
@@ -309,7 +309,7 @@ class _Importer:
             k = j - m.body_jntadr[b]
             chain = [self.abd_of[int(m.body_weldid[m.body_parentid[b]])]] + self.carriers[b] + [self.abd_of[b]]
             parent, child = chain[k], chain[k + 1]
-            hinge = m.jnt_type[j] == mj.mjtJoint.mjJNT_HINGE
+            hinge = int(m.jnt_type[j]) == int(mj.mjtJoint.mjJNT_HINGE)
             add = s.add_revolute_joint if hinge else s.add_prismatic_joint
             # a slide's line may pass through any point of the child: its point at qpos = 0
             anchor = d.xanchor[j] if hinge else d.xpos[b] + d.xmat[b].reshape(3, 3) @ m.jnt_pos[j]
@@ -347,15 +347,16 @@ class _Importer:
     def _drives(self):
         m, mj = self.m, self.mj
         self.actuator_names, gear, scale, ctrlrange = [], [], [], []
-        fixed, affine = mj.mjtGain.mjGAIN_FIXED, mj.mjtBias.mjBIAS_AFFINE
+        fixed, affine, none = int(mj.mjtGain.mjGAIN_FIXED), int(mj.mjtBias.mjBIAS_AFFINE), int(mj.mjtBias.mjBIAS_NONE)
         for a in range(m.nu):
             name = _name(m, mj.mjtObj.mjOBJ_ACTUATOR, a, "actuator")
-            if m.actuator_trntype[a] != mj.mjtTrn.mjTRN_JOINT:
+            if int(m.actuator_trntype[a]) != int(mj.mjtTrn.mjTRN_JOINT):
                 raise ValueError(f"actuator {name!r}: only joint transmissions map to abd_gym drives")
             j = int(m.actuator_trnid[a, 0])
             if not self.kept[m.jnt_bodyid[j]]:
                 continue
-            if m.actuator_dyntype[a] != mj.mjtDyn.mjDYN_NONE or m.actuator_gaintype[a] != fixed:
+            bias = int(m.actuator_biastype[a])
+            if int(m.actuator_dyntype[a]) != int(mj.mjtDyn.mjDYN_NONE) or int(m.actuator_gaintype[a]) != fixed:
                 raise ValueError(f"actuator {name!r}: activation dynamics or a non-fixed gain (abd_gym drives are "
                                  "motor, position or velocity servos)")  # fmt: skip
             g = float(m.actuator_gear[a, 0])
@@ -369,16 +370,16 @@ class _Importer:
                     raise ValueError(f"actuator {name!r}: asymmetric forcerange [{flo}, {fhi}] (abd_gym's effort "
                                      "limit is symmetric)")  # fmt: skip
                 force = abs(g) * fhi
-            if m.actuator_biastype[a] == mj.mjtBias.mjBIAS_NONE:
+            if bias == none:
                 if limited and lo != -hi:
                     raise ValueError(f"motor actuator {name!r}: asymmetric ctrlrange [{lo}, {hi}] (abd_gym's effort "
                                      "limit is symmetric)")  # fmt: skip
                 kwargs = dict(mode="effort", max_effort=min(force, abs(g * kp) * hi))
                 u_scale = g * kp
-            elif m.actuator_biastype[a] == affine and b0 == 0 and b1 == -kp and b2 <= 0 and kp > 0:
+            elif bias == affine and b0 == 0 and b1 == -kp and b2 <= 0 and kp > 0:
                 kwargs = dict(mode="position", stiffness=g * g * kp, damping=-g * g * b2, max_effort=force)
                 u_scale = 1.0 / g
-            elif m.actuator_biastype[a] == affine and b0 == 0 and b1 == 0 and b2 == -kp and kp > 0:
+            elif bias == affine and b0 == 0 and b1 == 0 and b2 == -kp and kp > 0:
                 kwargs = dict(mode="velocity", damping=g * g * kp, max_effort=force)
                 u_scale = 1.0 / g
             else:
@@ -398,10 +399,10 @@ class _Importer:
         m, mj = self.m, self.mj
         for e in range(m.neq):
             name = _name(m, mj.mjtObj.mjOBJ_EQUALITY, e, "equality")
-            kind = m.eq_type[e]
-            if kind not in (mj.mjtEq.mjEQ_CONNECT, mj.mjtEq.mjEQ_WELD):
+            kind = int(m.eq_type[e])
+            if kind not in (int(mj.mjtEq.mjEQ_CONNECT), int(mj.mjtEq.mjEQ_WELD)):
                 raise ValueError(f"equality {name!r}: only connect and weld map to abd_gym joints")
-            if m.eq_objtype[e] != mj.mjtObj.mjOBJ_BODY:
+            if int(m.eq_objtype[e]) != int(mj.mjtObj.mjOBJ_BODY):
                 raise ValueError(f"equality {name!r}: defined by sites; abd_gym imports body-defined connect/weld")
             b1, b2 = int(m.eq_obj1id[e]), int(m.eq_obj2id[e])
             if not (self.kept[b1] and self.kept[b2]):
@@ -409,7 +410,7 @@ class _Importer:
             if not m.eq_active0[e]:
                 self.skipped.append(f"equality {name!r} (inactive)")
                 continue
-            if kind == mj.mjtEq.mjEQ_WELD:
+            if kind == int(mj.mjtEq.mjEQ_WELD):
                 self._weld(name, e, b1, b2)
             else:
                 self._connect(name, e, b1, b2)
@@ -459,7 +460,7 @@ class _Importer:
         common = next(b for b in p1 if b in p2)
         bodies = p1[: p1.index(common)] + p2[: p2.index(common)]
         joints = [j for b in bodies for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b])]
-        hinges = [self.d.xaxis[j] for j in joints if m.jnt_type[j] == mj.mjtJoint.mjJNT_HINGE]
+        hinges = [self.d.xaxis[j] for j in joints if int(m.jnt_type[j]) == int(mj.mjtJoint.mjJNT_HINGE)]
         why = None
         if not hinges:
             why = "the loop it closes has no hinge"
@@ -467,7 +468,7 @@ class _Importer:
             axis = hinges[0] / np.linalg.norm(hinges[0])
             if any(np.linalg.norm(np.cross(axis, h)) > PARALLEL_TOLERANCE for h in hinges):
                 why = "the hinges on the loop it closes are not parallel"
-            elif any(abs(axis @ self.d.xaxis[j]) > PARALLEL_TOLERANCE for j in joints if m.jnt_type[j] == mj.mjtJoint.mjJNT_SLIDE):
+            elif any(abs(axis @ self.d.xaxis[j]) > PARALLEL_TOLERANCE for j in joints if int(m.jnt_type[j]) == int(mj.mjtJoint.mjJNT_SLIDE)):
                 why = "a slide on the loop it closes leaves the plane of its hinges"
         if why:
             raise ValueError(f"connect {name!r}: {why}, so it needs a point (ball) joint, which abd_gym does not have")
@@ -484,7 +485,7 @@ class _Importer:
         w1, w2 = int(m.body_weldid[b1]), int(m.body_weldid[b2])
         if w1 == w2:
             return False
-        filter_parent = not (m.opt.disableflags & self.mj.mjtDisableBit.mjDSBL_FILTERPARENT)
+        filter_parent = not (int(m.opt.disableflags) & int(self.mj.mjtDisableBit.mjDSBL_FILTERPARENT))
         pw1, pw2 = int(m.body_weldid[m.body_parentid[w1]]), int(m.body_weldid[m.body_parentid[w2]])
         if filter_parent and w1 and w2 and (w1 == pw2 or w2 == pw1):
             return False
@@ -493,7 +494,7 @@ class _Importer:
 
     def _contacts(self, ignore_contacts):
         m = self.m
-        if m.opt.disableflags & self.mj.mjtDisableBit.mjDSBL_CONTACT:
+        if int(m.opt.disableflags) & int(self.mj.mjtDisableBit.mjDSBL_CONTACT):
             return
         geoms = [g for g in range(m.ngeom) if self.kept[m.geom_bodyid[g]]]
         for i, g1 in enumerate(geoms):

@@ -305,3 +305,47 @@ def test_urdf_arm_structure_and_motion(urdf_path):
     m = model(urdf_path)
     for dt in (0.002, 0.001):
         assert motion_error(m, *ARM_STATES, dt) < BOUND
+
+
+# ---------------------------------------------------------------------------------- loops
+FOURBAR = """<mujoco model="fourbar"><worldbody>
+  <body name="crank"><joint name="crank" type="hinge" axis="0 1 0"/>
+    <geom type="capsule" fromto="0 0 0 0 0 0.1" size="0.01" contype="0" conaffinity="0"/>
+    <body name="coupler" pos="0 0 0.1"><joint name="coupler" type="hinge" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0.4 0 0.05" size="0.01" contype="0" conaffinity="0"/></body></body>
+  <body name="rocker" pos="0.4 0 0"><joint name="rocker" type="hinge" axis="ROCKER_AXIS"/>
+    <geom type="capsule" fromto="0 0 0 0 0 0.15" size="0.01" contype="0" conaffinity="0"/></body>
+  </worldbody><equality><connect name="loop" body1="coupler" body2="rocker" anchor="0.4 0 0.05" solref="0.001 1"/>
+  </equality></mujoco>"""
+
+
+def test_planar_connect_closes_the_loop_with_a_hinge():
+    """A Grashof four-bar whose crank turns a full revolution in 1 s under gravity (MuJoCo's connect
+    stiffened to solref 0.001)."""
+    m = mujoco.MjModel.from_xml_string(FOURBAR.replace("ROCKER_AXIS", "0 1 0"))
+    scene = ag.Scene.from_mjcf(m)
+    loop = scene.joints[3]
+    assert (loop.name, loop.kind) == ("loop", "revolute")
+    np.testing.assert_allclose(loop.anchor, [0.4, 0, 0.15])
+    np.testing.assert_allclose(loop.frame[0], [0, 1, 0])
+    qvel = [[0.5, -0.5, 1 / 3]]  # consistent with the loop: the coupler translates at first
+    sim = ag.Simulator(scene, num_worlds=1, dt=0.001, dtype="float64")
+    sim.set_joint_state(np.zeros((1, 4)), np.c_[qvel, [[0.0]]])
+    sim.step(1000)
+    reference = mujoco_qpos(m, [[0.0, 0.0, 0.0]], qvel)
+    assert abs(reference[0, 0]) > 2 * math.pi - 0.1
+    assert np.abs(sim.joint_angles_unwrapped()[:, :3] - reference).max() < BOUND
+
+
+def test_non_planar_connect_is_refused():
+    with pytest.raises(ValueError, match="connect 'loop'.*not parallel"):
+        ag.Scene.from_mjcf(FOURBAR.replace("ROCKER_AXIS", "0 1 0.2"))
+
+
+def test_weld_becomes_a_fixed_joint():
+    xml = _xml().replace("</worldbody>", '<body name="free_link" pos="0.3 0 1"><joint name="swing" type="hinge" axis="0 1 0"/>'
+                         '<geom size="0.05" contype="0" conaffinity="0"/></body></worldbody>'
+                         '<equality><weld name="glue" body1="link" body2="free_link"/></equality>')  # fmt: skip
+    scene = ag.Scene.from_mjcf(xml)
+    assert [(j.name, j.kind) for j in scene.joints][-1] == ("glue", "fixed")
+    assert scene.bodies[scene.joints[-1].body_b].name == "free_link"
