@@ -56,7 +56,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .scene import Scene
 from .shapes import Inertia
 
 # carrier body of a multi-joint body (and a massless moving body): this fraction of the mass
@@ -118,9 +117,10 @@ def load(source):
     raise ValueError(f"expected a path, an XML string or a mujoco.MjModel, got {type(source).__name__}")
 
 
-def from_mjcf(source, *, exclude=(), ignore_contacts=False) -> Scene:
-    """The scene of an MJCF/URDF model (see the module docstring); ``scene.imported`` its MjcfInfo."""
-    return _Importer(load(source), exclude, ignore_contacts).scene
+def build(source, scene_class, *, exclude=(), ignore_contacts=False):
+    """A ``scene_class`` (``abd_gym.Scene``, which calls this) of an MJCF/URDF model (see the module
+    docstring); ``scene.imported`` its MjcfInfo."""
+    return _Importer(load(source), scene_class, exclude, ignore_contacts).scene
 
 
 def _name(m, obj, i, prefix):
@@ -156,7 +156,7 @@ def composite(parts):
 class _Importer:
     """One model's import: the steps of the mapping, in order."""
 
-    def __init__(self, m, exclude, ignore_contacts):
+    def __init__(self, m, scene_class, exclude, ignore_contacts):
         self.mj = _mujoco()
         self.m = m
         self.body_names = [_name(m, self.mj.mjtObj.mjOBJ_BODY, b, "body") for b in range(m.nbody)]
@@ -167,7 +167,7 @@ class _Importer:
         self._refuse_unsupported()
         self.d = self._pose_at_zero()
         gravity = np.zeros(3) if int(m.opt.disableflags) & int(self.mj.mjtDisableBit.mjDSBL_GRAVITY) else m.opt.gravity
-        self.scene = Scene(gravity=np.array(gravity, dtype=np.float64))
+        self.scene = scene_class(gravity=np.array(gravity, dtype=np.float64))
         self._bodies()
         self._joints()
         self._drives()

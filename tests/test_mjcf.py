@@ -349,3 +349,16 @@ def test_weld_becomes_a_fixed_joint():
     scene = ag.Scene.from_mjcf(xml)
     assert [(j.name, j.kind) for j in scene.joints][-1] == ("glue", "fixed")
     assert scene.bodies[scene.joints[-1].body_b].name == "free_link"
+
+
+def test_two_hinges_on_one_body_chain_through_a_carrier():
+    """A pendulum on hinges about x then y (a Cardan joint): the carrier's 1e-3 of the bob's mass
+    keeps its swing within BOUND of MuJoCo's over 1 s."""
+    xml = """<mujoco><worldbody><body name="bob" pos="0 0 1">
+      <joint name="ax" type="hinge" axis="1 0 0"/><joint name="ay" type="hinge" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0.05 0 -0.4" size="0.03" contype="0" conaffinity="0"/></body></worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    scene = ag.Scene.from_mjcf(m)
+    assert [b.name for b in scene.bodies] == ["world", "bob/ax", "bob"]
+    qpos, qvel = [[0.5, 0.3], [-1.0, 0.8], [0.2, -1.2]], [[0.0, 1.0], [1.0, 0.0], [-1.0, 2.0]]
+    assert np.abs(abd_qpos(scene, qpos, qvel, 0.002) - mujoco_qpos(m, qpos, qvel)).max() < BOUND
