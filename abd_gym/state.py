@@ -2,7 +2,7 @@
 
 ``q``/``qd``/``q_prev`` (W, bodies) vec12; per joint (W, joints): the seed's ``θ0`` and
 cos/sin θ of ``q^{t−1}``, the coordinate x, its rate, and the multi-turn angle (displacement
-for sliders); per drive (W, drives) the control; per world a status (status.WorldStatus), Newton
+for sliders), with their BDF2 histories and the step's anchors; per drive (W, drives) the control; per world a status (status.WorldStatus), Newton
 iterations and Cholesky factorisations used in the last step, and whether it converged.
 """
 from __future__ import annotations
