@@ -188,8 +188,9 @@ class Simulator:
         return self.state.qd.numpy().astype(np.float64)
 
     def energies(self) -> dict:
-        """Each term's own energy [J] per world: "kinetic", "gravity", "orthogonality" and the joint,
-        limit and drive terms the scene has (K/2 Σ‖C‖² for joints, the seed's E(x) for limits)."""
+        """Each term's own energy [J] per world: "kinetic" (the joints' armature's ½aẋ² included),
+        "gravity", "orthogonality" and the joint, limit and drive terms the scene has (K/2 Σ‖C‖² for
+        joints, the seed's E(x) for limits)."""
         return self.solver.energies(self.state)
 
     def joint_violation(self) -> np.ndarray:

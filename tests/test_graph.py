@@ -345,7 +345,7 @@ def test_default_lane_groups_fill_the_gpu_once():
     assert [default_lane_groups(gpu, "lanes", 16, 9, n) for n in (36, 60, 96)] == [4, 2, 1]
     m = ag.Simulator(mechanisms.cartpole(), num_worlds=1).model
     assert term_counts(m, joint_terms(m)) == dict(revolute_joint=1, prismatic_joint=1, fixed_joint=0, revolute_limit=0,
-                                                  prismatic_limit=0, drive=0, angle=0)
+                                                  prismatic_limit=0, drive=0, passive=0, angle=0)
 
 
 def test_lane_scratch_bytes():
