@@ -22,7 +22,6 @@ FILES = ("inverted_pendulum.xml", "inverted_double_pendulum.xml", "reacher.xml")
 REFERENCE_DT = 1e-4  # MuJoCo RK4 step of the reference [s]
 # max |qpos − qpos_ref| over 1 s [rad or m]: the issue's goal is a few hundredths of a radian
 BOUND = 0.01
-PASSIVE_BOUND = 0.02
 
 # initial (qpos, qvel) per file, 3 worlds each, chosen so that no limit is reached within 1 s
 # (MuJoCo's soft limits and abd_gym's cubic ones stop a joint differently)
@@ -283,7 +282,7 @@ def test_motion_matches_mujoco_without_passive_terms(name, dt):
 def test_passive_motion_matches_mujoco(name, dt):
     """The files as they are: joint damping (all three) and armature (reacher) act."""
     qpos, qvel = STATES[name]
-    assert motion_error(model(name), qpos, qvel, dt) < PASSIVE_BOUND
+    assert motion_error(model(name), qpos, qvel, dt) < BOUND
 
 
 def test_driven_motion_matches_mujoco():
@@ -294,7 +293,7 @@ def test_driven_motion_matches_mujoco():
 
 def test_passive_driven_motion_matches_mujoco():
     qpos, qvel = STATES["inverted_double_pendulum.xml"]
-    assert motion_error(model("inverted_double_pendulum.xml"), qpos, qvel, 0.002, ctrl=[0.02]) < PASSIVE_BOUND
+    assert motion_error(model("inverted_double_pendulum.xml"), qpos, qvel, 0.002, ctrl=[0.02]) < BOUND
 
 
 def test_urdf_arm_structure_and_motion(urdf_path):
