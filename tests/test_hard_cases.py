@@ -273,7 +273,7 @@ def test_no_silent_energy_gain(name, dt, integrator, dtype):
     assert r["refused"] or r["gain_worlds"] == 0, _describe(r)
 
 
-# dt 0.03 under a 1000:1 load and absurd rates are left out: the issue sets the 5 mm goal for the
+# dt 0.03 under a 1000:1 load and absurd rates are left out: the 5 mm goal is set for the
 # load at dt 0.01, and absurd rates must be refused or reported (below).
 GAP_CASES = [n for n in rb.CASE_NAMES if n != "absurd_rates"]
 
@@ -281,7 +281,7 @@ GAP_CASES = [n for n in rb.CASE_NAMES if n != "absurd_rates"]
 @suite(GAP_CASES, exclude=[("heavy_under_light", 0.03)])
 def test_joint_gaps_stay_under_5_mm(name, dt, integrator, dtype):
     """Joints hold to millimetres in every hard case with default strengths, including a 1000 kg
-    link hanging under a 1 kg one at dt 0.01 (the issue's goal: ≤ 5 mm) and strength ratios down
+    link hanging under a 1 kg one at dt 0.01 (the goal: ≤ 5 mm) and strength ratios down
     to 1."""
     r = _row(name, dt, integrator, dtype)
     assert r["refused"] or r["gap_mm"] <= 5.0, _describe(r)
@@ -299,7 +299,7 @@ def test_limits_hold(name, dt, integrator, dtype):
 @suite(["light_under_heavy", "heavy_under_light"], dtypes=("float32",))
 def test_mass_ratio_1_to_1000_never_fails_in_float32(name, dt, integrator, dtype):
     """A 0.001 kg link under a 1 kg one and 1000 kg under 1 kg, at dt 0.01 and 0.03 in float32:
-    no world fails (the issue's goal for dt ≤ 0.03)."""
+    no world fails (the goal for dt ≤ 0.03)."""
     r = _row(name, dt, integrator, dtype)
     assert r["refused"] is None and r["reported"] == 0, _describe(r)
 

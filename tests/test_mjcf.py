@@ -20,7 +20,7 @@ from abd_gym import mjcf  # noqa: E402
 ASSETS = os.path.join(os.path.dirname(gym_mujoco.__file__), "assets")
 FILES = ("inverted_pendulum.xml", "inverted_double_pendulum.xml", "reacher.xml")
 REFERENCE_DT = 1e-4  # MuJoCo RK4 step of the reference [s]
-# max |qpos − qpos_ref| over 1 s [rad or m]: the goal is a few hundredths of a radian
+# max |qpos − qpos_ref| over 1 s [rad or m]: MuJoCo-imported models should stay within a few hundredths of a radian
 BOUND = 0.01
 
 # initial (qpos, qvel) per file, 3 worlds each, chosen so that no limit is reached within 1 s
