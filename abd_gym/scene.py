@@ -184,6 +184,26 @@ class Scene:
         self.bodies: list[Body] = []
         self.joints: list[Joint] = []
         self.drives: list[Drive] = []
+        self.imported = None  # abd_gym.mjcf.MjcfInfo of a scene made by from_mjcf / from_urdf
+
+    @staticmethod
+    def from_mjcf(path_or_xml, *, exclude=(), ignore_contacts=False) -> "Scene":
+        """The scene of an MJCF model (a file path, an XML string, or a compiled ``mujoco.MjModel``),
+        compiled by MuJoCo (``pip install "abd-gym[mjcf]"``); the mapping and what is refused:
+        ``abd_gym.mjcf``.  ``exclude``: names of bodies left out with their subtrees (and the joints,
+        actuators and equalities on them); ``ignore_contacts``: import a model whose geoms can collide,
+        without its contacts.  ``scene.imported`` holds the model's MjcfInfo (joint and actuator
+        names, qpos0, gear and control ranges, body frames and sites, the timestep)."""
+        from .mjcf import from_mjcf
+
+        return from_mjcf(path_or_xml, exclude=exclude, ignore_contacts=ignore_contacts)
+
+    @staticmethod
+    def from_urdf(path, *, exclude=(), ignore_contacts=False) -> "Scene":
+        """The scene of a URDF file, compiled by MuJoCo's URDF reader (as ``from_mjcf``)."""
+        from .mjcf import from_mjcf
+
+        return from_mjcf(path, exclude=exclude, ignore_contacts=ignore_contacts)
 
     # ------------------------------------------------------------------ bodies
     def add_body(
