@@ -86,7 +86,8 @@ def tree_plan(scene, model) -> TreePlan:
 
 
 @functools.lru_cache(maxsize=None)
-def kernels(dtype):
+def kernels(dtype, passive=False):
+    """The restart kernel; ``passive``: it also restarts the passive terms' rate history."""
     o = ops(dtype)
     vec3, vec12, mat33 = o.vec3, o.vec12, o.mat33
     zero, one = dtype(0.0), dtype(1.0)
@@ -106,9 +107,9 @@ def kernels(dtype):
         K = wp.skew(t)
         return wp.identity(3, dtype) + wp.sin(x) * K + (one - wp.cos(x)) * (K * K)
 
-    begin_joint, joint_coordinates = coordinate_funcs(dtype)[:2]
+    begin_joint, joint_coordinates = coordinate_funcs(dtype, passive)[:2]
 
-    @wp.kernel
+    @wp.kernel(module="unique")
     def restart(
         idx: wp.array(dtype=wp.int32), xx: wp.array3d(dtype=dtype),
         steps: wp.array2d(dtype=wp.int32), sign: wp.array(dtype=dtype), R_rel0: wp.array(dtype=mat33),
@@ -125,7 +126,7 @@ def kernels(dtype):
         s_ref: wp.array2d(dtype=dtype), theta0: wp.array2d(dtype=dtype), c_prev: wp.array2d(dtype=dtype),
         s_prev: wp.array2d(dtype=dtype), unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype),
         h_step: wp.array(dtype=dtype), h: dtype, x_anchor: wp.array2d(dtype=dtype), coord: wp.array2d(dtype=dtype),
-        coord_vel: wp.array2d(dtype=dtype),
+        coord_vel: wp.array2d(dtype=dtype), coord_vel_hist: wp.array2d(dtype=dtype), v_anchor: wp.array2d(dtype=dtype),
     ):  # fmt: skip
         """World idx[i] at joint coordinates xx[i, 0] and rates xx[i, 1], its whole restart in one
         thread: the bodies placed (below), their restart history as rows.restart_q (no past:
@@ -189,10 +190,10 @@ def kernels(dtype):
         fresh[k] = 1
         for j in range(num_joints):
             begin_joint(q, body_a, body_b, kind, n_a, b_a, n_b, b_b, c_ref, s_ref, theta0, c_prev, s_prev, unwrapped,
-                        x_hist, h_step, h, x_anchor, k, j)  # fmt: skip
+                        x_hist, h_step, h, x_anchor, coord_vel, coord_vel_hist, v_anchor, k, j)  # fmt: skip
         for j in range(num_joints):
             joint_coordinates(q, q_prev, qd, body_a, body_b, kind, c_a, c_b, t_a, n_a, b_a, n_b, b_b, theta0, c_prev,
-                              s_prev, h, h_step, 0, 1, coord, coord_vel, unwrapped, x_hist, k, j)  # fmt: skip
+                              s_prev, h, h_step, 0, 1, coord, coord_vel, unwrapped, x_hist, coord_vel_hist, k, j)  # fmt: skip
         for j in range(num_joints):
             u = xx[i, 0, j]
             unwrapped[k, j] = u
@@ -209,10 +210,10 @@ def restart_launch(plan: TreePlan, omega: wp.array, state, model, solver, idx: w
     from xx[w] (N = W, idx unused).  ``omega``: the (W, bodies) angular velocities the walk keeps;
     ``solver``: its step length h and per-world h_step (the joints' drive anchors)."""
     masked, m, st = mask is not None, model, state
-    return kernels(model.dtype), N, [
+    return kernels(model.dtype, model.num_passive > 0), N, [
         idx, xx, plan.steps, plan.sign, plan.R_rel0, plan.p_rel0, plan.t_loc, plan.c_loc, plan.R0, plan.p0, float(dt),
         omega, st.q, st.qd, st.q_prev, st.q_hist, st.qd_hist, st.qd_hist2, st.order3, st.status, st.fresh,
         mask if masked else idx, int(masked),
         m.num_joints, m.body_a, m.body_b, m.joint_kind, m.c_a, m.c_b, m.t_a, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
         st.theta0, st.c_prev, st.s_prev, st.unwrapped, st.x_hist, solver.h_step, float(solver.h), st.x_anchor, st.coord,
-        st.coord_vel]
+        st.coord_vel, st.coord_vel_hist, st.v_anchor]

@@ -139,6 +139,13 @@ class Model:
         self.drive_damping = self._world(np.array([d.damping for d in drives]))
         self.drive_max_effort = self._world(np.array([min(d.max_effort, 1e30) for d in drives]))
 
+        # ---- passive joint terms (constitutions.passive): one per joint with damping or armature
+        passive = [k for k, j in enumerate(joints) if j.has_passive]
+        self.num_passive = len(passive)
+        self.passive_joint = self.int_array(passive)
+        self.passive_armature = self._world(np.array([joints[k].armature for k in passive]))
+        self.passive_damping = self._world(np.array([joints[k].damping for k in passive]))
+
     # ------------------------------------------------------------------ helpers
     def int_array(self, values):
         """``values`` as a flat int32 device array (one unused 0 where there are none: a kernel

@@ -203,7 +203,7 @@ class Solver:
         self.ls_remaining = wp.zeros(1, dtype=wp.int32, device=dev)
         self.k = solver_kernels(dt_, self.envelope)
         self._fused = None  # (kernel, struct of arrays), built on the first fused step
-        self.begin_step, self.coordinates = coordinates.kernels(dt_)
+        self.begin_step, self.coordinates = coordinates.kernels(dt_, model.num_passive > 0)
         # BDF2 restarts a world's history where a limit is engaged (solver_kernels.open_body)
         self.restarts = bool(self.bdf2 and any(model.limit_joints.values()))
         self._restart_cmds = {}  # restart_joints' recorded launches
@@ -356,7 +356,8 @@ class Solver:
             wp.launch(self.begin_step, dim=(W, m.num_joints),
                       inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
                               state.theta0, state.c_prev, state.s_prev, self.all_active, state.unwrapped,
-                              state.x_hist, self.h_step, dt(self.h), state.x_anchor], device=dev)  # fmt: skip
+                              state.x_hist, self.h_step, dt(self.h), state.x_anchor, state.coord_vel,
+                              state.coord_vel_hist, state.v_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
                                                      state.qd_hist2, state.order3, state.calm, self.q_tilde,
                                                      m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step, state.status],
@@ -461,7 +462,7 @@ class Solver:
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
             setattr(t, name, getattr(m, name))
-        for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor", "retried"):
+        for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor", "v_anchor", "retried"):
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
         t.drive_rest = m.int_array(jt["rest"][drive.NAME])
@@ -474,6 +475,7 @@ class Solver:
         t.rlim_lo, t.rlim_up, t.rlim_s = m.limit_params[REVOLUTE]
         t.plim_lo, t.plim_up, t.plim_s = m.limit_params[PRISMATIC]
         t.kp, t.kd, t.fmax = m.drive_stiffness, m.drive_damping, m.drive_max_effort
+        t.pas_arm, t.pas_damp = m.passive_armature, m.passive_damping
         counts = term_counts(m, jt)
         G = self.lane_groups
         none = (np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), np.zeros(1, np.int32))  # (unused)
@@ -486,7 +488,7 @@ class Solver:
         for name in ("qd", "q_prev", "q_hist", "qd_hist", "qd_hist2", "order3", "control_prev", "calm", "fresh", "x_hist",
                      "coord"):  # fmt: skip
             setattr(k, name, getattr(state, name))
-        k.velocity = state.coord_vel
+        k.velocity, k.velocity_hist = state.coord_vel, state.coord_vel_hist
         k.c_ref, k.s_ref = m.c_ref, m.s_ref
         k.gravity, k.h, k.bdf2 = m.gravity, m.dtype(self.h), self.bdf2
         k.hold, k.go = self._no_hold, self._go_all
@@ -559,7 +561,8 @@ class Solver:
             return wp.launch(self.begin_step, dim=(m.num_worlds, m.num_joints),
                              inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref,
                                      m.s_ref, state.theta0, state.c_prev, state.s_prev, mask, state.unwrapped,
-                                     state.x_hist, self.h_step, m.dtype(self.h), state.x_anchor],
+                                     state.x_hist, self.h_step, m.dtype(self.h), state.x_anchor, state.coord_vel,
+                                     state.coord_vel_hist, state.v_anchor],
                              device=m.device, record_cmd=record)  # fmt: skip
 
     def update_coordinates(self, state, accumulate, rate_from_qd=False, mask=None, record=False):
@@ -571,7 +574,8 @@ class Solver:
                          inputs=[state.q, state.q_prev, state.qd, m.body_a, m.body_b, m.joint_kind, m.c_a, m.c_b, m.t_a,
                                  m.n_a, m.b_a, m.n_b, m.b_b, state.theta0, state.c_prev, state.s_prev, m.dtype(self.h),
                                  self.h_step, state.status, mask, int(accumulate), int(rate_from_qd), state.coord, state.coord_vel,
-                                 state.unwrapped, state.x_hist], device=m.device, record_cmd=record)  # fmt: skip
+                                 state.unwrapped, state.x_hist, state.coord_vel_hist], device=m.device,
+                         record_cmd=record)  # fmt: skip
 
     def restart_joints(self, state, mask):
         """``begin`` and the coordinates and rates (from q̇) of the worlds in mask, after their

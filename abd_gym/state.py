@@ -24,6 +24,9 @@ class State:
         self.theta0, self.c_prev, self.s_prev, self.coord, self.coord_vel, self.unwrapped, self.x_hist, self.x_anchor = (
             wp.zeros((W, nj), dtype=dt, device=dev) for _ in range(8)
         )
+        # the passive terms' rate history ẋⁿ⁻¹ and predicted rate v̂ (constitutions.passive; kept
+        # where the scene has passive terms)
+        self.coord_vel_hist, self.v_anchor = (wp.zeros((W, nj), dtype=dt, device=dev) for _ in range(2))
         self.control = wp.zeros((W, nd), dtype=dt, device=dev)
         # q̇ⁿ⁻², whether its third-order extrapolation guesses a body's next step, the last step's
         # controls and the steps in a row with the same (solver_kernels.predict_body, open_body)

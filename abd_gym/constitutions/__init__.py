@@ -5,10 +5,11 @@ and its declaration, ``CONSTITUTION`` (``protocol.Constitution``).
 compiles only the ones it uses.  A coordinate term (a limit, a drive) is folded into its joint's
 fused term after the ones before it here.
 """
-from . import affine_body, drive, fixed_joint, prismatic_joint, prismatic_limit, revolute_joint, revolute_limit
+from . import (affine_body, drive, fixed_joint, passive, prismatic_joint, prismatic_limit, revolute_joint,
+               revolute_limit)
 from .protocol import BODY, COORDINATE, JOINT, Constitution
 
 REGISTRY = tuple(m.CONSTITUTION for m in (affine_body, revolute_joint, prismatic_joint, fixed_joint, revolute_limit,
-                                          prismatic_limit, drive))  # fmt: skip
+                                          prismatic_limit, drive, passive))  # fmt: skip
 
 __all__ = ["BODY", "COORDINATE", "JOINT", "REGISTRY", "Constitution"]

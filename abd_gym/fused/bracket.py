@@ -26,7 +26,9 @@ def world_step(spec: KernelSpec):
     Terms, Bracket = structs(dtype).Terms, structs(dtype).Bracket
     staged = solver_kernels.kernels(dtype, spec.envelope, spec.packed)
     open_body, predict_body, finalize_body = staged["open_body"], staged["predict_body"], staged["finalize_body"]
-    begin_joint, _, close_joint = coordinates.funcs(dtype)
+    # the passive terms' predicted rate, kept only where a scene has them
+    has_passive = any(f[0] == "passive" for f in spec.folds)
+    begin_joint, _, close_joint = coordinates.funcs(dtype, has_passive)
     limit_engaged = coordinates.restart_funcs(dtype)[0]
     # the scene's limits, by kind: a term of their own or folded into their joint's
     has_rlim, has_plim = (spec.has(name) or any(f[0] == name for f in spec.folds)
@@ -55,7 +57,8 @@ def world_step(spec: KernelSpec):
         if fresh != 0:
             for j in range(lane, t.joint_kind.shape[0], LANES):
                 begin_joint(q, t.body_a, t.body_b, t.joint_kind, t.n_a, t.b_a, t.n_b, t.b_b, k.c_ref, k.s_ref, t.theta0,
-                            t.c_prev, t.s_prev, t.unwrapped, k.x_hist, t.h_step, k.h, t.x_anchor, w, j)  # fmt: skip
+                            t.c_prev, t.s_prev, t.unwrapped, k.x_hist, t.h_step, k.h, t.x_anchor, k.velocity,
+                            k.velocity_hist, t.v_anchor, w, j)  # fmt: skip
             if wp.static(lanes):
                 block_sync()
         c = tick(t, w, lane, PHASE_OPEN_JOINTS, c)
@@ -87,7 +90,7 @@ def world_step(spec: KernelSpec):
             for j in range(lane, t.joint_kind.shape[0], LANES):
                 close_joint(q, k.q_prev, t.body_a, t.body_b, t.joint_kind, t.c_a, t.c_b, t.t_a, t.n_a, t.b_a, t.n_b,
                             t.b_b, t.theta0, t.c_prev, t.s_prev, k.c_ref, k.s_ref, k.h, t.h_step, k.bdf2, k.coord, k.velocity,
-                            t.unwrapped, k.x_hist, t.x_anchor, w, j)  # fmt: skip
+                            t.unwrapped, k.x_hist, t.x_anchor, k.velocity_hist, t.v_anchor, w, j)  # fmt: skip
         if wp.static(has_rlim or has_plim):
             if k.bdf2 != 0 and status[w] == OK:
                 if wp.static(lanes):

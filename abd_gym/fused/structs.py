@@ -93,6 +93,10 @@ def structs(dtype):
         control: wp.array2d(dtype=dtype)
         unwrapped: wp.array2d(dtype=dtype)
         x_anchor: wp.array2d(dtype=dtype)
+        # the passive terms' parameters (W, terms) and predicted rate v̂ (W, joints) (constitutions.passive)
+        pas_arm: wp.array2d(dtype=dtype)
+        pas_damp: wp.array2d(dtype=dtype)
+        v_anchor: wp.array2d(dtype=dtype)
         retried: wp.array(dtype=wp.int32)  # State.retried
         clock: wp.array2d(dtype=wp.int64)  # (W, len(PHASES)) with phase_clock, else unused
         # lane groups: group c's joints, limits and drives, (kind WORK_*, index in its kind) for
@@ -122,6 +126,7 @@ def structs(dtype):
         x_hist: wp.array2d(dtype=dtype)
         coord: wp.array2d(dtype=dtype)
         velocity: wp.array2d(dtype=dtype)
+        velocity_hist: wp.array2d(dtype=dtype)  # the passive terms' ẋⁿ⁻¹ (State.coord_vel_hist)
         hold: wp.array(dtype=wp.int32)  # (W,): a world with hold[w] != 0 is not stepped (step_world)
         go: wp.array(dtype=wp.int32)  # (1,): 0 steps no world
         gravity: vec3
