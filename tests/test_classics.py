@@ -203,3 +203,33 @@ def test_short_driven_rollout_stays_close_to_gymnasiums(name):
     restarts at every step."""
     err, motion = rollouts(name, 5, 0.2)
     assert motion > 0.1 and err < 0.15 * motion, (err, motion)
+
+
+@pytest.mark.parametrize("name", CLASSICS)
+def test_torch_backend_steps_as_numpy(name):
+    """The Torch backend (here on the CPU) gives the NumPy backend's observations, rewards and flags,
+    through terminations, truncations and their autoresets (NEXT_STEP, the queued episodes)."""
+    import importlib
+
+    torch = pytest.importorskip("torch")
+    cls = getattr(importlib.import_module(TASKS[name][0]), CLASSICS[name])
+    runs = []
+    for backend in ("numpy", "torch"):
+        env = cls(N, backend=backend, max_episode_steps=20)
+        env.reset(seed=5)
+        rng = np.random.default_rng(0)
+        high = env.single_action_space.high
+        run = []
+        for _ in range(45):
+            out = env.step(rng.uniform(-high, high, (N, len(high))).astype(np.float32))[:4]
+            run.append([x.numpy() if isinstance(x, torch.Tensor) else x for x in out])
+        runs.append(run)
+        env.close()
+    ends = 0
+    for (o, r, te, tr), (o_t, r_t, te_t, tr_t) in zip(*runs):
+        np.testing.assert_allclose(o_t, o, atol=1e-6)  # float32 rounding of the task's arithmetic
+        np.testing.assert_allclose(r_t, r, rtol=1e-6, atol=2e-6)
+        np.testing.assert_array_equal(te_t, te)
+        np.testing.assert_array_equal(tr_t, tr)
+        ends += int((te | tr).sum())
+    assert ends >= N  # every task ended episodes here (Reacher: its 20-step limit)
