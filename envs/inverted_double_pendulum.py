@@ -75,7 +75,7 @@ class InvertedDoublePendulumVectorEnv(GymnasiumMjcfEnv):
         """(N,) generalised force of the slider's limit [N] at cart positions x (N,): −E'(x)/h².  The
         limit is a penalty of the incremental potential, E = s((x − u)/w)³ beyond u (mirrored below
         l, w = u − l) in J·s² (docs/design.md §2.1, §3.3), and the steps where it acts are implicit
-        Euler steps of h = dt."""
+        Euler steps of h = dt.  The scene's nominal limit (randomised limits are not followed)."""
         xp = self.xp
         lower, upper, strength = self.slider_limit
         w = upper - lower
