@@ -102,7 +102,7 @@ class DeviceStep:
         F = 4 * N * (d + 1)
         self.out_b = self.out_raw.view(torch.uint8)[F: F + 5 * N].view(torch.bool).view(5, N)
         ep = env.episodes
-        self.arrays = dict(effort=wp.from_torch(env.max_effort), obs=wp.from_torch(obs),
+        self.arrays = dict(scale=wp.from_torch(env.action_scale), obs=wp.from_torch(obs),
                            reward=wp.from_torch(reward), flags=wp.from_torch(self.out_b),
                            bad=wp.from_torch(self.out_b[4]), elapsed=wp.from_torch(ep.elapsed),
                            task=wp.from_torch(ep.task) if ep.task_width else None)  # fmt: skip
@@ -137,8 +137,8 @@ class DeviceStep:
         k = self.arrays
         mailed = slot is not None
         wp.launch(env_kernels.check_actions(self.sim.model.dtype, scaled, mailed), dim=self.num_envs,
-                  inputs=[wp.from_torch(a), k["effort"], k["bad"], self.go, self.sim.state.control,
-                          mail if mailed else None, slot or 0],
+                  inputs=[wp.from_torch(a), k["scale"], float(env.action_bound), k["bad"], self.go,
+                          self.sim.state.control, mail if mailed else None, slot or 0],
                   device=self.device)  # fmt: skip
         if not scaled:
             self.sim.set_controls(env.controls(a))

@@ -23,13 +23,14 @@ def check_actions(control_dtype, scaled: bool, mailed: bool = False):
     """The kernel that checks, clips and (with ``scaled``) scales world w's actions."""
 
     @wp.kernel(module="unique")  # a variant made later must not reload the others (in a graph)
-    def check(a: wp.array2d(dtype=wp.float32), effort: wp.array(dtype=wp.float32), bad: wp.array(dtype=wp.bool),
-              go: wp.array(dtype=wp.int32), controls: wp.array2d(dtype=control_dtype), mail: wp.array2d(dtype=wp.uint64),
-              slot: int):  # fmt: skip
+    def check(a: wp.array2d(dtype=wp.float32), scale: wp.array(dtype=wp.float32), bound: wp.float32,
+              bad: wp.array(dtype=wp.bool), go: wp.array(dtype=wp.int32), controls: wp.array2d(dtype=control_dtype),
+              mail: wp.array2d(dtype=wp.uint64), slot: int):  # fmt: skip
         """A NaN action flags its world (bad[w]) and clears the go flag, which only the host sets
-        again; the actions clipped to [−1, 1] in place (NaN as 0); with ``scaled``, the controls
-        a × max effort [N, N·m].  ``mailed``: the actions read from the caller's float32 (N, A)
-        batch at mail[slot, 0], clipped into ``a`` (else ``mail`` is unused)."""
+        again; the actions clipped to [−bound, bound] in place (NaN as 0); with ``scaled``, the
+        controls a × scale [N, N·m] (max effort / bound: the bound maps to the drive's max
+        effort).  ``mailed``: the actions read from the caller's float32 (N, A) batch at
+        mail[slot, 0], clipped into ``a`` (else ``mail`` is unused)."""
         w = wp.tid()
         b = bool(False)
         src = a
@@ -40,10 +41,10 @@ def check_actions(control_dtype, scaled: bool, mailed: bool = False):
             if wp.isnan(x):
                 b = True
                 x = 0.0
-            x = wp.clamp(x, -1.0, 1.0)
+            x = wp.clamp(x, -bound, bound)
             a[w, j] = x
             if wp.static(scaled):
-                controls[w, j] = control_dtype(x * effort[j])
+                controls[w, j] = control_dtype(x * scale[j])
         bad[w] = b
         if b:
             go[0] = 0

@@ -1,6 +1,7 @@
 """The vector env's batching: its spaces, the actions it accepts and its autoreset modes.
 
-Actions are normalised to ``[-1, 1]`` per action entry (``Box``, float32); observations are
+Actions lie in ``[-b, b]`` per action entry (``Box``, float32; the task's ``action_bound`` b, 1 unless
+a task sets it); observations are
 float32 within finite symmetric bounds; the batched spaces add a leading ``num_envs`` axis.
 """
 from __future__ import annotations
@@ -23,20 +24,21 @@ def autoreset_mode(mode) -> AutoresetMode:
     raise ValueError(f"autoreset_mode must be one of {[m.name for m in AutoresetMode]}, got {mode!r}")
 
 
-def make_spaces(action_dim: int, observation_high, num_envs: int):
+def make_spaces(action_dim: int, observation_high, num_envs: int, action_bound: float = 1.0):
     """(single action space, single observation space, action space, observation space): actions
-    ``Box(-1, 1, (action_dim,))``, observations ``Box(-high, high)``, float32, and their batches."""
+    ``Box(-action_bound, action_bound, (action_dim,))``, observations ``Box(-high, high)``, float32,
+    and their batches."""
     high = np.asarray(observation_high, dtype=np.float32)
     if not np.all(np.isfinite(high)) or np.any(high <= 0):
         raise ValueError(f"observation bounds must be positive and finite, got {high}")
-    single_action = spaces.Box(-1.0, 1.0, shape=(action_dim,), dtype=np.float32)
+    single_action = spaces.Box(-action_bound, action_bound, shape=(action_dim,), dtype=np.float32)
     single_obs = spaces.Box(-high, high, dtype=np.float32)
     return single_action, single_obs, batch_space(single_action, num_envs), batch_space(single_obs, num_envs)
 
 
-def prepare_actions(actions, arrays, num_envs: int, action_dim: int, check: bool = True):
+def prepare_actions(actions, arrays, num_envs: int, action_dim: int, check: bool = True, bound: float = 1.0):
     """The action batch as a float32 backend array (N, action_dim) (``arrays``: the env's Backend);
-    with ``check``, clipped to [-1, 1], and a batch with NaN raises here (which, for a Torch tensor
+    with ``check``, clipped to [-bound, bound], and a batch with NaN raises here (which, for a Torch tensor
     on a GPU, waits for the device); without, left to the device's check."""
     N, d = num_envs, action_dim
     xp = arrays.xp
@@ -57,4 +59,4 @@ def prepare_actions(actions, arrays, num_envs: int, action_dim: int, check: bool
         worlds = np.flatnonzero(to_numpy(nan).any(axis=1))
         raise ValueError(f"actions contain NaN in worlds {worlds.tolist()[:10]}; nothing was stepped "
                          "(replace or mask NaN actions before calling step)")  # fmt: skip
-    return xp.clip(a, -1.0, 1.0)
+    return xp.clip(a, -bound, bound)

@@ -2,18 +2,24 @@
 
 Importing ``abd_gym`` registers every task; ids, creators and limits:
 
-==========================  =========================================  ======  =========
-id                          module (single env / vector env)           steps   threshold
-==========================  =========================================  ======  =========
-abd_gym/Pendulum-v0         abd_gym.envs.pendulum                      200     -200
-abd_gym/CartPole-v0         abd_gym.envs.cartpole                      500     475
-abd_gym/CartPoleSwingUp-v0  abd_gym.envs.cartpole_swingup              500     350
-abd_gym/DoublePendulumCart-v0 abd_gym.envs.double_pendulum_cart        500     450
-abd_gym/Acrobot-v0          abd_gym.envs.acrobot                       500     -100
-abd_gym/Reacher-v0          abd_gym.envs.reacher                       50      -5
-abd_gym/FourBar-v0          abd_gym.envs.fourbar                       200     150
-abd_gym/SliderCrank-v0      abd_gym.envs.slider_crank                  200     150
-==========================  =========================================  ======  =========
+=================================  ===========================================  =====  =========
+id                                 module (single env / vector env)             steps  threshold
+=================================  ===========================================  =====  =========
+abd_gym/Pendulum-v0                abd_gym.envs.pendulum                        200    -200
+abd_gym/CartPole-v0                abd_gym.envs.cartpole                        500    475
+abd_gym/CartPoleSwingUp-v0         abd_gym.envs.cartpole_swingup                500    350
+abd_gym/DoublePendulumCart-v0      abd_gym.envs.double_pendulum_cart            500    450
+abd_gym/Acrobot-v0                 abd_gym.envs.acrobot                         500    -100
+abd_gym/Reacher-v0                 abd_gym.envs.reacher                         50     -5
+abd_gym/FourBar-v0                 abd_gym.envs.fourbar                         200    150
+abd_gym/SliderCrank-v0             abd_gym.envs.slider_crank                    200    150
+abd_gym/InvertedPendulum-v5        abd_gym.envs.inverted_pendulum               1000   950
+abd_gym/InvertedDoublePendulum-v5  abd_gym.envs.inverted_double_pendulum        1000   9100
+abd_gym/Reacher-v5                 abd_gym.envs.reacher_v5                      50     -3.75
+=================================  ===========================================  =====  =========
+
+The ``-v5`` tasks are Gymnasium's MuJoCo classics built from Gymnasium's own model files (they
+need the ``mujoco`` package); each module's docstring says what differs from Gymnasium's env.
 
     env = gym.make("abd_gym/CartPole-v0")                          # one world, CPU, TimeLimit
     envs = gym.make_vec("abd_gym/CartPole-v0", num_envs=4096,      # native batched env
@@ -38,6 +44,11 @@ TASKS = {
     "Reacher-v0": ("abd_gym.envs.reacher", "ReacherEnv", "ReacherVectorEnv", 50, -5.0),
     "FourBar-v0": ("abd_gym.envs.fourbar", "FourBarEnv", "FourBarVectorEnv", 200, 150.0),
     "SliderCrank-v0": ("abd_gym.envs.slider_crank", "SliderCrankEnv", "SliderCrankVectorEnv", 200, 150.0),
+    "InvertedPendulum-v5": ("abd_gym.envs.inverted_pendulum", "InvertedPendulumEnv", "InvertedPendulumVectorEnv",
+                            1000, 950.0),
+    "InvertedDoublePendulum-v5": ("abd_gym.envs.inverted_double_pendulum", "InvertedDoublePendulumEnv",
+                                  "InvertedDoublePendulumVectorEnv", 1000, 9100.0),
+    "Reacher-v5": ("abd_gym.envs.reacher_v5", "ReacherV5Env", "ReacherV5VectorEnv", 50, -3.75),
 }  # fmt: skip
 
 

@@ -2,8 +2,9 @@
 
 Each body is projected orthographically onto a plane of the world ("xz": x right, z up; "xy":
 x right, y up; "yz": y right, z up) as the convex hull of its silhouette points (a box's eight
-corners, a cylinder's rims, circles around a sphere's centre or a capsule's two end centres) and
-filled with a flat colour; hinge anchors are drawn as small dots.  Convex fills over each shape's
+corners, a cylinder's rims, circles around a sphere's centre or a capsule's two end centres; an
+``Inertia`` body, imported from MJCF with its mass data only, as its equivalent inertia box, and
+not at all where it is fixed) and filled with a flat colour; hinge anchors are drawn as small dots.  Convex fills over each shape's
 bounding box are a few NumPy operations, so a frame of a small mechanism costs well under a
 millisecond or two: fast enough for ``gymnasium.wrappers.RecordVideo``.
 
@@ -18,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from .scene import REVOLUTE, Scene
-from .shapes import Box, Capsule, Cylinder, Sphere
+from .shapes import Box, Capsule, Cylinder, Inertia, Sphere
 
 PLANES = {"xz": (0, 2), "xy": (0, 1), "yz": (1, 2)}
 PALETTE = [(66, 114, 196), (202, 140, 74), (92, 168, 96), (180, 80, 160), (200, 70, 70), (70, 170, 180)]
@@ -118,6 +119,17 @@ class Canvas:
             self.image[lo:hi] = color
 
 
+def inertia_box_corners(shape: Inertia) -> np.ndarray:
+    """(8, 3) corners [m, body frame] of the uniform box with the mass and the principal inertias of
+    ``shape`` about its centre of mass, on the principal axes: half-extents
+    a_i = √(3(I_j + I_k − I_i)/(2m)) (a rod of length L gives L/2 along it)."""
+    inertia = np.asarray(shape.inertia, dtype=np.float64).reshape(3, 3)
+    moments, axes = np.linalg.eigh(0.5 * (inertia + inertia.T))
+    half = np.sqrt(np.maximum(1.5 * (moments.sum() - 2.0 * moments) / shape.mass, 0.0))
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+    return np.asarray(shape.com, dtype=np.float64) + (signs * half) @ axes.T
+
+
 def _circle_points(n=20):
     t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
     return np.stack([np.cos(t), np.sin(t)], axis=1)
@@ -143,6 +155,9 @@ class Renderer:
                 circ = [(np.array([0.0, 0.0, z]), s.radius) for z in (-s.half_height, s.half_height)]
             elif isinstance(s, Sphere):
                 circ = [(np.zeros(3), s.radius)]
+            elif isinstance(s, Inertia):
+                # a fixed imported body stands in for the world (its mass data carry no shape)
+                pts = np.zeros((0, 3)) if body.fixed else inertia_box_corners(s)
             else:  # unknown shape: a dot of its bounding radius
                 circ = [(np.zeros(3), s.bounding_radius())]
             self.local_points.append(pts)
@@ -175,7 +190,8 @@ class Renderer:
                 pts2.append(canvas.project(p + self.local_points[k] @ A.T))
             for c, r in self.circles[k]:
                 pts2.append(canvas.project(p + A @ c) + self._unit * (r * canvas.scale))
-            canvas.fill_convex(np.concatenate(pts2), self.colors[k])
+            if pts2:
+                canvas.fill_convex(np.concatenate(pts2), self.colors[k])
         if joints:
             dot = max(0.012 * self.width, 2.0 / canvas.scale)
             for b, local in self.anchors:

@@ -17,12 +17,17 @@ class Task:
 
     def _init_task_arrays(self, observation_high: np.ndarray):
         """The backend arrays of the hooks' defaults, made once by the env's constructor: the drives'
-        max efforts (``max_effort``) and the observation bounds (``observation``; the low bound
-        kept: negating the high one in each step is a launch)."""
+        max efforts (``max_effort``), the efforts per unit of action (``action_scale``) and the
+        observation bounds (``observation``; the low bound kept: negating the high one in each
+        step is a launch)."""
         self._max_effort = np.array([d.max_effort for d in self.scene.drives], dtype=np.float32)
         if len(self.scene.drives) and not np.all(np.isfinite(self._max_effort)):
             raise ValueError("every drive of a task needs a finite max_effort (actions are scaled by it)")
-        self._effort = self.asarray(self._max_effort) if len(self.scene.drives) else None
+        if not (np.isfinite(self.action_bound) and self.action_bound > 0):
+            raise ValueError(f"action_bound must be positive and finite, got {self.action_bound!r}")
+        has_drives = len(self.scene.drives) > 0
+        self._effort = self.asarray(self._max_effort) if has_drives else None
+        self._action_scale = self.asarray(self._max_effort / np.float32(self.action_bound)) if has_drives else None
         self._obs_high = self.asarray(observation_high)
         self._obs_low = -self._obs_high
 
@@ -41,14 +46,23 @@ class Task:
         """Actions per world: by default one per drive."""
         return len(self.scene.drives)
 
+    # actions lie in Box(−action_bound, action_bound) per entry (a task imported from MJCF: the
+    # actuators' control range, whose bound the drives' max_effort = gear · bound matches)
+    action_bound: float = 1.0
+
     @property
     def max_effort(self):
         """(num_drives,) each drive's ``max_effort`` [N or N·m] as a float32 backend array."""
         return self._effort
 
+    @property
+    def action_scale(self):
+        """(num_drives,) drive input per unit of action, max_effort / action_bound [N or N·m]."""
+        return self._action_scale
+
     def controls(self, actions):
-        """Drive inputs (N, num_drives) from clipped actions (N, action_dim): a × max_effort."""
-        return actions * self._effort
+        """Drive inputs (N, num_drives) from clipped actions (N, action_dim): a × max_effort / action_bound."""
+        return actions * self._action_scale
 
     def observe(self):
         """(N, obs_dim) observation of every world (backend array)."""

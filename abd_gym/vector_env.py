@@ -6,7 +6,8 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
 
 * spaces: ``single_observation_space`` / ``single_action_space`` (``Box``, float32) and their
   batched versions ``observation_space`` / ``action_space`` (leading ``num_envs`` axis).  Actions
-  are normalised to ``[-1, 1]`` per drive and scaled by the drive's ``max_effort``.
+  are normalised to ``[-1, 1]`` per drive (``[-b, b]`` for a task's ``action_bound`` b) and
+  scaled by the drive's ``max_effort`` / b.
 * ``reset(seed=None, options=None)`` -> ``(obs, info)``; ``step(actions)`` ->
   ``(obs, reward, terminated, truncated, info)``, all batched (reward float32, flags bool).
 * autoreset (``metadata["autoreset_mode"]``, set by the ``autoreset_mode`` argument):
@@ -151,6 +152,7 @@ class ABDVectorEnv(Task, VectorEnv):
     for sliders, rates rad/s or m/s.
 
     Class attributes: ``dt`` (simulator step [s]), ``frame_skip`` (simulator steps per env step),
+    ``action_bound`` (actions lie in [−b, b], 1 by default),
     ``task_state`` ((attribute, width) pairs of per-episode task values, see ``draw_task``),
     ``reset_option_keys`` (the task's own ``reset(options=...)`` keys), ``velocity_bound``
     (observation bound for rates) and ``render_plane`` / ``render_center`` / ``render_width`` /
@@ -165,11 +167,12 @@ class ABDVectorEnv(Task, VectorEnv):
       ``Box(-high, high)`` (float32) and observations are clipped to it.
     * ``observe() -> (N, obs_dim)``: the observation of every world (backend array).
     * ``reward(obs, actions) -> (N,)``: the reward of the step that led to ``obs`` (N, obs_dim),
-      with the clipped actions (N, action_dim) in [-1, 1].
+      with the clipped actions (N, action_dim) in [-1, 1] (``[-b, b]`` for ``action_bound`` b).
     * ``terminated(obs) -> (N,) bool``: default never (failed worlds are terminated by the env).
     * ``action_dim`` (property): default one action per drive of the scene.
     * ``controls(actions) -> (N, num_drives)``: drive inputs from clipped actions; default
-      ``actions * max_effort`` (efforts [N or N·m]); override it when ``action_dim`` differs.
+      ``actions * max_effort / action_bound`` (efforts [N or N·m]); override it when
+      ``action_dim`` differs.
     * ``initial_state(n, rng, options) -> (coordinates, rates)``: host NumPy arrays (n, num_joints)
       of n fresh episodes drawn from ``rng`` (``options``: the reset options); default all zero.
     * ``draw_task(n, rng, options) -> {attribute: (n,) or (n, width)}``: the ``task_state`` values
@@ -240,9 +243,10 @@ class ABDVectorEnv(Task, VectorEnv):
 
         # ---- spaces
         (self.single_action_space, self.single_observation_space,
-         self.action_space, self.observation_space) = make_spaces(self.action_dim, self.observation_high(), N)
+         self.action_space, self.observation_space) = make_spaces(self.action_dim, self.observation_high(), N,
+                                                                     self.action_bound)
         self._init_task_arrays(self.single_observation_space.high)
-        # the controls hook is the default (actions × max_effort), which the device's check applies
+        # the controls hook is the default (actions × action_scale), which the device's check applies
         self.default_controls = type(self).controls is ABDVectorEnv.controls
 
         # ---- per-world bookkeeping: episode clocks and task values, the pending autoresets
@@ -421,7 +425,7 @@ class ABDVectorEnv(Task, VectorEnv):
         if self.pending.unread and not on_device:
             self._pending_now()  # the verdict of the last step, checked on the device, before this one
         check = not (on_device and self.device_step.check_on_device)
-        a = prepare_actions(actions, self.arrays, self.num_envs, self.action_dim, check=check)
+        a = prepare_actions(actions, self.arrays, self.num_envs, self.action_dim, check, self.action_bound)
         if on_device:
             if self._next_rng is None:  # no full reset yet (only masked ones): the queues start now
                 self._restart_next_episodes()

@@ -60,13 +60,21 @@ def rollout(env_id, policy):
 
 
 # ----------------------------------------------------------------------------- API checkers
+def fail_on_checker_warnings(env):
+    """A checker warning fails the test, except both checkers' advice to normalise the action range
+    for a task whose range is its source's (InvertedPendulum-v5: Gymnasium's Box(-3, 3))."""
+    warnings.simplefilter("error")
+    if np.any(env.action_space.high != 1.0):
+        warnings.filterwarnings("ignore", message=".*symmetric and normalized")
+
+
 @pytest.mark.parametrize("env_id", IDS)
 def test_gymnasium_check_env(env_id):
     from gymnasium.utils.env_checker import check_env
 
     env = gym.make(env_id, render_mode="rgb_array")
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # a checker warning fails the test
+        fail_on_checker_warnings(env)
         check_env(env.unwrapped)
     env.close()
 
@@ -77,7 +85,7 @@ def test_sb3_check_env(env_id):
 
     env = gym.make(env_id)
     with warnings.catch_warnings():
-        warnings.simplefilter("error")
+        fail_on_checker_warnings(env)
         check_env(env.unwrapped)
     env.close()
 

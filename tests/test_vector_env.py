@@ -561,7 +561,7 @@ def test_mailed_env_kernels_match_plain_ones():
         if mailed:
             mail.numpy()[slot, 0] = user.ctypes.data
         wp.launch(env_kernels.check_actions(wp.float32, True, mailed), dim=n,
-                  inputs=[a, effort, bad, go, controls, mail if mailed else None, slot], device="cpu")  # fmt: skip
+                  inputs=[a, effort, 1.0, bad, go, controls, mail if mailed else None, slot], device="cpu")  # fmt: skip
         return [x.numpy().copy() for x in (a, bad, go, controls)]
 
     for x, y in zip(check(True), check(False)):
@@ -729,7 +729,7 @@ def test_compiled_outcome_matches_eager(task):
 # ----------------------------------------------------------------------------- registration
 def test_every_task_is_registered():
     ids = env_ids()
-    assert len(ids) == len(TASKS) == 8
+    assert len(ids) == len(TASKS) == 11
     for env_id in ids:
         spec = gym.spec(env_id)
         assert spec.namespace == "abd_gym" and spec.vector_entry_point is not None and spec.entry_point is not None
