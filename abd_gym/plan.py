@@ -190,7 +190,7 @@ WIDE_LANES_MAX_WORLDS = 4096
 # past those worlds, a chain's systems in shared memory where this many fit a block (fewer threads
 # than a warp): H100, 5-link chains (6 a block) 2.7x / 1.84x / 1.51x / 1.07x the global step at
 # 1,024 / 8,192 / 16,384 / 65,536 worlds; 10-link chains (1 a block) 1.06x at 4,096 but 0.51x at
-# 16,384.  Worlds of up to 36 unknowns keep the rule of 32 (their measured one).
+# 16,384.  Worlds of 36 unknowns (15 a block): InvertedDoublePendulum-v5's env 2.5x at 16,384.
 SHARED_MIN_SYSTEMS = 6
 
 
@@ -199,20 +199,21 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
     or slider-crank linkage): "lanes" where the worlds' warps fit the GPU at once
     (default_lane_width: up to 4,224 worlds on an H100's 132 SMs), where one thread per world
     leaves most SMs idle; for more (chains): "lanes" at 32 lanes up to WIDE_LANES_MAX_WORLDS worlds
-    where a world's system fits a block's shared memory; else "shared" where a block of 32
-    threads' systems fits its shared memory (float32), or for worlds of more than
-    LANES_MAX_UNKNOWNS unknowns SHARED_MIN_SYSTEMS of them; else "global".  Measured on an H100
+    where a world's system fits a block's shared memory; else "shared" where SHARED_MIN_SYSTEMS
+    threads' systems fit a block's shared memory (32 of them up to 24 unknowns in float32, 15 at
+    36); else "global".  Measured on an H100
     (``python -m abd_gym.bench --scratch global,shared,lanes``): shared 1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on
     double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast as shared on both at 1,024
     worlds, and narrower lanes 1.7-2.4x at 2,048 and 4,096; for the 36 unknowns of FourBar-v0's and SliderCrank-v0's
     scenes, lanes 6.6x / 9.0x as fast as global at 1,024 worlds, 4.5x / 6.7x at 2,048 and 2.9x /
-    3.2x at 4,096."""
+    3.2x at 4,096; past those worlds, shared (15 threads a block) 2.5x as fast as global for the 36
+    unknowns of InvertedDoublePendulum-v5 at 16,384 worlds (env-steps/s 2.05 M against 0.83 M)."""
     if not (fused and device.is_cuda):
         return "global"
     if default_lane_width(device, num_worlds, dtype, n):
         return "lanes"
     fit = default_block_dim_shared(n, dtype)
-    if fit >= 32 or (n > LANES_MAX_UNKNOWNS and fit >= SHARED_MIN_SYSTEMS):
+    if fit >= SHARED_MIN_SYSTEMS:
         return "shared"
     return "global"
 

@@ -92,7 +92,7 @@ class InvertedDoublePendulumVectorEnv(GymnasiumMjcfEnv):
     def tip(self):
         """(N, 2) the site ``tip``'s x and z [m]."""
         p = self.frame_point("tip", site=True)
-        return p[:, [0, 2]]
+        return self.xp.stack([p[:, 0], p[:, 2]], axis=1)  # no index list: a host array, which a CUDA graph cannot hold
 
     def terminated(self, obs):
         return self.tip()[:, 1] <= self.healthy_height

@@ -2,7 +2,8 @@
 
 The mechanism, its masses, damping and motor come from the MJCF file (``Scene.from_mjcf``); the task
 adds what the agent sees, does and is rewarded for.
-Action: Box(-1, 1, (1,)): MuJoCo's ctrl of the "torque" motor (torque = gear · ctrl = 0.3·a N·m).
+Action: Box(-1, 1, (1,)): MuJoCo's ctrl of the "torque" motor (torque = gear · ctrl = 0.3·a N·m: the
+  import gives the drive max_effort = gear · 1, by which the default ``controls`` scales actions).
 Observation: [cos φ, sin φ, θ, φ̇, θ̇] (motor angle φ, pivot angle θ [rad], rates [rad/s]), in the
   file's joint order, which is MuJoCo's qpos order.
 Reward: 1 per step − 0.01·a².  Termination: |θ| > 0.3 rad.  Truncation: 200 steps (4 s).
@@ -29,10 +30,6 @@ class FurutaMJCFVectorEnv(ABDVectorEnv):
 
     def build_scene(self):
         return ag.Scene.from_mjcf(MODEL)
-
-    def controls(self, actions):
-        # drive inputs from MuJoCo's ctrl: u = ctrl_scale · ctrl (the motor's gear)
-        return actions * self.asarray(self.scene.imported.ctrl_scale)
 
     def observation_high(self):
         return np.array([1.0, 1.0, 2 * self.theta_threshold, self.velocity_bound, self.velocity_bound])
