@@ -1,6 +1,7 @@
 """Throughput of the batched task environments.
 
     python -m abd_gym.envs.bench_envs [--tasks CartPole-v0,Acrobot-v0] [--worlds 1,64] [--steps 100] [--device cpu]
+        [--backend numpy|torch] [--scratch auto,global,shared,lanes] [--repeat N] [--out DIR]
 
 :func:`env_steps_per_second` times ``VectorEnv.step`` with random actions (drawn beforehand, on the
 env's device for the torch backend), after a reset and one warm-up step, autoresets included.
@@ -142,6 +143,10 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
 
 
 def main(argv=None):
+    import json
+    import os
+
+    from abd_gym.plan import SCRATCHES, ExecutionPlan
     from abd_gym.registration import TASKS
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -150,12 +155,26 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=100)
     p.add_argument("--device", default="cpu")
     p.add_argument("--backend", default="numpy", choices=("numpy", "torch"))
+    p.add_argument("--scratch", default="auto", help=f"comma-separated fused-step layouts to time: auto (the "
+                   f"simulator's default) or {', '.join(SCRATCHES)}")  # fmt: skip
+    p.add_argument("--repeat", type=int, default=1, help="keep the fastest of this many windows")
+    p.add_argument("--out", default=None, help="folder for envs.json")
     args = p.parse_args(argv)
-    print(f"{'task':<24}{'worlds':>8}{'world-steps/s':>16}")
+    rows = []
+    print(f"{'task':<28}{'worlds':>8}{'scratch':>9}{'env-steps/s':>16}")
     for task in args.tasks.split(","):
         for n in (int(w) for w in args.worlds.split(",")):
-            sps = env_steps_per_second(task, n, args.steps, args.device, args.backend)
-            print(f"{task:<24}{n:>8}{sps:>16.0f}", flush=True)
+            for scratch in args.scratch.split(","):
+                options = None if scratch == "auto" else {"plan": ExecutionPlan(scratch=scratch)}
+                sps = env_steps_per_second(task, n, args.steps, args.device, args.backend, repeat=args.repeat,
+                                           simulator_options=options)  # fmt: skip
+                rows.append(dict(task=task, num_envs=n, scratch=scratch, env_steps_per_second=sps))
+                print(f"{task:<28}{n:>8}{scratch:>9}{sps:>16.0f}", flush=True)
+    if args.out:
+        os.makedirs(args.out, exist_ok=True)
+        with open(os.path.join(args.out, "envs.json"), "w") as f:
+            json.dump(dict(device=args.device, device_name=wp.get_device(args.device).name, backend=args.backend,
+                           steps=args.steps, repeat=args.repeat, rows=rows), f, indent=1)  # fmt: skip
 
 
 if __name__ == "__main__":

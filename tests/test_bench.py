@@ -155,3 +155,24 @@ def test_bench_robustness(tmp_path):
         assert r["iterations_max"] >= 1 and r["gap_mm"] < 1.0
     assert "overshoot_over_bound" in rows[0] and "overshoot_over_bound" not in rows[1]
     assert "| prismatic_slam | 0.01 | implicit_euler | float64 | 2 × 3 |" in md.read_text()
+
+
+def test_bench_classics_against_gymnasium(tmp_path):
+    """The classics' table: abd_gym's env and Gymnasium's own, the same task, finite rates, JSON."""
+    pytest.importorskip("mujoco")
+    from abd_gym.envs import bench_classics
+
+    result = bench_classics.main(["--tasks", "InvertedPendulum-v5", "--worlds", "2", "--steps", "2", "--gym-steps", "1",
+                                  "--repeat", "1", "--engines", "abd_gym,gymnasium", "--out", str(tmp_path)])  # fmt: skip
+    (row,) = result["rows"]
+    assert row["abd_gym"] > 0 and row["gymnasium"] > 0 and math.isnan(row["mujoco_warp"])
+    assert json.loads((tmp_path / "classics.json").read_text())["rows"][0]["task"] == "InvertedPendulum-v5"
+
+
+def test_bench_envs_per_scratch(tmp_path):
+    from abd_gym.envs import bench_envs
+
+    bench_envs.main(["--tasks", "CartPole-v0", "--worlds", "2", "--steps", "2", "--scratch", "auto,global",
+                     "--out", str(tmp_path)])  # fmt: skip
+    rows = json.loads((tmp_path / "envs.json").read_text())["rows"]
+    assert [r["scratch"] for r in rows] == ["auto", "global"] and all(r["env_steps_per_second"] > 0 for r in rows)
