@@ -494,6 +494,6 @@ def test_default_scratch_by_device_size_and_batch():
     assert default_scratch(gpu, 60, wp.float64, True, 4097) == "global"  # three fit
     assert default_scratch(gpu, 120, wp.float64, True, 1024) == "global"  # one system: 60 KB
     assert default_scratch(gpu, 156, wp.float32, True, 1024) == "global"  # 49.6 KB
-    assert default_scratch(gpu, 36, wp.float32, True, 4225) == "global"
-    assert default_scratch(gpu, 24, wp.float64, True, 4096) == "global"
+    assert default_scratch(gpu, 36, wp.float32, True, 4225) == "shared"  # 15 fit a block
+    assert default_scratch(gpu, 24, wp.float64, True, 4096) == "shared"  # 17 fit
     assert default_scratch(gpu, 24, wp.float32, False, 64) == "global"  # the staged step has one layout
