@@ -87,7 +87,8 @@ def test_the_wheel_holds_only_the_abd_gym_namespace_and_trains_from_any_director
         assert str(init.relative_to(REPO)) in names, init
     entry = next(n for n in names if n.endswith("entry_points.txt"))
     text = zipfile.ZipFile(wheel).read(entry).decode()
-    assert "abd-gym-train = abd_gym.agents.train:main" in text and "abd-gym-evaluate = abd_gym.agents.evaluate:main" in text
+    for script in ("train", "evaluate", "sweep"):
+        assert f"abd-gym-{script} = abd_gym.agents.{script}:main" in text, script
 
     venv, work = tmp_path / "venv", tmp_path / "elsewhere"
     subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], check=True)
