@@ -15,7 +15,8 @@ starts on this machine; with one it joins a running cluster.
 Tune's experiment lives in ``DIR/tune/`` (its TensorBoard logs included); the same command on the
 same ``DIR`` restores it and runs only the trials that have not finished.  At the end the trials
 are aggregated per point over seeds (mean ± std of the final return, solved count, training wall
-time) into ``DIR/sweep.md`` and ``DIR/sweep.json`` and printed.
+time) into ``DIR/sweep.md`` and ``DIR/sweep.json``, printed, and written as TensorBoard hparams
+to ``DIR/tensorboard/``.
 """
 from __future__ import annotations
 
@@ -212,10 +213,13 @@ def plan(args: argparse.Namespace) -> dict[str, Any]:
     for key, (dist, vals) in space.items():
         for v in vals if dist == "choice" else vals[:1]:
             validate_config(apply_overrides(raw, {key: v}))
-    if args.gpus_per_trial == 0 and validate_config(raw)["device"].startswith("cuda") and args.address is None:
-        from ..devices import resolve_device
-
-        resolve_device(validate_config(raw)["device"])
+    device = validate_config(raw)["device"]
+    if args.gpus_per_trial == 0 and device.startswith("cuda"):
+        # Ray schedules GPUs only for trials that ask for them: without a share, trials would
+        # all land on one GPU, or on none
+        raise ConfigError(f"device {device!r}: give --gpus-per-trial (1, or a fraction such as 0.5), or --device cpu")
+    if args.gpus_per_trial < 0 or args.cpus_per_trial <= 0:
+        raise ConfigError("--gpus-per-trial must be >= 0 and --cpus-per-trial > 0")
     return {"raw": raw, "name": name, "seeds": seeds, "grid": grid, "space": space}
 
 
@@ -311,6 +315,33 @@ def markdown(points: list[dict[str, Any]], title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_tensorboard(folder: Path, points: list[dict[str, Any]]) -> bool:
+    """The aggregate as TensorBoard hparams: one run per point, its parameters against its
+    ``sweep/mean_return``, ``sweep/std_return``, ``sweep/solved`` and ``sweep/wall_time_s``.
+    False when tensorboard is not installed."""
+    import importlib.util
+    import shutil
+
+    if importlib.util.find_spec("tensorboard") is None:
+        return False
+    from torch.utils.tensorboard import SummaryWriter
+
+    shutil.rmtree(folder, ignore_errors=True)  # rewritten whole, as sweep.md is
+    with SummaryWriter(str(folder)) as writer:
+        for p in points:
+            if p["mean_return"] is None:
+                continue
+            hparams = {k: v if isinstance(v, (int, float, str, bool)) else _fmt(v) for k, v in p["params"].items()}
+            metrics = {
+                "sweep/mean_return": p["mean_return"],
+                "sweep/std_return": p["std_return"],
+                "sweep/solved": p["solved"],
+                "sweep/wall_time_s": p["wall_time_s_mean"],
+            }
+            writer.add_hparams(hparams or {"config": p["point"]}, metrics, run_name=p["point"])
+    return True
+
+
 def _rows(results) -> list[dict[str, Any]]:
     rows = []
     for result in results:
@@ -336,6 +367,7 @@ def write_outputs(out: Path, rows: list[dict[str, Any]], title: str, name: str) 
     table = markdown(points, title)
     (out / "sweep.md").write_text(table)
     (out / "sweep.json").write_text(json.dumps({"config": name, "points": points, "trials": rows}, indent=2) + "\n")
+    write_tensorboard(out / "tensorboard", points)
     return table, points
 
 
@@ -417,7 +449,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out).resolve()
     table, points = write_outputs(out, rows, the_plan["name"], the_plan["name"])
     print(table)
-    print(f"sweep: {out / 'sweep.md'}, {out / 'sweep.json'}; Tune's logs: tensorboard --logdir {path}")
+    print(f"sweep: {out / 'sweep.md'}, {out / 'sweep.json'}; TensorBoard: tensorboard --logdir {out}")
     return 0 if all(p["failed"] == 0 for p in points) else 1
 
 

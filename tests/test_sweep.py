@@ -55,6 +55,8 @@ def test_two_seeds_run_aggregate_and_resume(local_ray, tmp_path, capsys):
     table = (out / "sweep.md").read_text()
     assert re.search(r"^\| cartpole_ppo \| 0,1 \| [0-9.]+ ± [0-9.]+ \| [0-2]/2 \|", table, re.M), table
     assert list((out / "tune").glob("*/events.out.tfevents.*")), "Tune's TensorBoard logs"
+    if sweep.write_tensorboard(tmp_path / "tb_probe", []):  # tensorboard installed: the aggregate as hparams
+        assert list((out / "tensorboard" / "cartpole_ppo").glob("events.out.tfevents.*"))
 
     before = _mtimes(out)
     capsys.readouterr()
@@ -91,6 +93,13 @@ def test_grid_values_are_checked_against_the_config(tmp_path, capsys):
     assert code == 2
     assert "hyperparams.n_steps" in capsys.readouterr().err
     assert not (tmp_path / "tune").exists()
+
+
+def test_a_gpu_config_needs_a_gpu_share(tmp_path, capsys):
+    """Ray schedules GPUs only for trials that ask: a cuda device without --gpus-per-trial is refused."""
+    code = sweep.main(["cartpole_ppo", "--out", str(tmp_path), "--device", "cuda:0"])
+    assert code == 2
+    assert "device 'cuda:0': give --gpus-per-trial" in capsys.readouterr().err
 
 
 def test_grid_parsing_keeps_lists_and_names_points():
