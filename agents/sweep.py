@@ -261,7 +261,9 @@ def run_trial(params: dict[str, Any], *, raw: dict[str, Any], name: str, out: st
 
 
 def aggregate(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per point over its seeds: mean ± std (population) of the final return, solved count, wall time."""
+    """Per point over its seeds: mean ± std (population) of the final return, solved count, wall time.
+
+    A row without ``mean_return`` is a trial that raised (``error``) or has not run yet."""
     points: dict[str, list[dict[str, Any]]] = {}
     for row in rows:
         points.setdefault(row["point"], []).append(row)
@@ -277,7 +279,8 @@ def aggregate(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 "point": label,
                 "params": group[0].get("params", {}),
                 "seeds": sorted(int(r["seed"]) for r in done),
-                "failed": len(group) - len(done),
+                "failed": sum(1 for r in group if r.get("mean_return") is None and r.get("error")),
+                "not_run": sum(1 for r in group if r.get("mean_return") is None and not r.get("error")),
                 "mean_return": mean,
                 "std_return": std,
                 "solved": sum(int(r["solved"]) for r in done),
@@ -303,14 +306,14 @@ def markdown(points: list[dict[str, Any]], title: str) -> str:
         "(± population std over seeds). Wall time: training time to the end of the run, per trial "
         "(no periodic evaluation, so no time to the threshold).",
         "",
-        "| point | seeds | return (mean ± std) | solved | wall time / trial (s) | failed |",
-        "|---|---|---|---|---|---|",
+        "| point | seeds | return (mean ± std) | solved | wall time / trial (s) | failed | not run |",
+        "|---|---|---|---|---|---|---|",
     ]
     for p in points:
         solved = f"{p['solved']}/{len(p['seeds'])}" if p["reward_threshold"] is not None else "no threshold"
         lines.append(
             f"| {p['point']} | {','.join(map(str, p['seeds']))} | {num(p['mean_return'])} ± {num(p['std_return'])} "
-            f"| {solved} | {num(p['wall_time_s_mean'], '.1f')} | {p['failed']} |"
+            f"| {solved} | {num(p['wall_time_s_mean'], '.1f')} | {p['failed']} | {p['not_run']} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -354,7 +357,8 @@ def _rows(results) -> list[dict[str, Any]]:
             row["run_dir"] = metrics.get("run_dir")
         else:
             row["mean_return"] = None
-            row["error"] = str(result.error)[:500] if result.error is not None else "no result"
+            if result.error is not None:
+                row["error"] = str(result.error)[:500]
         rows.append(row)
     return rows
 
@@ -450,7 +454,9 @@ def main(argv: list[str] | None = None) -> int:
     table, points = write_outputs(out, rows, the_plan["name"], the_plan["name"])
     print(table)
     print(f"sweep: {out / 'sweep.md'}, {out / 'sweep.json'}; TensorBoard: tensorboard --logdir {out}")
-    return 0 if all(p["failed"] == 0 for p in points) else 1
+    if any(p["not_run"] for p in points):
+        print("abd-gym-sweep: some trials did not run; the same command resumes the sweep", file=sys.stderr)
+    return 0 if all(p["failed"] == 0 and p["not_run"] == 0 for p in points) else 1
 
 
 if __name__ == "__main__":

@@ -48,7 +48,7 @@ def test_two_seeds_run_aggregate_and_resume(local_ray, tmp_path, capsys):
 
     data = json.loads((out / "sweep.json").read_text())
     (point,) = data["points"]
-    assert point["point"] == "cartpole_ppo" and point["seeds"] == [0, 1] and point["failed"] == 0
+    assert point["point"] == "cartpole_ppo" and point["seeds"] == [0, 1] and point["failed"] == point["not_run"] == 0
     returns = [json.loads((out / "runs" / n / "summary.json").read_text())["mean_return"] for n in runs]
     assert point["mean_return"] == pytest.approx(sum(returns) / 2)
     assert point["std_return"] == pytest.approx(abs(returns[0] - returns[1]) / 2)
@@ -115,8 +115,9 @@ def test_aggregate_counts_solved_and_failed():
     rows = [
         {"point": "a", "seed": 0, "mean_return": 500.0, "solved": 1, "reward_threshold": 475.0, "wall_time_s": 2.0},
         {"point": "a", "seed": 1, "mean_return": 400.0, "solved": 0, "reward_threshold": 475.0, "wall_time_s": 4.0},
-        {"point": "a", "seed": 2, "mean_return": None},
+        {"point": "a", "seed": 2, "mean_return": None, "error": "RuntimeError('diverged')"},
+        {"point": "a", "seed": 3, "mean_return": None},
     ]
     (p,) = sweep.aggregate(rows)
-    assert p["seeds"] == [0, 1] and p["failed"] == 1 and p["solved"] == 1
+    assert p["seeds"] == [0, 1] and p["failed"] == 1 and p["not_run"] == 1 and p["solved"] == 1
     assert p["mean_return"] == 450.0 and p["std_return"] == 50.0 and p["wall_time_s_mean"] == 3.0
