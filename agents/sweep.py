@@ -197,6 +197,9 @@ def plan(args: argparse.Namespace) -> dict[str, Any]:
     seeds = parse_seeds(args.seeds) if args.seeds else [int(validate_config(raw)["seed"])]
     grid = dict(parse_grid(g) for g in args.grid)
     space = dict(parse_space(s) for s in args.space)
+    for flag, given, kept in (("--grid", args.grid, grid), ("--space", args.space, space)):
+        if len(kept) < len(given):
+            raise ConfigError(f"{flag}: a key is given twice ({', '.join(given)})")
     if args.search == "optuna":
         if not space:
             raise ConfigError("--search optuna: give the search space with --space key=DIST:ARGS")
@@ -207,9 +210,13 @@ def plan(args: argparse.Namespace) -> dict[str, Any]:
     elif space:
         raise ConfigError("--space: needs --search optuna")
     # every grid point and seed must make a valid config (the searched dimensions: their bounds)
+    names = set()
     for values in itertools.product(*grid.values()):
         point = dict(zip(grid, values))
         validate_config(apply_overrides(raw, {**point, SEED_KEY: seeds[0]}))
+        names.add(point_name(point, name))
+    if len(names) < math.prod(len(v) for v in grid.values()):  # run folders are named by the last key part
+        raise ConfigError(f"--grid: two points share a run folder name; keys end alike ({', '.join(grid)})")
     for key, (dist, vals) in space.items():
         for v in vals if dist == "choice" else vals[:1]:
             validate_config(apply_overrides(raw, {key: v}))

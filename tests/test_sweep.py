@@ -79,6 +79,7 @@ def test_two_seeds_run_aggregate_and_resume(local_ray, tmp_path, capsys):
         ("--space", "hyperparams.n_epochs=randint:1.5:4", "randint needs integer bounds"),
         ("--space", "hyperparams.n_epochs=choice:", "choice needs values"),
         ("--seeds", "0,x", "--seeds '0,x': expected comma-separated integers"),
+        ("--grid", "hyperparams.n_epochs=[1,2", "--grid 'hyperparams.n_epochs=[1,2': a value is not YAML"),
     ],
 )
 def test_bad_arguments_name_the_value(flag, value, message):
