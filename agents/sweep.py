@@ -30,7 +30,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .config import ConfigError, apply_overrides, find_config, validate_config, yaml_load
+from .config import ConfigError, apply_overrides, validate_config, yaml_load
 
 __all__ = ["main", "parse_args", "parse_grid", "parse_space", "parse_seeds", "aggregate", "sweep"]
 
@@ -176,24 +176,11 @@ def point_name(point: dict[str, Any], default: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.,=+-]", "_", text)
 
 
-def base_config(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
-    """The config after the overrides and flags, before point and seed (raw YAML values)."""
-    path = find_config(args.config)
-    raw = yaml_load(path.read_text()) or {}
-    raw = apply_overrides(raw, list(args.overrides))
-    flags = {
-        "device": args.device,
-        "n_envs": args.num_envs,
-        "n_timesteps": int(args.total_timesteps) if args.total_timesteps is not None else None,
-        "eval_episodes": args.eval_episodes,
-    }
-    raw = apply_overrides(raw, {k: v for k, v in flags.items() if v is not None})
-    return raw, path.stem
-
-
 def plan(args: argparse.Namespace) -> dict[str, Any]:
     """Everything the sweep needs, checked before Ray starts: a bad value fails here, named."""
-    raw, name = base_config(args)
+    from .train import raw_config_from_args  # the config as abd-gym-train reads it, before point and seed
+
+    raw, name = raw_config_from_args(args)
     seeds = parse_seeds(args.seeds) if args.seeds else [int(validate_config(raw)["seed"])]
     grid = dict(parse_grid(g) for g in args.grid)
     space = dict(parse_space(s) for s in args.space)

@@ -178,21 +178,29 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_intermixed_args(argv)
 
 
-def config_from_args(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+def raw_config_from_args(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    """(the config file's values after the ``key=value`` overrides and the flags, unvalidated; the
+    config's name).  The flags: ``--seed`` (where ``args`` has it), ``--device``, ``--num-envs``,
+    ``--total-timesteps``, ``--eval-episodes``."""
     path = find_config(args.config)
     raw = yaml_load(path.read_text()) or {}
     raw = apply_overrides(raw, list(args.overrides))
     flags = {
-        "seed": args.seed,
+        "seed": getattr(args, "seed", None),
         "device": args.device,
         "n_envs": args.num_envs,
         "n_timesteps": int(args.total_timesteps) if args.total_timesteps is not None else None,
         "eval_episodes": args.eval_episodes,
     }
     raw = apply_overrides(raw, {k: v for k, v in flags.items() if v is not None})
+    return raw, path.stem
+
+
+def config_from_args(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
+    raw, name = raw_config_from_args(args)
     cfg = validate_config(raw)
     resolve_device(cfg["device"])  # an unavailable device: one line and exit 2 (main), before any run folder
-    return cfg, path.stem
+    return cfg, name
 
 
 def main(argv: list[str] | None = None) -> int:
