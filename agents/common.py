@@ -14,6 +14,7 @@ from .sb3_vec_env import make_vec_env
 
 MODEL_FILE = "model.zip"
 VECNORM_FILE = "vecnormalize.pkl"
+BEST_VECNORM_FILE = "best_vecnormalize.pkl"  # the statistics best_model.zip was evaluated with
 CONFIG_FILE = "config.yaml"
 SUMMARY_FILE = "summary.json"
 EVAL_SEED_OFFSET = 10_000  # evaluation worlds are seeded apart from the training worlds

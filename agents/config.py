@@ -19,7 +19,8 @@ policy_kwargs:                   # keyword arguments of the policy's __init__
 ```
 
 Optional keys: ``env_kwargs`` (passed to the env), ``n_eval_envs``, ``checkpoint_freq`` (in
-total steps), ``notes``.  Unknown keys, unknown algorithms or policies, unregistered ids and values
+total steps), ``eval_freq`` (a periodic evaluation every that many total steps; 0, the default,
+is off), ``notes``.  Unknown keys, unknown algorithms or policies, unregistered ids and values
 of the wrong type fail at load time with a ``ValueError`` that names the key.  ``1e-3`` reads as
 a number (PyYAML alone would read it as a string).
 """
@@ -289,6 +290,7 @@ _TOP_LEVEL: dict[str, tuple[Any, Any]] = {
     "eval_episodes": (int, 10),
     "n_eval_envs": ((int, type(None)), None),
     "checkpoint_freq": ((int, type(None)), None),
+    "eval_freq": (int, 0),
     "hyperparams": (dict, {}),
     "policy_kwargs": (dict, {}),
     "env_kwargs": (dict, {}),
@@ -374,6 +376,8 @@ def validate_config(raw: dict[str, Any]) -> dict[str, Any]:
     for key in ("n_envs", "n_timesteps", "eval_episodes"):
         if cfg[key] < 1:
             raise ConfigError(f"{key}: must be at least 1, got {cfg[key]}")
+    if cfg["eval_freq"] < 0:
+        raise ConfigError(f"eval_freq: must be 0 (off) or at least 1, got {cfg['eval_freq']}")
     for key in ("n_eval_envs", "checkpoint_freq"):
         if cfg[key] is not None and cfg[key] < 1:
             raise ConfigError(f"{key}: must be at least 1, got {cfg[key]}")

@@ -1,7 +1,8 @@
 """Train an SB3 agent from a YAML config.
 
     python -m abd_gym.agents.train configs/cartpole_ppo.yaml [--seed S] [--device cpu|cuda:0]
-        [--num-envs N] [--total-timesteps T] [--run-dir DIR] [--eval-episodes E] [key=value ...]
+        [--num-envs N] [--total-timesteps T] [--run-dir DIR] [--eval-episodes E] [--eval-freq N]
+        [--no-progress] [key=value ...]
 
 (also ``abd-gym-train``).  A bare name (``cartpole_ppo``) is looked up in ``configs/``.
 ``key=value`` overrides reach into mappings with dots (``hyperparams.learning_rate=1e-3``,
@@ -13,6 +14,17 @@ normalisation statistics every ``checkpoint_freq`` steps), ``model.zip``,
 ``vecnormalize.pkl`` (when normalising) and ``summary.json``: config, timesteps, wall time,
 device, the deterministic policy's mean and std return over ``eval_episodes`` episodes, the
 task's ``reward_threshold`` from the Gymnasium registry and whether it was reached.
+
+With ``eval_freq`` N > 0, SB3's ``EvalCallback`` evaluates the deterministic policy every N
+total env steps on ``eval_episodes`` episodes of separate worlds (observation statistics synced
+from training), writes ``evaluations.npz`` and ``best_model.zip`` (with
+``best_vecnormalize.pkl`` when normalising) into the run directory, and the summary's
+``threshold_step`` / ``threshold_time_s`` give the first env step and wall time at which an
+evaluation reached the task's threshold (null if none did).
+
+Progress: the run directory is printed first.  On a terminal SB3's progress bar shows; without
+one (or with ``--no-progress``) one plain line every tenth of the run gives steps, env steps/s
+and the mean return of recent episodes (see ``abd_gym.agents.progress``).
 """
 from __future__ import annotations
 
@@ -23,9 +35,11 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from .common import (
+    BEST_VECNORM_FILE,
     CONFIG_FILE,
     EVAL_SEED_OFFSET,
     MODEL_FILE,
@@ -65,6 +79,9 @@ def train(
 ) -> dict[str, Any] | tuple[dict[str, Any], Any]:
     """Train, save, evaluate; return the summary (also written to ``run_dir/summary.json``).
 
+    ``progress_bar``: SB3's progress bar when stdout is a terminal; without a terminal, or with
+    ``progress_bar=False``, plain progress lines instead (``abd_gym.agents.progress``).
+
     With ``return_model`` the trained model comes back too: ``(summary, model)``.
     ``torch_threads``: CPU threads for torch (None: torch's default).  One thread is the default,
     as in the zoo: the policies are small MLPs, and on a busy 2-core machine two torch threads
@@ -77,11 +94,14 @@ def train(
     from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
+    from .progress import ProgressLines, stdout_is_terminal
+
     cfg = validate_config(cfg)
     resolve_device(cfg["device"])  # ValueError naming the devices there are, before the run folder is made
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(config_name, cfg["seed"])
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(cfg, sort_keys=False))
+    print(f"run directory: {run_dir}", flush=True)
 
     env = build_train_env(cfg)
     import importlib.util
@@ -94,17 +114,26 @@ def train(
     model = build_model(cfg, env, tensorboard_log=tb, verbose=verbose)
     n_envs = cfg["n_envs"]
     checkpoint_freq = cfg["checkpoint_freq"] or max(cfg["n_timesteps"] // 4, 1)
-    callback = CheckpointCallback(
-        save_freq=max(checkpoint_freq // n_envs, 1),
-        save_path=str(run_dir / "checkpoints"),
-        name_prefix="model",
-        save_vecnormalize=True,
-    )
+    callbacks = [
+        CheckpointCallback(
+            save_freq=max(checkpoint_freq // n_envs, 1),
+            save_path=str(run_dir / "checkpoints"),
+            name_prefix="model",
+            save_vecnormalize=True,
+        )
+    ]
+    threshold = reward_threshold(cfg["env_id"])
+    bar = bool(progress_bar) and stdout_is_terminal()
+    if not bar:
+        callbacks.append(ProgressLines(cfg["n_timesteps"], name=config_name))
+    periodic = _periodic_eval(cfg, env, run_dir, threshold, config_name) if cfg["eval_freq"] > 0 else None
+    if periodic is not None:
+        callbacks.append(periodic)
 
     started = datetime.now().isoformat(timespec="seconds")
     t0 = time.perf_counter()
     model.learn(
-        total_timesteps=cfg["n_timesteps"], callback=callback, progress_bar=progress_bar, tb_log_name=cfg["algo"]
+        total_timesteps=cfg["n_timesteps"], callback=callbacks, progress_bar=bar, tb_log_name=cfg["algo"]
     )
     wall = time.perf_counter() - t0
 
@@ -125,8 +154,8 @@ def train(
     result = evaluate(model, eval_env, episodes)
     eval_wall = time.perf_counter() - t1
     eval_env.close()
-
-    threshold = reward_threshold(cfg["env_id"])
+    if periodic is not None:
+        periodic.eval_env.close()
     summary = {
         "config_name": config_name,
         "env_id": cfg["env_id"],
@@ -144,6 +173,11 @@ def train(
         "episode_returns": result["episode_returns"],
         "eval_deterministic": result["deterministic"],
         "eval_wall_time_s": round(eval_wall, 2),
+        "eval_freq": cfg["eval_freq"],
+        "periodic_evaluations": periodic.n_evaluations if periodic is not None else 0,
+        "best_periodic_return": _finite_or_none(periodic.best_mean_reward) if periodic is not None else None,
+        "threshold_step": periodic.threshold_step if periodic is not None else None,
+        "threshold_time_s": periodic.threshold_time_s if periodic is not None else None,
         "started": started,
         "run_dir": str(run_dir),
         "command": command,
@@ -162,6 +196,41 @@ def train(
     return (summary, model) if return_model else summary
 
 
+def _periodic_eval(cfg: dict[str, Any], env, run_dir: Path, threshold: float | None, name: str) -> ThresholdEval:
+    """EvalCallback every ``eval_freq`` total env steps on worlds built like the final evaluation's."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from .progress import SaveVecNormalize, ThresholdEval
+
+    vecnorm = env if isinstance(env, VecNormalize) else None
+    episodes = cfg["eval_episodes"]
+    eval_env = build_eval_env(
+        cfg,
+        num_envs=eval_env_count(cfg, episodes),
+        seed=cfg["seed"] + EVAL_SEED_OFFSET,
+        vecnormalize=vecnorm,  # statistics copied now; EvalCallback syncs them before each evaluation
+    )
+    on_new_best = SaveVecNormalize(str(run_dir / BEST_VECNORM_FILE)) if vecnorm is not None else None
+    return ThresholdEval(
+        eval_env,
+        threshold=threshold,
+        name=name,
+        write=lambda line: print(line, flush=True),
+        eval_freq=max(cfg["eval_freq"] // cfg["n_envs"], 1),
+        n_eval_episodes=episodes,
+        deterministic=True,
+        best_model_save_path=str(run_dir),
+        log_path=str(run_dir),
+        callback_on_new_best=on_new_best,
+        warn=False,
+    )
+
+
+def _finite_or_none(x: float) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="abd-gym-train", description=__doc__.split("\n\n")[0])
     p.add_argument("config", help="config file, or a name in configs/ (cartpole_ppo)")
@@ -172,7 +241,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--total-timesteps", type=float, help="environment steps (n_timesteps)")
     p.add_argument("--run-dir", help="output folder (default runs/<config>-<seed>-<timestamp>/)")
     p.add_argument("--eval-episodes", type=int)
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--eval-freq", type=int, help="evaluate every N env steps, all worlds (eval_freq; 0: off)")
+    p.add_argument("--no-progress", action="store_true", help="plain progress lines instead of the progress bar")
     p.add_argument("--torch-threads", type=int, default=1, help="CPU threads for torch (0: torch's default)")
     p.add_argument("-v", "--verbose", type=int, default=0, help="SB3 verbosity (0, 1, 2)")
     return p.parse_intermixed_args(argv)
@@ -181,7 +251,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def raw_config_from_args(args: argparse.Namespace) -> tuple[dict[str, Any], str]:
     """(the config file's values after the ``key=value`` overrides and the flags, unvalidated; the
     config's name).  The flags: ``--seed`` (where ``args`` has it), ``--device``, ``--num-envs``,
-    ``--total-timesteps``, ``--eval-episodes``."""
+    ``--total-timesteps``, ``--eval-episodes``, ``--eval-freq`` (where ``args`` has it)."""
     path = find_config(args.config)
     raw = yaml_load(path.read_text()) or {}
     raw = apply_overrides(raw, list(args.overrides))
@@ -191,6 +261,7 @@ def raw_config_from_args(args: argparse.Namespace) -> tuple[dict[str, Any], str]
         "n_envs": args.num_envs,
         "n_timesteps": int(args.total_timesteps) if args.total_timesteps is not None else None,
         "eval_episodes": args.eval_episodes,
+        "eval_freq": getattr(args, "eval_freq", None),
     }
     raw = apply_overrides(raw, {k: v for k, v in flags.items() if v is not None})
     return raw, path.stem
@@ -226,6 +297,8 @@ def main(argv: list[str] | None = None) -> int:
         f"return {summary['mean_return']:.2f} ± {summary['std_return']:.2f} over {summary['eval_episodes']} episodes"
         + (f" (threshold {thr:g}: {'solved' if summary['solved'] else 'not solved'})" if thr is not None else "")
     )
+    if summary["threshold_step"] is not None:
+        print(f"threshold first reached at {summary['threshold_step']:,} steps, {summary['threshold_time_s']:.1f} s")
     print(f"run directory: {summary['run_dir']}")
     return 0
 

@@ -1,0 +1,147 @@
+"""Training progress for ``abd-gym-train``: plain log lines and periodic evaluation.
+
+Without a terminal (CI, nohup, Ray) a progress bar writes nothing readable, so the trainer prints
+one line every tenth of the run instead::
+
+    cartpole_ppo: 40,960/100,000 steps (41%)  12,345 steps/s  return 187.3 (last 100 episodes)
+
+``steps/s`` is env steps (all worlds) per second of wall time since training started; the return
+is the mean raw return of the last episodes SB3 keeps (``ep_info_buffer``, up to 100).
+Periodic evaluations (``eval_freq``) print one line each and record the first env step and wall
+time at which the evaluation's mean return reached the task's reward threshold.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any, Callable
+
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
+
+__all__ = ["ProgressLines", "SaveVecNormalize", "ThresholdEval", "mean_episode_return", "stdout_is_terminal"]
+
+
+def stdout_is_terminal() -> bool:
+    try:
+        return bool(sys.stdout.isatty())
+    except (AttributeError, ValueError):
+        return False
+
+
+def mean_episode_return(model) -> tuple[float | None, int]:
+    """(mean raw return of the episodes in ``model.ep_info_buffer`` or None, how many)."""
+    buf = getattr(model, "ep_info_buffer", None) or []
+    returns = [float(info["r"]) for info in buf if "r" in info]
+    return (float(np.mean(returns)) if returns else None, len(returns))
+
+
+class ProgressLines(BaseCallback):
+    """One line at every ``1/parts`` of ``total_timesteps`` and at the end of training.
+
+    ``write`` receives each line (default: ``print`` with flush, so the line reaches a log file
+    at once).
+    """
+
+    def __init__(self, total_timesteps: int, *, name: str = "", parts: int = 10, write: Callable[[str], None] | None = None):
+        super().__init__()
+        self.total = max(int(total_timesteps), 1)
+        self.step = max(self.total // max(int(parts), 1), 1)
+        self.name = name
+        self.write = write or (lambda line: print(line, flush=True))
+        self.t0 = time.perf_counter()
+        self.next_mark = self.step
+        self.last_line_at = -1
+
+    def _on_training_start(self) -> None:
+        self.t0 = time.perf_counter()
+        self.next_mark = self.model.num_timesteps + self.step
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self.next_mark:
+            self.write(self.line())
+            self.last_line_at = self.num_timesteps
+            while self.next_mark <= self.num_timesteps:
+                self.next_mark += self.step
+        return True
+
+    def _on_training_end(self) -> None:
+        if self.last_line_at != self.num_timesteps:
+            self.write(self.line())
+            self.last_line_at = self.num_timesteps
+
+    def line(self) -> str:
+        elapsed = time.perf_counter() - self.t0
+        rate = self.num_timesteps / elapsed if elapsed > 0 else float("nan")
+        mean, count = mean_episode_return(self.model)
+        ret = f"return {mean:.1f} (last {count} episodes)" if mean is not None else "return n/a (no episode ended yet)"
+        pct = 100.0 * self.num_timesteps / self.total
+        prefix = f"{self.name}: " if self.name else ""
+        return f"{prefix}{self.num_timesteps:,}/{self.total:,} steps ({pct:.0f}%)  {rate:,.0f} steps/s  {ret}"
+
+
+class ThresholdEval(EvalCallback):
+    """SB3's ``EvalCallback`` that also records when the evaluation first reached ``threshold``.
+
+    ``threshold_step``: ``model.num_timesteps`` (env steps, all worlds) at the first evaluation
+    whose mean return is at least ``threshold``; ``threshold_time_s``: wall seconds from the start
+    of training to the end of that evaluation (the periodic evaluations' own time included).
+    Both stay None while it has not happened, or when ``threshold`` is None.  ``write`` (if given)
+    receives one line per evaluation.
+    """
+
+    def __init__(self, eval_env, *, threshold: float | None, name: str = "",
+                 write: Callable[[str], None] | None = None, **kwargs: Any):
+        super().__init__(eval_env, **kwargs)
+        self.threshold = threshold
+        self.name = name
+        self.write = write
+        self.threshold_step: int | None = None
+        self.threshold_time_s: float | None = None
+        self.n_evaluations = 0
+        self.t0 = time.perf_counter()
+
+    def _on_training_start(self) -> None:
+        super()._on_training_start()
+        self.t0 = time.perf_counter()
+
+    def _on_step(self) -> bool:
+        evaluating = self.eval_freq > 0 and self.n_calls % self.eval_freq == 0
+        keep_going = super()._on_step()
+        if evaluating:
+            self.n_evaluations += 1
+            self._after_evaluation()
+        return keep_going
+
+    def _after_evaluation(self) -> None:
+        mean = self.last_mean_reward
+        reached = self.threshold is not None and mean >= self.threshold
+        if reached and self.threshold_step is None:
+            self.threshold_step = int(self.num_timesteps)
+            self.threshold_time_s = round(time.perf_counter() - self.t0, 2)
+        if self.write is not None:
+            results = self.evaluations_results[-1] if self.evaluations_results else []
+            spread = f" ± {np.std(results):.1f}" if len(results) else ""
+            thr = ""
+            if self.threshold is not None:
+                thr = f" (threshold {self.threshold:g}: {'reached' if reached else 'not reached'})"
+            prefix = f"{self.name}: " if self.name else ""
+            self.write(
+                f"{prefix}eval at {self.num_timesteps:,} steps: return {mean:.1f}{spread} "
+                f"over {self.n_eval_episodes} episodes{thr}"
+            )
+
+
+class SaveVecNormalize(BaseCallback):
+    """Saves the training env's observation statistics to ``path`` (for ``best_model.zip``: the
+    statistics it was evaluated with)."""
+
+    def __init__(self, path: str):
+        super().__init__()
+        self.path = path
+
+    def _on_step(self) -> bool:
+        vecnorm = self.model.get_vec_normalize_env()
+        if vecnorm is not None:
+            vecnorm.save(self.path)
+        return True
