@@ -223,6 +223,7 @@ def _periodic_eval(cfg: dict[str, Any], env, run_dir: Path, threshold: float | N
         log_path=str(run_dir),
         callback_on_new_best=on_new_best,
         warn=False,
+        verbose=0,  # ThresholdEval writes its own line per evaluation
     )
 
 
