@@ -66,7 +66,9 @@ class ProgressLines(BaseCallback):
         return True
 
     def _on_training_end(self) -> None:
-        if self.last_line_at != self.num_timesteps:
+        # the run's last line, unless one was printed at the requested total already (SB3 ends its
+        # last rollout past it)
+        if self.last_line_at < min(self.num_timesteps, self.total):
             self.write(self.line())
             self.last_line_at = self.num_timesteps
 
