@@ -14,6 +14,7 @@ from .sb3_vec_env import make_vec_env
 
 MODEL_FILE = "model.zip"
 VECNORM_FILE = "vecnormalize.pkl"
+BEST_MODEL_FILE = "best_model.zip"  # SB3 EvalCallback's name for the best periodic evaluation's model
 BEST_VECNORM_FILE = "best_vecnormalize.pkl"  # the statistics best_model.zip was evaluated with
 CONFIG_FILE = "config.yaml"
 SUMMARY_FILE = "summary.json"

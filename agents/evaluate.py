@@ -19,6 +19,8 @@ from typing import Any
 import numpy as np
 
 from .common import (
+    BEST_MODEL_FILE,
+    BEST_VECNORM_FILE,
     CONFIG_FILE,
     EVAL_SEED_OFFSET,
     MODEL_FILE,
@@ -32,7 +34,7 @@ from .common import (
 from .config import algorithm_class, validate_config, yaml_load
 from ..devices import resolve_device
 
-__all__ = ["load_run", "evaluate_run", "record_video", "main"]
+__all__ = ["load_run", "vecnormalize_for", "evaluate_run", "record_video", "main"]
 
 
 def load_run(run_dir: str | Path, *, device: str | None = None, model_path: str | Path | None = None):
@@ -45,8 +47,22 @@ def load_run(run_dir: str | Path, *, device: str | None = None, model_path: str 
     from .common import model_device
 
     model = algo_cls.load(str(model_path or run_dir / MODEL_FILE), device=model_device(cfg["device"]))
-    vecnorm = run_dir / VECNORM_FILE
-    return cfg, model, (vecnorm if vecnorm.is_file() else None)
+    return cfg, model, vecnormalize_for(run_dir, model_path)
+
+
+def vecnormalize_for(run_dir: str | Path, model_path: str | Path | None = None) -> Path | None:
+    """The observation statistics a model was saved with, or None where the run does not normalise:
+    ``best_model.zip`` → ``best_vecnormalize.pkl``, a checkpoint ``model_<N>_steps.zip`` →
+    ``model_vecnormalize_<N>_steps.pkl`` beside it, else the run's final ``vecnormalize.pkl``."""
+    run_dir = Path(run_dir)
+    candidates = [run_dir / VECNORM_FILE]
+    if model_path is not None:
+        model_path = Path(model_path)
+        if model_path.name == BEST_MODEL_FILE:
+            candidates.insert(0, model_path.with_name(BEST_VECNORM_FILE))
+        elif model_path.name.startswith("model_") and model_path.name.endswith("_steps.zip"):
+            candidates.insert(0, model_path.with_name("model_vecnormalize_" + model_path.name[len("model_"):-4] + ".pkl"))
+    return next((c for c in candidates if c.is_file()), None)
 
 
 def evaluate_run(

@@ -94,3 +94,17 @@ def test_eval_freq_zero_leaves_run_folder_as_before(tmp_path, capsys):
     out = capsys.readouterr().out
     assert out.splitlines()[0] == f"run directory: {run}"
     assert "eval at" not in out and "512/512 steps (100%)" in out
+
+
+def test_evaluate_pairs_each_model_with_its_statistics(tmp_path):
+    from abd_gym.agents.evaluate import vecnormalize_for
+
+    assert vecnormalize_for(tmp_path) is None  # a run that does not normalise
+    for name in ("vecnormalize.pkl", "best_vecnormalize.pkl", "checkpoints/model_vecnormalize_512_steps.pkl"):
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).write_bytes(b"")
+    assert vecnormalize_for(tmp_path) == tmp_path / "vecnormalize.pkl"
+    assert vecnormalize_for(tmp_path, tmp_path / "model.zip") == tmp_path / "vecnormalize.pkl"
+    assert vecnormalize_for(tmp_path, tmp_path / "best_model.zip") == tmp_path / "best_vecnormalize.pkl"
+    checkpoint = tmp_path / "checkpoints" / "model_512_steps.zip"
+    assert vecnormalize_for(tmp_path, checkpoint) == tmp_path / "checkpoints" / "model_vecnormalize_512_steps.pkl"
