@@ -3,7 +3,7 @@
 Without a terminal (CI, nohup, Ray) a progress bar writes nothing readable, so the trainer prints
 one line every tenth of the run instead::
 
-    cartpole_ppo: 40,960/100,000 steps (41%)  12,345 steps/s  return 187.3 (last 100 episodes)
+    cartpole_ppo: 60,000/100,000 steps (60%)  4,131 steps/s  return 436.3 (last 100 episodes)
 
 ``steps/s`` is env steps (all worlds) per second of wall time since training started; the return
 is the mean raw return of the last episodes SB3 keeps (``ep_info_buffer``, up to 100).

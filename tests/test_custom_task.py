@@ -11,11 +11,15 @@ REPO = Path(__file__).resolve().parent.parent
 EXAMPLE = REPO / "docs" / "examples" / "furuta.py"
 
 
-def _example():
-    spec = importlib.util.spec_from_file_location("furuta_example", EXAMPLE)
+def _load(path, name):
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def _example():
+    return _load(EXAMPLE, "furuta_example")
 
 
 def test_the_page_shows_the_example_file():
@@ -45,10 +49,7 @@ MJCF_EXAMPLE = REPO / "docs" / "examples" / "furuta_mjcf.py"
 
 
 def _mjcf_example():
-    spec = importlib.util.spec_from_file_location("furuta_mjcf_example", MJCF_EXAMPLE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return _load(MJCF_EXAMPLE, "furuta_mjcf_example")
 
 
 def test_the_mjcf_page_shows_the_example_files():
