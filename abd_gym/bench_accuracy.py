@@ -23,7 +23,8 @@ import os
 import numpy as np
 import warp as wp
 
-from .bench_compare import CASES, mjw_steps_per_second, ours_steps_per_second, random_states
+from .bench_compare import mjw_steps_per_second, ours_steps_per_second, random_states
+from .peer_cases import CASES, with_integrator
 from .simulator import Simulator
 
 DTS = (0.02, 0.01, 0.005, 0.002, 0.001)
@@ -39,7 +40,7 @@ def mujoco_reference(case, x0, v0=None, dt=1e-4, integrator="RK4"):
     """Joint angles (samples, worlds, joints) of MuJoCo's RK4 from x0 (worlds, joints)."""
     import mujoco
 
-    xml = CASES[case][0].format(dt=dt).replace("<option ", f'<option integrator="{integrator}" ')
+    xml = with_integrator(CASES[case].xml(dt), integrator)
     mjm = mujoco.MjModel.from_xml_string(xml)
     mjd = mujoco.MjData(mjm)
     every, n = _samples(dt)
@@ -59,7 +60,7 @@ def run_ours(case, x0, dt, dtype, tol, device, integrator="implicit_euler", reus
     """Joint angles (samples, worlds, joints) over 1 s from x0, the largest joint residual [m], the
     largest energy drift [J] and whether Newton reused its factors (``options``: more Simulator
     settings)."""
-    sim = Simulator(CASES[case][1](), num_worlds=len(x0), dt=dt, device=device, dtype=dtype, tol=tol,
+    sim = Simulator(CASES[case].scene(), num_worlds=len(x0), dt=dt, device=device, dtype=dtype, tol=tol,
                     integrator=integrator, reuse_factor=reuse_factor, **options)  # fmt: skip
     sim.set_joint_state(x0)
     e0 = sum(sim.energies().values())
@@ -81,7 +82,7 @@ def run_mjw(case, x0, dt, device):
     import mujoco
     import mujoco_warp as mjw
 
-    mjm = mujoco.MjModel.from_xml_string(CASES[case][0].format(dt=dt))
+    mjm = mujoco.MjModel.from_xml_string(CASES[case].xml(dt))
     every, n = _samples(dt)
     out = np.zeros((n // every + 1,) + x0.shape)
     with wp.ScopedDevice(device):

@@ -16,52 +16,14 @@ import time
 import numpy as np
 import warp as wp
 
-from . import mechanisms
+from .peer_cases import CASES
 from .plan import ExecutionPlan
 from .simulator import Simulator
 from .solver import SolverSettings
 
-CARTPOLE_XML = """
-<mujoco>
-  <option timestep="{dt}" gravity="0 0 -9.81"/>
-  <worldbody>
-    <body name="cart">
-      <joint name="slide" type="slide" axis="1 0 0" limited="true" range="-2.4 2.4"/>
-      <geom type="box" size="0.2 0.1 0.05" mass="1.0" contype="0" conaffinity="0"/>
-      <body name="pole">
-        <joint name="hinge" type="hinge" axis="0 1 0"/>
-        <geom type="box" size="0.01 0.01 0.5" pos="0 0 0.5" mass="0.1" contype="0" conaffinity="0"/>
-      </body>
-    </body>
-  </worldbody>
-  <actuator><motor joint="slide" ctrlrange="-10 10" ctrllimited="true"/></actuator>
-</mujoco>
-"""
-
-DOUBLE_PENDULUM_XML = """
-<mujoco>
-  <option timestep="{dt}" gravity="0 0 -9.81"/>
-  <worldbody>
-    <body name="link0">
-      <joint name="j0" type="hinge" axis="0 1 0"/>
-      <geom type="box" size="0.02 0.02 0.25" pos="0 0 -0.25" mass="1.0" contype="0" conaffinity="0"/>
-      <body name="link1" pos="0 0 -0.5">
-        <joint name="j1" type="hinge" axis="0 1 0"/>
-        <geom type="box" size="0.02 0.02 0.25" pos="0 0 -0.25" mass="1.0" contype="0" conaffinity="0"/>
-      </body>
-    </body>
-  </worldbody>
-</mujoco>
-"""
-
-CASES = {"cartpole": (CARTPOLE_XML, mechanisms.cartpole), "double_pendulum": (DOUBLE_PENDULUM_XML, mechanisms.double_pendulum)}
-
-
 def random_states(case, n, seed=0):
-    rng = np.random.default_rng(seed)
-    if case == "cartpole":
-        return np.stack([rng.uniform(-0.5, 0.5, n), rng.uniform(-0.3, 0.3, n)], 1)
-    return rng.uniform(-0.3, 0.3, (n, 2))
+    """Joint coordinates (n, joints) of ``case``'s random starts (peer_cases.CASES)."""
+    return CASES[case].states(n, seed)[0]
 
 
 def mjw_steps_per_second(case, num_worlds, steps, dt, device, repeat=1):
@@ -69,12 +31,12 @@ def mjw_steps_per_second(case, num_worlds, steps, dt, device, repeat=1):
     import mujoco
     import mujoco_warp as mjw
 
-    mjm = mujoco.MjModel.from_xml_string(CASES[case][0].format(dt=dt))
+    mjm = mujoco.MjModel.from_xml_string(CASES[case].xml(dt))
     mjd = mujoco.MjData(mjm)
     with wp.ScopedDevice(device):
         m = mjw.put_model(mjm)
         d = mjw.put_data(mjm, mjd, nworld=num_worlds)
-        d.qpos.assign(random_states(case, num_worlds).astype(np.float32))
+        d.qpos.assign(CASES[case].mujoco_qpos(random_states(case, num_worlds)).astype(np.float32))
         mjw.step(m, d)  # compile
         wp.synchronize()
         graph = None
@@ -118,7 +80,7 @@ def ours_steps_per_second(case, num_worlds, steps, dt, device, dtype="float32", 
     synchronisation at the end; the best of ``repeat`` such runs (each restarted from the same
     states: a short run on a GPU varies with clocks and whatever ran before it).
     Returns (world-steps/s, joint residual [m], bytes per world, the fused step's scratch layout)."""
-    sim = Simulator(CASES[case][1](), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
+    sim = Simulator(CASES[case].scene(), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
     x0 = random_states(case, num_worlds)
     sim.set_joint_state(x0)
     sim.step(3)

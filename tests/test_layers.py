@@ -14,7 +14,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent / "abd_gym"
 ENV_LAYER = {"vector_env", "single_env", "task", "env_arrays", "env_spaces", "episodes", "outcome", "randomize", "pending",
              "device_step", "step_graph", "autoreset", "env_kernels", "render", "registration"}  # fmt: skip
-BENCH = {"bench", "bench_compare", "bench_accuracy", "bench_robustness"}
+BENCH = {"bench", "bench_compare", "bench_accuracy", "bench_robustness", "peer_cases"}
 
 
 def modules() -> dict:
