@@ -110,6 +110,23 @@ def test_shipped_configs_validate(path):
     assert algo is not None and cfg["device"] == "cpu"
 
 
+@pytest.mark.parametrize("path", sorted((CONFIG_DIR / "gpu").glob("*.yaml")), ids=lambda p: p.stem)
+def test_gpu_configs_validate(path):
+    cfg = load_config(path)
+    assert agent_config.algorithm_class(cfg["algo"]) is not None
+    assert path.stem.split("_")[-1] == cfg["algo"], "config files are named <task>_<algo>.yaml"
+    assert cfg["device"] == "cuda:0" and cfg["n_envs"] >= 1024  # made for a GPU's batch
+    assert cfg["eval_freq"] > 0, "the time-to-solve table needs periodic evaluations"
+    assert load_config(f"gpu/{path.stem}") == cfg  # found by name, as abd-gym-train resolves it
+
+
+def test_every_task_has_a_gpu_config():
+    from abd_gym.registration import env_ids
+
+    tasks = {load_config(p)["env_id"] for p in (CONFIG_DIR / "gpu").glob("*.yaml")}
+    assert set(env_ids()) <= tasks
+
+
 # ---------------------------------------------------------------------------------------------
 # the SB3 adapter
 
