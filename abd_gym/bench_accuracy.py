@@ -165,6 +165,37 @@ def mjw_steps_per_second(case, integrator, num_worlds, steps, dt, device, repeat
         return num_worlds / _time_graph(lambda: mjw.step(m, d), device, steps, repeat)
 
 
+def _ours_rows(case, q0, v0, ref, dt, settings, device, repeat):
+    """One row per abd_gym setting (integrator, dtype, tol, reuse_factor) at step dt [s]: its
+    errors against ``ref`` and world-steps/s at the batch of q0."""
+    slide, steps = slide_mask(case), _samples(dt)[1]
+    for integrator, dtype, tol, reuse in settings:
+        traj, residual, drift, reused = run_ours(case, q0, v0, dt, dtype, tol, device, integrator, reuse)
+        sps = ours_steps_per_second(case, len(q0), steps, dt, device, dtype, repeat=repeat, tol=tol,
+                                    integrator=integrator, reuse_factor=reuse)[0]  # fmt: skip
+        yield dict(engine="abd_gym", integrator=integrator, case=case, dt=dt, dtype=dtype, tol=tol,
+                   reuse_factor=reused, **errors(traj, ref, slide), joint_residual=residual,
+                   energy_drift=drift, world_steps_per_second=sps)  # fmt: skip
+
+
+def _mujoco_row(case, q0, v0, ref, dt, integrator, device, repeat):
+    """MuJoCo's ``integrator`` at step dt [s]: errors of MuJoCo C on the reference worlds (and the
+    seconds that took), world-steps/s of MuJoCo Warp at the batch of q0 (NaN, with ``speed_note``,
+    without mujoco_warp or without this integrator in it)."""
+    t0 = time.perf_counter()
+    traj, reset = mujoco_run(case, q0[: len(ref[0])], v0[: len(ref[0])], dt, integrator)
+    seconds = time.perf_counter() - t0
+    speed_note = None
+    try:
+        sps = mjw_steps_per_second(case, integrator, len(q0), _samples(dt)[1], dt, device, repeat=repeat)
+    except (ImportError, NotImplementedError) as e:
+        sps, speed_note = float("nan"), f"{type(e).__name__}: {e}"
+    return dict(engine="mujoco_warp", integrator=integrator, case=case, dt=dt, dtype="float32", tol=None,
+                reuse_factor=None, **errors(traj, ref, slide_mask(case), reset), error_from="mujoco C (float64, CPU)",
+                mujoco_c_seconds=seconds, speed_note=speed_note, joint_residual=0.0, energy_drift=None,
+                world_steps_per_second=sps)  # fmt: skip
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m abd_gym.bench accuracy", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
@@ -191,39 +222,21 @@ def main(argv=None):
     for case in args.cases.split(","):
         q0, v0 = CASES[case].states(W, 1)
         nref = min(args.reference_worlds, W)
-        slide = slide_mask(case)
         t0 = time.perf_counter()
         try:
             ref, reset = mujoco_run(case, q0[:nref], v0[:nref], args.reference_dt)
             references[case] = f"mujoco_rk4_dt{args.reference_dt:g}" + (" (reset as unstable)" if reset else "")
-            have_mujoco = True
             reference_seconds[case] = time.perf_counter() - t0
         except ImportError:
             ref = run_ours(case, q0[:nref], v0[:nref], args.reference_dt, "float64", 1e-10, "cpu")[0]
             references[case] = f"abd_gym_float64_dt{args.reference_dt:g}"
-            have_mujoco = False
+        mj_integrators = args.mj_integrators.split(",") if case in reference_seconds else []
         for dt in dts:
-            steps = _samples(dt)[1]
-            for integrator, dtype, tol, reuse in settings:
-                traj, residual, drift, reused = run_ours(case, q0, v0, dt, dtype, tol, args.device, integrator, reuse)
-                sps = ours_steps_per_second(case, W, steps, dt, args.device, dtype, repeat=args.repeat, tol=tol,
-                                            integrator=integrator, reuse_factor=reuse)[0]  # fmt: skip
-                rows.append(dict(engine="abd_gym", integrator=integrator, case=case, dt=dt, dtype=dtype, tol=tol,
-                                 reuse_factor=reused, **errors(traj, ref, slide), joint_residual=residual,
-                                 energy_drift=drift, world_steps_per_second=sps))  # fmt: skip
-                print(_fmt(rows[-1]), flush=True)
-            for integrator in args.mj_integrators.split(",") if have_mujoco else ():
-                t0 = time.perf_counter()
-                traj, reset = mujoco_run(case, q0[:nref], v0[:nref], dt, integrator)
-                seconds = time.perf_counter() - t0
-                try:
-                    sps = mjw_steps_per_second(case, integrator, W, steps, dt, args.device, repeat=args.repeat)
-                except ImportError:
-                    sps = float("nan")
-                rows.append(dict(engine="mujoco_warp", integrator=integrator, case=case, dt=dt, dtype="float32",
-                                 tol=None, reuse_factor=None, **errors(traj, ref, slide, reset),
-                                 error_from="mujoco C (float64, CPU)", mujoco_c_seconds=seconds,
-                                 joint_residual=0.0, energy_drift=None, world_steps_per_second=sps))  # fmt: skip
+            for row in _ours_rows(case, q0, v0, ref, dt, settings, args.device, args.repeat):
+                rows.append(row)
+                print(_fmt(row), flush=True)
+            for integrator in mj_integrators:
+                rows.append(_mujoco_row(case, q0, v0, ref, dt, integrator, args.device, args.repeat))
                 print(_fmt(rows[-1]), flush=True)
     for r in rows:
         r["world_seconds_per_second"] = r["world_steps_per_second"] * r["dt"]
@@ -248,14 +261,14 @@ def _setting(r):
     return f"{r['integrator']} {r['dtype']} tol {r['tol']:g}" + (" reuse" if r["reuse_factor"] else "")
 
 
-def curves(rows, case, engine):
+def curves(rows, case, engine, timed=True):
     """Per setting of ``engine`` on ``case``: its measured (error_max [rad], world-seconds/s) points,
-    sorted by error; diverged runs and untimed (NaN) rates left out."""
+    sorted by error; diverged runs left out, and untimed (NaN) rates unless ``timed`` is False."""
     out = {}
     for r in rows:
         if r["case"] == case and r["engine"] == engine and r["error_max"] is not None:
             rate = r["world_steps_per_second"] * r["dt"]
-            if math.isfinite(rate) and rate > 0:
+            if not timed or (math.isfinite(rate) and rate > 0):
                 out.setdefault(_setting(r), []).append((r["error_max"], rate))
     return {k: sorted(v) for k, v in out.items()}
 
@@ -284,20 +297,37 @@ def _best(curves_, level):
     return max(got, key=lambda g: g[1]) if got else None
 
 
-def _verdict(ours, theirs):
+def _smallest(curves_):
+    """The smallest error [rad] over all curves' points, or None without points."""
+    errs = [p[0] for pts in curves_.values() for p in pts]
+    return min(errs) if errs else None
+
+
+def _missing(engine, untimed, level):
+    """Why ``engine`` has no rate at ``level``: not timed, or its smallest error is larger."""
+    smallest = _smallest(untimed)
+    if smallest is None:
+        return f"{engine} has no finite run"
+    if smallest <= level:
+        return f"{engine} reaches this error but was not timed"
+    return f"{engine} does not reach this error: its smallest is {smallest:.1e} rad"
+
+
+def _verdict(ours, theirs, why_ours, why_theirs):
     """Who is ahead at one error level, plainly, from the two best (setting, rate, bound)."""
     if ours is None and theirs is None:
-        return "neither reaches this error"
+        return f"neither ({why_ours}; {why_theirs})"
     if ours is None:
-        return "MuJoCo Warp (abd_gym does not reach this error)"
+        return f"MuJoCo Warp ({why_ours})"
     if theirs is None:
-        return "abd_gym (MuJoCo does not reach this error, or MuJoCo Warp was not timed)"
+        return f"abd_gym ({why_theirs})" if "not timed" not in why_theirs else f"undecided ({why_theirs})"
     ratio = ours[1] / theirs[1]
     if ratio >= 1 and theirs[2] == "=":
         return "abd_gym"
     if ratio < 1 and ours[2] == "=":
         return "MuJoCo Warp"
-    return "undecided (the slower side's rate is a lower bound: a larger dt was not measured)"
+    slower = "MuJoCo" if ratio >= 1 else "abd_gym"
+    return f"undecided ({slower}'s rate is a lower bound: its largest dt errs less; measure a larger dt)"
 
 
 def equal_error_summary(rows, levels=LEVELS):
@@ -307,13 +337,15 @@ def equal_error_summary(rows, levels=LEVELS):
     out = []
     for case in dict.fromkeys(r["case"] for r in rows):
         ours_c, theirs_c = curves(rows, case, "abd_gym"), curves(rows, case, "mujoco_warp")
+        ours_all, theirs_all = curves(rows, case, "abd_gym", False), curves(rows, case, "mujoco_warp", False)
         for level in levels:
             ours, theirs = _best(ours_c, level), _best(theirs_c, level)
+            why = _missing("abd_gym", ours_all, level), _missing("MuJoCo", theirs_all, level)
             out.append(dict(case=case, error=level,
                             abd_gym=None if ours is None else dict(setting=ours[0], world_seconds_per_second=ours[1], bound=ours[2]),
                             mujoco_warp=None if theirs is None else dict(integrator=theirs[0], world_seconds_per_second=theirs[1], bound=theirs[2]),
                             ratio=None if ours is None or theirs is None else ours[1] / theirs[1],
-                            ahead=_verdict(ours, theirs)))  # fmt: skip
+                            ahead=_verdict(ours, theirs, *why)))  # fmt: skip
     return out
 
 
@@ -374,11 +406,12 @@ def _plot(result, path):
     for ax, case in zip(axes.flat, cases):
         for engine, style in (("abd_gym", "o-"), ("mujoco_warp", "s--")):
             for name, pts in curves(result["rows"], case, engine).items():
+                pts = sorted(pts, key=lambda p: p[1])  # along the rate axis (≈ dt order)
                 ax.loglog([p[1] for p in pts], [p[0] for p in pts], style, label=f"{engine} {name}")
         for level in LEVELS:
             ax.axhline(level, color="grey", lw=0.5, alpha=0.5)
         ax.set_xlabel("simulated world-seconds per wall second (world-steps/s × dt)")
-        ax.set_ylabel("max joint-angle error over 1 s [rad]")
+        ax.set_ylabel("max revolute-joint error over 1 s [rad]")
         ax.set_title(f"{case} ({result['device_name']}, {result['worlds']} worlds)")
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=6)

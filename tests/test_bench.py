@@ -113,7 +113,7 @@ def test_equal_error_summary_interpolates_in_simulated_time():
     assert got[3e-2]["ahead"] == "abd_gym" and got[3e-2]["ratio"] > 1
     # at 1e-3 only RK4 reaches (a lower bound): ours 2e5 against ≥ 2e4 is undecided
     assert got[1e-3]["mujoco_warp"] == dict(integrator="RK4", world_seconds_per_second=2e4, bound=">=")
-    assert got[1e-3]["ahead"].startswith("undecided")
+    assert got[1e-3]["ahead"].startswith("undecided (MuJoCo")
     assert all(s["mujoco_warp"] is None for s in equal_error_summary(ours))  # nothing to compare against
 
 
