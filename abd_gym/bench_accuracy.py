@@ -1,160 +1,252 @@
-"""``python -m abd_gym.bench accuracy``: speed against error.
+"""``python -m abd_gym.bench accuracy``: speed against error, abd_gym beside MuJoCo's integrators.
 
-For dt in {0.02, 0.01, 0.005, 0.002, 0.001}, each integrator (implicit Euler, BDF2), float32 and
-float64, and two Newton tolerances, a
-batch of double pendulums and cart-poles (random initial angles, the same in every run) is
-stepped for 1 s.  Reported per run: the joint-angle error against a reference (MuJoCo's RK4 at
-dt = 1e-4 when ``mujoco`` is installed, else our own float64 run at dt = 1e-4 and tol 1e-10),
-at t = 1 s and the largest over the second (sampled every 0.02 s); the largest joint residual;
-the energy drift E(1 s) − E(0) [J] (implicit Euler only loses energy); and world-steps per
-second, the throughput of a separate run of the same batch (1 s of steps launched back to back,
-as ``bench compare`` times them; the trajectory run reads the angles back every 0.02 s).  With
-``mujoco_warp`` installed its semi-implicit Euler is measured the same way.  ``--reuse-factors``
-adds the Newton factor-reuse setting as a dimension (default: each dtype's default).
-With MuJoCo Warp rows, the run ends with the comparison at equal error (:func:`equal_error`):
-simulated world-seconds per second (world-steps/s × dt) of each of our settings against MuJoCo
-Warp's at the same error.  Writes ``accuracy.json`` and, with matplotlib, ``accuracy.png`` (error
-against simulated world-seconds per second) to --out.
+Every mechanism of :data:`~abd_gym.peer_cases.CASES` (``--cases``) starts from the same random
+joint coordinates and rates in every run and is stepped for 1 s at each dt (``--dts``, default
+0.04 … 0.001 s).  Runs:
+
+* abd_gym, each integrator (implicit Euler, BDF2), dtype (float32 default) and Newton tolerance:
+  the trajectory on the bench device; world-steps/s from a separate run of the same batch
+  (``bench compare``'s timing: steps launched back to back).
+* MuJoCo, each integrator of ``--mj-integrators`` (Euler, implicitfast, RK4): the trajectory with
+  MuJoCo C on the CPU (``mujoco.rollout``; the algorithms MuJoCo Warp runs), world-steps/s with
+  MuJoCo Warp on the bench device at the same batch, replayed as CUDA graphs of 10 steps (NaN
+  without ``mujoco_warp``).
+
+Error: against MuJoCo's RK4 at ``--reference-dt`` (1e-4 s) from the same starts (our own float64
+run at that dt and tol 1e-10 without ``mujoco``), over the coordinates MuJoCo has a qpos for (a
+joint that closes a loop is not compared), sampled every 0.02 s; ``error_max`` is the largest
+over the second and the measured worlds of |angle − reference| over revolute joints [rad];
+``error_max_slide`` the same over prismatic joints [m] (None without one); ``error_final`` the
+revolute error at t = 1 s.  A run whose coordinates become non-finite, or that MuJoCo resets as
+unstable, is ``diverged`` and has no error.
+
+Equal error (:func:`equal_error_summary`): each setting is a curve of (error_max, simulated
+world-seconds per second = world-steps/s × dt) over dt; at each error level (1e-3 … 1e-1 rad) the
+fastest abd_gym setting and the fastest MuJoCo integrator that reach it are compared.  Writes
+``accuracy.json`` and, with matplotlib, ``accuracy.png`` (one panel per mechanism) to --out.
 """
 import argparse
 import json
+import math
 import os
+import time
 
 import numpy as np
 import warp as wp
 
-from .bench_compare import mjw_steps_per_second, ours_steps_per_second, random_states
+from .bench_compare import ours_steps_per_second
 from .peer_cases import CASES, with_integrator
+from .scene import PRISMATIC
 from .simulator import Simulator
 
-DTS = (0.02, 0.01, 0.005, 0.002, 0.001)
+DTS = (0.04, 0.02, 0.01, 0.005, 0.002, 0.001)
+MJ_INTEGRATORS = ("Euler", "implicitfast", "RK4")
+LEVELS = (1e-3, 3e-3, 1e-2, 3e-2, 1e-1)  # error levels of the equal-error summary [rad]
 T_END, SAMPLE = 1.0, 0.02
 
 
 def _samples(dt):
-    every = int(round(SAMPLE / dt))
+    """(steps between samples, steps in 1 s): a sample every 0.02 s, or every step when dt is larger."""
+    every = max(1, int(round(SAMPLE / dt)))
     return every, int(round(T_END / dt))
 
 
-def mujoco_reference(case, x0, v0=None, dt=1e-4, integrator="RK4"):
-    """Joint angles (samples, worlds, joints) of MuJoCo's RK4 from x0 (worlds, joints)."""
+def measured_joints(case):
+    """abd_gym joint indices that MuJoCo has a qpos for (the order of ``ours_from_qpos``)."""
+    return [j for j, a in enumerate(CASES[case].qpos_of_joint) if a is not None]
+
+
+def slide_mask(case):
+    """Per measured joint: True for a prismatic joint (error in m), False for a revolute one [rad]."""
+    joints = CASES[case].scene().joints
+    return np.array([joints[j].kind == PRISMATIC for j in measured_joints(case)], dtype=bool)
+
+
+def mujoco_run(case, q0, v0, dt, integrator="RK4"):
+    """MuJoCo C's coordinates (samples, worlds, measured joints) [rad, m] every 0.02 s over 1 s with
+    ``integrator`` at step dt [s], from joint coordinates q0 and rates v0 (worlds, num_joints) in
+    abd_gym's joint order; and whether MuJoCo reset a world as unstable (its time restarts)."""
     import mujoco
+    from mujoco import rollout
 
-    xml = with_integrator(CASES[case].xml(dt), integrator)
-    mjm = mujoco.MjModel.from_xml_string(xml)
+    c = CASES[case]
+    mjm = mujoco.MjModel.from_xml_string(with_integrator(c.xml(dt), integrator))
     mjd = mujoco.MjData(mjm)
-    every, n = _samples(dt)
-    out = np.zeros((n // every + 1, len(x0), mjm.nq))
-    for w, x in enumerate(x0):
+    qpos, qvel = c.mujoco_qpos(q0), c.mujoco_qpos(v0)
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    x0 = np.empty((len(q0), mujoco.mj_stateSize(mjm, spec)))
+    for w in range(len(q0)):
         mujoco.mj_resetData(mjm, mjd)
-        mjd.qpos[:] = x
-        out[0, w] = mjd.qpos
-        for i in range(1, n + 1):
-            mujoco.mj_step(mjm, mjd)
-            if i % every == 0:
-                out[i // every, w] = mjd.qpos
-    return out
+        mjd.qpos[:], mjd.qvel[:] = qpos[w], qvel[w]
+        mujoco.mj_getState(mjm, mjd, x0[w], spec)
+    every, n = _samples(dt)
+    state, _ = rollout.rollout(mjm, mjd, x0, nstep=n)  # (worlds, steps, nstate): time, qpos, qvel, ...
+    reset = not np.allclose(state[:, -1, 0], n * dt, rtol=1e-6)
+    qs = np.concatenate([qpos[:, None], state[:, every - 1 :: every, 1 : 1 + mjm.nq]], 1)
+    return np.stack([c.ours_from_qpos(s) for s in qs.transpose(1, 0, 2)]), reset
 
 
-def run_ours(case, x0, dt, dtype, tol, device, integrator="implicit_euler", reuse_factor=None, **options):
-    """Joint angles (samples, worlds, joints) over 1 s from x0, the largest joint residual [m], the
-    largest energy drift [J] and whether Newton reused its factors (``options``: more Simulator
-    settings)."""
-    sim = Simulator(CASES[case].scene(), num_worlds=len(x0), dt=dt, device=device, dtype=dtype, tol=tol,
+def run_ours(case, q0, v0, dt, dtype, tol, device, integrator="implicit_euler", reuse_factor=None, **options):
+    """Measured joints' coordinates (samples, worlds, measured joints) [rad, m] over 1 s from joint
+    coordinates q0 and rates v0, the largest joint residual [m], the largest energy drift
+    E(1 s) − E(0) [J] and whether Newton reused its factors (``options``: more Simulator settings)."""
+    sim = Simulator(CASES[case].scene(), num_worlds=len(q0), dt=dt, device=device, dtype=dtype, tol=tol,
                     integrator=integrator, reuse_factor=reuse_factor, **options)  # fmt: skip
-    sim.set_joint_state(x0)
+    sim.set_joint_state(q0, v0)
+    cols = measured_joints(case)
     e0 = sum(sim.energies().values())
     every, n = _samples(dt)
-    out = np.zeros((n // every + 1,) + x0.shape)
-    out[0] = sim.joint_angles_unwrapped()
+    out = np.zeros((n // every + 1, len(q0), len(cols)))
+    out[0] = sim.joint_angles_unwrapped()[:, cols]
     residual = 0.0
     for i in range(1, n + 1):
         sim.step()
         if i % every == 0:
-            out[i // every] = sim.joint_angles_unwrapped()
+            out[i // every] = sim.joint_angles_unwrapped()[:, cols]
             residual = max(residual, float(sim.joint_violation().max()))
     drift = float(np.max(sum(sim.energies().values()) - e0))
     return out, residual, drift, sim.solver.reuse_factor
 
 
-def run_mjw(case, x0, dt, device):
-    """MuJoCo Warp's joint angles (samples, worlds, joints) over 1 s from x0."""
+def errors(traj, ref, slide, diverged=False):
+    """error_final, error_max [rad] over revolute coordinates and error_max_slide [m] over
+    prismatic ones of a trajectory (samples, worlds, measured joints) against the reference
+    (sampled every 0.02 s); all None when it diverged (or is not finite)."""
+    if diverged or not np.all(np.isfinite(traj)):
+        return dict(diverged=True, error_final=None, error_max=None, error_max_slide=None)
+    ref = ref[:: (len(ref) - 1) // (len(traj) - 1)]  # the reference's samples at the run's (dt > 0.02 s)
+    err = np.abs(traj[:, : ref.shape[1]] - ref)
+    rot, lin = err[..., ~slide], err[..., slide]
+    return dict(diverged=False, error_final=float(rot[-1].max()) if rot.size else None,
+                error_max=float(rot.max()) if rot.size else None,
+                error_max_slide=float(lin.max()) if lin.size else None)  # fmt: skip
+
+
+def _time_graph(step, device, steps, repeat):
+    """Seconds of the fastest of ``repeat`` runs of ``steps`` calls of ``step`` (10-step CUDA graphs
+    on a GPU), each timed between synchronisations."""
+    step()  # compile
+    wp.synchronize()
+    graph = None
+    if wp.get_device(device).is_cuda:
+        with wp.ScopedCapture() as capture:
+            for _ in range(10):
+                step()
+        graph = capture.graph
+    reps = max(1, steps // 10)
+    best = math.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            if graph is not None:
+                wp.capture_launch(graph)
+            else:
+                for _ in range(10):
+                    step()
+        wp.synchronize()
+        best = min(best, time.perf_counter() - t0)
+    return best / (reps * 10)
+
+
+def mjw_steps_per_second(case, integrator, num_worlds, steps, dt, device, repeat=1):
+    """MuJoCo Warp's world-steps/s with ``integrator`` (Euler, implicitfast, RK4) at step dt [s] from
+    the case's random starts (coordinates and rates); ImportError without ``mujoco_warp``."""
     import mujoco
     import mujoco_warp as mjw
 
-    mjm = mujoco.MjModel.from_xml_string(CASES[case].xml(dt))
-    every, n = _samples(dt)
-    out = np.zeros((n // every + 1,) + x0.shape)
+    c = CASES[case]
+    mjm = mujoco.MjModel.from_xml_string(with_integrator(c.xml(dt), integrator))
+    q, qd = c.states(num_worlds, 0)
     with wp.ScopedDevice(device):
         m = mjw.put_model(mjm)
-        d = mjw.put_data(mjm, mujoco.MjData(mjm), nworld=len(x0))
-        d.qpos.assign(x0.astype(np.float32))
-        out[0] = x0
-        for i in range(1, n + 1):
-            mjw.step(m, d)
-            if i % every == 0:
-                out[i // every] = d.qpos.numpy()
-    return out
+        d = mjw.put_data(mjm, mujoco.MjData(mjm), nworld=num_worlds)
+        d.qpos.assign(c.mujoco_qpos(q).astype(np.float32))
+        d.qvel.assign(c.mujoco_qpos(qd).astype(np.float32))
+        return num_worlds / _time_graph(lambda: mjw.step(m, d), device, steps, repeat)
+
+
+def _ours_rows(case, q0, v0, ref, dt, settings, device, repeat):
+    """One row per abd_gym setting (integrator, dtype, tol, reuse_factor) at step dt [s]: its
+    errors against ``ref`` and world-steps/s at the batch of q0."""
+    slide, steps = slide_mask(case), _samples(dt)[1]
+    for integrator, dtype, tol, reuse in settings:
+        traj, residual, drift, reused = run_ours(case, q0, v0, dt, dtype, tol, device, integrator, reuse)
+        sps = ours_steps_per_second(case, len(q0), steps, dt, device, dtype, repeat=repeat, tol=tol,
+                                    integrator=integrator, reuse_factor=reuse)[0]  # fmt: skip
+        yield dict(engine="abd_gym", integrator=integrator, case=case, dt=dt, dtype=dtype, tol=tol,
+                   reuse_factor=reused, **errors(traj, ref, slide), joint_residual=residual,
+                   energy_drift=drift, world_steps_per_second=sps)  # fmt: skip
+
+
+def _mujoco_row(case, q0, v0, ref, dt, integrator, device, repeat):
+    """MuJoCo's ``integrator`` at step dt [s]: errors of MuJoCo C on the reference worlds (and the
+    seconds that took), world-steps/s of MuJoCo Warp at the batch of q0 (NaN, with ``speed_note``,
+    without mujoco_warp or without this integrator in it)."""
+    t0 = time.perf_counter()
+    traj, reset = mujoco_run(case, q0[: len(ref[0])], v0[: len(ref[0])], dt, integrator)
+    seconds = time.perf_counter() - t0
+    speed_note = None
+    try:
+        sps = mjw_steps_per_second(case, integrator, len(q0), _samples(dt)[1], dt, device, repeat=repeat)
+    except (ImportError, NotImplementedError) as e:
+        sps, speed_note = float("nan"), f"{type(e).__name__}: {e}"
+    return dict(engine="mujoco_warp", integrator=integrator, case=case, dt=dt, dtype="float32", tol=None,
+                reuse_factor=None, **errors(traj, ref, slide_mask(case), reset), error_from="mujoco C (float64, CPU)",
+                mujoco_c_seconds=seconds, speed_note=speed_note, joint_residual=0.0, energy_drift=None,
+                world_steps_per_second=sps)  # fmt: skip
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m abd_gym.bench accuracy", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--worlds", type=int, default=None, help="worlds per run (default 8 on CPU, 4096 on GPU)")
+    ap.add_argument("--worlds", type=int, default=None, help="worlds per timed run (default 8 on CPU, 16384 on GPU)")
     ap.add_argument("--dts", default=",".join(str(d) for d in DTS))
-    ap.add_argument("--dtypes", default="float32,float64")
+    ap.add_argument("--dtypes", default="float32", help="comma-separated float32/float64 (ours)")
     ap.add_argument("--tols", default="1e-5,1e-3")
-    ap.add_argument("--integrators", default="implicit_euler,bdf2")
+    ap.add_argument("--integrators", default="implicit_euler,bdf2", help="ours")
+    ap.add_argument("--mj-integrators", default=",".join(MJ_INTEGRATORS), help="MuJoCo's (Euler, implicitfast, RK4)")
     ap.add_argument("--reuse-factors", default="auto", help="comma-separated auto/0/1 (Simulator reuse_factor)")
-    ap.add_argument("--cases", default="double_pendulum,cartpole")
+    ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--reference-worlds", type=int, default=8, help="worlds the error is measured on")
     ap.add_argument("--reference-dt", type=float, default=1e-4, help="step of the reference run [s]")
     ap.add_argument("--repeat", type=int, default=3, help="throughput: best of this many timed runs")
     ap.add_argument("--out", default="bench_out")
     args = ap.parse_args(argv)
-    W = args.worlds or (4096 if args.device.startswith("cuda") else 8)
+    W = args.worlds or (16384 if args.device.startswith("cuda") else 8)
     dts = [float(d) for d in args.dts.split(",")]
-    rows = []
+    reuse_choice = {"auto": None, "0": False, "1": True}
+    settings = [(i, d, float(t), reuse_choice[r]) for i in args.integrators.split(",")
+                for d in args.dtypes.split(",") for t in args.tols.split(",") for r in args.reuse_factors.split(",")]
+    rows, references, reference_seconds = [], {}, {}
     for case in args.cases.split(","):
-        x0 = random_states(case, W, seed=1)
+        q0, v0 = CASES[case].states(W, 1)
         nref = min(args.reference_worlds, W)
+        t0 = time.perf_counter()
         try:
-            ref, ref_name = mujoco_reference(case, x0[:nref], dt=args.reference_dt), f"mujoco_rk4_dt{args.reference_dt:g}"
+            ref, reset = mujoco_run(case, q0[:nref], v0[:nref], args.reference_dt)
+            references[case] = f"mujoco_rk4_dt{args.reference_dt:g}" + (" (reset as unstable)" if reset else "")
+            reference_seconds[case] = time.perf_counter() - t0
         except ImportError:
-            ref = run_ours(case, x0[:nref], args.reference_dt, "float64", 1e-10, "cpu")[0]
-            ref_name = f"abd_gym_float64_dt{args.reference_dt:g}"
-        reuse_choice = {"auto": None, "0": False, "1": True}
-        settings = [(i, d, float(t), reuse_choice[r]) for i in args.integrators.split(",")
-                    for d in args.dtypes.split(",") for t in args.tols.split(",") for r in args.reuse_factors.split(",")]
+            ref = run_ours(case, q0[:nref], v0[:nref], args.reference_dt, "float64", 1e-10, "cpu")[0]
+            references[case] = f"abd_gym_float64_dt{args.reference_dt:g}"
+        mj_integrators = args.mj_integrators.split(",") if case in reference_seconds else []
         for dt in dts:
-            steps = _samples(dt)[1]
-            for integrator, dtype, tol, reuse in settings:
-                traj, residual, drift, reused = run_ours(case, x0, dt, dtype, tol, args.device, integrator, reuse)
-                sps = ours_steps_per_second(case, W, steps, dt, args.device, dtype, repeat=args.repeat, tol=tol,
-                                            integrator=integrator, reuse_factor=reuse)[0]  # fmt: skip
-                err = np.abs(traj[:, :nref] - ref)
-                rows.append(dict(engine="abd_gym", integrator=integrator, case=case, dt=dt, dtype=dtype,
-                                 tol=tol, reuse_factor=reused, error_final=float(err[-1].max()),
-                                 error_max=float(err.max()), joint_residual=residual, energy_drift=drift,
-                                 world_steps_per_second=sps))  # fmt: skip
+            for row in _ours_rows(case, q0, v0, ref, dt, settings, args.device, args.repeat):
+                rows.append(row)
+                print(_fmt(row), flush=True)
+            for integrator in mj_integrators:
+                rows.append(_mujoco_row(case, q0, v0, ref, dt, integrator, args.device, args.repeat))
                 print(_fmt(rows[-1]), flush=True)
-            try:
-                traj = run_mjw(case, x0, dt, args.device)
-                sps = mjw_steps_per_second(case, W, steps, dt, args.device, repeat=args.repeat)
-                err = np.abs(traj[:, :nref] - ref)
-                rows.append(dict(engine="mujoco_warp", integrator="semi_implicit_euler", case=case, dt=dt,
-                                 dtype="float32", tol=None, reuse_factor=None, error_final=float(err[-1].max()), error_max=float(err.max()),
-                                 joint_residual=0.0, energy_drift=None, world_steps_per_second=sps))  # fmt: skip
-                print(_fmt(rows[-1]), flush=True)
-            except ImportError:
-                pass
     for r in rows:
         r["world_seconds_per_second"] = r["world_steps_per_second"] * r["dt"]
-    result = dict(device=args.device, device_name=wp.get_device(args.device).name, worlds=W, reference=ref_name,
-                  rows=rows, equal_error=equal_error(rows))  # fmt: skip
-    if result["equal_error"]:
-        print(equal_error_table(result["equal_error"]))
+    result = dict(device=args.device, device_name=wp.get_device(args.device).name, worlds=W,
+                  reference_worlds=min(args.reference_worlds, W), reference=references,
+                  reference_seconds=reference_seconds, rows=rows,
+                  summary=equal_error_summary(rows))  # fmt: skip
+    print(rows_table(rows))
+    print()
+    print(summary_table(result["summary"]))
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "accuracy.json"), "w") as f:
         json.dump(result, f, indent=1)
@@ -162,59 +254,139 @@ def main(argv=None):
     return result
 
 
-def equal_error(rows):
-    """Per abd_gym row: MuJoCo Warp's simulated world-seconds per second at the same error
-    (``error_max``), and our rate over it.
+def _setting(r):
+    """A curve's name: MuJoCo's integrator, or our integrator, dtype, tolerance and factor reuse."""
+    if r["engine"] != "abd_gym":
+        return r["integrator"]
+    return f"{r['integrator']} {r['dtype']} tol {r['tol']:g}" + (" reuse" if r["reuse_factor"] else "")
 
-    The rate that matters at equal error is simulated time per wall time, world-steps/s × dt: a
-    more accurate step lets a larger dt reach the same error.  MuJoCo Warp's rate at our error is
-    interpolated log-log between its two nearest dt points; below its smallest error it is
-    extrapolated as first order (error ∝ dt ∝ its rate at a fixed world-steps/s), and
-    ``extrapolated`` says so; above its largest error its largest-dt point is used (``beyond``:
-    the ratio then overstates ours, as MuJoCo Warp could take a larger step).  Empty without
-    MuJoCo Warp rows."""
+
+def curves(rows, case, engine, timed=True):
+    """Per setting of ``engine`` on ``case``: its measured (error_max [rad], world-seconds/s) points,
+    sorted by error; diverged runs left out, and untimed (NaN) rates unless ``timed`` is False."""
+    out = {}
+    for r in rows:
+        if r["case"] == case and r["engine"] == engine and r["error_max"] is not None:
+            rate = r["world_steps_per_second"] * r["dt"]
+            if not timed or (math.isfinite(rate) and rate > 0):
+                out.setdefault(_setting(r), []).append((r["error_max"], rate))
+    return {k: sorted(v) for k, v in out.items()}
+
+
+def rate_at(points, level):
+    """Simulated world-seconds/s of a curve at error ``level`` [rad]: (rate, bound), or None when
+    every measured point errs more than ``level`` (not reached: no extrapolation).
+
+    Inside the measured error range the rate is interpolated log-log between neighbouring points
+    (or a faster measured point with a smaller error, when the curve is not monotonic), bound "=";
+    when every point errs less than ``level`` the fastest point is taken, bound ">=" (a larger dt,
+    not measured, may reach ``level`` faster)."""
+    errs = np.array([p[0] for p in points])
+    rates = np.array([p[1] for p in points])
+    if not len(points) or level < errs.min():
+        return None
+    below = float(rates[errs <= level].max())
+    if level > errs.max():
+        return below, ">="
+    return max(below, float(np.exp(np.interp(np.log(level), np.log(errs), np.log(rates))))), "="
+
+
+def _best(curves_, level):
+    """(setting, rate, bound) of the fastest curve at ``level``, or None when none reaches it."""
+    got = [(name, *at) for name, pts in curves_.items() if (at := rate_at(pts, level)) is not None]
+    return max(got, key=lambda g: g[1]) if got else None
+
+
+def _smallest(curves_):
+    """The smallest error [rad] over all curves' points, or None without points."""
+    errs = [p[0] for pts in curves_.values() for p in pts]
+    return min(errs) if errs else None
+
+
+def _missing(engine, untimed, level):
+    """Why ``engine`` has no rate at ``level``: not timed, or its smallest error is larger."""
+    smallest = _smallest(untimed)
+    if smallest is None:
+        return f"{engine} has no finite run"
+    if smallest <= level:
+        return f"{engine} reaches this error but was not timed"
+    return f"{engine} does not reach this error: its smallest is {smallest:.1e} rad"
+
+
+def _verdict(ours, theirs, why_ours, why_theirs):
+    """Who is ahead at one error level, plainly, from the two best (setting, rate, bound)."""
+    if ours is None and theirs is None:
+        return f"neither ({why_ours}; {why_theirs})"
+    if ours is None:
+        return f"MuJoCo Warp ({why_ours})"
+    if theirs is None:
+        return f"abd_gym ({why_theirs})" if "not timed" not in why_theirs else f"undecided ({why_theirs})"
+    ratio = ours[1] / theirs[1]
+    if ratio >= 1 and theirs[2] == "=":
+        return "abd_gym"
+    if ratio < 1 and ours[2] == "=":
+        return "MuJoCo Warp"
+    slower = "MuJoCo" if ratio >= 1 else "abd_gym"
+    return f"undecided ({slower}'s rate is a lower bound: its largest dt errs less; measure a larger dt)"
+
+
+def equal_error_summary(rows, levels=LEVELS):
+    """Per mechanism and error level [rad]: the fastest abd_gym setting and the fastest MuJoCo
+    integrator (simulated world-seconds per second at that error, :func:`rate_at`), their ratio
+    ours / MuJoCo's and who is ahead."""
     out = []
-    for case in sorted({r["case"] for r in rows}):
-        mjw = sorted((r["error_max"], r["world_steps_per_second"] * r["dt"]) for r in rows
-                     if r["case"] == case and r["engine"] == "mujoco_warp")  # fmt: skip
-        if not mjw:
-            continue
-        errs, rates = np.log([m[0] for m in mjw]), np.log([m[1] for m in mjw])
-        for r in rows:
-            if r["case"] != case or r["engine"] != "abd_gym":
-                continue
-            e = r["error_max"]
-            note = ""
-            if e < mjw[0][0]:
-                rate, note = mjw[0][1] * e / mjw[0][0], "extrapolated"
-            elif e > mjw[-1][0]:
-                rate, note = mjw[-1][1], "beyond"
-            else:
-                rate = float(np.exp(np.interp(np.log(e), errs, rates)))
-            ours = r["world_steps_per_second"] * r["dt"]
-            out.append(dict(case=case, integrator=r["integrator"], dt=r["dt"], dtype=r["dtype"], tol=r["tol"],
-                            reuse_factor=r["reuse_factor"], error_max=e, world_seconds_per_second=ours,
-                            mujoco_warp_world_seconds_per_second=rate, ratio=ours / rate, note=note))  # fmt: skip
+    for case in dict.fromkeys(r["case"] for r in rows):
+        ours_c, theirs_c = curves(rows, case, "abd_gym"), curves(rows, case, "mujoco_warp")
+        ours_all, theirs_all = curves(rows, case, "abd_gym", False), curves(rows, case, "mujoco_warp", False)
+        for level in levels:
+            ours, theirs = _best(ours_c, level), _best(theirs_c, level)
+            why = _missing("abd_gym", ours_all, level), _missing("MuJoCo", theirs_all, level)
+            out.append(dict(case=case, error=level,
+                            abd_gym=None if ours is None else dict(setting=ours[0], world_seconds_per_second=ours[1], bound=ours[2]),
+                            mujoco_warp=None if theirs is None else dict(integrator=theirs[0], world_seconds_per_second=theirs[1], bound=theirs[2]),
+                            ratio=None if ours is None or theirs is None else ours[1] / theirs[1],
+                            ahead=_verdict(ours, theirs, *why)))  # fmt: skip
     return out
 
 
-def equal_error_table(rows):
-    lines = ["| mechanism | integrator | dt [s] | dtype | reuse | max error [rad] | abd_gym world-s/s | "
-             "MuJoCo Warp world-s/s at that error | ratio |", "|---|---|---:|---|---|---:|---:|---:|---:|"]
-    for r in rows:
-        note = f" ({r['note']})" if r["note"] else ""
-        lines.append(f"| {r['case']} | {r['integrator']} | {r['dt']:g} | {r['dtype']} | {'yes' if r['reuse_factor'] else 'no'} | "
-                     f"{r['error_max']:.2e} | {r['world_seconds_per_second']:,.0f} | "
-                     f"{r['mujoco_warp_world_seconds_per_second']:,.0f}{note} | {r['ratio']:.2f} |")  # fmt: skip
+def _side(s, name):
+    if s is None:
+        return "not reached"
+    return f"{'≥ ' if s['bound'] == '>=' else ''}{s['world_seconds_per_second']:,.0f} ({s[name]})"
+
+
+def summary_table(summary):
+    """Markdown: mechanism × error level, both sides' best and who is ahead."""
+    lines = ["| mechanism | error [rad] | abd_gym best world-s/s (setting) | MuJoCo Warp best world-s/s (integrator) "
+             "| ratio | ahead |", "|---|---:|---:|---:|---:|---|"]  # fmt: skip
+    for s in summary:
+        ratio = "" if s["ratio"] is None else f"{s['ratio']:.2f}"
+        lines.append(f"| {s['case']} | {s['error']:g} | {_side(s['abd_gym'], 'setting')} | "
+                     f"{_side(s['mujoco_warp'], 'integrator')} | {ratio} | {s['ahead']} |")  # fmt: skip
     return "\n".join(lines)
+
+
+def rows_table(rows):
+    """Markdown: every run's error and speed."""
+    lines = ["| mechanism | engine | setting | dt [s] | max error [rad] | max slide error [m] | world-steps/s "
+             "| world-s/s |", "|---|---|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for r in rows:
+        err = "diverged" if r["diverged"] else _num(r["error_max"])
+        lines.append(f"| {r['case']} | {r['engine']} | {_setting(r)} | {r['dt']:g} | {err} | {_num(r['error_max_slide'])} "
+                     f"| {r['world_steps_per_second']:,.0f} | {r['world_seconds_per_second']:,.0f} |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def _num(x):
+    return "—" if x is None else f"{x:.2e}"
 
 
 def _fmt(r):
     drift = "" if r["energy_drift"] is None else f"  drift {r['energy_drift']:+.2e} J"
-    reuse = " reuse" if r.get("reuse_factor") else ""
-    return (f"{r['engine']:11s} {r['integrator']:19s} {r['case']:16s} dt {r['dt']:<6} {r['dtype']:8s} tol {str(r['tol']):6s}{reuse} "
-            f"err(1s) {r['error_final']:.2e}  err(max) {r['error_max']:.2e}  residual {r['joint_residual']:.1e}"
-            f"{drift}  {r['world_steps_per_second']:,.0f} world-steps/s")  # fmt: skip
+    err = ("diverged" if r["diverged"] else
+           f"err(1s) {_num(r['error_final'])}  err(max) {_num(r['error_max'])} rad  slide {_num(r['error_max_slide'])} m")
+    return (f"{r['engine']:11s} {_setting(r):34s} {r['case']:16s} dt {r['dt']:<6} {err}  "
+            f"residual {r['joint_residual']:.1e}{drift}  {r['world_steps_per_second']:,.0f} world-steps/s")  # fmt: skip
 
 
 def _plot(result, path):
@@ -225,25 +397,24 @@ def _plot(result, path):
         import matplotlib.pyplot as plt
     except ImportError:
         return
-    cases = sorted({r["case"] for r in result["rows"]})
-    fig, axes = plt.subplots(1, len(cases), figsize=(6 * len(cases), 4.5), squeeze=False)
-    for ax, case in zip(axes[0], cases):
-        series = {}
-        for r in result["rows"]:
-            if r["case"] == case:
-                key = (r["engine"], r["integrator"], r["dtype"], r["tol"], bool(r.get("reuse_factor")))
-                series.setdefault(key, []).append(r)
-        for (engine, integrator, dtype, tol, reuse), rs in series.items():
-            rs = sorted(rs, key=lambda r: r["dt"])
-            label = f"{engine} {integrator} {dtype}" + (f" tol {tol}" if tol is not None else "") + (" reuse" if reuse else "")
-            x = [r["world_steps_per_second"] * r["dt"] for r in rs]
-            ax.loglog(x, [r["error_max"] for r in rs], "o-", label=label)
-            for xi, r in zip(x, rs):
-                ax.annotate(f"{r['dt']}", (xi, r["error_max"]), fontsize=6)
+    cases = list(dict.fromkeys(r["case"] for r in result["rows"]))
+    ncol = min(3, len(cases))
+    nrow = -(-len(cases) // ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(6 * ncol, 4.5 * nrow), squeeze=False)
+    for ax in axes.flat[len(cases):]:
+        ax.set_visible(False)
+    for ax, case in zip(axes.flat, cases):
+        for engine, style in (("abd_gym", "o-"), ("mujoco_warp", "s--")):
+            for name, pts in curves(result["rows"], case, engine).items():
+                pts = sorted(pts, key=lambda p: p[1])  # along the rate axis (≈ dt order)
+                ax.loglog([p[1] for p in pts], [p[0] for p in pts], style, label=f"{engine} {name}")
+        for level in LEVELS:
+            ax.axhline(level, color="grey", lw=0.5, alpha=0.5)
         ax.set_xlabel("simulated world-seconds per wall second (world-steps/s × dt)")
-        ax.set_ylabel("max joint-angle error over 1 s [rad]")
+        ax.set_ylabel("max revolute-joint error over 1 s [rad]")
         ax.set_title(f"{case} ({result['device_name']}, {result['worlds']} worlds)")
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6)
         ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

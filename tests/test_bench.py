@@ -4,6 +4,7 @@ import importlib.util
 import json
 import math
 
+import numpy as np
 import pytest
 
 from abd_gym import bench
@@ -64,36 +65,56 @@ def test_bench_accuracy(tmp_path):
     ours = {row["integrator"]: row for row in r["rows"] if row["engine"] == "abd_gym"}
     assert set(ours) == {"implicit_euler", "bdf2"}
     for row in ours.values():
-        assert {"case", "dt", "dtype", "tol", "reuse_factor", "error_final", "error_max", "joint_residual",
-                "energy_drift", "world_steps_per_second"} <= set(row)  # fmt: skip
+        assert {"case", "dt", "dtype", "tol", "reuse_factor", "diverged", "error_final", "error_max", "error_max_slide",
+                "joint_residual", "energy_drift", "world_steps_per_second"} <= set(row)  # fmt: skip
         assert row["reuse_factor"] is False  # float64's default: a factorisation per Newton iteration
         assert row["joint_residual"] < 1e-4
+        assert not row["diverged"] and row["error_max_slide"] is not None  # the cart's slide, in m
     # second order: at dt 0.02 BDF2 tracks the reference better than implicit Euler
     assert ours["bdf2"]["error_max"] < ours["implicit_euler"]["error_max"]
     assert ours["implicit_euler"]["energy_drift"] < 0  # implicit Euler only loses energy
     assert all(row["world_seconds_per_second"] == pytest.approx(row["world_steps_per_second"] * 0.02) for row in ours.values())
+    theirs = {row["integrator"]: row for row in r["rows"] if row["engine"] == "mujoco_warp"}
+    assert set(theirs) == {"Euler", "implicitfast", "RK4"}
+    assert all(0 < row["error_max"] < 0.5 and not row["diverged"] for row in theirs.values())
+    # fourth order against first: RK4 at dt 0.02 is far closer to the reference than Euler
+    assert theirs["RK4"]["error_max"] < 1e-2 * theirs["Euler"]["error_max"]
+    summary = r["summary"]
+    assert [(s["case"], s["error"]) for s in summary] == [("cartpole", e) for e in (1e-3, 3e-3, 1e-2, 3e-2, 1e-1)]
+    for s in summary:
+        assert {"abd_gym", "mujoco_warp", "ratio", "ahead"} <= set(s) and s["ahead"]
     if importlib.util.find_spec("mujoco_warp") is None:
-        assert r["equal_error"] == []  # nothing to compare against
+        assert all(math.isnan(row["world_steps_per_second"]) for row in theirs.values())  # not timed
+        assert all(s["mujoco_warp"] is None and s["ratio"] is None for s in summary)
 
 
-def test_equal_error_interpolates_mujoco_warp_in_simulated_time():
-    """equal_error: MuJoCo Warp's world-seconds/s at our error, log-log between its dt points,
-    first-order extrapolation below its smallest error, its largest-dt point above its largest."""
-    from abd_gym.bench_accuracy import equal_error
+def test_equal_error_summary_interpolates_in_simulated_time():
+    """At each error level: each curve's world-seconds/s interpolated log-log between its dt points,
+    "not reached" below its smallest error, its fastest point as a lower bound above its largest;
+    the fastest setting of each engine compared."""
+    from abd_gym.bench_accuracy import equal_error_summary, rate_at
 
-    def row(engine, dt, err, sps):
-        return dict(engine=engine, case="cartpole", integrator="x", dt=dt, dtype="float32", tol=None,
-                    reuse_factor=None, error_max=err, world_steps_per_second=sps)  # fmt: skip
+    def row(engine, integrator, dt, err, sps):
+        return dict(engine=engine, case="cartpole", integrator=integrator, dt=dt, dtype="float32", tol=1e-5,
+                    reuse_factor=False, error_max=err, world_steps_per_second=sps)  # fmt: skip
 
-    mjw = [row("mujoco_warp", 0.01, 4e-2, 1e7), row("mujoco_warp", 0.005, 2e-2, 1e7)]  # 1e5 and 5e4 world-s/s
-    ours = [row("abd_gym", 0.01, 2.8284271e-2, 5e6), row("abd_gym", 0.01, 1e-2, 5e6), row("abd_gym", 0.02, 1.0, 5e6)]
-    got = equal_error(mjw + ours)
-    assert [g["note"] for g in got] == ["", "extrapolated", "beyond"]
-    assert got[0]["mujoco_warp_world_seconds_per_second"] == pytest.approx(5e4 * 2**0.5, rel=1e-6)  # geometric middle
-    assert got[1]["mujoco_warp_world_seconds_per_second"] == pytest.approx(2.5e4)  # error ∝ dt below 2e-2
-    assert got[2]["mujoco_warp_world_seconds_per_second"] == pytest.approx(1e5)
-    assert got[0]["ratio"] == pytest.approx(5e4 / (5e4 * 2**0.5), rel=1e-6)
-    assert equal_error(ours) == []  # without MuJoCo Warp rows: nothing to compare
+    assert rate_at([(2e-2, 5e4), (4e-2, 1e5)], 2.8284271e-2)[0] == pytest.approx(5e4 * 2**0.5, rel=1e-6)
+    assert rate_at([(2e-2, 5e4), (4e-2, 1e5)], 1e-2) is None  # not reached
+    assert rate_at([(2e-2, 5e4), (4e-2, 1e5)], 1e-1) == (1e5, ">=")
+    mj = [row("mujoco_warp", "Euler", 0.01, 4e-2, 1e7), row("mujoco_warp", "Euler", 0.005, 2e-2, 1e7),
+          row("mujoco_warp", "RK4", 0.01, 1e-6, 2e6)]  # fmt: skip
+    ours = [row("abd_gym", "bdf2", 0.02, 1e-3, 1e7), row("abd_gym", "bdf2", 0.04, 1e-1, 1e7)]
+    got = {s["error"]: s for s in equal_error_summary(mj + ours, levels=(1e-3, 3e-2))}
+    # at 3e-2 MuJoCo's Euler (rate ∝ error between its points: 7.5e4) beats its RK4 (2e4, a lower
+    # bound); ours interpolates 2e5 · 30^(log 2 / log 100) = 3.3e5
+    assert got[3e-2]["mujoco_warp"]["integrator"] == "Euler"
+    assert got[3e-2]["mujoco_warp"]["world_seconds_per_second"] == pytest.approx(7.5e4, rel=1e-6)
+    assert got[3e-2]["abd_gym"]["world_seconds_per_second"] == pytest.approx(2e5 * 30 ** (np.log(2) / np.log(100)), rel=1e-6)
+    assert got[3e-2]["ahead"] == "abd_gym" and got[3e-2]["ratio"] > 1
+    # at 1e-3 only RK4 reaches (a lower bound): ours 2e5 against ≥ 2e4 is undecided
+    assert got[1e-3]["mujoco_warp"] == dict(integrator="RK4", world_seconds_per_second=2e4, bound=">=")
+    assert got[1e-3]["ahead"].startswith("undecided (MuJoCo")
+    assert all(s["mujoco_warp"] is None for s in equal_error_summary(ours))  # nothing to compare against
 
 
 def test_memory_counts_each_allocation_once():
