@@ -141,7 +141,7 @@ def main(argv=None):
                 print(_fmt(rows[-1]), flush=True)
             try:
                 traj = run_mjw(case, x0, dt, args.device)
-                sps = mjw_steps_per_second(case, W, steps, dt, args.device, repeat=args.repeat)
+                sps = mjw_steps_per_second(case, W, steps, dt, args.device, repeat=args.repeat)[0]
                 err = np.abs(traj[:, :nref] - ref)
                 rows.append(dict(engine="mujoco_warp", integrator="semi_implicit_euler", case=case, dt=dt,
                                  dtype="float32", tol=None, reuse_factor=None, error_final=float(err[-1].max()), error_max=float(err.max()),
