@@ -131,11 +131,13 @@ def tree_states(scene: Scene, n: int, seed: int = 0, angle=0.3, offset=0.1, rate
 
 def exported_case(name: str, scene: Callable[[], Scene], states=None, tasks=()) -> PeerCase:
     """A case whose MuJoCo model is ``to_mjcf`` of its scene; ``states`` (n, seed) → (q, qd),
-    default :func:`tree_states`."""
+    default :func:`tree_states` (a tree only: a loop's starts must keep it closed)."""
     from .mjcf_export import to_mjcf
 
     built = scene()
     export = to_mjcf(built, 0.01, name=name)
+    if export.loop_joints and states is None:
+        raise ValueError(f"case {name!r}: a closed loop needs starts from its own kinematics (states=...)")
     return PeerCase(name, scene, lambda dt: to_mjcf(scene(), dt, name=name).xml,
                     states or (lambda n, seed=0: tree_states(built, n, seed)), export.qpos_of_joint,
                     export.loop_joints, export.nq, tuple(tasks))  # fmt: skip
