@@ -239,12 +239,13 @@ def table(result) -> str:
     head += [f"joint residual [m] ({engines})", f"loop closure [m] ({engines})",
              f"limit penetration ({engines})", f"non-finite worlds ({engines})", "abd_gym memory [B/world]"]
     lines = [f"Device: {result['device_name']}, dt = {result['dt']}, abd_gym's {result['integrator']}; accuracy "
-             f"over {ACCURACY_DURATION:g} s of the first {result['accuracy_worlds']} worlds; † a run whose state went "
-             "non-finite (the speed of a diverged simulation; no ratio)", "",
+             f"over {ACCURACY_DURATION:g} s of the first {result['accuracy_worlds']} worlds; † a run whose state "
+             "went non-finite (the speed of a diverged simulation; no ratio)", "",
              "| " + " | ".join(head) + " |", "|---|---:|---|" + "---:|" * (len(head) - 3)]  # fmt: skip
     for r in result["rows"]:
         flag = lambda bad: "†" if bad else ""  # noqa: E731
-        cells = [r["case"], str(r["num_worlds"]), r["scratch"], _num(r["abd_gym"], ",.0f") + flag(r["abd_gym_nonfinite"])]
+        ours = _num(r["abd_gym"], ",.0f") + flag(r["abd_gym_nonfinite"])
+        cells = [r["case"], str(r["num_worlds"]), r["scratch"], ours]
         for n in names:
             k = f"mujoco_warp_{n.lower()}"
             bad = r.get(f"{k}_nonfinite", math.nan)
@@ -298,8 +299,8 @@ def main(argv=None):
                     theirs[name] = (math.nan, math.nan)
             for scratch in args.scratch.split(","):
                 plan = ExecutionPlan(scratch=None if scratch == "auto" else scratch)
-                sps, residual, mem, layout, bad = ours_steps_per_second(case, w, steps, args.dt, args.device,
-                                                                        repeat=args.repeat, plan=plan, **integrator)  # fmt: skip
+                sps, residual, mem, layout, bad = ours_steps_per_second(
+                    case, w, steps, args.dt, args.device, repeat=args.repeat, plan=plan, **integrator)
                 n = min(args.accuracy_worlds, w)
                 if (n, scratch) not in accuracy:
                     accuracy[n, scratch] = _accuracy(case, n, args, plan, integrator) if n else {
@@ -312,8 +313,9 @@ def main(argv=None):
                 rows.append(_row(case, w, layout, (sps, residual, bad), theirs, acc, mem, n))
                 r = rows[-1]
                 mjw = "  ".join(f"MJW {k} {v[0]:14,.0f}" for k, v in theirs.items())
-                print(f"{case:28s} {w:8d} worlds  abd_gym ({layout}) {sps:14,.0f}  {mjw} world-steps/s  "
-                      f"residual {residual:.1e} m  non-finite {r['abd_gym_nonfinite']}  {mem:,.0f} B/world", flush=True)  # fmt: skip
+                print(f"{case:28s} {w:8d} worlds  abd_gym ({layout}) {sps:14,.0f}  {mjw} world-steps/s  residual "
+                      f"{residual:.1e} m  non-finite {r['abd_gym_nonfinite']}  {mem:,.0f} B/world",
+                      flush=True)  # fmt: skip
     result = dict(device=args.device, device_name=wp.get_device(args.device).name, dt=args.dt, steps=steps,
                   repeat=args.repeat, integrator=args.integrator or SolverSettings.integrator,
                   mjw_integrators=args.mjw_integrators, accuracy_worlds=args.accuracy_worlds, rows=rows)  # fmt: skip

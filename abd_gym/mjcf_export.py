@@ -157,7 +157,8 @@ class _Writer:
             attrs = [f'name="{j.name}"', f'type="{kind}"', f'pos="{_fmt(b.to_local_point(j.anchor))}"',
                      f'axis="{_fmt(b.to_local_dir(j.frame[0]))}"']  # fmt: skip
             if j.has_limit:
-                attrs.append(f'limited="true" range="{_fmt([j.attributes["limit/lower"], j.attributes["limit/upper"]])}"')
+                bounds = [j.attributes["limit/lower"], j.attributes["limit/upper"]]
+                attrs.append(f'limited="true" range="{_fmt(bounds)}"')
             if j.damping:
                 attrs.append(f'damping="{_fmt(j.damping)}"')
             if j.armature:

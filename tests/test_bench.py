@@ -44,7 +44,8 @@ def test_bench_threads(tmp_path):
 
 def test_bench_compare_without_mujoco_warp(tmp_path):
     bench.main(["compare", "--cases", "cartpole,fourbar", "--worlds", "2", "--ours-only", "3", "--steps", "2",
-                "--scratch", "global,lanes", "--repeat", "2", "--accuracy-worlds", "2", "--out", str(tmp_path)])  # fmt: skip
+                "--scratch", "global,lanes", "--repeat", "2", "--accuracy-worlds", "2",
+                "--out", str(tmp_path)])  # fmt: skip
     result = _load(tmp_path / "compare.json")
     assert result["repeat"] == 2 and result["steps"] == 2  # each engine timed best-of-2, on record
     assert result["mjw_integrators"] == ["Euler", "RK4"]
