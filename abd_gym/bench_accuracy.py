@@ -34,7 +34,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .bench_compare import ours_steps_per_second
+from .bench_compare import mjw_steps_per_second, ours_steps_per_second
 from .peer_cases import CASES, with_integrator
 from .scene import PRISMATIC
 from .simulator import Simulator
@@ -122,49 +122,6 @@ def errors(traj, ref, slide, diverged=False):
                 error_max_slide=float(lin.max()) if lin.size else None)  # fmt: skip
 
 
-def _time_graph(step, device, steps, repeat):
-    """Seconds of the fastest of ``repeat`` runs of ``steps`` calls of ``step`` (10-step CUDA graphs
-    on a GPU), each timed between synchronisations."""
-    step()  # compile
-    wp.synchronize()
-    graph = None
-    if wp.get_device(device).is_cuda:
-        with wp.ScopedCapture() as capture:
-            for _ in range(10):
-                step()
-        graph = capture.graph
-    reps = max(1, steps // 10)
-    best = math.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        for _ in range(reps):
-            if graph is not None:
-                wp.capture_launch(graph)
-            else:
-                for _ in range(10):
-                    step()
-        wp.synchronize()
-        best = min(best, time.perf_counter() - t0)
-    return best / (reps * 10)
-
-
-def mjw_steps_per_second(case, integrator, num_worlds, steps, dt, device, repeat=1):
-    """MuJoCo Warp's world-steps/s with ``integrator`` (Euler, implicitfast, RK4) at step dt [s] from
-    the case's random starts (coordinates and rates); ImportError without ``mujoco_warp``."""
-    import mujoco
-    import mujoco_warp as mjw
-
-    c = CASES[case]
-    mjm = mujoco.MjModel.from_xml_string(with_integrator(c.xml(dt), integrator))
-    q, qd = c.states(num_worlds, 0)
-    with wp.ScopedDevice(device):
-        m = mjw.put_model(mjm)
-        d = mjw.put_data(mjm, mujoco.MjData(mjm), nworld=num_worlds)
-        d.qpos.assign(c.mujoco_qpos(q).astype(np.float32))
-        d.qvel.assign(c.mujoco_qpos(qd).astype(np.float32))
-        return num_worlds / _time_graph(lambda: mjw.step(m, d), device, steps, repeat)
-
-
 def _ours_rows(case, q0, v0, ref, dt, settings, device, repeat):
     """One row per abd_gym setting (integrator, dtype, tol, reuse_factor) at step dt [s]: its
     errors against ``ref`` and world-steps/s at the batch of q0."""
@@ -187,7 +144,7 @@ def _mujoco_row(case, q0, v0, ref, dt, integrator, device, repeat):
     seconds = time.perf_counter() - t0
     speed_note = None
     try:
-        sps = mjw_steps_per_second(case, integrator, len(q0), _samples(dt)[1], dt, device, repeat=repeat)
+        sps = mjw_steps_per_second(case, len(q0), _samples(dt)[1], dt, device, repeat, integrator)[0]
     except (ImportError, NotImplementedError) as e:
         sps, speed_note = float("nan"), f"{type(e).__name__}: {e}"
     return dict(engine="mujoco_warp", integrator=integrator, case=case, dt=dt, dtype="float32", tol=None,

@@ -44,17 +44,27 @@ def test_bench_threads(tmp_path):
 
 
 def test_bench_compare_without_mujoco_warp(tmp_path):
-    bench.main(["compare", "--cases", "cartpole", "--worlds", "2", "--ours-only", "3", "--steps", "2",
-                "--scratch", "global,lanes", "--repeat", "2", "--out", str(tmp_path)])  # fmt: skip
+    bench.main(["compare", "--cases", "cartpole,fourbar", "--worlds", "2", "--ours-only", "3", "--steps", "2",
+                "--scratch", "global,lanes", "--repeat", "2", "--accuracy-worlds", "2",
+                "--out", str(tmp_path)])  # fmt: skip
     result = _load(tmp_path / "compare.json")
     assert result["repeat"] == 2 and result["steps"] == 2  # each engine timed best-of-2, on record
+    assert result["mjw_integrators"] == ["Euler", "RK4"]
     rows = result["rows"]
-    assert [(row["num_worlds"], row["scratch"]) for row in rows] == [(2, "global"), (2, "lanes"), (3, "global"), (3, "lanes")]
+    assert [(row["case"], row["num_worlds"], row["scratch"]) for row in rows][:4] == [
+        ("cartpole", 2, "global"), ("cartpole", 2, "lanes"), ("cartpole", 3, "global"), ("cartpole", 3, "lanes")]
     for row in rows:
         assert {"case", "num_worlds", "scratch", "abd_gym", "mujoco_warp", "ratio", "joint_residual",
-                "memory_bytes_per_world"} <= set(row)  # fmt: skip
-        assert row["abd_gym"] > 0
+                "memory_bytes_per_world", "abd_gym_joint_residual", "abd_gym_loop_closure",
+                "abd_gym_limit_penetration", "abd_gym_nonfinite"} <= set(row)  # fmt: skip
+        assert row["abd_gym"] > 0 and row["abd_gym_nonfinite"] == 0
+        assert row["abd_gym_joint_residual"] < 1e-4 and row["abd_gym_limit_penetration"] < 1e-3  # m
     assert math.isnan(rows[2]["mujoco_warp"])  # ours alone
+    if importlib.util.find_spec("mujoco_warp") is None:
+        assert math.isnan(rows[0]["mujoco_warp_rk4"]) and math.isnan(rows[0]["ratio_euler"])
+    assert math.isnan(rows[0]["abd_gym_loop_closure"])  # the cart-pole has no loop
+    assert 0 < rows[-1]["abd_gym_loop_closure"] < 1e-4  # the four-bar's closing hinge holds [m]
+    assert "| fourbar | 3 |" in (tmp_path / "compare.md").read_text()
 
 
 def test_bench_accuracy(tmp_path):
