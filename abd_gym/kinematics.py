@@ -90,7 +90,7 @@ def kernels(dtype, passive=False):
     """The restart kernel; ``passive``: it also restarts the passive terms' rate history."""
     o = ops(dtype)
     vec3, vec12, mat33 = o.vec3, o.vec12, o.mat33
-    zero, one = dtype(0.0), dtype(1.0)
+    one = dtype(1.0)
 
     @wp.func
     def pack(p: vec3, R: mat33):

@@ -39,7 +39,7 @@ class Model:
         if scene.num_bodies == 0:
             raise ValueError("the scene has no bodies")
         self.scene = scene
-        self.num_worlds = W = int(num_worlds)
+        self.num_worlds = int(num_worlds)
         self.dtype = resolve_dtype(dtype)
         self.np_dtype = np.float32 if self.dtype == wp.float32 else np.float64
         self.device = resolve_device(device)

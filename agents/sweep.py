@@ -24,7 +24,6 @@ import argparse
 import itertools
 import json
 import math
-import os
 import re
 import sys
 from pathlib import Path

@@ -33,7 +33,7 @@ import sys
 import time
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
@@ -57,6 +57,9 @@ from .common import (
 )
 from .config import apply_overrides, find_config, validate_config, yaml_load
 from ..devices import resolve_device
+
+if TYPE_CHECKING:  # progress imports SB3, which training loads only when it runs
+    from .progress import ThresholdEval
 
 __all__ = ["train", "main", "parse_args", "config_from_args"]
 

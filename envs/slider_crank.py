@@ -71,7 +71,7 @@ class SliderCrankVectorEnv(ABDVectorEnv):
         super().__init__(num_envs, **kwargs)
 
     def build_scene(self):
-        r, L = self.r, self.L
+        r = self.r
         B = (r * math.cos(self.phi_ref), r * math.sin(self.phi_ref))
         C = (self.x_ref, 0.0)
         scene = ag.Scene(gravity=(0.0, 0.0, -9.81))

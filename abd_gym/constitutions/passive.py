@@ -19,7 +19,6 @@ The fused step always folds the term into its joint's (one instance a joint).
 import functools
 from types import SimpleNamespace
 
-import numpy as np
 import warp as wp
 
 from ..angles import angle_ops
