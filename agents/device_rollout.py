@@ -202,9 +202,10 @@ class DevicePPO(PPO):
         super().__init__(*args, **kwargs)
 
     def _excluded_save_params(self) -> list[str]:
-        # a saved model loads as a plain PPO with SB3's buffer
+        # a saved model loads as a plain PPO with SB3's buffer (and a fresh reset: the last
+        # observation is a tensor here, NumPy in SB3's rollout)
         return [*super()._excluded_save_params(), "rollout_buffer_class", "rollout_buffer_kwargs", "_adapter",
-                "_ep_return", "_ep_length", "_low", "_high"]  # fmt: skip
+                "_ep_return", "_ep_length", "_low", "_high", "_last_obs", "_last_episode_starts"]  # fmt: skip
 
     def _bind(self, env: VecEnv) -> None:
         """Find the adapter under ``env``'s wrappers and set up the episode statistics."""

@@ -116,3 +116,24 @@ def test_rollout_bootstraps_cut_episodes(both_paths):
     rewards = t["rewards"][:-1]
     assert (rewards[~ended] == 1.0).all()  # CartPole: 1 per step
     assert (rewards[ended] != 1.0).sum() >= N_ENVS // 2  # most worlds were cut at step 12, not terminated
+
+
+def test_train_takes_and_records_the_device_path(tmp_path, capsys):
+    from stable_baselines3 import PPO
+
+    from abd_gym.agents import train as agent_train
+
+    cfg = _config(**{"hyperparams.n_steps": 8, "hyperparams.batch_size": 32, "hyperparams.n_epochs": 1})
+    cfg["n_timesteps"], cfg["eval_episodes"] = 2 * N_ENVS * 8, 2
+    summary = agent_train.train(cfg, config_name="dev", run_dir=tmp_path / "run", progress_bar=False)
+    assert summary["rollout"] == "device" and summary["timesteps"] == 2 * N_ENVS * 8
+    assert summary["mean_episode_length"] > 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].startswith("rollout: device (")
+    # the saved model is a plain PPO with SB3's own buffer, and trains on in SB3's rollout
+    model = PPO.load(tmp_path / "run" / "model.zip", device="cpu")
+    assert model.rollout_buffer_class is None or model.rollout_buffer_class.__name__ == "RolloutBuffer"
+    env = VecMonitor(make_vec_env(cfg["env_id"], N_ENVS, seed=1, env_kwargs=cfg["env_kwargs"]))
+    model.set_env(env)
+    model.learn(total_timesteps=N_ENVS * 8, reset_num_timesteps=False)
+    assert model.num_timesteps == 3 * N_ENVS * 8
