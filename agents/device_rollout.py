@@ -283,7 +283,7 @@ class DevicePPO(PPO):
             with th.no_grad():
                 actions, values, log_probs = self.policy(self._last_obs)
             step = self._adapter.step_tensors(self._env_actions(actions))
-            new_obs = step.obs.to(self.device)
+            new_obs = step.obs.to(self.device, copy=True)  # the env may write its next step into its tensor
             rewards = step.rewards.to(self.device)
             dones = self._as_device(step.done)
             self.num_timesteps += env.num_envs
