@@ -181,7 +181,8 @@ def vector_env_rate(cfg: dict[str, Any], rollout: str, steps: int) -> float:
     env, n = adapter.env, adapter.num_envs
     space = adapter.action_space
     rng = np.random.default_rng(cfg["seed"])
-    torch_device = adapter._torch_device if adapter.tensor_path_refusal() is None else None
+    obs, _ = env.reset(seed=cfg["seed"])
+    torch_device = obs.device if type(obs).__module__.startswith("torch") else None
     if torch_device is not None:
         import torch
 
@@ -195,7 +196,6 @@ def vector_env_rate(cfg: dict[str, Any], rollout: str, steps: int) -> float:
         def actions():
             return rng.uniform(space.low, space.high, size=(n, *space.shape)).astype(space.dtype)
 
-    env.reset(seed=cfg["seed"])
     sync = _syncer(cfg["device"])
     for _ in range(10):
         env.step(actions())
