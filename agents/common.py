@@ -21,12 +21,21 @@ SUMMARY_FILE = "summary.json"
 EVAL_SEED_OFFSET = 10_000  # evaluation worlds are seeded apart from the training worlds
 
 
-def build_train_env(cfg: dict[str, Any], *, device: str | None = None):
-    """VecMonitor(adapter) wrapped in VecNormalize when the config asks for it."""
+def build_train_env(cfg: dict[str, Any], *, device: str | None = None, rollout: str = "sb3"):
+    """VecMonitor(adapter) wrapped in VecNormalize when the config asks for it.
+
+    ``rollout="device"`` (see :func:`~abd_gym.agents.device_rollout.rollout_path`) builds the env
+    with the Torch backend, whose tensors the device rollout reads as they are.
+    """
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
     venv = make_vec_env(
-        cfg["env_id"], cfg["n_envs"], device=device or cfg["device"], seed=cfg["seed"], env_kwargs=cfg["env_kwargs"]
+        cfg["env_id"],
+        cfg["n_envs"],
+        device=device or cfg["device"],
+        seed=cfg["seed"],
+        env_kwargs=cfg["env_kwargs"],
+        backend="torch" if rollout == "device" else None,
     )
     venv = VecMonitor(venv)
     norm = normalize_kwargs(cfg)
@@ -95,8 +104,17 @@ def _action_noise(spec: dict[str, Any], action_space) -> Any:
     return OrnsteinUhlenbeckActionNoise(mean, sigma)
 
 
-def build_model(cfg: dict[str, Any], env, *, tensorboard_log: str | None = None, verbose: int = 0):
-    algo_cls = algorithm_class(cfg["algo"])
+def build_model(
+    cfg: dict[str, Any], env, *, tensorboard_log: str | None = None, verbose: int = 0, rollout: str = "sb3"
+):
+    """The config's algorithm on ``env``; ``rollout="device"``: PPO as
+    :class:`~abd_gym.agents.device_rollout.DevicePPO` (its rollout on the policy's device)."""
+    if rollout == "device":
+        from .device_rollout import DevicePPO
+
+        algo_cls = DevicePPO
+    else:
+        algo_cls = algorithm_class(cfg["algo"])
     kwargs = algorithm_kwargs(cfg)
     if isinstance(kwargs.get("action_noise"), dict):
         kwargs["action_noise"] = _action_noise(kwargs["action_noise"], env.action_space)

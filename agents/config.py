@@ -20,7 +20,9 @@ policy_kwargs:                   # keyword arguments of the policy's __init__
 
 Optional keys: ``env_kwargs`` (passed to the env), ``n_eval_envs``, ``checkpoint_freq`` (in
 total steps), ``eval_freq`` (a periodic evaluation every that many total steps; 0, the default,
-is off), ``notes``.  Unknown keys, unknown algorithms or policies, unregistered ids and values
+is off), ``rollout`` (PPO's rollout: ``auto``, the default, keeps it on the policy's device where
+the env and config allow, see ``abd_gym.agents.device_rollout``; ``sb3`` forces SB3's NumPy
+rollout; ``device`` requires the device one), ``notes``.  Unknown keys, unknown algorithms or policies, unregistered ids and values
 of the wrong type fail at load time with a ``ValueError`` that names the key.  ``1e-3`` reads as
 a number (PyYAML alone would read it as a string).
 """
@@ -294,9 +296,11 @@ _TOP_LEVEL: dict[str, tuple[Any, Any]] = {
     "hyperparams": (dict, {}),
     "policy_kwargs": (dict, {}),
     "env_kwargs": (dict, {}),
+    "rollout": (str, "auto"),
     "notes": ((str, type(None)), None),
 }
 TOP_LEVEL_KEYS = tuple(_TOP_LEVEL)
+ROLLOUTS = ("auto", "device", "sb3")
 
 # Algorithm keywords the trainer sets itself.
 _ALGO_EXCLUDE = {"policy", "env", "seed", "tensorboard_log", "policy_kwargs", "_init_setup_model"}
@@ -376,6 +380,8 @@ def validate_config(raw: dict[str, Any]) -> dict[str, Any]:
     for key in ("n_envs", "n_timesteps", "eval_episodes"):
         if cfg[key] < 1:
             raise ConfigError(f"{key}: must be at least 1, got {cfg[key]}")
+    if cfg["rollout"] not in ROLLOUTS:
+        raise ConfigError(f"rollout: one of {', '.join(ROLLOUTS)}, got {cfg['rollout']!r}")
     if cfg["eval_freq"] < 0:
         raise ConfigError(f"eval_freq: must be 0 (off) or at least 1, got {cfg['eval_freq']}")
     for key in ("n_eval_envs", "checkpoint_freq"):

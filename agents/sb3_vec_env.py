@@ -20,19 +20,40 @@ terminated.  :class:`GymnasiumVecEnv` gives that view of any Gymnasium vector en
 The hot path is array code over all worlds; the only per-world Python work is building the list
 of info dicts SB3 requires, and only done worlds get keys in it.  Torch tensors (``backend="torch"``
 envs) are moved to NumPy on the way out, actions to tensors on the env's device on the way in.
+
+:meth:`GymnasiumVecEnv.step_tensors` is the other way out for a SAME_STEP env with the Torch
+backend: the step's tensors as they are, on the env's device, with no per-world info dicts (the
+device-resident PPO rollout in :mod:`abd_gym.agents.device_rollout` reads it).
 """
 from __future__ import annotations
 
 import inspect
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-__all__ = ["GymnasiumVecEnv", "make_vec_env", "make_gym_vector_env", "autoreset_mode_of"]
+__all__ = ["GymnasiumVecEnv", "TensorStep", "make_vec_env", "make_gym_vector_env", "autoreset_mode_of"]
+
+
+class TensorStep(NamedTuple):
+    """One step of all N worlds as Torch tensors on the env's device (``done`` on the host).
+
+    ``obs`` (N, ...) is the first observation of the next episode where a world finished;
+    ``final_obs`` (N, ...) holds the finished episode's last observation in those rows (None when
+    no world finished); ``done`` is the host bool mask ``terminated | truncated`` the SAME_STEP
+    reset already had to read.
+    """
+
+    obs: Any
+    rewards: Any  # (N,) float32
+    terminated: Any  # (N,) bool
+    truncated: Any  # (N,) bool
+    done: np.ndarray  # (N,) bool, host
+    final_obs: Any
 
 
 # ---------------------------------------------------------------------------------------------
@@ -263,6 +284,34 @@ class GymnasiumVecEnv(VecEnv):
     def close(self) -> None:
         self.env.close()
 
+    # -- tensor path ------------------------------------------------------------------------------
+    def tensor_path_refusal(self) -> str | None:
+        """Why :meth:`step_tensors` cannot serve this env (None: it can)."""
+        if self.autoreset_mode != AutoresetMode.SAME_STEP:
+            return f"the env autoresets in {self.autoreset_mode.name} mode, not SAME_STEP"
+        if getattr(self.env.unwrapped, "backend", None) != "torch":
+            return "the env does not have the Torch backend"
+        if not isinstance(self.observation_space, gym.spaces.Box):
+            return f"observation space {type(self.observation_space).__name__} is not a Box"
+        return None
+
+    def step_tensors(self, actions: Any) -> TensorStep:
+        """Step all worlds with ``actions`` (a tensor on any device) and return the tensors as the
+        env gives them; the env's info dicts are not split per world (no ``infos`` list)."""
+        import torch
+
+        n = self.num_envs
+        device = self._torch_device
+        obs, rewards, terminated, truncated, info = self.env.step(actions.to(device))
+        rewards = rewards.reshape(n).to(torch.float32)
+        terminated = terminated.reshape(n).to(torch.bool)
+        truncated = truncated.reshape(n).to(torch.bool)
+        mask = info.get("_final_obs")
+        if mask is None:
+            return TensorStep(obs, rewards, terminated, truncated, np.zeros(n, dtype=bool), None)
+        done = np.asarray(_to_numpy(mask), dtype=bool).reshape(n)
+        return TensorStep(obs, rewards, terminated, truncated, done, info["final_obs"])
+
     # -- attributes and methods ---------------------------------------------------------------
     # A native batched env is one object holding every world: its attributes and methods are
     # shared, so they are read / called once and the result is given for each requested index.
@@ -417,11 +466,13 @@ def make_gym_vector_env(
     device: str | None = None,
     render_mode: str | None = None,
     env_kwargs: dict[str, Any] | None = None,
+    backend: str | None = None,
 ) -> gym.vector.VectorEnv:
     """A Gymnasium vector env for ``env_id`` that autoresets in the same step where possible.
 
     A registered ``vector_entry_point`` that takes ``autoreset_mode`` (the abd_gym envs) is built
-    natively with ``autoreset_mode=SAME_STEP``, ``backend="numpy"`` and ``device``; otherwise the
+    natively with ``autoreset_mode=SAME_STEP``, ``backend`` (default ``"numpy"``; ``env_kwargs``
+    may name it too) and ``device``; otherwise the
     single env is vectorised with a SAME_STEP ``SyncVectorEnv``.  ``device`` and ``backend`` are
     passed only to creators that accept them.
     """
@@ -443,6 +494,8 @@ def make_gym_vector_env(
             if device is not None and _accepts(init, "device"):
                 vkwargs["device"] = device
             if _accepts(init, "backend"):
+                if backend is not None:
+                    vkwargs["backend"] = backend
                 vkwargs.setdefault("backend", "numpy")
             return gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **vkwargs)
     single = spec.entry_point
@@ -470,10 +523,13 @@ def make_vec_env(
     seed: int | None = None,
     render_mode: str | None = None,
     env_kwargs: dict[str, Any] | None = None,
+    backend: str | None = None,
 ) -> GymnasiumVecEnv:
     """SB3 ``VecEnv`` for a registered Gymnasium id (see :func:`make_gym_vector_env`)."""
     venv = GymnasiumVecEnv(
-        make_gym_vector_env(env_id, num_envs, device=device, render_mode=render_mode, env_kwargs=env_kwargs)
+        make_gym_vector_env(
+            env_id, num_envs, device=device, render_mode=render_mode, env_kwargs=env_kwargs, backend=backend
+        )
     )
     if seed is not None:
         venv.seed(seed)

@@ -22,6 +22,10 @@ from training), writes ``evaluations.npz`` and ``best_model.zip`` (with
 ``threshold_step`` / ``threshold_time_s`` give the first env step and wall time at which an
 evaluation reached the task's threshold (null if none did).
 
+PPO's rollout stays on the policy's device where it can (``abd_gym.agents.device_rollout``);
+the path taken is printed after the run directory and recorded in the summary (``rollout``,
+``rollout_reason``).
+
 Progress: the run directory is printed first.  On a terminal SB3's progress bar shows; without
 one (or with ``--no-progress``) one plain line every tenth of the run gives steps, env steps/s
 and the mean return of recent episodes (see ``abd_gym.agents.progress``).
@@ -106,7 +110,11 @@ def train(
     (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(cfg, sort_keys=False))
     print(f"run directory: {run_dir}", flush=True)
 
-    env = build_train_env(cfg)
+    from .device_rollout import rollout_path
+
+    rollout, rollout_reason = rollout_path(cfg)
+    print(f"rollout: {rollout} ({rollout_reason})", flush=True)
+    env = build_train_env(cfg, rollout=rollout)
     import importlib.util
 
     # TensorBoard event files when tensorboard is installed (the [train] extra has it); without it
@@ -114,7 +122,7 @@ def train(
     tb = str(run_dir / "tensorboard") if importlib.util.find_spec("tensorboard") else None
     if tb is None:
         print("abd-gym-train: tensorboard is not installed; no TensorBoard logs", file=sys.stderr)
-    model = build_model(cfg, env, tensorboard_log=tb, verbose=verbose)
+    model = build_model(cfg, env, tensorboard_log=tb, verbose=verbose, rollout=rollout)
     n_envs = cfg["n_envs"]
     checkpoint_freq = cfg["checkpoint_freq"] or max(cfg["n_timesteps"] // 4, 1)
     callbacks = [
@@ -170,6 +178,8 @@ def train(
         "fps": round(model.num_timesteps / wall, 1) if wall > 0 else None,
         "device": cfg["device"],
         "device_description": device_description(cfg["device"]),
+        "rollout": rollout,
+        "rollout_reason": rollout_reason,
         **{k: result[k] for k in ("mean_return", "std_return", "eval_episodes", "mean_episode_length")},
         "reward_threshold": threshold,
         "solved": bool(threshold is not None and result["mean_return"] >= threshold),

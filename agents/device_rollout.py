@@ -1,0 +1,306 @@
+"""PPO with its rollout kept on the policy's device.
+
+SB3's on-policy rollout round-trips every step through NumPy: observations leave the env's device
+for the host, go back to the device for the policy, actions come back to the host and go to the
+device again, and :class:`~stable_baselines3.common.buffers.RolloutBuffer` stores host arrays that
+are copied to the device again for every minibatch.  Here an env with the Torch backend (through
+:meth:`GymnasiumVecEnv.step_tensors`) hands its tensors straight to the policy and to a
+:class:`TensorRolloutBuffer` of tensors on the policy's device; GAE runs there and minibatches are
+gathered there.
+
+The semantics are SB3's ``OnPolicyAlgorithm.collect_rollouts``: actions clipped to the Box (or
+unscaled when squashed), a world cut by its time limit gets ``reward += gamma * V(final_obs)``,
+``_last_episode_starts`` marks the first step of each episode, callbacks are called at the same
+points, ``num_timesteps`` counts all worlds, and each finished episode adds VecMonitor's
+``{"r", "l", "t"}`` to ``ep_info_buffer``.  The minibatch order is drawn from NumPy's global
+generator exactly as SB3 does, so with the same seed the two paths sample the same minibatches.
+Callbacks' ``locals`` carry tensors (``dones`` is a bool tensor on the device) and no ``infos``.
+
+:func:`rollout_path` says which path a config gets and, for SB3's path, why.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Generator
+from typing import Any
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import PPO
+from stable_baselines3.common.buffers import BaseBuffer, RolloutBuffer
+from stable_baselines3.common.type_aliases import RolloutBufferSamples
+from stable_baselines3.common.vec_env import VecEnv, VecMonitor
+
+from .sb3_vec_env import GymnasiumVecEnv, _accepts
+
+__all__ = ["DEVICE_PATH", "SB3_PATH", "DevicePPO", "TensorRolloutBuffer", "rollout_path", "find_adapter"]
+
+DEVICE_PATH = "device"  # tensors end to end (DevicePPO)
+SB3_PATH = "sb3"  # SB3's NumPy rollout
+
+
+def rollout_path(cfg: dict[str, Any]) -> tuple[str, str]:
+    """(``"device"`` or ``"sb3"``, the reason in words) for a validated training config.
+
+    The device path needs PPO, no VecNormalize (its statistics are NumPy code on the host) and an
+    env that takes ``backend="torch"`` (the abd_gym envs).  The config's ``rollout``: ``auto``
+    takes the device path where it applies, ``sb3`` forces SB3's path, ``device`` raises a
+    ``ValueError`` with the reason where the device path does not apply.
+    """
+    choice = cfg.get("rollout", "auto")
+    if choice == SB3_PATH:
+        return SB3_PATH, "the config asks for SB3's rollout (rollout: sb3)"
+    refusal = None
+    if cfg["algo"] != "ppo":
+        refusal = f"{cfg['algo']} is not PPO"
+    elif cfg.get("normalize"):
+        refusal = "VecNormalize normalises on the host"
+    elif not _takes_torch_backend(cfg["env_id"]):
+        refusal = f"{cfg['env_id']} has no Torch backend"
+    if refusal is None:
+        return DEVICE_PATH, "PPO on an env with the Torch backend, no VecNormalize"
+    if choice == DEVICE_PATH:
+        raise ValueError(f"rollout: the device rollout does not apply: {refusal}")
+    return SB3_PATH, refusal
+
+
+def _takes_torch_backend(env_id: str) -> bool:
+    import inspect
+
+    import gymnasium as gym
+    from gymnasium.envs.registration import load_env_creator
+
+    import abd_gym  # noqa: F401 -- registers the ids
+
+    creator = gym.spec(env_id).vector_entry_point
+    if creator is None:
+        return False
+    creator = load_env_creator(creator) if isinstance(creator, str) else creator
+    init = creator.__init__ if inspect.isclass(creator) else creator
+    return _accepts(init, "backend") and _accepts(init, "autoreset_mode")
+
+
+def find_adapter(env: VecEnv) -> GymnasiumVecEnv | None:
+    """The :class:`GymnasiumVecEnv` under SB3 VecEnv wrappers, or None."""
+    while env is not None and not isinstance(env, GymnasiumVecEnv):
+        env = getattr(env, "venv", None)
+    return env
+
+
+class _HostView:
+    """A buffer field read as a host NumPy array, for code written against SB3's NumPy buffer
+    (``explained_variance`` in ``PPO.train`` reads ``values`` and ``returns``)."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, buf: Any, owner: type | None = None) -> Any:
+        if buf is None:
+            return self
+        return buf.tensors[self.name].detach().cpu().numpy()
+
+
+class TensorRolloutBuffer(RolloutBuffer):
+    """:class:`RolloutBuffer` whose fields are tensors on ``device`` in ``tensors[name]``.
+
+    Shapes and dtypes follow SB3's buffer: (n_steps, n_envs, ...) float32 while filling, flattened
+    world-major to (n_steps * n_envs, ...) (scalars per transition to (n_steps * n_envs, 1)) by the
+first :meth:`get` (SB3's ``swap_and_flatten``),
+    so the same index draws the same transition as in SB3's buffer.  Actions are stored as float32
+    (SB3 casts them to float32 when sampling).  The SB3 field names read as host NumPy copies.
+    """
+
+    FIELDS = ("observations", "actions", "rewards", "returns", "episode_starts", "values", "log_probs", "advantages")
+    observations = _HostView()
+    actions = _HostView()
+    rewards = _HostView()
+    returns = _HostView()
+    episode_starts = _HostView()
+    values = _HostView()
+    log_probs = _HostView()
+    advantages = _HostView()
+
+    def reset(self) -> None:
+        shapes = {
+            "observations": (*self.obs_shape,),
+            "actions": (self.action_dim,),
+        }
+        self.tensors = {
+            name: th.zeros((self.buffer_size, self.n_envs, *shapes.get(name, ())), dtype=th.float32, device=self.device)
+            for name in self.FIELDS
+        }
+        self.generator_ready = False
+        BaseBuffer.reset(self)
+
+    def add(self, obs: th.Tensor, action: th.Tensor, reward: th.Tensor, episode_start: th.Tensor,
+            value: th.Tensor, log_prob: th.Tensor) -> None:  # fmt: skip
+        t, p = self.tensors, self.pos
+        t["observations"][p] = obs.reshape(self.n_envs, *self.obs_shape)
+        t["actions"][p] = action.reshape(self.n_envs, self.action_dim)
+        t["rewards"][p] = reward
+        t["episode_starts"][p] = episode_start
+        t["values"][p] = value.flatten()
+        t["log_probs"][p] = log_prob.reshape(self.n_envs)
+        self.pos += 1
+        if self.pos == self.buffer_size:
+            self.full = True
+
+    def compute_returns_and_advantage(self, last_values: th.Tensor, dones: th.Tensor) -> None:
+        """GAE(lambda) on the device, in SB3's order of float32 operations:
+        ``delta_t = r_t + gamma V_{t+1} (1 - d_{t+1}) - V_t``,
+        ``A_t = delta_t + gamma lambda (1 - d_{t+1}) A_{t+1}``, returns ``A + V``."""
+        t = self.tensors
+        last_values = last_values.detach().flatten().to(th.float32)
+        last_gae_lam: Any = 0
+        for step in reversed(range(self.buffer_size)):
+            if step == self.buffer_size - 1:
+                next_non_terminal = 1.0 - dones.to(th.float32)
+                next_values = last_values
+            else:
+                next_non_terminal = 1.0 - t["episode_starts"][step + 1]
+                next_values = t["values"][step + 1]
+            delta = t["rewards"][step] + self.gamma * next_values * next_non_terminal - t["values"][step]
+            last_gae_lam = delta + self.gamma * self.gae_lambda * next_non_terminal * last_gae_lam
+            t["advantages"][step] = last_gae_lam
+        t["returns"] = t["advantages"] + t["values"]
+
+    def get(self, batch_size: int | None = None) -> Generator[RolloutBufferSamples, None, None]:
+        assert self.full, ""
+        n = self.buffer_size * self.n_envs
+        indices = th.as_tensor(np.random.permutation(n), device=self.device)
+        if not self.generator_ready:
+            for name in ("observations", "actions", "values", "log_probs", "advantages", "returns"):
+                x = self.tensors[name]
+                self.tensors[name] = x.transpose(0, 1).reshape(n, *(x.shape[2:] or (1,)))
+            self.generator_ready = True
+        batch_size = n if batch_size is None else batch_size
+        for start in range(0, n, batch_size):
+            yield self._get_samples(indices[start : start + batch_size])
+
+    def _get_samples(self, batch_inds: th.Tensor, env: Any = None) -> RolloutBufferSamples:
+        t = self.tensors
+        return RolloutBufferSamples(
+            t["observations"][batch_inds],
+            t["actions"][batch_inds],
+            t["values"][batch_inds].flatten(),
+            t["log_probs"][batch_inds].flatten(),
+            t["advantages"][batch_inds].flatten(),
+            t["returns"][batch_inds].flatten(),
+        )
+
+
+class DevicePPO(PPO):
+    """PPO whose rollout stays on the policy's device (see the module docstring).
+
+    The training env must be a :class:`GymnasiumVecEnv` that :meth:`~GymnasiumVecEnv.step_tensors`
+    can serve, optionally under :class:`VecMonitor` (whose episode clock ``"t"`` is used).
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        kwargs.setdefault("rollout_buffer_class", TensorRolloutBuffer)
+        super().__init__(*args, **kwargs)
+
+    def _excluded_save_params(self) -> list[str]:
+        # a saved model loads as a plain PPO with SB3's buffer (and a fresh reset: the last
+        # observation is a tensor here, NumPy in SB3's rollout)
+        return [*super()._excluded_save_params(), "rollout_buffer_class", "rollout_buffer_kwargs", "_adapter",
+                "_ep_return", "_ep_length", "_low", "_high", "_last_obs", "_last_episode_starts"]  # fmt: skip
+
+    def _bind(self, env: VecEnv) -> None:
+        """Find the adapter under ``env``'s wrappers and set up the episode statistics."""
+        adapter = find_adapter(env)
+        refusal = "the env is not a GymnasiumVecEnv" if adapter is None else adapter.tensor_path_refusal()
+        if refusal is not None:
+            raise ValueError(f"DevicePPO needs a SAME_STEP GymnasiumVecEnv with the Torch backend: {refusal}")
+        self._adapter = adapter
+        monitor = env
+        while monitor is not None and not isinstance(monitor, VecMonitor):
+            monitor = getattr(monitor, "venv", None)
+        self._t_start = monitor.t_start if monitor is not None else time.time()
+        n, dev = env.num_envs, self.device
+        self._ep_return = th.zeros(n, dtype=th.float32, device=dev)
+        self._ep_length = th.zeros(n, dtype=th.int64, device=dev)
+        if isinstance(self.action_space, spaces.Box):
+            self._low = th.as_tensor(self.action_space.low, device=dev)
+            self._high = th.as_tensor(self.action_space.high, device=dev)
+
+    def _env_actions(self, actions: th.Tensor) -> th.Tensor:
+        if not isinstance(self.action_space, spaces.Box):
+            return actions
+        if self.policy.squash_output:
+            return self._low + 0.5 * (actions + 1.0) * (self._high - self._low)
+        return th.clamp(actions, self._low, self._high)
+
+    def _as_device(self, x: Any, dtype: th.dtype | None = None) -> th.Tensor:
+        return th.as_tensor(x, device=self.device) if dtype is None else th.as_tensor(x, dtype=dtype, device=self.device)
+
+    def _record_episodes(self, rewards: th.Tensor, done: np.ndarray) -> None:
+        """VecMonitor's episode statistics on the device; finished episodes go to ``ep_info_buffer``."""
+        self._ep_return += rewards
+        self._ep_length += 1
+        if not done.any():
+            return
+        idx = th.as_tensor(np.flatnonzero(done), device=self.device)
+        returns = self._ep_return[idx].cpu().numpy()
+        lengths = self._ep_length[idx].cpu().numpy()
+        t = round(time.time() - self._t_start, 6)
+        self.ep_info_buffer.extend({"r": round(float(r), 6), "l": int(l), "t": t} for r, l in zip(returns, lengths))
+        self._ep_return[idx] = 0.0
+        self._ep_length[idx] = 0
+
+    def _bootstrap_timeouts(self, step: Any, rewards: th.Tensor) -> th.Tensor:
+        """``rewards + gamma * V(final_obs)`` in the worlds cut by their time limit (not terminated)."""
+        if not step.done.any():
+            return rewards
+        cut = (step.truncated & ~step.terminated).cpu().numpy() & step.done
+        if not cut.any():
+            return rewards
+        rewards = rewards.clone()  # the env's own tensor stays as it gave it
+        idx = th.as_tensor(np.flatnonzero(cut), device=self.device)
+        final_obs = step.final_obs[idx.to(step.final_obs.device)].to(self.device)
+        with th.no_grad():
+            terminal_values = self.policy.predict_values(final_obs).flatten()
+        rewards[idx] += self.gamma * terminal_values
+        return rewards
+
+    def collect_rollouts(self, env: VecEnv, callback: Any, rollout_buffer: RolloutBuffer, n_rollout_steps: int) -> bool:
+        assert self._last_obs is not None, "No previous observation was provided"
+        if getattr(self, "_adapter", None) is None or find_adapter(env) is not self._adapter:
+            self._bind(env)
+        self.policy.set_training_mode(False)
+        self._last_obs = self._as_device(self._last_obs)
+        self._last_episode_starts = self._as_device(self._last_episode_starts, th.float32)
+        n_steps = 0
+        rollout_buffer.reset()
+        if self.use_sde:
+            self.policy.reset_noise(env.num_envs)
+        callback.on_rollout_start()
+        dones = None
+        while n_steps < n_rollout_steps:
+            if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
+                self.policy.reset_noise(env.num_envs)
+            with th.no_grad():
+                actions, values, log_probs = self.policy(self._last_obs)
+            step = self._adapter.step_tensors(self._env_actions(actions))
+            new_obs = step.obs.to(self.device, copy=True)  # the env may write its next step into its tensor
+            rewards = step.rewards.to(self.device)
+            dones = self._as_device(step.done)
+            self.num_timesteps += env.num_envs
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return False
+            self._record_episodes(rewards, step.done)
+            n_steps += 1
+            if isinstance(self.action_space, spaces.Discrete):
+                actions = actions.reshape(-1, 1)
+            rewards = self._bootstrap_timeouts(step, rewards)
+            rollout_buffer.add(self._last_obs, actions, rewards, self._last_episode_starts, values, log_probs)
+            self._last_obs = new_obs
+            self._last_episode_starts = dones.to(th.float32)
+        with th.no_grad():
+            values = self.policy.predict_values(new_obs)
+        rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
+        callback.update_locals(locals())
+        callback.on_rollout_end()
+        return True
