@@ -18,12 +18,18 @@ joint that closes a loop is not compared), sampled every 0.02 s; ``error_max`` i
 over the second and the measured worlds of |angle − reference| over revolute joints [rad];
 ``error_max_slide`` the same over prismatic joints [m] (None without one); ``error_final`` the
 revolute error at t = 1 s.  A run whose coordinates become non-finite, or that MuJoCo resets as
-unstable, is ``diverged`` and has no error.
+unstable, is ``diverged`` and has no error.  ``own_error_*``: the same against the engine's own
+converged run (ours: float64 BDF2 at the reference dt; MuJoCo's: its RK4 reference), the
+integration error alone; ``model_gap``: our converged run against MuJoCo's, the two models'
+difference (on an inverted mechanism a small difference grows exponentially over the second).
+``limited_reference_worlds``: where limits act the two limit models differ as well.
 
 Equal error (:func:`equal_error_summary`): each setting is a curve of (error_max, simulated
 world-seconds per second = world-steps/s × dt) over dt; at each error level (1e-3 … 1e-1 rad) the
-fastest abd_gym setting and the fastest MuJoCo integrator that reach it are compared.  Writes
-``accuracy.json`` and, with matplotlib, ``accuracy.png`` (one panel per mechanism) to --out.
+fastest abd_gym setting and the fastest MuJoCo integrator that reach it are compared, once
+against MuJoCo's reference (``summary``) and once each against its own (``summary_own``).  Writes
+``accuracy.json`` (after every mechanism, so a run cut short keeps what it measured) and, with
+matplotlib, ``accuracy.png`` (one panel per mechanism) to --out.
 """
 import argparse
 import json
@@ -86,6 +92,37 @@ def mujoco_run(case, q0, v0, dt, integrator="RK4"):
     return np.stack([c.ours_from_qpos(s) for s in qs.transpose(1, 0, 2)]), reset
 
 
+def limited_worlds(case, dt=1e-3):
+    """The fraction of the reference worlds (random starts, seed 1) in which MuJoCo's RK4 run at
+    step dt [s] takes a limited joint past its range within the second.  Where a limit acts, the
+    two engines' limit models differ (abd_gym's cubic barrier, MuJoCo's soft constraint), and the
+    error against MuJoCo's reference holds that difference, not only the integration error."""
+    import mujoco
+    from mujoco import rollout
+
+    c = CASES[case]
+    mjm = mujoco.MjModel.from_xml_string(with_integrator(c.xml(dt), "RK4"))
+    limited = [j for j in range(mjm.njnt) if mjm.jnt_limited[j]]
+    if not limited:
+        return 0.0
+    mjd = mujoco.MjData(mjm)
+    q0, v0 = c.states(8, 1)
+    qpos, qvel = c.mujoco_qpos(q0), c.mujoco_qpos(v0)
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    x0 = np.empty((len(q0), mujoco.mj_stateSize(mjm, spec)))
+    for w in range(len(q0)):
+        mujoco.mj_resetData(mjm, mjd)
+        mjd.qpos[:], mjd.qvel[:] = qpos[w], qvel[w]
+        mujoco.mj_getState(mjm, mjd, x0[w], spec)
+    state, _ = rollout.rollout(mjm, mjd, x0, nstep=int(round(T_END / dt)))
+    out = np.zeros(len(q0), bool)
+    for j in limited:
+        q = state[:, :, 1 + mjm.jnt_qposadr[j]]
+        lo, hi = mjm.jnt_range[j]
+        out |= ((q < lo) | (q > hi)).any(axis=1)
+    return float(out.mean())
+
+
 def run_ours(case, q0, v0, dt, dtype, tol, device, integrator="implicit_euler", reuse_factor=None, **options):
     """Measured joints' coordinates (samples, worlds, measured joints) [rad, m] over 1 s from joint
     coordinates q0 and rates v0, the largest joint residual [m], the largest energy drift
@@ -122,17 +159,23 @@ def errors(traj, ref, slide, diverged=False):
                 error_max_slide=float(lin.max()) if lin.size else None)  # fmt: skip
 
 
-def _ours_rows(case, q0, v0, ref, dt, settings, device, repeat):
+def _own(errs):
+    """errors() against an engine's own converged run, under ``own_`` keys."""
+    return {f"own_{k}": v for k, v in errs.items() if k != "diverged"}
+
+
+def _ours_rows(case, q0, v0, ref, ref_own, dt, settings, device, repeat):
     """One row per abd_gym setting (integrator, dtype, tol, reuse_factor) at step dt [s]: its
-    errors against ``ref`` and world-steps/s at the batch of q0."""
+    errors against MuJoCo's reference ``ref`` and against our own converged run ``ref_own``, and
+    world-steps/s at the batch of q0."""
     slide, steps = slide_mask(case), _samples(dt)[1]
     for integrator, dtype, tol, reuse in settings:
         traj, residual, drift, reused = run_ours(case, q0, v0, dt, dtype, tol, device, integrator, reuse)
         sps = ours_steps_per_second(case, len(q0), steps, dt, device, dtype, repeat=repeat, tol=tol,
                                     integrator=integrator, reuse_factor=reuse)[0]  # fmt: skip
         yield dict(engine="abd_gym", integrator=integrator, case=case, dt=dt, dtype=dtype, tol=tol,
-                   reuse_factor=reused, **errors(traj, ref, slide), joint_residual=residual,
-                   energy_drift=drift, world_steps_per_second=sps)  # fmt: skip
+                   reuse_factor=reused, **errors(traj, ref, slide), **_own(errors(traj, ref_own, slide)),
+                   joint_residual=residual, energy_drift=drift, world_steps_per_second=sps)  # fmt: skip
 
 
 def _mujoco_row(case, q0, v0, ref, dt, integrator, device, repeat):
@@ -147,8 +190,9 @@ def _mujoco_row(case, q0, v0, ref, dt, integrator, device, repeat):
         sps = mjw_steps_per_second(case, len(q0), _samples(dt)[1], dt, device, repeat, integrator)[0]
     except (ImportError, NotImplementedError) as e:
         sps, speed_note = float("nan"), f"{type(e).__name__}: {e}"
+    errs = errors(traj, ref, slide_mask(case), reset)
     return dict(engine="mujoco_warp", integrator=integrator, case=case, dt=dt, dtype="float32", tol=None,
-                reuse_factor=None, **errors(traj, ref, slide_mask(case), reset), error_from="mujoco C (float64, CPU)",
+                reuse_factor=None, **errs, **_own(errs), error_from="mujoco C (float64, CPU)",
                 mujoco_c_seconds=seconds, speed_note=speed_note, joint_residual=0.0, energy_drift=None,
                 world_steps_per_second=sps)  # fmt: skip
 
@@ -175,7 +219,7 @@ def main(argv=None):
     reuse_choice = {"auto": None, "0": False, "1": True}
     settings = [(i, d, float(t), reuse_choice[r]) for i in args.integrators.split(",")
                 for d in args.dtypes.split(",") for t in args.tols.split(",") for r in args.reuse_factors.split(",")]
-    rows, references, reference_seconds = [], {}, {}
+    rows, references, reference_seconds, limits, gaps = [], {}, {}, {}, {}
     for case in args.cases.split(","):
         q0, v0 = CASES[case].states(W, 1)
         nref = min(args.reference_worlds, W)
@@ -184,30 +228,48 @@ def main(argv=None):
             ref, reset = mujoco_run(case, q0[:nref], v0[:nref], args.reference_dt)
             references[case] = f"mujoco_rk4_dt{args.reference_dt:g}" + (" (reset as unstable)" if reset else "")
             reference_seconds[case] = time.perf_counter() - t0
+            limits[case] = limited_worlds(case)
         except ImportError:
-            ref = run_ours(case, q0[:nref], v0[:nref], args.reference_dt, "float64", 1e-10, "cpu")[0]
+            ref = None
             references[case] = f"abd_gym_float64_dt{args.reference_dt:g}"
+        ref_own = run_ours(case, q0[:nref], v0[:nref], args.reference_dt, "float64", 1e-10, args.device, "bdf2")[0]
+        ref = ref_own if ref is None else ref
+        gaps[case] = errors(ref_own, ref, slide_mask(case))
+        print(f"{case}: our converged run (float64 BDF2, dt {args.reference_dt:g}) against the reference: "
+              f"{_num(gaps[case]['error_max'])} rad, {_num(gaps[case]['error_max_slide'])} m", flush=True)
         mj_integrators = args.mj_integrators.split(",") if case in reference_seconds else []
         for dt in dts:
-            for row in _ours_rows(case, q0, v0, ref, dt, settings, args.device, args.repeat):
+            for row in _ours_rows(case, q0, v0, ref, ref_own, dt, settings, args.device, args.repeat):
                 rows.append(row)
                 print(_fmt(row), flush=True)
             for integrator in mj_integrators:
                 rows.append(_mujoco_row(case, q0, v0, ref, dt, integrator, args.device, args.repeat))
                 print(_fmt(rows[-1]), flush=True)
+        # written after every mechanism, so a run cut short keeps what it measured
+        result = _result(args, W, references, reference_seconds, limits, gaps, rows, complete=False)
+    result = _result(args, W, references, reference_seconds, limits, gaps, rows, complete=True)
+    print(rows_table(rows))
+    print()
+    print(summary_table(result["summary"], limits))
+    print()
+    print("Against each engine's own converged run (integration error only):")
+    print(summary_table(result["summary_own"], limits))
+    _plot(result, os.path.join(args.out, "accuracy.png"))
+    return result
+
+
+def _result(args, W, references, reference_seconds, limits, gaps, rows, complete):
+    """The run's result so far, written to --out/accuracy.json (``complete``: every mechanism done)."""
     for r in rows:
         r["world_seconds_per_second"] = r["world_steps_per_second"] * r["dt"]
     result = dict(device=args.device, device_name=wp.get_device(args.device).name, worlds=W,
                   reference_worlds=min(args.reference_worlds, W), reference=references,
-                  reference_seconds=reference_seconds, rows=rows,
-                  summary=equal_error_summary(rows))  # fmt: skip
-    print(rows_table(rows))
-    print()
-    print(summary_table(result["summary"]))
+                  reference_seconds=reference_seconds, limited_reference_worlds=limits, model_gap=gaps,
+                  complete=complete, rows=rows, summary=equal_error_summary(rows),
+                  summary_own=equal_error_summary(rows, key="own_error_max"))  # fmt: skip
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "accuracy.json"), "w") as f:
         json.dump(result, f, indent=1)
-    _plot(result, os.path.join(args.out, "accuracy.png"))
     return result
 
 
@@ -218,15 +280,15 @@ def _setting(r):
     return f"{r['integrator']} {r['dtype']} tol {r['tol']:g}" + (" reuse" if r["reuse_factor"] else "")
 
 
-def curves(rows, case, engine, timed=True):
-    """Per setting of ``engine`` on ``case``: its measured (error_max [rad], world-seconds/s) points,
-    sorted by error; diverged runs left out, and untimed (NaN) rates unless ``timed`` is False."""
+def curves(rows, case, engine, timed=True, key="error_max"):
+    """Per setting of ``engine`` on ``case``: its measured (error [rad] under ``key``, world-seconds/s)
+    points, sorted by error; diverged runs left out, and untimed (NaN) rates unless ``timed`` is False."""
     out = {}
     for r in rows:
-        if r["case"] == case and r["engine"] == engine and r["error_max"] is not None:
+        if r["case"] == case and r["engine"] == engine and r.get(key) is not None:
             rate = r["world_steps_per_second"] * r["dt"]
             if not timed or (math.isfinite(rate) and rate > 0):
-                out.setdefault(_setting(r), []).append((r["error_max"], rate))
+                out.setdefault(_setting(r), []).append((r[key], rate))
     return {k: sorted(v) for k, v in out.items()}
 
 
@@ -287,14 +349,16 @@ def _verdict(ours, theirs, why_ours, why_theirs):
     return f"undecided ({slower}'s rate is a lower bound: its largest dt errs less; measure a larger dt)"
 
 
-def equal_error_summary(rows, levels=LEVELS):
+def equal_error_summary(rows, levels=LEVELS, key="error_max"):
     """Per mechanism and error level [rad]: the fastest abd_gym setting and the fastest MuJoCo
     integrator (simulated world-seconds per second at that error, :func:`rate_at`), their ratio
-    ours / MuJoCo's and who is ahead."""
+    ours / MuJoCo's and who is ahead.  ``key``: "error_max" (both against MuJoCo's reference) or
+    "own_error_max" (each against its own converged run: the integration error alone)."""
     out = []
     for case in dict.fromkeys(r["case"] for r in rows):
-        ours_c, theirs_c = curves(rows, case, "abd_gym"), curves(rows, case, "mujoco_warp")
-        ours_all, theirs_all = curves(rows, case, "abd_gym", False), curves(rows, case, "mujoco_warp", False)
+        ours_c, theirs_c = curves(rows, case, "abd_gym", key=key), curves(rows, case, "mujoco_warp", key=key)
+        ours_all = curves(rows, case, "abd_gym", False, key)
+        theirs_all = curves(rows, case, "mujoco_warp", False, key)
         for level in levels:
             ours, theirs = _best(ours_c, level), _best(theirs_c, level)
             why = _missing("abd_gym", ours_all, level), _missing("MuJoCo", theirs_all, level)
@@ -312,13 +376,17 @@ def _side(s, name):
     return f"{'≥ ' if s['bound'] == '>=' else ''}{s['world_seconds_per_second']:,.0f} ({s[name]})"
 
 
-def summary_table(summary):
-    """Markdown: mechanism × error level, both sides' best and who is ahead."""
+def summary_table(summary, limits=None):
+    """Markdown: mechanism × error level, both sides' best and who is ahead; ``limits`` ({case:
+    fraction of reference worlds that reach a limit}, :func:`limited_worlds`) marks the mechanisms
+    whose errors hold the two limit models' difference."""
+    limits = limits or {}
     lines = ["| mechanism | error [rad] | abd_gym best world-s/s (setting) | MuJoCo Warp best world-s/s (integrator) "
              "| ratio | ahead |", "|---|---:|---:|---:|---:|---|"]  # fmt: skip
     for s in summary:
         ratio = "" if s["ratio"] is None else f"{s['ratio']:.2f}"
-        lines.append(f"| {s['case']} | {s['error']:g} | {_side(s['abd_gym'], 'setting')} | "
+        mark = " (limits act)" if limits.get(s["case"], 0) > 0 else ""
+        lines.append(f"| {s['case']}{mark} | {s['error']:g} | {_side(s['abd_gym'], 'setting')} | "
                      f"{_side(s['mujoco_warp'], 'integrator')} | {ratio} | {s['ahead']} |")  # fmt: skip
     return "\n".join(lines)
 

@@ -144,11 +144,14 @@ def exported_case(name: str, scene: Callable[[], Scene], states=None, tasks=()) 
 
 
 def _task_env(task: str):
-    """A one-world CPU vector env of a registered task (its scene and reset kinematics)."""
+    """A one-world vector env of a registered task (its scene and reset kinematics), on Warp's
+    default device (a machine may have no CPU compiler)."""
+    import warp as wp
+
     from .registration import TASKS
 
     module, _, vector, _, _ = TASKS[task]
-    return getattr(importlib.import_module(module), vector)(num_envs=1)
+    return getattr(importlib.import_module(module), vector)(num_envs=1, device=str(wp.get_device()))
 
 
 def task_case(name: str, *tasks: str, closed_loop=False) -> PeerCase:
