@@ -471,6 +471,19 @@ def find_config(name: str | Path) -> Path:
     raise FileNotFoundError(f"no config {str(name)!r} (looked for the file, in ./configs/ and in {CONFIG_DIR})")
 
 
+def config_name(path: str | Path) -> str:
+    """A config's name in run folders and summaries: its file's stem, after the folders it sits in
+    below a configs folder, so ``configs/gpu/cartpole_ppo.yaml`` is ``gpu_cartpole_ppo`` and not
+    the CPU config's ``cartpole_ppo``."""
+    path = Path(path).resolve()
+    for base in (Path.cwd() / "configs", CONFIG_DIR):
+        try:
+            return "_".join(path.relative_to(base.resolve()).with_suffix("").parts)
+        except ValueError:
+            continue
+    return path.stem
+
+
 def apply_overrides(raw: dict[str, Any], overrides: list[str] | dict[str, Any]) -> dict[str, Any]:
     """``key=value`` overrides (dotted keys reach into mappings; values parsed as YAML)."""
     out = copy.deepcopy(raw)

@@ -59,7 +59,7 @@ from .common import (
     versions,
     write_json,
 )
-from .config import apply_overrides, find_config, validate_config, yaml_load
+from .config import apply_overrides, config_name, find_config, validate_config, yaml_load
 from ..devices import resolve_device
 
 if TYPE_CHECKING:  # progress imports SB3, which training loads only when it runs
@@ -278,7 +278,7 @@ def raw_config_from_args(args: argparse.Namespace) -> tuple[dict[str, Any], str]
         "eval_freq": getattr(args, "eval_freq", None),
     }
     raw = apply_overrides(raw, {k: v for k, v in flags.items() if v is not None})
-    return raw, path.stem
+    return raw, config_name(path)
 
 
 def config_from_args(args: argparse.Namespace) -> tuple[dict[str, Any], str]:

@@ -118,6 +118,7 @@ def test_gpu_configs_validate(path):
     assert cfg["device"] == "cuda:0" and cfg["n_envs"] >= 1024  # made for a GPU's batch
     assert cfg["eval_freq"] > 0, "the time-to-solve table needs periodic evaluations"
     assert load_config(f"gpu/{path.stem}") == cfg  # found by name, as abd-gym-train resolves it
+    assert agent_config.config_name(path) == f"gpu_{path.stem}"  # runs and summaries tell it from the CPU config
 
 
 def test_every_task_has_a_gpu_config():

@@ -80,8 +80,8 @@ def test_the_wheel_holds_only_the_abd_gym_namespace_and_trains_from_any_director
     for must in ("abd_gym/configs/cartpole_ppo.yaml", "abd_gym/envs/cartpole.py", "abd_gym/agents/train.py",
                  "abd_gym/constitutions/revolute_limit.py"):
         assert must in names, must
-    shipped = {n.rsplit("/", 1)[1] for n in names if n.startswith("abd_gym/configs/") and n.endswith(".yaml")}
-    assert shipped == {p.name for p in (REPO / "configs").glob("*.yaml")}
+    shipped = {n[len("abd_gym/configs/"):] for n in names if n.startswith("abd_gym/configs/") and n.endswith(".yaml")}
+    assert shipped == {p.relative_to(REPO / "configs").as_posix() for p in (REPO / "configs").rglob("*.yaml")}
     # every package of the source tree is in the wheel (a new subpackage must be listed in pyproject.toml)
     for init in (REPO / "abd_gym").rglob("__init__.py"):
         assert str(init.relative_to(REPO)) in names, init
