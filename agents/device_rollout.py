@@ -264,7 +264,7 @@ class DevicePPO(PPO):
         # observation is a tensor here, NumPy in SB3's rollout)
         return [*super()._excluded_save_params(), "rollout_buffer_class", "rollout_buffer_kwargs", "_adapter",
                 "_ep_return", "_ep_length", "_low", "_high", "_last_obs", "_last_episode_starts",
-                "_ended"]  # fmt: skip
+                "_ended", "_next_step"]  # fmt: skip
 
     def _setup_learn(self, *args: Any, **kwargs: Any) -> Any:
         out = super()._setup_learn(*args, **kwargs)

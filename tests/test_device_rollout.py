@@ -128,9 +128,10 @@ def test_train_takes_and_records_the_device_path(tmp_path, capsys):
     cfg["n_timesteps"], cfg["eval_episodes"] = 2 * N_ENVS * 8, 2
     summary = agent_train.train(cfg, config_name="dev", run_dir=tmp_path / "run", progress_bar=False)
     assert summary["rollout"] == "device" and summary["timesteps"] == 2 * N_ENVS * 8
+    assert summary["autoreset_mode"] == "NEXT_STEP"
     assert summary["mean_episode_length"] > 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[1].startswith("rollout: device (")
+    assert lines[1].startswith("rollout: device (") and lines[1].endswith("; autoreset: NEXT_STEP")
     # the saved model is a plain PPO with SB3's own buffer, and trains on in SB3's rollout
     model = PPO.load(tmp_path / "run" / "model.zip", device="cpu")
     assert model.rollout_buffer_class is None or model.rollout_buffer_class.__name__ == "RolloutBuffer"
