@@ -114,7 +114,11 @@ def find_adapter(env: VecEnv) -> GymnasiumVecEnv | None:
 
 class _HostView:
     """A buffer field read as a host NumPy array, for code written against SB3's NumPy buffer
-    (``explained_variance`` in ``PPO.train`` reads ``values`` and ``returns``)."""
+    (``explained_variance`` in ``PPO.train`` reads ``values`` and ``returns``).  ``valid_only``:
+    once flattened, a NEXT_STEP rollout's field reads at its valid positions only."""
+
+    def __init__(self, valid_only: bool = False):
+        self.valid_only = valid_only
 
     def __set_name__(self, owner: type, name: str) -> None:
         self.name = name
@@ -122,7 +126,10 @@ class _HostView:
     def __get__(self, buf: Any, owner: type | None = None) -> Any:
         if buf is None:
             return self
-        return buf.tensors[self.name].detach().cpu().numpy()
+        x = buf.tensors[self.name]
+        if self.valid_only and buf.next_step and buf.generator_ready:
+            x = x[buf._valid_idx]
+        return x.detach().cpu().numpy()
 
 
 class TensorRolloutBuffer(RolloutBuffer):
@@ -138,7 +145,9 @@ class TensorRolloutBuffer(RolloutBuffer):
     :meth:`get`): the rollout came from a NEXT_STEP env, and :meth:`add_flags` gave each
     position's ``valid`` (not a reset step), ``dones`` (terminated or truncated) and ``cuts``
     (truncated, not terminated) as (n_steps, n_envs) float32 in ``tensors``; ``ep_return`` and
-    ``ep_length`` hold the episode's return and length so far after each position.
+    ``ep_length`` hold the episode's return and length so far after each position; once
+    flattened, ``values`` and ``returns`` read (on the host) at the valid positions only, so that
+    PPO's explained variance leaves the reset steps out.
     """
 
     FIELDS = ("observations", "actions", "rewards", "returns", "episode_starts", "values", "log_probs", "advantages")
@@ -146,9 +155,9 @@ class TensorRolloutBuffer(RolloutBuffer):
     observations = _HostView()
     actions = _HostView()
     rewards = _HostView()
-    returns = _HostView()
+    returns = _HostView(valid_only=True)
     episode_starts = _HostView()
-    values = _HostView()
+    values = _HostView(valid_only=True)
     log_probs = _HostView()
     advantages = _HostView()
 

@@ -340,3 +340,5 @@ def test_next_step_training_masks_reset_steps():
         for e in range(epochs):
             epoch = th.cat(idx[e * len(sizes) : (e + 1) * len(sizes)])
             assert th.equal(th.sort(epoch).values, allowed)  # each valid position once per epoch, nothing else
+    # PPO's explained variance reads the last rollout's values and returns at its valid positions
+    assert model.rollout_buffer.values.shape == (int(flags[-1][0].sum()), 1)
