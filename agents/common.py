@@ -25,7 +25,9 @@ def build_train_env(cfg: dict[str, Any], *, device: str | None = None, rollout: 
     """VecMonitor(adapter) wrapped in VecNormalize when the config asks for it.
 
     ``rollout="device"`` (see :func:`~abd_gym.agents.device_rollout.rollout_path`) builds the env
-    with the Torch backend, whose tensors the device rollout reads as they are.
+    with the Torch backend, whose tensors the device rollout reads as they are, autoresetting in
+    NEXT_STEP mode (so that its step runs as one CUDA graph on a GPU); SB3's rollout gets a
+    SAME_STEP env (:func:`train_autoreset_mode`).
     """
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
@@ -36,6 +38,7 @@ def build_train_env(cfg: dict[str, Any], *, device: str | None = None, rollout: 
         seed=cfg["seed"],
         env_kwargs=cfg["env_kwargs"],
         backend="torch" if rollout == "device" else None,
+        autoreset_mode=train_autoreset_mode(rollout),
     )
     venv = VecMonitor(venv)
     norm = normalize_kwargs(cfg)
@@ -44,6 +47,14 @@ def build_train_env(cfg: dict[str, Any], *, device: str | None = None, rollout: 
         norm.setdefault("gamma", (cfg.get("hyperparams") or {}).get("gamma", 0.99))
         venv = VecNormalize(venv, **norm)
     return venv
+
+
+def train_autoreset_mode(rollout: str):
+    """The autoreset mode of the training env for a rollout path: NEXT_STEP for the device
+    rollout, SAME_STEP (SB3's convention) for SB3's."""
+    from gymnasium.vector import AutoresetMode
+
+    return AutoresetMode.NEXT_STEP if rollout == "device" else AutoresetMode.SAME_STEP
 
 
 def build_eval_env(

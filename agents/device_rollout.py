@@ -8,13 +8,36 @@ are copied to the device again for every minibatch.  Here an env with the Torch 
 :class:`TensorRolloutBuffer` of tensors on the policy's device; GAE runs there and minibatches are
 gathered there.
 
-The semantics are SB3's ``OnPolicyAlgorithm.collect_rollouts``: actions clipped to the Box (or
-unscaled when squashed), a world cut by its time limit gets ``reward += gamma * V(final_obs)``,
-``_last_episode_starts`` marks the first step of each episode, callbacks are called at the same
-points, ``num_timesteps`` counts all worlds, and each finished episode adds VecMonitor's
-``{"r", "l", "t"}`` to ``ep_info_buffer``.  The minibatch order is drawn from NumPy's global
-generator exactly as SB3 does, so with the same seed the two paths sample the same minibatches.
-Callbacks' ``locals`` carry tensors (``dones`` is a bool tensor on the device) and no ``infos``.
+With a SAME_STEP env the semantics are SB3's ``OnPolicyAlgorithm.collect_rollouts``: actions
+clipped to the Box (or unscaled when squashed), a world cut by its time limit gets
+``reward += gamma * V(final_obs)``, ``_last_episode_starts`` marks the first step of each episode,
+callbacks are called at the same points, ``num_timesteps`` counts all worlds, and each finished
+episode adds VecMonitor's ``{"r", "l", "t"}`` to ``ep_info_buffer``.  The minibatch order is drawn
+from NumPy's global generator exactly as SB3 does, so with the same seed the two paths sample the
+same minibatches.  Callbacks' ``locals`` carry tensors (``dones`` is a bool tensor on the device)
+and no ``infos``.
+
+With a NEXT_STEP env (what training builds for this path: its step reads nothing on the host and
+runs as one CUDA graph on a GPU) a world whose episode ended at step k-1 is reset by step k, which
+ignores its action and returns the new episode's first observation with reward 0 and no flags.
+The transition stored at position k for that world (the old episode's last observation o_k,
+a_k, reward 0) is no transition of the task, so the buffer marks it invalid and:
+
+* minibatches are drawn from the valid positions only (a permutation of their flat indices, from
+  NumPy's global generator; ``batch_size`` as SB3, the last minibatch smaller if it must be);
+* GAE runs on the step's own flags: ``next_non_terminal_{k-1} = 1 - done_{k-1}`` (``done``:
+  terminated or truncated), not ``1 - episode_start_k`` (position k holds the old episode's last
+  observation); a reset position's own advantage is never used;
+* a world cut by its time limit at step k-1 gets ``r_{k-1} += gamma * V(o_k)``, the value the
+  policy computed at position k (o_k is the final observation), or the rollout's last values at
+  its last step; no extra forward pass;
+* "ended at the previous step" is carried from one rollout to the next (position 0 of a rollout
+  can be a reset step);
+* ``episode_starts`` marks position k+1 after a reset step k (its observation opens the episode);
+* episode returns and lengths count the episode's own steps (not the reset step) and reach
+  ``ep_info_buffer`` at the rollout's end (one host read per rollout; ``"t"`` is that time);
+* ``num_timesteps`` counts every world at every step as SB3 does, so 1 in (episode length + 1)
+  counted transitions is a reset step that trains nothing.
 
 :func:`rollout_path` says which path a config gets and, for SB3's path, why.
 """
@@ -27,6 +50,7 @@ from typing import Any
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from gymnasium.vector import AutoresetMode
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import BaseBuffer, RolloutBuffer
 from stable_baselines3.common.type_aliases import RolloutBufferSamples
@@ -90,7 +114,11 @@ def find_adapter(env: VecEnv) -> GymnasiumVecEnv | None:
 
 class _HostView:
     """A buffer field read as a host NumPy array, for code written against SB3's NumPy buffer
-    (``explained_variance`` in ``PPO.train`` reads ``values`` and ``returns``)."""
+    (``explained_variance`` in ``PPO.train`` reads ``values`` and ``returns``).  ``valid_only``:
+    once flattened, a NEXT_STEP rollout's field reads at its valid positions only."""
+
+    def __init__(self, valid_only: bool = False):
+        self.valid_only = valid_only
 
     def __set_name__(self, owner: type, name: str) -> None:
         self.name = name
@@ -98,7 +126,10 @@ class _HostView:
     def __get__(self, buf: Any, owner: type | None = None) -> Any:
         if buf is None:
             return self
-        return buf.tensors[self.name].detach().cpu().numpy()
+        x = buf.tensors[self.name]
+        if self.valid_only and buf.next_step and buf.generator_ready:
+            x = x[buf._valid_idx]
+        return x.detach().cpu().numpy()
 
 
 class TensorRolloutBuffer(RolloutBuffer):
@@ -106,18 +137,27 @@ class TensorRolloutBuffer(RolloutBuffer):
 
     Shapes and dtypes follow SB3's buffer: (n_steps, n_envs, ...) float32 while filling, flattened
     world-major to (n_steps * n_envs, ...) (scalars per transition to (n_steps * n_envs, 1)) by the
-first :meth:`get` (SB3's ``swap_and_flatten``),
-    so the same index draws the same transition as in SB3's buffer.  Actions are stored as float32
-    (SB3 casts them to float32 when sampling).  The SB3 field names read as host NumPy copies.
+    first :meth:`get` (SB3's ``swap_and_flatten``), so the same index draws the same transition as
+    in SB3's buffer.  Actions are stored as float32 (SB3 casts them to float32 when sampling).  The
+    SB3 field names read as host NumPy copies.
+
+    ``next_step`` (set after :meth:`reset`, read by :meth:`compute_returns_and_advantage` and
+    :meth:`get`): the rollout came from a NEXT_STEP env, and :meth:`add_flags` gave each
+    position's ``valid`` (not a reset step), ``dones`` (terminated or truncated) and ``cuts``
+    (truncated, not terminated) as (n_steps, n_envs) float32 in ``tensors``; ``ep_return`` and
+    ``ep_length`` hold the episode's return and length so far after each position; once
+    flattened, ``values`` and ``returns`` read (on the host) at the valid positions only, so that
+    PPO's explained variance leaves the reset steps out.
     """
 
     FIELDS = ("observations", "actions", "rewards", "returns", "episode_starts", "values", "log_probs", "advantages")
+    FLAGS = ("valid", "dones", "cuts", "ep_return", "ep_length")
     observations = _HostView()
     actions = _HostView()
     rewards = _HostView()
-    returns = _HostView()
+    returns = _HostView(valid_only=True)
     episode_starts = _HostView()
-    values = _HostView()
+    values = _HostView(valid_only=True)
     log_probs = _HostView()
     advantages = _HostView()
 
@@ -128,8 +168,9 @@ first :meth:`get` (SB3's ``swap_and_flatten``),
         }
         self.tensors = {
             name: th.zeros((self.buffer_size, self.n_envs, *shapes.get(name, ())), dtype=th.float32, device=self.device)
-            for name in self.FIELDS
+            for name in self.FIELDS + self.FLAGS
         }
+        self.next_step = False
         self.generator_ready = False
         BaseBuffer.reset(self)
 
@@ -146,36 +187,60 @@ first :meth:`get` (SB3's ``swap_and_flatten``),
         if self.pos == self.buffer_size:
             self.full = True
 
+    def add_flags(self, valid: th.Tensor, done: th.Tensor, cut: th.Tensor) -> None:
+        """The NEXT_STEP flags (bool (n_envs,)) of the position the next :meth:`add` fills."""
+        t, p = self.tensors, self.pos
+        t["valid"][p] = valid
+        t["dones"][p] = done
+        t["cuts"][p] = cut
+
     def compute_returns_and_advantage(self, last_values: th.Tensor, dones: th.Tensor) -> None:
         """GAE(lambda) on the device, in SB3's order of float32 operations:
         ``delta_t = r_t + gamma V_{t+1} (1 - d_{t+1}) - V_t``,
-        ``A_t = delta_t + gamma lambda (1 - d_{t+1}) A_{t+1}``, returns ``A + V``."""
+        ``A_t = delta_t + gamma lambda (1 - d_{t+1}) A_{t+1}``, returns ``A + V``.
+
+        ``next_step``: ``1 - d_{t+1}`` is ``1 - done_t`` (the step's own flags; ``dones`` is not
+        read) and a position cut by its time limit first gets ``r_t += gamma V_{t+1}``
+        (``V_{t+1}``: the next position's value, of the final observation, or ``last_values``)."""
         t = self.tensors
         last_values = last_values.detach().flatten().to(th.float32)
+        if self.next_step:
+            next_values = th.cat([t["values"][1:], last_values[None]])
+            t["rewards"] += self.gamma * next_values * t["cuts"]
+            next_non_terminal = 1.0 - t["dones"]
         last_gae_lam: Any = 0
         for step in reversed(range(self.buffer_size)):
-            if step == self.buffer_size - 1:
-                next_non_terminal = 1.0 - dones.to(th.float32)
-                next_values = last_values
+            if self.next_step:
+                nnt, nv = next_non_terminal[step], next_values[step]
+            elif step == self.buffer_size - 1:
+                nnt, nv = 1.0 - dones.to(th.float32), last_values
             else:
-                next_non_terminal = 1.0 - t["episode_starts"][step + 1]
-                next_values = t["values"][step + 1]
-            delta = t["rewards"][step] + self.gamma * next_values * next_non_terminal - t["values"][step]
-            last_gae_lam = delta + self.gamma * self.gae_lambda * next_non_terminal * last_gae_lam
+                nnt, nv = 1.0 - t["episode_starts"][step + 1], t["values"][step + 1]
+            delta = t["rewards"][step] + self.gamma * nv * nnt - t["values"][step]
+            last_gae_lam = delta + self.gamma * self.gae_lambda * nnt * last_gae_lam
             t["advantages"][step] = last_gae_lam
         t["returns"] = t["advantages"] + t["values"]
 
     def get(self, batch_size: int | None = None) -> Generator[RolloutBufferSamples, None, None]:
+        """Minibatches of ``batch_size`` (the last one smaller if it must be) in an order drawn from
+        NumPy's global generator; ``next_step``: of the valid positions only."""
         assert self.full, ""
         n = self.buffer_size * self.n_envs
-        indices = th.as_tensor(np.random.permutation(n), device=self.device)
         if not self.generator_ready:
             for name in ("observations", "actions", "values", "log_probs", "advantages", "returns"):
                 x = self.tensors[name]
                 self.tensors[name] = x.transpose(0, 1).reshape(n, *(x.shape[2:] or (1,)))
+            if self.next_step:
+                self._valid_idx = th.nonzero(self.tensors["valid"].transpose(0, 1).reshape(n)).flatten()
             self.generator_ready = True
-        batch_size = n if batch_size is None else batch_size
-        for start in range(0, n, batch_size):
+        if self.next_step:
+            m = len(self._valid_idx)
+            indices = self._valid_idx[th.as_tensor(np.random.permutation(m), device=self.device)]
+        else:
+            m = n
+            indices = th.as_tensor(np.random.permutation(n), device=self.device)
+        batch_size = m if batch_size is None else batch_size
+        for start in range(0, m, batch_size):
             yield self._get_samples(indices[start : start + batch_size])
 
     def _get_samples(self, batch_inds: th.Tensor, env: Any = None) -> RolloutBufferSamples:
@@ -194,7 +259,9 @@ class DevicePPO(PPO):
     """PPO whose rollout stays on the policy's device (see the module docstring).
 
     The training env must be a :class:`GymnasiumVecEnv` that :meth:`~GymnasiumVecEnv.step_tensors`
-    can serve, optionally under :class:`VecMonitor` (whose episode clock ``"t"`` is used).
+    can serve (SAME_STEP or NEXT_STEP autoreset), optionally under :class:`VecMonitor` (whose
+    episode clock ``"t"`` is used).  With a NEXT_STEP env, 1 in (episode length + 1) of the
+    transitions ``num_timesteps`` counts is a reset step that trains nothing.
     """
 
     def __init__(self, *args: Any, **kwargs: Any):
@@ -205,25 +272,39 @@ class DevicePPO(PPO):
         # a saved model loads as a plain PPO with SB3's buffer (and a fresh reset: the last
         # observation is a tensor here, NumPy in SB3's rollout)
         return [*super()._excluded_save_params(), "rollout_buffer_class", "rollout_buffer_kwargs", "_adapter",
-                "_ep_return", "_ep_length", "_low", "_high", "_last_obs", "_last_episode_starts"]  # fmt: skip
+                "_ep_return", "_ep_length", "_low", "_high", "_last_obs", "_last_episode_starts",
+                "_ended", "_next_step"]  # fmt: skip
+
+    def _setup_learn(self, *args: Any, **kwargs: Any) -> Any:
+        out = super()._setup_learn(*args, **kwargs)
+        if isinstance(self._last_obs, np.ndarray) and getattr(self, "_adapter", None) is not None:
+            self._restart_episodes()  # the env was reset (the rollout keeps its observation as a tensor)
+        return out
 
     def _bind(self, env: VecEnv) -> None:
         """Find the adapter under ``env``'s wrappers and set up the episode statistics."""
         adapter = find_adapter(env)
         refusal = "the env is not a GymnasiumVecEnv" if adapter is None else adapter.tensor_path_refusal()
         if refusal is not None:
-            raise ValueError(f"DevicePPO needs a SAME_STEP GymnasiumVecEnv with the Torch backend: {refusal}")
+            raise ValueError(f"DevicePPO needs a SAME_STEP or NEXT_STEP GymnasiumVecEnv with the Torch backend: "
+                             f"{refusal}")  # fmt: skip
         self._adapter = adapter
+        self._next_step = adapter.autoreset_mode == AutoresetMode.NEXT_STEP
         monitor = env
         while monitor is not None and not isinstance(monitor, VecMonitor):
             monitor = getattr(monitor, "venv", None)
         self._t_start = monitor.t_start if monitor is not None else time.time()
-        n, dev = env.num_envs, self.device
+        self._restart_episodes()
+        if isinstance(self.action_space, spaces.Box):
+            self._low = th.as_tensor(self.action_space.low, device=self.device)
+            self._high = th.as_tensor(self.action_space.high, device=self.device)
+
+    def _restart_episodes(self) -> None:
+        """Episode statistics and the NEXT_STEP carry ("ended at the previous step") of a fresh reset."""
+        n, dev = self._adapter.num_envs, self.device
         self._ep_return = th.zeros(n, dtype=th.float32, device=dev)
         self._ep_length = th.zeros(n, dtype=th.int64, device=dev)
-        if isinstance(self.action_space, spaces.Box):
-            self._low = th.as_tensor(self.action_space.low, device=dev)
-            self._high = th.as_tensor(self.action_space.high, device=dev)
+        self._ended = th.zeros(n, dtype=th.bool, device=dev)
 
     def _env_actions(self, actions: th.Tensor) -> th.Tensor:
         if not isinstance(self.action_space, spaces.Box):
@@ -244,10 +325,34 @@ class DevicePPO(PPO):
         idx = th.as_tensor(np.flatnonzero(done), device=self.device)
         returns = self._ep_return[idx].cpu().numpy()
         lengths = self._ep_length[idx].cpu().numpy()
-        t = round(time.time() - self._t_start, 6)
-        self.ep_info_buffer.extend({"r": round(float(r), 6), "l": int(l), "t": t} for r, l in zip(returns, lengths))
+        self._add_episodes(returns, lengths)
         self._ep_return[idx] = 0.0
         self._ep_length[idx] = 0
+
+    def _add_episodes(self, returns: np.ndarray, lengths: np.ndarray) -> None:
+        t = round(time.time() - self._t_start, 6)
+        self.ep_info_buffer.extend({"r": round(float(r), 6), "l": int(l), "t": t} for r, l in zip(returns, lengths))
+
+    def _track_episodes(self, buf: TensorRolloutBuffer, rewards: th.Tensor, valid: th.Tensor, done: th.Tensor) -> None:
+        """NEXT_STEP: the episodes' returns and lengths so far, on the device, into the buffer's
+        ``ep_return`` / ``ep_length`` at the position the next ``add`` fills (a reset step adds
+        nothing); an episode that ended in this step starts over."""
+        self._ep_return += th.where(valid, rewards, 0.0)
+        self._ep_length += valid
+        buf.tensors["ep_return"][buf.pos] = self._ep_return
+        buf.tensors["ep_length"][buf.pos] = self._ep_length
+        self._ep_return.masked_fill_(done, 0.0)
+        self._ep_length.masked_fill_(done, 0)
+
+    def _flush_episodes(self, buf: TensorRolloutBuffer) -> None:
+        """NEXT_STEP: the rollout's finished episodes to ``ep_info_buffer`` in SB3's order (step by
+        step, worlds in order), with one read of the buffer's flags on the host."""
+        t = buf.tensors
+        done = t["dones"] > 0
+        returns = t["ep_return"][done].cpu().numpy()  # boolean indexing is row-major: step, then world
+        lengths = t["ep_length"][done].cpu().numpy()
+        if len(returns):
+            self._add_episodes(returns, lengths.astype(np.int64))
 
     def _bootstrap_timeouts(self, step: Any, rewards: th.Tensor) -> th.Tensor:
         """``rewards + gamma * V(final_obs)`` in the worlds cut by their time limit (not terminated)."""
@@ -271,11 +376,13 @@ class DevicePPO(PPO):
         self.policy.set_training_mode(False)
         self._last_obs = self._as_device(self._last_obs)
         self._last_episode_starts = self._as_device(self._last_episode_starts, th.float32)
-        n_steps = 0
         rollout_buffer.reset()
         if self.use_sde:
             self.policy.reset_noise(env.num_envs)
         callback.on_rollout_start()
+        if self._next_step:
+            return self._collect_next_step(env, callback, rollout_buffer, n_rollout_steps)
+        n_steps = 0
         dones = None
         while n_steps < n_rollout_steps:
             if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
@@ -301,6 +408,45 @@ class DevicePPO(PPO):
         with th.no_grad():
             values = self.policy.predict_values(new_obs)
         rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
+        callback.update_locals(locals())
+        callback.on_rollout_end()
+        return True
+
+    def _collect_next_step(self, env: VecEnv, callback: Any, rollout_buffer: TensorRolloutBuffer,
+                           n_rollout_steps: int) -> bool:  # fmt: skip
+        """The rollout on a NEXT_STEP env (module docstring): device work only, no host reads until
+        the rollout's end."""
+        rollout_buffer.next_step = True
+        n_steps = 0
+        dones = None
+        while n_steps < n_rollout_steps:
+            if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
+                self.policy.reset_noise(env.num_envs)
+            with th.no_grad():
+                actions, values, log_probs = self.policy(self._last_obs)
+            step = self._adapter.step_tensors(self._env_actions(actions))
+            new_obs = step.obs.to(self.device, copy=True)  # the env may write its next step into its tensor
+            rewards = step.rewards.to(self.device)
+            terminated, truncated = step.terminated.to(self.device), step.truncated.to(self.device)
+            dones = terminated | truncated
+            self.num_timesteps += env.num_envs
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return False
+            valid = ~self._ended  # a world that ended at the previous step was reset by this one
+            self._track_episodes(rollout_buffer, rewards, valid, dones)
+            n_steps += 1
+            if isinstance(self.action_space, spaces.Discrete):
+                actions = actions.reshape(-1, 1)
+            rollout_buffer.add_flags(valid, dones, truncated & ~terminated)
+            rollout_buffer.add(self._last_obs, actions, rewards, self._last_episode_starts, values, log_probs)
+            self._last_obs = new_obs
+            self._last_episode_starts = self._ended.to(th.float32)  # a reset step's observation opens an episode
+            self._ended = dones
+        with th.no_grad():
+            values = self.policy.predict_values(new_obs)
+        rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
+        self._flush_episodes(rollout_buffer)
         callback.update_locals(locals())
         callback.on_rollout_end()
         return True

@@ -5,7 +5,8 @@
 
 (``key=value`` overrides as in ``abd-gym-train``).  For each rollout path (``both``: SB3's NumPy
 rollout and the device-resident one of :mod:`abd_gym.agents.device_rollout`, where it applies)
-the profiler builds the training env and model as ``abd-gym-train`` does, runs one warm-up
+the profiler builds the training env (SAME_STEP autoreset for SB3's path, NEXT_STEP for the
+device path) and model as ``abd-gym-train`` does, runs one warm-up
 iteration, then K PPO iterations timed only at the rollout / update boundaries (the throughputs)
 and K more with every piece timed (the table):
 
@@ -22,7 +23,8 @@ and K more with every piece timed (the table):
 Each timed piece is closed by ``torch.cuda.synchronize()`` and ``wp.synchronize()`` on a GPU, so
 the table's sum is slower than the untimed run; the shares are what it is for.  A piece's time
 excludes the pieces timed inside it.  Last, the vector env alone steps the same number of steps
-with random actions made where its actions live.  A table is printed and JSON written
+with random actions made where its actions live (the last path's env: NEXT_STEP where the device
+path is profiled).  A table is printed and JSON written
 (default ``runs/profile-<config>-<YYYYmmdd-HHMMSS>.json``).
 """
 from __future__ import annotations
@@ -38,7 +40,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .common import build_model, build_train_env, device_description, versions, write_json
+from .common import build_model, build_train_env, device_description, train_autoreset_mode, versions, write_json
 from .config import validate_config
 from .device_rollout import DEVICE_PATH, SB3_PATH, find_adapter, rollout_path
 from .train import raw_config_from_args
@@ -165,6 +167,7 @@ def profile_path(cfg: dict[str, Any], rollout: str, k: int) -> dict[str, Any]:
     env.close()
     steps = k * steps_per_iteration
     return {
+        "autoreset_mode": train_autoreset_mode(rollout).name,
         "steps_per_iteration": steps_per_iteration,
         "train_steps_per_s": steps / wall,
         "rollout_steps_per_s": steps / rollout_s,
@@ -257,6 +260,7 @@ def format_report(report: dict[str, Any]) -> str:
     lines.append("-" * len(head))
     for key, label in (("train_steps_per_s", "training"), ("rollout_steps_per_s", "rollout phase")):
         lines.append(f"{label + ' steps/s':<24}" + "".join(f"{report['paths'][p][key]:>16,.0f}{'':>8}" for p in paths))
+    lines.append(f"{'autoreset':<24}" + "".join(f"{report['paths'][p]['autoreset_mode']:>16}{'':>8}" for p in paths))
     lines.append(f"{'vector env alone, random actions':<34}{report['vector_env_steps_per_s']:>14,.0f} steps/s")
     lines.append(f"default rollout: {report['default_rollout']} ({report['default_rollout_reason']})")
     return "\n".join(lines)

@@ -21,9 +21,10 @@ The hot path is array code over all worlds; the only per-world Python work is bu
 of info dicts SB3 requires, and only done worlds get keys in it.  Torch tensors (``backend="torch"``
 envs) are moved to NumPy on the way out, actions to tensors on the env's device on the way in.
 
-:meth:`GymnasiumVecEnv.step_tensors` is the other way out for a SAME_STEP env with the Torch
-backend: the step's tensors as they are, on the env's device, with no per-world info dicts (the
-device-resident PPO rollout in :mod:`abd_gym.agents.device_rollout` reads it).
+:meth:`GymnasiumVecEnv.step_tensors` is the other way out for a SAME_STEP or NEXT_STEP env with the
+Torch backend: the step's tensors as they are, on the env's device, with no per-world info dicts
+(the device-resident PPO rollout in :mod:`abd_gym.agents.device_rollout` reads it).  In NEXT_STEP
+mode it reads nothing on the host, so the env's step can run as its CUDA graph.
 """
 from __future__ import annotations
 
@@ -42,17 +43,19 @@ __all__ = ["GymnasiumVecEnv", "TensorStep", "make_vec_env", "make_gym_vector_env
 class TensorStep(NamedTuple):
     """One step of all N worlds as Torch tensors on the env's device (``done`` on the host).
 
-    ``obs`` (N, ...) is the first observation of the next episode where a world finished;
-    ``final_obs`` (N, ...) holds the finished episode's last observation in those rows (None when
-    no world finished); ``done`` is the host bool mask ``terminated | truncated`` the SAME_STEP
-    reset already had to read.
+    SAME_STEP: ``obs`` (N, ...) is the first observation of the next episode where a world
+    finished; ``final_obs`` (N, ...) holds the finished episode's last observation in those rows
+    (None when no world finished); ``done`` is the host bool mask ``terminated | truncated`` the
+    SAME_STEP reset already had to read.  NEXT_STEP: ``obs`` is the env's as it is (a finished
+    world's last observation; the next step resets it), ``done`` and ``final_obs`` are None (the
+    flags stay on the device).
     """
 
     obs: Any
     rewards: Any  # (N,) float32
     terminated: Any  # (N,) bool
     truncated: Any  # (N,) bool
-    done: np.ndarray  # (N,) bool, host
+    done: np.ndarray | None  # (N,) bool, host (SAME_STEP)
     final_obs: Any
 
 
@@ -287,8 +290,8 @@ class GymnasiumVecEnv(VecEnv):
     # -- tensor path ------------------------------------------------------------------------------
     def tensor_path_refusal(self) -> str | None:
         """Why :meth:`step_tensors` cannot serve this env (None: it can)."""
-        if self.autoreset_mode != AutoresetMode.SAME_STEP:
-            return f"the env autoresets in {self.autoreset_mode.name} mode, not SAME_STEP"
+        if self.autoreset_mode not in (AutoresetMode.SAME_STEP, AutoresetMode.NEXT_STEP):
+            return f"the env autoresets in {self.autoreset_mode.name} mode, not SAME_STEP or NEXT_STEP"
         if getattr(self.env.unwrapped, "backend", None) != "torch":
             return "the env does not have the Torch backend"
         if not isinstance(self.observation_space, gym.spaces.Box):
@@ -297,7 +300,9 @@ class GymnasiumVecEnv(VecEnv):
 
     def step_tensors(self, actions: Any) -> TensorStep:
         """Step all worlds with ``actions`` (a tensor on any device) and return the tensors as the
-        env gives them; the env's info dicts are not split per world (no ``infos`` list)."""
+        env gives them; the env's info dicts are not split per world (no ``infos`` list).  A
+        NEXT_STEP env's step is returned without reading anything on the host (see
+        :class:`TensorStep`)."""
         import torch
 
         n = self.num_envs
@@ -306,6 +311,8 @@ class GymnasiumVecEnv(VecEnv):
         rewards = rewards.reshape(n).to(torch.float32)
         terminated = terminated.reshape(n).to(torch.bool)
         truncated = truncated.reshape(n).to(torch.bool)
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            return TensorStep(obs, rewards, terminated, truncated, None, None)
         mask = info.get("_final_obs")
         if mask is None:
             return TensorStep(obs, rewards, terminated, truncated, np.zeros(n, dtype=bool), None)
@@ -467,14 +474,15 @@ def make_gym_vector_env(
     render_mode: str | None = None,
     env_kwargs: dict[str, Any] | None = None,
     backend: str | None = None,
+    autoreset_mode: AutoresetMode = AutoresetMode.SAME_STEP,
 ) -> gym.vector.VectorEnv:
     """A Gymnasium vector env for ``env_id`` that autoresets in the same step where possible.
 
     A registered ``vector_entry_point`` that takes ``autoreset_mode`` (the abd_gym envs) is built
-    natively with ``autoreset_mode=SAME_STEP``, ``backend`` (default ``"numpy"``; ``env_kwargs``
-    may name it too) and ``device``; otherwise the
-    single env is vectorised with a SAME_STEP ``SyncVectorEnv``.  ``device`` and ``backend`` are
-    passed only to creators that accept them.
+    natively with ``autoreset_mode`` (default SAME_STEP), ``backend`` (default ``"numpy"``;
+    ``env_kwargs`` may name it too) and ``device``; otherwise the single env is vectorised with a
+    SAME_STEP ``SyncVectorEnv`` (whatever ``autoreset_mode`` says).  ``device`` and ``backend``
+    are passed only to creators that accept them.
     """
     import abd_gym  # noqa: F401 -- registers the abd_gym/ ids (once the envs exist)
 
@@ -490,7 +498,7 @@ def make_gym_vector_env(
         init = creator.__init__ if inspect.isclass(creator) else creator
         if _accepts(init, "autoreset_mode"):
             vkwargs = dict(kwargs)
-            vkwargs["autoreset_mode"] = AutoresetMode.SAME_STEP
+            vkwargs["autoreset_mode"] = autoreset_mode
             if device is not None and _accepts(init, "device"):
                 vkwargs["device"] = device
             if _accepts(init, "backend"):
@@ -524,11 +532,13 @@ def make_vec_env(
     render_mode: str | None = None,
     env_kwargs: dict[str, Any] | None = None,
     backend: str | None = None,
+    autoreset_mode: AutoresetMode = AutoresetMode.SAME_STEP,
 ) -> GymnasiumVecEnv:
     """SB3 ``VecEnv`` for a registered Gymnasium id (see :func:`make_gym_vector_env`)."""
     venv = GymnasiumVecEnv(
         make_gym_vector_env(
-            env_id, num_envs, device=device, render_mode=render_mode, env_kwargs=env_kwargs, backend=backend
+            env_id, num_envs, device=device, render_mode=render_mode, env_kwargs=env_kwargs, backend=backend,
+            autoreset_mode=autoreset_mode,
         )
     )
     if seed is not None:

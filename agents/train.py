@@ -24,7 +24,8 @@ evaluation reached the task's threshold (null if none did).
 
 PPO's rollout stays on the policy's device where it can (``abd_gym.agents.device_rollout``);
 the path taken is printed after the run directory and recorded in the summary (``rollout``,
-``rollout_reason``).
+``rollout_reason``), with the training env's autoreset mode (``autoreset_mode``: NEXT_STEP on the
+device path, whose env step then runs as one CUDA graph on a GPU; SAME_STEP on SB3's).
 
 Progress: the run directory is printed first.  On a terminal SB3's progress bar shows; without
 one (or with ``--no-progress``) one plain line every tenth of the run gives steps, env steps/s
@@ -56,6 +57,7 @@ from .common import (
     eval_env_count,
     evaluate,
     reward_threshold,
+    train_autoreset_mode,
     versions,
     write_json,
 )
@@ -113,7 +115,8 @@ def train(
     from .device_rollout import rollout_path
 
     rollout, rollout_reason = rollout_path(cfg)
-    print(f"rollout: {rollout} ({rollout_reason})", flush=True)
+    autoreset = train_autoreset_mode(rollout).name
+    print(f"rollout: {rollout} ({rollout_reason}); autoreset: {autoreset}", flush=True)
     env = build_train_env(cfg, rollout=rollout)
     import importlib.util
 
@@ -180,6 +183,7 @@ def train(
         "device_description": device_description(cfg["device"]),
         "rollout": rollout,
         "rollout_reason": rollout_reason,
+        "autoreset_mode": autoreset,
         **{k: result[k] for k in ("mean_return", "std_return", "eval_episodes", "mean_episode_length")},
         "reward_threshold": threshold,
         "solved": bool(threshold is not None and result["mean_return"] >= threshold),

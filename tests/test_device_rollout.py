@@ -1,4 +1,5 @@
-"""The device-resident PPO rollout learns exactly as SB3's own NumPy rollout does (CPU)."""
+"""The device-resident PPO rollout learns exactly as SB3's own NumPy rollout does, on a SAME_STEP env,
+and on a NEXT_STEP env trains on exactly the transitions SB3's rollout collects (CPU)."""
 from __future__ import annotations
 
 import numpy as np
@@ -127,9 +128,10 @@ def test_train_takes_and_records_the_device_path(tmp_path, capsys):
     cfg["n_timesteps"], cfg["eval_episodes"] = 2 * N_ENVS * 8, 2
     summary = agent_train.train(cfg, config_name="dev", run_dir=tmp_path / "run", progress_bar=False)
     assert summary["rollout"] == "device" and summary["timesteps"] == 2 * N_ENVS * 8
+    assert summary["autoreset_mode"] == "NEXT_STEP"
     assert summary["mean_episode_length"] > 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[1].startswith("rollout: device (")
+    assert lines[1].startswith("rollout: device (") and lines[1].endswith("; autoreset: NEXT_STEP")
     # the saved model is a plain PPO with SB3's own buffer, and trains on in SB3's rollout
     model = PPO.load(tmp_path / "run" / "model.zip", device="cpu")
     assert model.rollout_buffer_class is None or model.rollout_buffer_class.__name__ == "RolloutBuffer"
@@ -137,3 +139,206 @@ def test_train_takes_and_records_the_device_path(tmp_path, capsys):
     model.set_env(env)
     model.learn(total_timesteps=N_ENVS * 8, reset_num_timesteps=False)
     assert model.num_timesteps == 3 * N_ENVS * 8
+
+
+# ---------------------------------------------------------------------------------------------
+# the NEXT_STEP env (what training builds for the device path): reset steps masked out
+
+NS_ENVS, NS_STEPS, NS_ROLLOUTS = 4, 9, 3
+NS_LIMIT = 9  # worlds 1 and 3 are cut at their 9th step, the last position of the first rollout
+NS_START = (0.0, 0.12)  # (x [m], theta [rad]) every episode after the first starts from: 5 steps to fall
+_GAIN = th.tensor([0.0, 0.0, -20.0, -2.0])  # pushes the cart away from the lean: the pole falls
+_VALUE = th.tensor([0.5, -0.3, 4.0, 0.7])
+
+
+def _scripted(model):
+    """A state-feedback policy and value function (no sampling): both paths act alike in alike states."""
+
+    def forward(obs, deterministic=False):
+        obs = obs.float()
+        return th.tanh(obs @ _GAIN)[:, None], predict_values(obs), th.zeros(len(obs))
+
+    def predict_values(obs):
+        return (obs.float() @ _VALUE)[:, None] + 1.0
+
+    model.policy.forward, model.policy.predict_values = forward, predict_values
+
+
+def _fixed_restarts(venv):
+    """Episodes after the first start from NS_START (the two modes draw restarts from different
+    generators); the full reset draws as the task does."""
+    from abd_gym.agents.device_rollout import find_adapter
+
+    env = find_adapter(venv).env.unwrapped
+    draw, reset = env.initial_state, env.reset
+    full = [False]
+
+    def initial_state(n, rng, options):
+        if full[0]:
+            full[0] = False
+            return draw(n, rng, options)
+        return np.tile([NS_START], (n, 1)), np.zeros((n, 2))
+
+    def full_reset(*args, **kwargs):
+        full[0] = True
+        return reset(*args, **kwargs)
+
+    env.initial_state, env.reset = initial_state, full_reset
+
+
+def _rollouts(model, count):
+    """``count`` rollouts of the scripted policy; each buffer's (n_steps, n_envs) tensors, copied."""
+    _scripted(model)
+    _, callback = model._setup_learn(count * model.n_steps * model.n_envs)
+    out = []
+    for _ in range(count):
+        assert model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
+        buf = model.rollout_buffer
+        if isinstance(buf, TensorRolloutBuffer):
+            out.append({k: v.clone() for k, v in buf.tensors.items()})
+        else:
+            out.append({k: th.as_tensor(getattr(buf, k)) for k in _FIELDS})
+    return out
+
+
+def _gae(rewards, values, dones_after, last_value, gamma, lam):
+    """Reference GAE(lambda) of one world's run of transitions (float64)."""
+    adv, last = np.zeros(len(rewards)), 0.0
+    next_values = np.append(values[1:], last_value)
+    for j in reversed(range(len(rewards))):
+        nnt = 1.0 - dones_after[j]
+        last = rewards[j] + gamma * next_values[j] * nnt - values[j] + gamma * lam * nnt * last
+        adv[j] = last
+    return adv
+
+
+@pytest.fixture(scope="module")
+def next_and_same_step():
+    from abd_gym.agents.common import build_train_env
+
+    cfg = _config(NS_LIMIT, n_envs=NS_ENVS, **{"hyperparams.n_steps": NS_STEPS, "hyperparams.batch_size": 4})
+    th.set_num_threads(1)
+    nxt = build_model(cfg, env := build_train_env(cfg, rollout="device"), rollout="device")
+    _fixed_restarts(env)
+    next_rollouts = _rollouts(nxt, NS_ROLLOUTS)
+    cfg_same = dict(cfg, hyperparams=dict(cfg["hyperparams"], n_steps=NS_STEPS * NS_ROLLOUTS + 1))
+    same_env = VecMonitor(make_vec_env(cfg["env_id"], NS_ENVS, seed=cfg["seed"], env_kwargs=cfg["env_kwargs"],
+                                       backend="torch"))  # fmt: skip
+    same = build_model(cfg_same, same_env, rollout="sb3")
+    _fixed_restarts(same_env)
+    (same_rollout,) = _rollouts(same, 1)
+    return nxt, next_rollouts, same, same_rollout
+
+
+def test_next_step_env_for_the_device_path():
+    from gymnasium.vector import AutoresetMode
+
+    from abd_gym.agents.common import build_train_env
+    from abd_gym.agents.device_rollout import find_adapter
+
+    cfg = _config(n_envs=2)
+    assert find_adapter(build_train_env(cfg, rollout="device")).autoreset_mode == AutoresetMode.NEXT_STEP
+    assert find_adapter(build_train_env(cfg, rollout="sb3")).autoreset_mode == AutoresetMode.SAME_STEP
+
+
+def test_valid_transitions_are_same_step_transitions(next_and_same_step):
+    nxt, rollouts, same, ref = next_and_same_step
+    cat = {k: th.cat([r[k] for r in rollouts]).numpy() for k in rollouts[0]}  # (steps, worlds)
+    valid = cat["valid"] > 0
+    assert (~valid).any(axis=0).all()  # every world was reset in the rollouts
+    assert valid[0].all() and not valid[NS_STEPS, 1:].any()  # worlds 1-3 ended at the first rollout's last step
+    cuts = cat["cuts"][NS_STEPS - 1]
+    assert cuts[[1, 3]].all() and not cuts[[0, 2]].any()
+    assert (cat["dones"] * (1 - cat["cuts"])).sum() > 0  # terminations too
+    for w in range(NS_ENVS):
+        v = valid[:, w]
+        m = int(v.sum())
+        for name in ("observations", "actions"):
+            np.testing.assert_array_equal(cat[name][v, w], ref[name][:m, w], err_msg=f"{name} world {w}")
+        # rewards carry the time-limit bootstrap (NEXT_STEP: from the next position's value)
+        np.testing.assert_allclose(cat["rewards"][v, w], ref["rewards"][:m, w], rtol=1e-6, err_msg=f"world {w}")
+        dones_after = ref["episode_starts"][1 : m + 1, w].numpy()
+        np.testing.assert_array_equal(cat["dones"][v, w], dones_after, err_msg=f"dones world {w}")
+        np.testing.assert_array_equal(cat["rewards"][~v, w], 0.0)  # a reset step's reward
+
+
+def test_valid_advantages_are_gae_of_the_same_step_run(next_and_same_step):
+    nxt, rollouts, same, ref = next_and_same_step
+    gamma, lam = nxt.gamma, nxt.gae_lambda
+    r_ref, v_ref, starts = (ref[k].numpy().astype(np.float64) for k in ("rewards", "values", "episode_starts"))
+    offset = np.zeros(NS_ENVS, dtype=int)  # each world's transitions before this rollout
+    for r in rollouts:
+        valid = r["valid"].numpy() > 0
+        for w in range(NS_ENVS):
+            m = int(valid[:, w].sum())
+            a, b = offset[w], offset[w] + m
+            expected = _gae(r_ref[a:b, w], v_ref[a:b, w], starts[a + 1 : b + 1, w], v_ref[b, w], gamma, lam)
+            np.testing.assert_allclose(r["advantages"].numpy()[valid[:, w], w], expected, rtol=1e-5, atol=1e-5,
+                                       err_msg=f"world {w}")  # fmt: skip
+            np.testing.assert_allclose(r["returns"].numpy()[valid[:, w], w], expected + v_ref[a:b, w], rtol=1e-5,
+                                       atol=1e-5)  # fmt: skip
+            offset[w] = b
+
+
+def test_next_step_episode_statistics(next_and_same_step):
+    from collections import Counter
+
+    nxt, rollouts, _, ref = next_and_same_step
+    got = [(e["r"], e["l"]) for e in nxt.ep_info_buffer]
+    valid = th.cat([r["valid"] for r in rollouts]).numpy() > 0
+    lengths = []  # the episodes the SAME_STEP run completed within each world's valid transitions
+    for w in range(NS_ENVS):
+        ends = np.flatnonzero(ref["episode_starts"][1 : int(valid[:, w].sum()) + 1, w].numpy()) + 1
+        lengths += np.diff(ends, prepend=0).tolist()
+    assert Counter(got) == Counter((float(n), n) for n in lengths)  # CartPole: 1 per step, no reset step counted
+    assert {n for _, n in got} >= {5, NS_LIMIT}  # terminated from NS_START, cut by the limit
+
+
+@pytest.mark.filterwarnings("ignore:You have specified a mini-batch size")  # the smaller last minibatch is the point
+def test_next_step_training_masks_reset_steps():
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from abd_gym.agents.common import build_train_env
+
+    n_envs, n_steps, batch, epochs, iterations = 4, 16, 20, 2, 3
+    cfg = _config(8, n_envs=n_envs, **{"hyperparams.n_steps": n_steps, "hyperparams.batch_size": batch,
+                                       "hyperparams.n_epochs": epochs})  # fmt: skip
+    th.set_num_threads(1)
+    model = build_model(cfg, build_train_env(cfg, rollout="device"), rollout="device")
+    flags, draws = [], []  # per rollout: (valid, dones) (n_steps, n_envs); minibatch index tensors
+
+    class Record(BaseCallback):
+        def _on_step(self):
+            return True
+
+        def _on_rollout_end(self):
+            t = self.model.rollout_buffer.tensors
+            flags.append((t["valid"] > 0, t["dones"] > 0))
+            draws.append([])
+
+    buf = model.rollout_buffer
+    get_samples = buf._get_samples
+    buf._get_samples = lambda idx, env=None: draws[-1].append(idx) or get_samples(idx, env)
+    model.learn(total_timesteps=n_envs * n_steps * iterations, callback=Record())
+    assert model.num_timesteps == n_envs * n_steps * iterations  # every world at every step, reset steps too
+
+    valid = th.cat([v for v, _ in flags])
+    dones = th.cat([d for _, d in flags])
+    # exactly the step after an episode's end is masked, across rollout boundaries too
+    assert valid[0].all() and th.equal(valid[1:], ~dones[:-1])
+    episodes = list(model.ep_info_buffer)
+    assert len(episodes) == int(dones.sum()) and int((~valid).sum()) == int(dones[:-1].sum())
+    # the valid positions are the episodes' own steps: finished ones plus the ones running on
+    assert int(valid.sum()) == sum(e["l"] for e in episodes) + int(model._ep_length.sum())
+    assert all(e["r"] == e["l"] for e in episodes) and max(e["l"] for e in episodes) <= 8
+
+    for (v, _), idx in zip(flags, draws):
+        allowed = th.nonzero(v.transpose(0, 1).reshape(-1)).flatten()  # world-major, as get() flattens
+        m = len(allowed)
+        sizes = [batch] * (m // batch) + ([m % batch] if m % batch else [])
+        assert [len(i) for i in idx] == sizes * epochs
+        for e in range(epochs):
+            epoch = th.cat(idx[e * len(sizes) : (e + 1) * len(sizes)])
+            assert th.equal(th.sort(epoch).values, allowed)  # each valid position once per epoch, nothing else
+    # PPO's explained variance reads the last rollout's values and returns at its valid positions
+    assert model.rollout_buffer.values.shape == (int(flags[-1][0].sum()), 1)
