@@ -68,6 +68,24 @@ def slide_mask(case):
     return np.array([joints[j].kind == PRISMATIC for j in measured_joints(case)], dtype=bool)
 
 
+def _mujoco_starts(mjm, case, q0, v0):
+    """(an MjData of ``mjm``, each world's full physics state (worlds, nstate)) at joint
+    coordinates q0 and rates v0 (worlds, num_joints) in abd_gym's joint order: the initial states
+    ``mujoco.rollout`` takes."""
+    import mujoco
+
+    c = CASES[case]
+    mjd = mujoco.MjData(mjm)
+    qpos, qvel = c.mujoco_qpos(q0), c.mujoco_qpos(v0)
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    x0 = np.empty((len(q0), mujoco.mj_stateSize(mjm, spec)))
+    for w in range(len(q0)):
+        mujoco.mj_resetData(mjm, mjd)
+        mjd.qpos[:], mjd.qvel[:] = qpos[w], qvel[w]
+        mujoco.mj_getState(mjm, mjd, x0[w], spec)
+    return mjd, x0
+
+
 def mujoco_run(case, q0, v0, dt, integrator="RK4"):
     """MuJoCo C's coordinates (samples, worlds, measured joints) [rad, m] every 0.02 s over 1 s with
     ``integrator`` at step dt [s], from joint coordinates q0 and rates v0 (worlds, num_joints) in
@@ -77,14 +95,8 @@ def mujoco_run(case, q0, v0, dt, integrator="RK4"):
 
     c = CASES[case]
     mjm = mujoco.MjModel.from_xml_string(with_integrator(c.xml(dt), integrator))
-    mjd = mujoco.MjData(mjm)
-    qpos, qvel = c.mujoco_qpos(q0), c.mujoco_qpos(v0)
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    x0 = np.empty((len(q0), mujoco.mj_stateSize(mjm, spec)))
-    for w in range(len(q0)):
-        mujoco.mj_resetData(mjm, mjd)
-        mjd.qpos[:], mjd.qvel[:] = qpos[w], qvel[w]
-        mujoco.mj_getState(mjm, mjd, x0[w], spec)
+    mjd, x0 = _mujoco_starts(mjm, case, q0, v0)
+    qpos = c.mujoco_qpos(q0)
     every, n = _samples(dt)
     state, _ = rollout.rollout(mjm, mjd, x0, nstep=n)  # (worlds, steps, nstate): time, qpos, qvel, ...
     reset = not np.allclose(state[:, -1, 0], n * dt, rtol=1e-6)
@@ -105,17 +117,9 @@ def limited_worlds(case, dt=1e-3):
     limited = [j for j in range(mjm.njnt) if mjm.jnt_limited[j]]
     if not limited:
         return 0.0
-    mjd = mujoco.MjData(mjm)
-    q0, v0 = c.states(8, 1)
-    qpos, qvel = c.mujoco_qpos(q0), c.mujoco_qpos(v0)
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    x0 = np.empty((len(q0), mujoco.mj_stateSize(mjm, spec)))
-    for w in range(len(q0)):
-        mujoco.mj_resetData(mjm, mjd)
-        mjd.qpos[:], mjd.qvel[:] = qpos[w], qvel[w]
-        mujoco.mj_getState(mjm, mjd, x0[w], spec)
+    mjd, x0 = _mujoco_starts(mjm, case, *c.states(8, 1))
     state, _ = rollout.rollout(mjm, mjd, x0, nstep=int(round(T_END / dt)))
-    out = np.zeros(len(q0), bool)
+    out = np.zeros(len(x0), bool)
     for j in limited:
         q = state[:, :, 1 + mjm.jnt_qposadr[j]]
         lo, hi = mjm.jnt_range[j]

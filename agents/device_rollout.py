@@ -385,13 +385,7 @@ class DevicePPO(PPO):
         n_steps = 0
         dones = None
         while n_steps < n_rollout_steps:
-            if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
-                self.policy.reset_noise(env.num_envs)
-            with th.no_grad():
-                actions, values, log_probs = self.policy(self._last_obs)
-            step = self._adapter.step_tensors(self._env_actions(actions))
-            new_obs = step.obs.to(self.device, copy=True)  # the env may write its next step into its tensor
-            rewards = step.rewards.to(self.device)
+            actions, values, log_probs, step, new_obs, rewards = self._act(env, n_steps)
             dones = self._as_device(step.done)
             self.num_timesteps += env.num_envs
             callback.update_locals(locals())
@@ -412,6 +406,17 @@ class DevicePPO(PPO):
         callback.on_rollout_end()
         return True
 
+    def _act(self, env: VecEnv, n_steps: int) -> tuple:
+        """One step of the rollout's policy and env: (actions, values, log-probs, the env's
+        TensorStep, the next observation (a copy on the policy's device), the rewards there)."""
+        if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
+            self.policy.reset_noise(env.num_envs)
+        with th.no_grad():
+            actions, values, log_probs = self.policy(self._last_obs)
+        step = self._adapter.step_tensors(self._env_actions(actions))
+        new_obs = step.obs.to(self.device, copy=True)  # the env may write its next step into its tensor
+        return actions, values, log_probs, step, new_obs, step.rewards.to(self.device)
+
     def _collect_next_step(self, env: VecEnv, callback: Any, rollout_buffer: TensorRolloutBuffer,
                            n_rollout_steps: int) -> bool:  # fmt: skip
         """The rollout on a NEXT_STEP env (module docstring): device work only, no host reads until
@@ -420,13 +425,7 @@ class DevicePPO(PPO):
         n_steps = 0
         dones = None
         while n_steps < n_rollout_steps:
-            if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
-                self.policy.reset_noise(env.num_envs)
-            with th.no_grad():
-                actions, values, log_probs = self.policy(self._last_obs)
-            step = self._adapter.step_tensors(self._env_actions(actions))
-            new_obs = step.obs.to(self.device, copy=True)  # the env may write its next step into its tensor
-            rewards = step.rewards.to(self.device)
+            actions, values, log_probs, step, new_obs, rewards = self._act(env, n_steps)
             terminated, truncated = step.terminated.to(self.device), step.truncated.to(self.device)
             dones = terminated | truncated
             self.num_timesteps += env.num_envs
