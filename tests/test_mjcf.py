@@ -16,10 +16,10 @@ gym_mujoco = pytest.importorskip("gymnasium.envs.mujoco")
 
 import abd_gym as ag  # noqa: E402
 from abd_gym import mjcf  # noqa: E402
+from mujoco_reference import rk4_qpos  # noqa: E402
 
 ASSETS = os.path.join(os.path.dirname(gym_mujoco.__file__), "assets")
 FILES = ("inverted_pendulum.xml", "inverted_double_pendulum.xml", "reacher.xml")
-REFERENCE_DT = 1e-4  # MuJoCo RK4 step of the reference [s]
 # max |qpos − qpos_ref| over 1 s [rad or m]: MuJoCo-imported models should stay within a few hundredths of a radian
 BOUND = 0.01
 
@@ -64,18 +64,7 @@ def model(name, passive=True):
 
 def mujoco_qpos(m, qpos, qvel, ctrl=None, duration=1.0):
     """(worlds, nq) qpos after ``duration`` [s] of MuJoCo RK4 at REFERENCE_DT from each state."""
-    m.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4
-    m.opt.timestep = REFERENCE_DT
-    d, out = mujoco.MjData(m), []
-    for q, v in zip(qpos, qvel):
-        mujoco.mj_resetData(m, d)
-        d.qpos[:], d.qvel[:] = q, v
-        if ctrl is not None:
-            d.ctrl[:] = ctrl
-        for _ in range(round(duration / REFERENCE_DT)):
-            mujoco.mj_step(m, d)
-        out.append(d.qpos.copy())
-    return np.array(out)
+    return rk4_qpos(m, qpos, qvel, ctrl, duration)
 
 
 def abd_qpos(scene, qpos, qvel, dt, controls=None, duration=1.0):

@@ -14,25 +14,18 @@ import abd_gym as ag  # noqa: E402
 from abd_gym import mechanisms  # noqa: E402
 from abd_gym.mjcf_export import spanning_tree, to_mjcf  # noqa: E402
 from abd_gym.peer_cases import CASES, connect_gap, with_integrator  # noqa: E402
+from mujoco_reference import REFERENCE_DT, rk4_qpos  # noqa: E402
 
-REFERENCE_DT = 1e-4
 DURATION = 0.5
 
 
 def run_mujoco(case, q, qd, ctrl=None, duration=DURATION):
     """(qpos (worlds, nq) at the end, largest connect gap [m] on the way) of MuJoCo C RK4."""
-    m = mujoco.MjModel.from_xml_string(with_integrator(case.xml(REFERENCE_DT), "RK4"))
-    d, out, gap = mujoco.MjData(m), [], 0.0
-    for qpos, qvel in zip(case.mujoco_qpos(q), case.mujoco_qpos(qd)):
-        mujoco.mj_resetData(m, d)
-        d.qpos[:], d.qvel[:] = qpos, qvel
-        if ctrl is not None:
-            d.ctrl[:] = ctrl
-        for _ in range(round(duration / REFERENCE_DT)):
-            mujoco.mj_step(m, d)
-            gap = max(gap, float(connect_gap(m, d.xpos[None], d.xmat[None])[0]))
-        out.append(d.qpos.copy())
-    return np.array(out), gap
+    m = mujoco.MjModel.from_xml_string(case.xml(REFERENCE_DT))
+    gaps = [0.0]
+    qpos = rk4_qpos(m, case.mujoco_qpos(q), case.mujoco_qpos(qd), ctrl, duration,
+                    lambda d: gaps.append(float(connect_gap(m, d.xpos[None], d.xmat[None])[0])))  # fmt: skip
+    return qpos, max(gaps)
 
 
 def run_ours(case, q, qd, controls=None, dt=1e-3, duration=DURATION):
