@@ -111,28 +111,6 @@ def mjw_accuracy(case, num_worlds, dt, device, integrator="Euler", duration=ACCU
                 limit_penetration=float(pen.max()), nonfinite=int(bad.sum()))  # fmt: skip
 
 
-def loop_closure(sim, loop_joints) -> np.ndarray:
-    """(W,) the largest gap [m] of the loop-closing joints' points: the anchor and the axis points
-    anchor ± half_length·t̂ (revolute; four weld points of a fixed joint), each fixed in both bodies
-    at the zero pose and carried by the bodies' affine maps x = p + A·x̄."""
-    scene = sim.scene
-    q = sim.body_q().astype(np.float64)
-    p, A = q[..., :3], q[..., 3:].reshape(q.shape[:-1] + (3, 3))
-    gap = np.zeros(sim.num_worlds)
-    for k in loop_joints:
-        j = scene.joints[k]
-        pts = [j.anchor, j.anchor + j.half_length * j.frame[0], j.anchor - j.half_length * j.frame[0]]
-        if j.kind == "fixed":
-            pts = [j.anchor] + [j.anchor + j.half_length * e for e in np.eye(3)]
-        for x in pts:
-            ends = []
-            for b in (j.body_a, j.body_b):
-                local = scene.bodies[b].to_local_point(x)
-                ends.append(p[:, b] + np.einsum("wkl,l->wk", A[:, b], local))
-            gap = np.maximum(gap, np.linalg.norm(ends[0] - ends[1], axis=-1))
-    return gap
-
-
 def ours_accuracy(case, num_worlds, dt, device, dtype="float32", duration=ACCURACY_DURATION, **sim_kwargs):
     """abd_gym's accuracy over ``duration`` [s] (module docstring), stepping one step at a time:
     dict of joint_residual, loop_closure [m] (NaN without a loop), limit_penetration, nonfinite."""
@@ -147,7 +125,7 @@ def ours_accuracy(case, num_worlds, dt, device, dtype="float32", duration=ACCURA
         bad |= _nonfinite(sim.body_q(), coords)
         with np.errstate(invalid="ignore"):
             res = np.maximum(res, np.where(bad, 0.0, sim.joint_violation()))
-            gap = np.maximum(gap, np.where(bad, 0.0, loop_closure(sim, c.loop_joints)))
+            gap = np.maximum(gap, np.where(bad, 0.0, sim.joint_violation(c.loop_joints)))
             pen = np.maximum(pen, np.where(bad, 0.0, ours_limit_penetration(sim.scene, coords)))
     return dict(joint_residual=float(res.max()), loop_closure=float(gap.max()) if c.loop_joints else math.nan,
                 limit_penetration=float(pen.max()), nonfinite=int(bad.sum()))  # fmt: skip

@@ -193,12 +193,13 @@ class Simulator:
         joints, the seed's E(x) for limits)."""
         return self.solver.energies(self.state)
 
-    def joint_violation(self) -> np.ndarray:
-        """(num_worlds,) largest joint position residual [m]: ‖x_i(P) − x_j(P)‖ of revolute and fixed
-        joint points, ‖C0‖ and ‖C1‖ of prismatic joints."""
+    def joint_violation(self, joints=None) -> np.ndarray:
+        """(num_worlds,) largest joint position residual [m] over all joints, or over the indices
+        ``joints`` (a loop's closing joints: how far the loop is open): ‖x_i(P) − x_j(P)‖ of revolute
+        and fixed joint points, ‖C0‖ and ‖C1‖ of prismatic joints."""
         m = self.model
         out = np.zeros(self.num_worlds)
-        if not m.num_joints:
+        if not m.num_joints or (joints is not None and not len(joints)):
             return out
         q = self.body_q()
         p, A = q[..., :3], q[..., 3:].reshape(q.shape[:-1] + (3, 3))
@@ -220,7 +221,7 @@ class Simulator:
             c0 = np.linalg.norm(np.cross(cb - ca, ta), axis=-1)
             c1 = np.linalg.norm(np.cross(ca - cb, tb), axis=-1)
             viol[:, pris] = np.maximum(c0, c1)[:, pris]
-        return viol.max(axis=1)
+        return (viol if joints is None else viol[:, list(joints)]).max(axis=1)
 
     def memory_bytes(self) -> dict:
         """Device memory [bytes] of the simulator's own arrays: "model", "state", "solver" and
