@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for config, sargs, the_plan in plans:
             results, _ = sweep.sweep(sargs, the_plan)
-            rows += collect(config, _with_run_dirs(results))
+            rows += collect(config, sweep._rows(results))
     finally:
         if started:
             import ray
@@ -138,16 +138,6 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.doc).write_text(table)
     print(table)
     return 0 if all(not r["failed"] and r["solved"] for r in rows) else 1
-
-
-def _with_run_dirs(results) -> list[dict[str, Any]]:
-    """(seed, run_dir, error) of each trial of a ResultGrid."""
-    rows = []
-    for result in results:
-        metrics = result.metrics or {}
-        rows.append(dict(seed=(result.config or {}).get(sweep.SEED_KEY), run_dir=metrics.get("run_dir"),
-                         error=None if result.error is None else str(result.error)[:200]))  # fmt: skip
-    return rows
 
 
 if __name__ == "__main__":
