@@ -1,4 +1,4 @@
-"""PPO with its rollout kept on the policy's device.
+"""PPO with its rollout and its update kept on the policy's device.
 
 SB3's on-policy rollout round-trips every step through NumPy: observations leave the env's device
 for the host, go back to the device for the policy, actions come back to the host and go to the
@@ -39,24 +39,36 @@ a_k, reward 0) is no transition of the task, so the buffer marks it invalid and:
 * ``num_timesteps`` counts every world at every step as SB3 does, so 1 in (episode length + 1)
   counted transitions is a reset step that trains nothing.
 
+:meth:`DevicePPO.train` is SB3's ``PPO.train`` (the same parameters after it, bit for bit) with
+its logged statistics kept on the device and read once per update, not five times a minibatch; the
+rollout and the update build Torch distributions without argument checks (each check is a read
+back to the host).  Each such read waits for the GPU, so that the host cannot queue the next
+kernels while the GPU runs.
+
 :func:`rollout_path` says which path a config gets and, for SB3's path, why.
 """
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Generator
+from collections.abc import Generator, Iterator
 from typing import Any
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from torch.nn import functional as F
 from gymnasium.vector import AutoresetMode
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import BaseBuffer, RolloutBuffer
 from stable_baselines3.common.type_aliases import RolloutBufferSamples
+from stable_baselines3.common.utils import explained_variance
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 
 from .sb3_vec_env import GymnasiumVecEnv, _accepts
+
+# PPO.train's logged means over the minibatches (train/<name>)
+_LOSS_LOGS = ("entropy_loss", "policy_gradient_loss", "value_loss", "clip_fraction")
 
 __all__ = ["DEVICE_PATH", "SB3_PATH", "DevicePPO", "TensorRolloutBuffer", "rollout_path", "find_adapter"]
 
@@ -255,6 +267,21 @@ class TensorRolloutBuffer(RolloutBuffer):
         )
 
 
+@contextlib.contextmanager
+def unchecked_distributions() -> Iterator[None]:
+    """Torch distributions built without checking their arguments (``validate_args`` off), restored
+    after.  The checks (``Categorical``'s logits, ``Normal``'s scale, each sample's support) each
+    read a flag back to the host, a wait for the GPU, at every policy call; the values are the
+    same either way.  A non-finite policy is still caught: :meth:`DevicePPO.train` refuses a
+    non-finite loss."""
+    before = th.distributions.Distribution._validate_args
+    th.distributions.Distribution.set_default_validate_args(False)
+    try:
+        yield
+    finally:
+        th.distributions.Distribution.set_default_validate_args(before)
+
+
 class DevicePPO(PPO):
     """PPO whose rollout stays on the policy's device (see the module docstring).
 
@@ -370,6 +397,11 @@ class DevicePPO(PPO):
         return rewards
 
     def collect_rollouts(self, env: VecEnv, callback: Any, rollout_buffer: RolloutBuffer, n_rollout_steps: int) -> bool:
+        with unchecked_distributions():
+            return self._collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
+
+    def _collect_rollouts(self, env: VecEnv, callback: Any, rollout_buffer: RolloutBuffer,
+                          n_rollout_steps: int) -> bool:  # fmt: skip
         assert self._last_obs is not None, "No previous observation was provided"
         if getattr(self, "_adapter", None) is None or find_adapter(env) is not self._adapter:
             self._bind(env)
@@ -405,6 +437,101 @@ class DevicePPO(PPO):
         callback.update_locals(locals())
         callback.on_rollout_end()
         return True
+
+    def train(self) -> None:
+        """SB3's ``PPO.train``: the same losses, minibatches, gradient clipping and optimiser steps in
+        the same order (the same parameters after it, bit for bit), with the statistics it logs kept
+        on the device and read once at the end.  SB3 reads five numbers to the host every minibatch
+        (``.item()``, ``.cpu()``), and each read waits for every kernel queued before it, so the
+        host's launches and the GPU's work never overlap.  With ``target_kl`` the KL estimate is
+        read every minibatch, as the early stop needs.  A non-finite loss raises ``FloatingPointError``."""
+        with unchecked_distributions():
+            self._train()
+
+    def _train(self) -> None:
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        clip_range = self.clip_range(self._current_progress_remaining)  # type: ignore[operator]
+        clip_range_vf = None
+        if self.clip_range_vf is not None:
+            clip_range_vf = self.clip_range_vf(self._current_progress_remaining)  # type: ignore[operator]
+        logged: dict[str, list[th.Tensor]] = {name: [] for name in _LOSS_LOGS}
+        approx_kl_divs: list[th.Tensor] = []
+        loss = th.zeros((), device=self.device)
+        continue_training = True
+        for epoch in range(self.n_epochs):
+            approx_kl_divs = []
+            for rollout_data in self.rollout_buffer.get(self.batch_size):
+                loss, parts, approx_kl_div = self._minibatch_loss(rollout_data, clip_range, clip_range_vf)
+                for name, value in parts.items():
+                    logged[name].append(value)
+                approx_kl_divs.append(approx_kl_div)
+                if self.target_kl is not None and approx_kl_div.item() > 1.5 * self.target_kl:
+                    continue_training = False
+                    if self.verbose >= 1:
+                        print(f"Early stopping at step {epoch} due to reaching max kl: {approx_kl_div.item():.2f}")
+                    break
+                self.policy.optimizer.zero_grad()
+                loss.backward()
+                th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+                self.policy.optimizer.step()
+            self._n_updates += 1
+            if not continue_training:
+                break
+        self._log_update(logged, approx_kl_divs, loss, clip_range, clip_range_vf)
+
+    def _minibatch_loss(self, rollout_data: RolloutBufferSamples, clip_range: float,
+                        clip_range_vf: float | None) -> tuple[th.Tensor, dict[str, th.Tensor], th.Tensor]:  # fmt: skip
+        """PPO's loss on one minibatch, as ``PPO.train`` computes it: (loss, the logged parts, the
+        approximate KL divergence), all tensors on the device."""
+        actions = rollout_data.actions
+        if isinstance(self.action_space, spaces.Discrete):
+            actions = rollout_data.actions.long().flatten()
+        values, log_prob, entropy = self.policy.evaluate_actions(rollout_data.observations, actions)
+        values = values.flatten()
+        advantages = rollout_data.advantages
+        if self.normalize_advantage and len(advantages) > 1:
+            advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+        ratio = th.exp(log_prob - rollout_data.old_log_prob)
+        policy_loss_1 = advantages * ratio
+        policy_loss_2 = advantages * th.clamp(ratio, 1 - clip_range, 1 + clip_range)
+        policy_loss = -th.min(policy_loss_1, policy_loss_2).mean()
+        clip_fraction = th.mean((th.abs(ratio - 1) > clip_range).float())
+        values_pred = values
+        if clip_range_vf is not None:
+            values_pred = rollout_data.old_values + th.clamp(values - rollout_data.old_values, -clip_range_vf,
+                                                             clip_range_vf)  # fmt: skip
+        value_loss = F.mse_loss(rollout_data.returns, values_pred)
+        entropy_loss = -th.mean(-log_prob) if entropy is None else -th.mean(entropy)
+        loss = policy_loss + self.ent_coef * entropy_loss + self.vf_coef * value_loss
+        with th.no_grad():
+            log_ratio = log_prob - rollout_data.old_log_prob
+            approx_kl_div = th.mean((th.exp(log_ratio) - 1) - log_ratio)
+        parts = {"policy_gradient_loss": policy_loss.detach(), "value_loss": value_loss.detach(),
+                 "entropy_loss": entropy_loss.detach(), "clip_fraction": clip_fraction}  # fmt: skip
+        return loss, parts, approx_kl_div
+
+    def _log_update(self, logged: dict[str, list[th.Tensor]], approx_kl_divs: list[th.Tensor], loss: th.Tensor,
+                    clip_range: float, clip_range_vf: float | None) -> None:  # fmt: skip
+        """``PPO.train``'s records (means over the minibatches), from one read of the device."""
+        names = [*_LOSS_LOGS, "approx_kl"]
+        series = [*(logged[n] for n in _LOSS_LOGS), approx_kl_divs]
+        means = [th.stack(s).double().mean() if s else th.tensor(float("nan"), device=self.device) for s in series]
+        values = th.stack([*means, loss.detach().double()]).cpu().tolist()
+        if not np.isfinite(values[-1]):
+            raise FloatingPointError(f"PPO's loss is {values[-1]} at update {self._n_updates}: the policy or the "
+                                     "rollout's values went non-finite")  # fmt: skip
+        for name, value in zip(names, values):
+            self.logger.record(f"train/{name}", value)
+        self.logger.record("train/loss", values[-1])
+        buf = self.rollout_buffer
+        self.logger.record("train/explained_variance", explained_variance(buf.values.flatten(), buf.returns.flatten()))
+        if hasattr(self.policy, "log_std"):
+            self.logger.record("train/std", th.exp(self.policy.log_std).mean().item())
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/clip_range", clip_range)
+        if clip_range_vf is not None:
+            self.logger.record("train/clip_range_vf", clip_range_vf)
 
     def _act(self, env: VecEnv, n_steps: int) -> tuple:
         """One step of the rollout's policy and env: (actions, values, log-probs, the env's

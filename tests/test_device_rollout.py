@@ -51,8 +51,15 @@ def both_paths():
 _FIELDS = ("observations", "actions", "rewards", "episode_starts", "values", "log_probs", "advantages", "returns")
 
 
-def test_bit_identical_without_time_limit_cuts():
-    cfg = _config(LONG_STEPS)
+_LOGGED = ("train/entropy_loss", "train/policy_gradient_loss", "train/value_loss", "train/clip_fraction",
+           "train/approx_kl", "train/loss", "train/explained_variance", "train/n_updates")
+
+
+@pytest.mark.parametrize("target_kl", [None, 1e-6])
+def test_bit_identical_without_time_limit_cuts(target_kl):
+    # the device path's update is SB3's (DevicePPO.train): the same parameters, the same logged
+    # means, and with a target KL small enough to stop epochs early, the same early stops
+    cfg = _config(LONG_STEPS, **({} if target_kl is None else {"hyperparams.target_kl": target_kl}))
     sb3, dev = _train(cfg, "sb3"), _train(cfg, "device")
     assert len(sb3.ep_info_buffer) > 0  # some episodes terminated (reset inside a rollout)
     a, b = sb3.rollout_buffer, dev.rollout_buffer
@@ -60,6 +67,19 @@ def test_bit_identical_without_time_limit_cuts():
         np.testing.assert_array_equal(getattr(a, name).astype(np.float32), getattr(b, name), err_msg=name)
     for (name, p), q in zip(sb3.policy.state_dict().items(), dev.policy.state_dict().values()):
         np.testing.assert_array_equal(p.numpy(), q.numpy(), err_msg=name)
+    logged_a, logged_b = sb3.logger.name_to_value, dev.logger.name_to_value
+    for key in _LOGGED:
+        assert logged_b[key] == pytest.approx(logged_a[key], rel=1e-6, abs=1e-9), key
+    full = ITERATIONS * cfg["hyperparams"]["n_epochs"]
+    assert (dev._n_updates < full) == (target_kl is not None)  # the small target stops epochs early
+
+
+def test_update_refuses_a_non_finite_loss():
+    dev = _train(_config(LONG_STEPS), "device")
+    with th.no_grad():
+        next(dev.policy.parameters()).fill_(float("nan"))
+    with pytest.raises(FloatingPointError, match="loss is nan"):
+        dev.train()
 
 
 def test_paths_choose_as_documented():
