@@ -360,9 +360,9 @@ class Solver:
                               state.coord_vel_hist, state.v_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
                                                      state.qd_hist2, state.order3, state.calm, self.q_tilde,
-                                                     m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step, state.status,
-                                                     state.coord, state.coord_vel, *self._limits(REVOLUTE),
-                                                     *self._limits(PRISMATIC)],
+                                                     m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step,
+                                                     state.status, state.coord, state.coord_vel,
+                                                     *self._limits(REVOLUTE), *self._limits(PRISMATIC)],
                   device=dev)  # fmt: skip
 
     def _limits(self, kind):
@@ -395,7 +395,8 @@ class Solver:
         self.update_coordinates(state, accumulate=True)
         if self.restarts:
             wp.launch(coordinates.restart_funcs(dt)[1], dim=W,
-                      inputs=[state.coord, state.status, state.fresh, *self._limits(REVOLUTE), *self._limits(PRISMATIC)],
+                      inputs=[state.coord, state.status, state.fresh, *self._limits(REVOLUTE),
+                              *self._limits(PRISMATIC)],
                       device=dev)  # fmt: skip
 
     def _fused_newton(self, state, steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):

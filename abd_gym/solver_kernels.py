@@ -115,16 +115,16 @@ def _predict_funcs(dtype):
             j = lim_ids[k]
             x = coord[w, j]
             step = h * rate[w, j]
-            lo_k = lo[w, k]
-            up_k = up[w, k]
-            if x > up_k or x < lo_k:
-                e = wp.max(x - up_k, lo_k - x)
-                if dtype(16.0) * wp.abs(step) > e:
+            move = wp.abs(step)
+            # the overrun; inside [l, u], minus the distance to the nearer bound
+            e = wp.max(x - up[w, k], lo[w, k] - x)
+            if e > dtype(0.0):
+                if dtype(16.0) * move > e:
                     b = dtype(0.0)
-            elif x + step > up_k:
-                b = wp.min(b, (up_k - x) / step)
-            elif x + step < lo_k:
-                b = wp.min(b, (lo_k - x) / step)
+            else:
+                reach = wp.where(step > dtype(0.0), up[w, k] - x, x - lo[w, k])  # the bound ahead
+                if move > reach:
+                    b = wp.min(b, reach / move)
         return b
 
     @wp.func
@@ -173,11 +173,10 @@ def _predict_funcs(dtype):
         # Newton's initial guess, A turned by Cayley's rotation of its extrapolated step (retract,
         # rigid); with the bent trial steps, CartPole-v0's scene at dt 0.02 under random forces takes
         # 3.14 Newton iterations a step instead of 4.54 (float64, tests/test_hard_cases.py)
-        d = h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
+        hb = h * beta  # (h exactly where β = 1)
+        d = hb * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
         if order3[w, b] != 0 and calm[w] >= 2:
-            d = h * (dtype(3.0) * (qd[w, b] - qd_hist[w, b]) + qd_hist2[w, b])
-        if beta < one:
-            d = d * beta
+            d = hb * (dtype(3.0) * (qd[w, b] - qd_hist[w, b]) + qd_hist2[w, b])
         q[w, b] = retract(qb, d, one, mass[w, b], mc[w, b], 1)
 
     @wp.kernel(module="unique")
