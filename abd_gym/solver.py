@@ -360,8 +360,15 @@ class Solver:
                               state.coord_vel_hist, state.v_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
                                                      state.qd_hist2, state.order3, state.calm, self.q_tilde,
-                                                     m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step, state.status],
+                                                     m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step,
+                                                     state.status, state.coord, state.coord_vel,
+                                                     *self._limits(REVOLUTE), *self._limits(PRISMATIC)],
                   device=dev)  # fmt: skip
+
+    def _limits(self, kind):
+        """(joint ids, lower, upper, count) of the model's limits of a joint kind."""
+        m = self.model
+        return m.limit_joint_ids[kind], *m.limit_params[kind][:2], len(m.limit_joints[kind])
 
     def newton(self, state):
         """Every world's Newton solve: the fused kernel, or the staged kernels' loop."""
@@ -387,10 +394,9 @@ class Solver:
                                                       state.status], device=dev)  # fmt: skip
         self.update_coordinates(state, accumulate=True)
         if self.restarts:
-            lim = {kind: (m.limit_joint_ids[kind], *m.limit_params[kind][:2], len(m.limit_joints[kind]))
-                   for kind in (REVOLUTE, PRISMATIC)}  # fmt: skip
             wp.launch(coordinates.restart_funcs(dt)[1], dim=W,
-                      inputs=[state.coord, state.status, state.fresh, *lim[REVOLUTE], *lim[PRISMATIC]],
+                      inputs=[state.coord, state.status, state.fresh, *self._limits(REVOLUTE),
+                              *self._limits(PRISMATIC)],
                       device=dev)  # fmt: skip
 
     def _fused_newton(self, state, steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):

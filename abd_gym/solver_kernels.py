@@ -31,7 +31,7 @@ def keep_restart(fresh: wp.array(dtype=wp.int32), w: int):
 _PUBLIC = (
     "predict", "start", "newton_direction", "h_row", "cholesky_solve", "factored_solve", "reductions",
     "noise_floor", "energy_noise", "trial", "accept", "commit", "converge", "finalize", "open_step", "open_body",
-    "predict_body", "finalize_body",
+    "predict_body", "finalize_body", "limit_reach",
 )  # fmt: skip
 
 
@@ -91,9 +91,41 @@ def _noise_funcs(dtype):
 @functools.lru_cache(maxsize=None)
 def _predict_funcs(dtype):
     """A step's opening (open_body, open_step) and its prediction and initial guess (predict_body,
-    predict)."""
+    predict, limit_reach)."""
     vec3, vec12, zero, one, EPS = _scalars(dtype)
     retract = affine_body.kernels(dtype).retract
+
+    @wp.func
+    def limit_reach(coord: wp.array2d(dtype=dtype), rate: wp.array2d(dtype=dtype), lim_ids: wp.array(dtype=wp.int32),
+                    lo: wp.array2d(dtype=dtype), up: wp.array2d(dtype=dtype), count: int, h: dtype, w: int,
+                    beta: dtype):  # fmt: skip
+        """min(β, β_k) over world w's ``count`` limits (joint lim_ids[k], coordinate x = coord[w, j],
+        rate ẋ = rate[w, j], bounds l = lo[w, k] ≤ x ≤ u = up[w, k], step h [s]), with hẋ the
+        coordinate's last step: past a bound by e > 0 (the limit acts), β_k = 0 (the guess is qⁿ)
+        unless the coordinate rests (|hẋ| ≤ e/16: the extrapolation is kept); inside [l, u], β_k =
+        (u − x)/(hẋ) where x + hẋ > u and (l − x)/(hẋ) where x + hẋ < l (the guess stops at the
+        bound, to first order); else 1.
+
+        Why: on the one-sided cubic E = s e³, Newton from an overrun e₀ far past the solution's e*
+        converges at rate 1/2 (e ← e/2 + e*²/2e), ~log₂(e₀/e*) iterations: an extrapolation through
+        the bound at an impact, or one that carries the motion of before an impact on after it,
+        starts it there.  Only the guess moves: the step's solution is the same."""
+        b = beta
+        for k in range(count):
+            j = lim_ids[k]
+            x = coord[w, j]
+            step = h * rate[w, j]
+            move = wp.abs(step)
+            # the overrun; inside [l, u], minus the distance to the nearer bound
+            e = wp.max(x - up[w, k], lo[w, k] - x)
+            if e > dtype(0.0):
+                if dtype(16.0) * move > e:
+                    b = dtype(0.0)
+            else:
+                reach = wp.where(step > dtype(0.0), up[w, k] - x, x - lo[w, k])  # the bound ahead
+                if move > reach:
+                    b = wp.min(b, reach / move)
+        return b
 
     @wp.func
     def predict_body(
@@ -102,7 +134,7 @@ def _predict_funcs(dtype):
         order3: wp.array2d(dtype=wp.int32), calm: wp.array(dtype=wp.int32), q_tilde: wp.array2d(dtype=vec12),
         dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
         mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype, h_step: wp.array(dtype=dtype),
-        status: wp.array(dtype=wp.int32), w: int, b: int,
+        status: wp.array(dtype=wp.int32), beta: dtype, w: int, b: int,
     ):  # fmt: skip
         """Implicit Euler: q̃ = qⁿ + h q̇ⁿ + h² (g, 0)  (M⁻¹f_g = (g, 0) exactly: gravity moves p only).
         BDF2 (ĥ = h_step[w] = 2h/3): q̃ = q̂ + ĥ v̂ + ĥ² (g, 0), q̂ = (4qⁿ − qⁿ⁻¹)/3, v̂ = (4q̇ⁿ − q̇ⁿ⁻¹)/3.
@@ -117,8 +149,9 @@ def _predict_funcs(dtype):
         (float32 cart-poles at dt 0.01: 1.87 -> 1.02 Newton iterations a step); across a change of
         control its jerk is the change's, and guessed 1.05-1.3x more iterations on CartPole-v0,
         Reacher-v0 and DoublePendulumCart-v0 under random actions.  After
-        a reset q̇ⁿ⁻² = q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ.  A retry from a fresh factor
-        starts from q̃ instead (fused.solve_world, converge)."""
+        a reset q̇ⁿ⁻² = q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ.  A world whose limits act or
+        are in reach takes the fraction ``beta`` of that step (limit_reach; 1 elsewhere).  A retry
+        from a fresh factor starts from q̃ instead (fused.solve_world, converge)."""
         qb = q[w, b]
         q_prev[w, b] = qb
         if dof[b] < 0 or status[w] != OK:
@@ -140,9 +173,10 @@ def _predict_funcs(dtype):
         # Newton's initial guess, A turned by Cayley's rotation of its extrapolated step (retract,
         # rigid); with the bent trial steps, CartPole-v0's scene at dt 0.02 under random forces takes
         # 3.14 Newton iterations a step instead of 4.54 (float64, tests/test_hard_cases.py)
-        d = h * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
+        hb = h * beta  # (h exactly where β = 1)
+        d = hb * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
         if order3[w, b] != 0 and calm[w] >= 2:
-            d = h * (dtype(3.0) * (qd[w, b] - qd_hist[w, b]) + qd_hist2[w, b])
+            d = hb * (dtype(3.0) * (qd[w, b] - qd_hist[w, b]) + qd_hist2[w, b])
         q[w, b] = retract(qb, d, one, mass[w, b], mc[w, b], 1)
 
     @wp.kernel(module="unique")
@@ -151,12 +185,18 @@ def _predict_funcs(dtype):
         q_hist: wp.array2d(dtype=vec12), qd_hist: wp.array2d(dtype=vec12), qd_hist2: wp.array2d(dtype=vec12),
         order3: wp.array2d(dtype=wp.int32), calm: wp.array(dtype=wp.int32), q_tilde: wp.array2d(dtype=vec12),
         dof: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), gravity: vec3, h: dtype,
-        h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32),
+        h_step: wp.array(dtype=dtype), status: wp.array(dtype=wp.int32), coord: wp.array2d(dtype=dtype),
+        rate: wp.array2d(dtype=dtype), rlim_ids: wp.array(dtype=wp.int32), rlim_lo: wp.array2d(dtype=dtype),
+        rlim_up: wp.array2d(dtype=dtype), num_rlim: int, plim_ids: wp.array(dtype=wp.int32),
+        plim_lo: wp.array2d(dtype=dtype), plim_up: wp.array2d(dtype=dtype), num_plim: int,
     ):  # fmt: skip
-        """predict_body of body b of world w."""
+        """predict_body of body b of world w, its step's fraction from the world's limits
+        (limit_reach)."""
         w, b = wp.tid()
+        beta = limit_reach(coord, rate, rlim_ids, rlim_lo, rlim_up, num_rlim, h, w, one)
+        beta = limit_reach(coord, rate, plim_ids, plim_lo, plim_up, num_plim, h, w, beta)
         predict_body(q, qd, q_prev, q_hist, qd_hist, qd_hist2, order3, calm, q_tilde, dof, mass, mc, gravity, h, h_step,
-                     status, w, b)  # fmt: skip
+                     status, beta, w, b)  # fmt: skip
 
     @wp.func
     def open_body(
@@ -207,7 +247,8 @@ def _predict_funcs(dtype):
         w, b = wp.tid()
         open_body(q, qd, status, fresh, h, bdf2, h_step, control, control_prev, calm, w, b, 1)
 
-    return dict(predict_body=predict_body, predict=predict, open_body=open_body, open_step=open_step)
+    return dict(predict_body=predict_body, predict=predict, open_body=open_body, open_step=open_step,
+                limit_reach=limit_reach)
 
 
 @functools.lru_cache(maxsize=None)

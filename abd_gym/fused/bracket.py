@@ -30,6 +30,7 @@ def world_step(spec: KernelSpec):
     has_passive = any(f[0] == "passive" for f in spec.folds)
     begin_joint, _, close_joint = coordinates.funcs(dtype, has_passive)
     limit_engaged = coordinates.restart_funcs(dtype)[0]
+    limit_reach = staged["limit_reach"]
     # the scene's limits, by kind: a term of their own or folded into their joint's
     has_rlim, has_plim = (spec.has(name) or any(f[0] == name for f in spec.folds)
                           for name in ("revolute_limit", "prismatic_limit"))  # fmt: skip
@@ -62,9 +63,14 @@ def world_step(spec: KernelSpec):
             if wp.static(lanes):
                 block_sync()
         c = tick(t, w, lane, PHASE_OPEN_JOINTS, c)
+        beta = dtype(1.0)  # the fraction of its extrapolated step the guess takes (predict_body)
+        if wp.static(has_rlim):
+            beta = limit_reach(k.coord, k.velocity, t.rlim_ids, t.rlim_lo, t.rlim_up, t.rlim_ids.shape[0], k.h, w, beta)
+        if wp.static(has_plim):
+            beta = limit_reach(k.coord, k.velocity, t.plim_ids, t.plim_lo, t.plim_up, t.plim_ids.shape[0], k.h, w, beta)
         for b in range(lane, nb, LANES):
             predict_body(q, k.qd, k.q_prev, k.q_hist, k.qd_hist, k.qd_hist2, k.order3, k.calm, t.q_tilde, t.dof, t.mass,
-                         t.mc, k.gravity, k.h, t.h_step, status, w, b)  # fmt: skip
+                         t.mc, k.gravity, k.h, t.h_step, status, beta, w, b)  # fmt: skip
         if wp.static(lanes):
             block_sync()
         tick(t, w, lane, PHASE_OPEN_PREDICT, c)
