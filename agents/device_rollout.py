@@ -65,6 +65,8 @@ from stable_baselines3.common.type_aliases import RolloutBufferSamples
 from stable_baselines3.common.utils import explained_variance
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 
+from .graphed_rollout import RolloutStep
+from .graphed_update import GraphedMinibatchStep
 from .sb3_vec_env import GymnasiumVecEnv, _accepts
 
 # PPO.train's logged means over the minibatches (train/<name>)
@@ -153,17 +155,21 @@ class TensorRolloutBuffer(RolloutBuffer):
     in SB3's buffer.  Actions are stored as float32 (SB3 casts them to float32 when sampling).  The
     SB3 field names read as host NumPy copies.
 
+    ``storage`` holds the (n_steps, n_envs, ...) tensors, allocated once and zeroed by each
+    :meth:`reset` (``tensors`` starts each rollout as a view of it).
+
     ``next_step`` (set after :meth:`reset`, read by :meth:`compute_returns_and_advantage` and
-    :meth:`get`): the rollout came from a NEXT_STEP env, and :meth:`add_flags` gave each
-    position's ``valid`` (not a reset step), ``dones`` (terminated or truncated) and ``cuts``
-    (truncated, not terminated) as (n_steps, n_envs) float32 in ``tensors``; ``ep_return`` and
-    ``ep_length`` hold the episode's return and length so far after each position; once
+    :meth:`get`): the rollout came from a NEXT_STEP env, and :class:`~.graphed_rollout.RolloutStep`
+    wrote each position's ``valid`` (not a reset step), ``dones`` (terminated or truncated) and
+    ``cuts`` (truncated, not terminated) as (n_steps, n_envs) float32 into ``storage``;
+    ``ep_return`` and ``ep_length`` hold the episode's return and length so far after each position; once
     flattened, ``values`` and ``returns`` read (on the host) at the valid positions only, so that
     PPO's explained variance leaves the reset steps out.
     """
 
     FIELDS = ("observations", "actions", "rewards", "returns", "episode_starts", "values", "log_probs", "advantages")
     FLAGS = ("valid", "dones", "cuts", "ep_return", "ep_length")
+    SAMPLED = ("observations", "actions", "values", "log_probs", "advantages", "returns")  # what minibatches read
     observations = _HostView()
     actions = _HostView()
     rewards = _HostView()
@@ -178,10 +184,16 @@ class TensorRolloutBuffer(RolloutBuffer):
             "observations": (*self.obs_shape,),
             "actions": (self.action_dim,),
         }
-        self.tensors = {
-            name: th.zeros((self.buffer_size, self.n_envs, *shapes.get(name, ())), dtype=th.float32, device=self.device)
-            for name in self.FIELDS + self.FLAGS
-        }
+        if getattr(self, "storage", None) is None:  # allocated once: a captured rollout step writes here
+            self.storage = {
+                name: th.zeros((self.buffer_size, self.n_envs, *shapes.get(name, ())), dtype=th.float32,
+                               device=self.device)
+                for name in self.FIELDS + self.FLAGS
+            }  # fmt: skip
+        else:
+            for x in self.storage.values():
+                x.zero_()
+        self.tensors = dict(self.storage)
         self.next_step = False
         self.generator_ready = False
         BaseBuffer.reset(self)
@@ -198,13 +210,6 @@ class TensorRolloutBuffer(RolloutBuffer):
         self.pos += 1
         if self.pos == self.buffer_size:
             self.full = True
-
-    def add_flags(self, valid: th.Tensor, done: th.Tensor, cut: th.Tensor) -> None:
-        """The NEXT_STEP flags (bool (n_envs,)) of the position the next :meth:`add` fills."""
-        t, p = self.tensors, self.pos
-        t["valid"][p] = valid
-        t["dones"][p] = done
-        t["cuts"][p] = cut
 
     def compute_returns_and_advantage(self, last_values: th.Tensor, dones: th.Tensor) -> None:
         """GAE(lambda) on the device, in SB3's order of float32 operations:
@@ -236,24 +241,34 @@ class TensorRolloutBuffer(RolloutBuffer):
     def get(self, batch_size: int | None = None) -> Generator[RolloutBufferSamples, None, None]:
         """Minibatches of ``batch_size`` (the last one smaller if it must be) in an order drawn from
         NumPy's global generator; ``next_step``: of the valid positions only."""
+        for batch_inds in self.minibatch_indices(batch_size):
+            yield self._get_samples(batch_inds)
+
+    def flatten(self) -> None:
+        """The fields PPO's update reads, flattened world-major to (n_steps * n_envs, ...) (once)."""
         assert self.full, ""
+        if self.generator_ready:
+            return
         n = self.buffer_size * self.n_envs
-        if not self.generator_ready:
-            for name in ("observations", "actions", "values", "log_probs", "advantages", "returns"):
-                x = self.tensors[name]
-                self.tensors[name] = x.transpose(0, 1).reshape(n, *(x.shape[2:] or (1,)))
-            if self.next_step:
-                self._valid_idx = th.nonzero(self.tensors["valid"].transpose(0, 1).reshape(n)).flatten()
-            self.generator_ready = True
+        for name in self.SAMPLED:
+            x = self.tensors[name]
+            self.tensors[name] = x.transpose(0, 1).reshape(n, *(x.shape[2:] or (1,)))
+        if self.next_step:
+            self._valid_idx = th.nonzero(self.tensors["valid"].transpose(0, 1).reshape(n)).flatten()
+        self.generator_ready = True
+
+    def minibatch_indices(self, batch_size: int | None = None) -> Iterator[th.Tensor]:
+        """The flat indices of each minibatch (int64 on the device), in :meth:`get`'s order."""
+        self.flatten()
         if self.next_step:
             m = len(self._valid_idx)
             indices = self._valid_idx[th.as_tensor(np.random.permutation(m), device=self.device)]
         else:
-            m = n
-            indices = th.as_tensor(np.random.permutation(n), device=self.device)
+            m = self.buffer_size * self.n_envs
+            indices = th.as_tensor(np.random.permutation(m), device=self.device)
         batch_size = m if batch_size is None else batch_size
         for start in range(0, m, batch_size):
-            yield self._get_samples(indices[start : start + batch_size])
+            yield indices[start : start + batch_size]
 
     def _get_samples(self, batch_inds: th.Tensor, env: Any = None) -> RolloutBufferSamples:
         t = self.tensors
@@ -300,7 +315,33 @@ class DevicePPO(PPO):
         # observation is a tensor here, NumPy in SB3's rollout)
         return [*super()._excluded_save_params(), "rollout_buffer_class", "rollout_buffer_kwargs", "_adapter",
                 "_ep_return", "_ep_length", "_low", "_high", "_last_obs", "_last_episode_starts",
-                "_ended", "_next_step"]  # fmt: skip
+                "_ended", "_next_step", "_minibatch_step", "_rollout_step"]  # fmt: skip
+
+    def get_parameters(self) -> dict[str, dict]:
+        """SB3's saved state dicts, the optimiser's as a plain Adam's (the graphed update keeps its
+        learning rate and step counts on the device, ``capturable``), so that a saved model loads
+        anywhere."""
+        params = super().get_parameters()
+        opt = params.get("policy.optimizer")
+        if opt is not None:
+            for group in opt["param_groups"]:  # copies made by state_dict
+                group["lr"] = float(group["lr"])
+                group["capturable"] = False
+            opt["state"] = {k: {**v, "step": v["step"].cpu()} if "step" in v else v for k, v in opt["state"].items()}
+        return params
+
+    def set_parameters(self, *args: Any, **kwargs: Any) -> None:
+        super().set_parameters(*args, **kwargs)
+        self._minibatch_step = None  # the optimiser's state was replaced: capture again
+
+    def _update_learning_rate(self, optimizers: Any) -> None:
+        lr = self.lr_schedule(self._current_progress_remaining)
+        self.logger.record("train/learning_rate", lr)
+        for group in self.policy.optimizer.param_groups:
+            if isinstance(group["lr"], th.Tensor):  # a graphed update's: written in place
+                group["lr"].fill_(lr)
+            else:
+                group["lr"] = lr
 
     def _setup_learn(self, *args: Any, **kwargs: Any) -> Any:
         out = super()._setup_learn(*args, **kwargs)
@@ -317,6 +358,7 @@ class DevicePPO(PPO):
                              f"{refusal}")  # fmt: skip
         self._adapter = adapter
         self._next_step = adapter.autoreset_mode == AutoresetMode.NEXT_STEP
+        self._rollout_step = None
         monitor = env
         while monitor is not None and not isinstance(monitor, VecMonitor):
             monitor = getattr(monitor, "venv", None)
@@ -359,17 +401,6 @@ class DevicePPO(PPO):
     def _add_episodes(self, returns: np.ndarray, lengths: np.ndarray) -> None:
         t = round(time.time() - self._t_start, 6)
         self.ep_info_buffer.extend({"r": round(float(r), 6), "l": int(l), "t": t} for r, l in zip(returns, lengths))
-
-    def _track_episodes(self, buf: TensorRolloutBuffer, rewards: th.Tensor, valid: th.Tensor, done: th.Tensor) -> None:
-        """NEXT_STEP: the episodes' returns and lengths so far, on the device, into the buffer's
-        ``ep_return`` / ``ep_length`` at the position the next ``add`` fills (a reset step adds
-        nothing); an episode that ended in this step starts over."""
-        self._ep_return += th.where(valid, rewards, 0.0)
-        self._ep_length += valid
-        buf.tensors["ep_return"][buf.pos] = self._ep_return
-        buf.tensors["ep_length"][buf.pos] = self._ep_length
-        self._ep_return.masked_fill_(done, 0.0)
-        self._ep_length.masked_fill_(done, 0)
 
     def _flush_episodes(self, buf: TensorRolloutBuffer) -> None:
         """NEXT_STEP: the rollout's finished episodes to ``ep_info_buffer`` in SB3's order (step by
@@ -446,7 +477,35 @@ class DevicePPO(PPO):
         host's launches and the GPU's work never overlap.  With ``target_kl`` the KL estimate is
         read every minibatch, as the early stop needs.  A non-finite loss raises ``FloatingPointError``."""
         with unchecked_distributions():
-            self._train()
+            step = self._graphed_step()
+            if step is None:
+                self._train()
+            else:
+                self._train_graphed(step)
+
+    def _graphed_step(self) -> GraphedMinibatchStep | None:
+        """The CUDA-graph minibatch step on a CUDA device without ``target_kl`` (built once), else None."""
+        step = getattr(self, "_minibatch_step", None)
+        if step is None and self.device.type == "cuda" and self.target_kl is None:
+            self._minibatch_step = step = GraphedMinibatchStep(self)
+        return step
+
+    def _train_graphed(self, step: GraphedMinibatchStep) -> None:
+        """``PPO.train`` with each minibatch replayed from a CUDA graph (:mod:`.graphed_update`)."""
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        clip_range = self.clip_range(self._current_progress_remaining)  # type: ignore[operator]
+        clip_range_vf = None
+        if self.clip_range_vf is not None:
+            clip_range_vf = self.clip_range_vf(self._current_progress_remaining)  # type: ignore[operator]
+        step.begin(self.rollout_buffer, clip_range, clip_range_vf)
+        for _ in range(self.n_epochs):
+            for batch_inds in self.rollout_buffer.minibatch_indices(self.batch_size):
+                step.step(batch_inds)
+            self._n_updates += 1
+        means = step.means()
+        self._log_update([means[n] for n in (*_LOSS_LOGS, "approx_kl")], means["last_loss"], means["loss"],
+                         clip_range, clip_range_vf)  # fmt: skip
 
     def _train(self) -> None:
         self.policy.set_training_mode(True)
@@ -478,7 +537,10 @@ class DevicePPO(PPO):
             self._n_updates += 1
             if not continue_training:
                 break
-        self._log_update(logged, approx_kl_divs, loss, clip_range, clip_range_vf)
+        series = [*(logged[n] for n in _LOSS_LOGS), approx_kl_divs]
+        means = [th.stack(s).double().mean() if s else th.tensor(float("nan"), device=self.device) for s in series]
+        *values, last_loss = th.stack([*means, loss.detach().double()]).cpu().tolist()
+        self._log_update(values, last_loss, last_loss, clip_range, clip_range_vf)
 
     def _minibatch_loss(self, rollout_data: RolloutBufferSamples, clip_range: float,
                         clip_range_vf: float | None) -> tuple[th.Tensor, dict[str, th.Tensor], th.Tensor]:  # fmt: skip
@@ -511,19 +573,18 @@ class DevicePPO(PPO):
                  "entropy_loss": entropy_loss.detach(), "clip_fraction": clip_fraction}  # fmt: skip
         return loss, parts, approx_kl_div
 
-    def _log_update(self, logged: dict[str, list[th.Tensor]], approx_kl_divs: list[th.Tensor], loss: th.Tensor,
-                    clip_range: float, clip_range_vf: float | None) -> None:  # fmt: skip
-        """``PPO.train``'s records (means over the minibatches), from one read of the device."""
+    def _log_update(self, values: list[float], last_loss: float, checked_loss: float, clip_range: float,
+                    clip_range_vf: float | None) -> None:  # fmt: skip
+        """``PPO.train``'s records: ``values`` the means over the minibatches of ``_LOSS_LOGS`` and the
+        KL estimate, ``last_loss`` the last minibatch's loss; a non-finite ``checked_loss`` (the last
+        loss, or the mean over the minibatches where the update keeps it) raises."""
         names = [*_LOSS_LOGS, "approx_kl"]
-        series = [*(logged[n] for n in _LOSS_LOGS), approx_kl_divs]
-        means = [th.stack(s).double().mean() if s else th.tensor(float("nan"), device=self.device) for s in series]
-        values = th.stack([*means, loss.detach().double()]).cpu().tolist()
-        if not np.isfinite(values[-1]):
-            raise FloatingPointError(f"PPO's loss is {values[-1]} at update {self._n_updates}: the policy or the "
+        if not np.isfinite(checked_loss):
+            raise FloatingPointError(f"PPO's loss is {checked_loss} at update {self._n_updates}: the policy or the "
                                      "rollout's values went non-finite")  # fmt: skip
         for name, value in zip(names, values):
             self.logger.record(f"train/{name}", value)
-        self.logger.record("train/loss", values[-1])
+        self.logger.record("train/loss", last_loss)
         buf = self.rollout_buffer
         self.logger.record("train/explained_variance", explained_variance(buf.values.flatten(), buf.returns.flatten()))
         if hasattr(self.policy, "log_std"):
@@ -547,31 +608,29 @@ class DevicePPO(PPO):
     def _collect_next_step(self, env: VecEnv, callback: Any, rollout_buffer: TensorRolloutBuffer,
                            n_rollout_steps: int) -> bool:  # fmt: skip
         """The rollout on a NEXT_STEP env (module docstring): device work only, no host reads until
-        the rollout's end."""
+        the rollout's end; each step's policy and bookkeeping are one CUDA graph each on a GPU
+        (:class:`~.graphed_rollout.RolloutStep`)."""
         rollout_buffer.next_step = True
-        n_steps = 0
-        dones = None
-        while n_steps < n_rollout_steps:
-            actions, values, log_probs, step, new_obs, rewards = self._act(env, n_steps)
-            terminated, truncated = step.terminated.to(self.device), step.truncated.to(self.device)
-            dones = terminated | truncated
+        steps = getattr(self, "_rollout_step", None)
+        if steps is None:
+            # a state-dependent exploration's noise is redrawn into new tensors: no capture then
+            self._rollout_step = steps = RolloutStep(self, capture=False if self.use_sde else None)
+        steps.start(rollout_buffer)
+        for n_steps in range(n_rollout_steps):
+            if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
+                self.policy.reset_noise(env.num_envs)
+            steps.act()
+            steps.env_step()
             self.num_timesteps += env.num_envs
+            actions, values, log_probs, rewards = steps.actions, steps.values, steps.log_probs, steps.rewards
             callback.update_locals(locals())
             if not callback.on_step():
                 return False
-            valid = ~self._ended  # a world that ended at the previous step was reset by this one
-            self._track_episodes(rollout_buffer, rewards, valid, dones)
-            n_steps += 1
-            if isinstance(self.action_space, spaces.Discrete):
-                actions = actions.reshape(-1, 1)
-            rollout_buffer.add_flags(valid, dones, truncated & ~terminated)
-            rollout_buffer.add(self._last_obs, actions, rewards, self._last_episode_starts, values, log_probs)
-            self._last_obs = new_obs
-            self._last_episode_starts = self._ended.to(th.float32)  # a reset step's observation opens an episode
-            self._ended = dones
+            steps.record()
+        rollout_buffer.pos, rollout_buffer.full = n_rollout_steps, True
         with th.no_grad():
-            values = self.policy.predict_values(new_obs)
-        rollout_buffer.compute_returns_and_advantage(last_values=values, dones=dones)
+            values = self.policy.predict_values(steps.obs)
+        rollout_buffer.compute_returns_and_advantage(last_values=values, dones=None)
         self._flush_episodes(rollout_buffer)
         callback.update_locals(locals())
         callback.on_rollout_end()

@@ -74,6 +74,29 @@ def test_bit_identical_without_time_limit_cuts(target_kl):
     assert (dev._n_updates < full) == (target_kl is not None)  # the small target stops epochs early
 
 
+@pytest.mark.parametrize("batch_size", [32, 48])
+def test_graphed_update_is_sb3s_to_rounding(batch_size):
+    # the CUDA-graph minibatch step's arithmetic (weighted means, padded last minibatch at 48:
+    # 128 = 2 x 48 + 32), run eagerly on the CPU, moves the parameters as SB3's update does
+    from abd_gym.agents.graphed_update import GraphedMinibatchStep
+
+    cfg = _config(LONG_STEPS, **{"hyperparams.batch_size": batch_size})
+    sb3 = _train(cfg, "sb3")
+    env = VecMonitor(make_vec_env(cfg["env_id"], cfg["n_envs"], seed=cfg["seed"], env_kwargs=cfg["env_kwargs"],
+                                  backend="torch"))  # fmt: skip
+    dev = build_model(cfg, env, rollout="device")
+    start = [p.detach().clone() for p in dev.policy.parameters()]
+    dev._minibatch_step = GraphedMinibatchStep(dev, capture=False)
+    dev.learn(total_timesteps=cfg["n_timesteps"])
+    for p, q, p0 in zip(sb3.policy.parameters(), dev.policy.parameters(), start):
+        moved = (p.detach() - p0).abs().max()
+        assert moved > 0
+        assert (p.detach() - q.detach()).abs().max() <= 1e-4 * moved
+    logged_a, logged_b = sb3.logger.name_to_value, dev.logger.name_to_value
+    for key in _LOGGED:
+        assert logged_b[key] == pytest.approx(logged_a[key], rel=1e-4, abs=1e-7), key
+
+
 def test_update_refuses_a_non_finite_loss():
     dev = _train(_config(LONG_STEPS), "device")
     with th.no_grad():
