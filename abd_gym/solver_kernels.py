@@ -139,14 +139,18 @@ def _predict_funcs(dtype):
         """Implicit Euler: q̃ = qⁿ + h q̇ⁿ + h² (g, 0)  (M⁻¹f_g = (g, 0) exactly: gravity moves p only).
         BDF2 (ĥ = h_step[w] = 2h/3): q̃ = q̂ + ĥ v̂ + ĥ² (g, 0), q̂ = (4qⁿ − qⁿ⁻¹)/3, v̂ = (4q̇ⁿ − q̇ⁿ⁻¹)/3.
 
-        Newton starts from qⁿ + h q̇ⁿ + h (q̇ⁿ − q̇ⁿ⁻¹), the last step's motion extrapolated to second
-        order, not from q̃: q̃ lets a jointed body fall freely by h²g, which the joints then undo
+        Newton starts from the last steps' motion extrapolated to second order: before an implicit
+        Euler step from qⁿ + h q̇ⁿ + h (q̇ⁿ − q̇ⁿ⁻¹), exact on quadratic motion where q̇ⁿ = (qⁿ − qⁿ⁻¹)/h;
+        before a BDF2 step from qⁿ + (qⁿ − qⁿ⁻¹) + h (q̇ⁿ − q̇ⁿ⁻¹), exact on quadratic motion for that q̇
+        and for BDF2's, the slope at tⁿ of the quadratic through qⁿ⁻², qⁿ⁻¹, qⁿ (with which the first
+        form overshoots by h²q̈/2, as far as q̃ is off).  Not from q̃: q̃ lets a jointed body fall freely by h²g, which the joints then undo
         (a first Newton step of ~1e-3 m at dt 0.01, against ~1e-5 m from the extrapolation; float32
         cart-poles and double pendulums converge in 2.0 iterations instead of 2.7–2.9).  Where the
         third-order extrapolation qⁿ + h(3q̇ⁿ − 3q̇ⁿ⁻¹ + q̇ⁿ⁻²) would have guessed the body's last
         step better (``order3``, set by finalize_body) and the world's controls are those of its last
         two steps (``calm``, open_body), it is used instead: smooth motion then starts ~10x closer
-        (float32 cart-poles at dt 0.01: 1.87 -> 1.02 Newton iterations a step); across a change of
+        (float32 cart-poles at dt 0.01: 1.87 -> 1.02 Newton iterations a step; before a BDF2 step
+        qⁿ + (qⁿ − qⁿ⁻¹) + h(3q̇ⁿ − 4q̇ⁿ⁻¹ + q̇ⁿ⁻²)/2, exact on cubic motion); across a change of
         control its jerk is the change's, and guessed 1.05-1.3x more iterations on CartPole-v0,
         Reacher-v0 and DoublePendulumCart-v0 under random actions.  After
         a reset q̇ⁿ⁻² = q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ.  A world whose limits act or
@@ -173,10 +177,19 @@ def _predict_funcs(dtype):
         # Newton's initial guess, A turned by Cayley's rotation of its extrapolated step (retract,
         # rigid); with the bent trial steps, CartPole-v0's scene at dt 0.02 under random forces takes
         # 3.14 Newton iterations a step instead of 4.54 (float64, tests/test_hard_cases.py)
-        hb = h * beta  # (h exactly where β = 1)
-        d = hb * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
-        if order3[w, b] != 0 and calm[w] >= 2:
-            d = hb * (dtype(3.0) * (qd[w, b] - qd_hist[w, b]) + qd_hist2[w, b])
+        if he < h:
+            # a BDF2 step's q̇ⁿ is the slope at tⁿ of the quadratic through qⁿ⁻², qⁿ⁻¹, qⁿ, not the
+            # mean slope (qⁿ − qⁿ⁻¹)/h of the last step: h(2q̇ⁿ − q̇ⁿ⁻¹) would overshoot by h²q̈/2
+            step = qb - q_hist[w, b]
+            d = step + h * (qd[w, b] - qd_hist[w, b])
+            if order3[w, b] != 0 and calm[w] >= 2:
+                d = step + h * (dtype(1.5) * qd[w, b] - dtype(2.0) * qd_hist[w, b] + dtype(0.5) * qd_hist2[w, b])
+            d = beta * d
+        else:
+            hb = h * beta  # (h exactly where β = 1)
+            d = hb * (dtype(2.0) * qd[w, b] - qd_hist[w, b])
+            if order3[w, b] != 0 and calm[w] >= 2:
+                d = hb * (dtype(3.0) * (qd[w, b] - qd_hist[w, b]) + qd_hist2[w, b])
         q[w, b] = retract(qb, d, one, mass[w, b], mc[w, b], 1)
 
     @wp.kernel(module="unique")
