@@ -39,11 +39,14 @@ a_k, reward 0) is no transition of the task, so the buffer marks it invalid and:
 * ``num_timesteps`` counts every world at every step as SB3 does, so 1 in (episode length + 1)
   counted transitions is a reset step that trains nothing.
 
-:meth:`DevicePPO.train` is SB3's ``PPO.train`` (the same parameters after it, bit for bit) with
-its logged statistics kept on the device and read once per update, not five times a minibatch; the
-rollout and the update build Torch distributions without argument checks (each check is a read
-back to the host).  Each such read waits for the GPU, so that the host cannot queue the next
-kernels while the GPU runs.
+On a CUDA device the NEXT_STEP rollout's policy and bookkeeping run as CUDA graphs
+(:mod:`.graphed_rollout`) and, without ``target_kl``, :meth:`DevicePPO.train` replays PPO's
+minibatch step from a CUDA graph (:mod:`.graphed_update`: the same losses, a padded last minibatch
+weighted out; parameters equal SB3's to float32 rounding).  Elsewhere :meth:`DevicePPO.train` is
+SB3's ``PPO.train`` (the same parameters after it, bit for bit) with its logged statistics kept on
+the device and read once per update, not five times a minibatch.  The rollout and the update build
+Torch distributions without argument checks (each check is a read back to the host).  Each such
+read waits for the GPU, so that the host cannot queue the next kernels while the GPU runs.
 
 :func:`rollout_path` says which path a config gets and, for SB3's path, why.
 """

@@ -14,8 +14,10 @@ and K more with every piece timed (the table):
 * ``host<->device``: the adapter's conversions around it (tensors to NumPy, info dicts, or
   nothing but reshapes on the device path) and SB3's ``obs_as_tensor``;
 * ``policy``: forward passes of the rollout (actions, values, log-probs; V of cut episodes' last
-  observations and of the last observation);
-* ``buffer add`` and ``GAE``: the rollout buffer's ``add`` and ``compute_returns_and_advantage``;
+  observations and of the last observation); on the device path the graphed ``RolloutStep.act``;
+* ``buffer add`` and ``GAE``: the rollout buffer's ``add`` (on the device path the graphed
+  ``RolloutStep.record``: the transition, flags and episode statistics) and
+  ``compute_returns_and_advantage``;
 * ``rollout other``: the rest of the rollout loop (action clipping, copies of actions to the host,
   callbacks, episode statistics, the timeout bootstrap's bookkeeping);
 * ``update``: ``PPO.train`` (all epochs: minibatch gathering, forward, backward, optimiser).
@@ -133,6 +135,9 @@ def _instrument(model, clock: _Clock, fine: bool) -> list[tuple[Any, str, Any]]:
         (buf, "add", clock.wrap("buffer add", buf.add)),
         (buf, "compute_returns_and_advantage", clock.wrap("GAE", buf.compute_returns_and_advantage)),
     ]
+    steps = getattr(model, "_rollout_step", None)  # the device path's graphed policy and bookkeeping
+    if steps is not None:
+        pairs += [(steps, "act", clock.wrap("policy", steps.act)), (steps, "record", clock.wrap("buffer add", steps.record))]
     return pairs
 
 
