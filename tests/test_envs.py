@@ -18,7 +18,7 @@ from abd_gym.registration import TASKS
 N = 4
 IDS = [f"abd_gym/{name}" for name in TASKS]
 # env steps of the shared rollouts (long enough for the scripted controllers to show)
-ROLLOUT_STEPS = {"Pendulum-v0": 100, "Acrobot-v0": 200, "Reacher-v0": 50}
+ROLLOUT_STEPS = {"Pendulum-v0": 100, "Acrobot-v0": 300, "Reacher-v0": 50}  # Acrobot: the scripted swing-up takes 60-231 steps
 
 
 def module_of(env_id):
