@@ -619,11 +619,14 @@ class DevicePPO(PPO):
         rollout_buffer.next_step = True
         steps = getattr(self, "_rollout_step", None)
         if steps is None:
-            # a state-dependent exploration's noise is redrawn into new tensors: no capture then
             norm = None
             if self._vecnormalize is not None:
                 norm = DeviceNormalize(self._vecnormalize, env.num_envs, self.device)
-            self._rollout_step = steps = RolloutStep(self, capture=False if self.use_sde else None, normalize=norm)
+            # no capture where a step's launches are not fixed: a state-dependent exploration's noise
+            # is redrawn into new tensors, and Categorical sampling (multinomial) reads its
+            # probabilities' check back to the host in some Torch versions
+            eager = self.use_sde or isinstance(self.action_space, spaces.Discrete)
+            self._rollout_step = steps = RolloutStep(self, capture=False if eager else None, normalize=norm)
         steps.start(rollout_buffer)
         for n_steps in range(n_rollout_steps):
             if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
