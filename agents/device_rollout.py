@@ -60,7 +60,6 @@ from typing import Any
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from torch.nn import functional as F
 from gymnasium.vector import AutoresetMode
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import BaseBuffer, RolloutBuffer
@@ -70,7 +69,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 
 from .device_normalize import DeviceNormalize, find_vecnormalize
 from .graphed_rollout import RolloutStep
-from .graphed_update import GraphedMinibatchStep
+from .graphed_update import GraphedMinibatchStep, ppo_loss
 from .sb3_vec_env import GymnasiumVecEnv, _accepts
 
 # PPO.train's logged means over the minibatches (train/<name>)
@@ -527,7 +526,8 @@ class DevicePPO(PPO):
         for epoch in range(self.n_epochs):
             approx_kl_divs = []
             for rollout_data in self.rollout_buffer.get(self.batch_size):
-                loss, parts, approx_kl_div = self._minibatch_loss(rollout_data, clip_range, clip_range_vf)
+                loss, parts = ppo_loss(self, rollout_data, clip_range, clip_range_vf)
+                approx_kl_div = parts.pop("approx_kl")
                 for name, value in parts.items():
                     logged[name].append(value)
                 approx_kl_divs.append(approx_kl_div)
@@ -547,37 +547,6 @@ class DevicePPO(PPO):
         means = [th.stack(s).double().mean() if s else th.tensor(float("nan"), device=self.device) for s in series]
         *values, last_loss = th.stack([*means, loss.detach().double()]).cpu().tolist()
         self._log_update(values, last_loss, last_loss, clip_range, clip_range_vf)
-
-    def _minibatch_loss(self, rollout_data: RolloutBufferSamples, clip_range: float,
-                        clip_range_vf: float | None) -> tuple[th.Tensor, dict[str, th.Tensor], th.Tensor]:  # fmt: skip
-        """PPO's loss on one minibatch, as ``PPO.train`` computes it: (loss, the logged parts, the
-        approximate KL divergence), all tensors on the device."""
-        actions = rollout_data.actions
-        if isinstance(self.action_space, spaces.Discrete):
-            actions = rollout_data.actions.long().flatten()
-        values, log_prob, entropy = self.policy.evaluate_actions(rollout_data.observations, actions)
-        values = values.flatten()
-        advantages = rollout_data.advantages
-        if self.normalize_advantage and len(advantages) > 1:
-            advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-        ratio = th.exp(log_prob - rollout_data.old_log_prob)
-        policy_loss_1 = advantages * ratio
-        policy_loss_2 = advantages * th.clamp(ratio, 1 - clip_range, 1 + clip_range)
-        policy_loss = -th.min(policy_loss_1, policy_loss_2).mean()
-        clip_fraction = th.mean((th.abs(ratio - 1) > clip_range).float())
-        values_pred = values
-        if clip_range_vf is not None:
-            values_pred = rollout_data.old_values + th.clamp(values - rollout_data.old_values, -clip_range_vf,
-                                                             clip_range_vf)  # fmt: skip
-        value_loss = F.mse_loss(rollout_data.returns, values_pred)
-        entropy_loss = -th.mean(-log_prob) if entropy is None else -th.mean(entropy)
-        loss = policy_loss + self.ent_coef * entropy_loss + self.vf_coef * value_loss
-        with th.no_grad():
-            log_ratio = log_prob - rollout_data.old_log_prob
-            approx_kl_div = th.mean((th.exp(log_ratio) - 1) - log_ratio)
-        parts = {"policy_gradient_loss": policy_loss.detach(), "value_loss": value_loss.detach(),
-                 "entropy_loss": entropy_loss.detach(), "clip_fraction": clip_fraction}  # fmt: skip
-        return loss, parts, approx_kl_div
 
     def _log_update(self, values: list[float], last_loss: float, checked_loss: float, clip_range: float,
                     clip_range_vf: float | None) -> None:  # fmt: skip

@@ -32,10 +32,12 @@ from typing import Any
 import torch as th
 from gymnasium import spaces
 from stable_baselines3 import PPO
+from stable_baselines3.common.type_aliases import RolloutBufferSamples
+from torch.nn import functional as F
 
 from .cuda_graph import GraphedCall
 
-__all__ = ["GraphedMinibatchStep", "STATS"]
+__all__ = ["GraphedMinibatchStep", "STATS", "ppo_loss"]
 
 # the sums kept per update, in order; the last is the number of minibatches
 STATS = ("entropy_loss", "policy_gradient_loss", "value_loss", "clip_fraction", "approx_kl", "loss", "minibatches")
@@ -129,35 +131,61 @@ class GraphedMinibatchStep:
 
     def _loss(self) -> tuple[th.Tensor, list[th.Tensor]]:
         """PPO's loss on the weighted minibatch and the logged parts (in :data:`STATS` order)."""
-        algo, src, i, w = self.algo, self.sources, self.idx, self.weight
-        actions = src["actions"][i]
-        if isinstance(algo.action_space, spaces.Discrete):
-            actions = actions.long().flatten()
-        values, log_prob, entropy = algo.policy.evaluate_actions(src["observations"][i], actions)
-        values = values.flatten()
-        n = w.sum()
+        src, i = self.sources, self.idx
+        samples = RolloutBufferSamples(src["observations"][i], src["actions"][i], src["values"][i].flatten(),
+                                       src["log_probs"][i].flatten(), src["advantages"][i].flatten(),
+                                       src["returns"][i].flatten())  # fmt: skip
+        clip_vf = self.clip_range_vf if self._has_clip_vf else None
+        loss, parts = ppo_loss(self.algo, samples, self.clip_range, clip_vf, self.weight)
+        return loss, [parts[name] for name in STATS[:5]]
+
+
+def ppo_loss(algo: PPO, data: RolloutBufferSamples, clip_range: float | th.Tensor,
+             clip_range_vf: float | th.Tensor | None,
+             weight: th.Tensor | None = None) -> tuple[th.Tensor, dict[str, th.Tensor]]:  # fmt: skip
+    """PPO's clipped loss on a minibatch, as SB3's ``PPO.train`` computes it, and its logged parts
+    (``entropy_loss``, ``policy_gradient_loss``, ``value_loss``, ``clip_fraction``, ``approx_kl``;
+    tensors on the device).
+
+    ``weight`` None: SB3's arithmetic, op for op.  ``weight`` (1 or 0 a row, float32): every mean
+    is ``sum(w x) / n`` with ``n = sum(w)`` and the advantages are normalised by their weighted
+    mean and unbiased standard deviation when ``n > 1``, so rows of weight 0 change nothing; no
+    host reads (the graphed step).
+    """
+    actions = data.actions
+    if isinstance(algo.action_space, spaces.Discrete):
+        actions = actions.long().flatten()
+    values, log_prob, entropy = algo.policy.evaluate_actions(data.observations, actions)
+    values = values.flatten()
+    advantages = data.advantages
+    if weight is None:
+        mean = th.mean
+        if algo.normalize_advantage and len(advantages) > 1:
+            advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    else:
+        n = weight.sum()
 
         def mean(x: th.Tensor) -> th.Tensor:
-            return (w * x).sum() / n
+            return (weight * x).sum() / n
 
-        advantages = src["advantages"][i].flatten()
         if algo.normalize_advantage:
             centred = advantages - mean(advantages)
-            std = th.sqrt((w * centred**2).sum() / (n - 1))
+            std = th.sqrt((weight * centred**2).sum() / (n - 1))
             advantages = th.where(n > 1, centred / (std + 1e-8), advantages)
-        old_log_prob = src["log_probs"][i].flatten()
-        ratio = th.exp(log_prob - old_log_prob)
-        clip = self.clip_range
-        policy_loss = -mean(th.min(advantages * ratio, advantages * th.clamp(ratio, 1 - clip, 1 + clip)))
-        clip_fraction = mean((th.abs(ratio - 1) > clip).float())
-        values_pred = values
-        if self._has_clip_vf:
-            old_values = src["values"][i].flatten()
-            values_pred = old_values + th.clamp(values - old_values, -self.clip_range_vf, self.clip_range_vf)
-        value_loss = mean((src["returns"][i].flatten() - values_pred) ** 2)
-        entropy_loss = -mean(-log_prob) if entropy is None else -mean(entropy)
-        loss = policy_loss + algo.ent_coef * entropy_loss + algo.vf_coef * value_loss
-        with th.no_grad():
-            log_ratio = log_prob - old_log_prob
-            approx_kl = mean((th.exp(log_ratio) - 1) - log_ratio)
-        return loss, [entropy_loss.detach(), policy_loss.detach(), value_loss.detach(), clip_fraction, approx_kl]
+    ratio = th.exp(log_prob - data.old_log_prob)
+    policy_loss_1 = advantages * ratio
+    policy_loss_2 = advantages * th.clamp(ratio, 1 - clip_range, 1 + clip_range)
+    policy_loss = -mean(th.min(policy_loss_1, policy_loss_2))
+    clip_fraction = mean((th.abs(ratio - 1) > clip_range).float())
+    values_pred = values
+    if clip_range_vf is not None:
+        values_pred = data.old_values + th.clamp(values - data.old_values, -clip_range_vf, clip_range_vf)
+    value_loss = F.mse_loss(data.returns, values_pred) if weight is None else mean((data.returns - values_pred) ** 2)
+    entropy_loss = -mean(-log_prob) if entropy is None else -mean(entropy)
+    loss = policy_loss + algo.ent_coef * entropy_loss + algo.vf_coef * value_loss
+    with th.no_grad():
+        log_ratio = log_prob - data.old_log_prob
+        approx_kl = mean((th.exp(log_ratio) - 1) - log_ratio)
+    parts = {"entropy_loss": entropy_loss.detach(), "policy_gradient_loss": policy_loss.detach(),
+             "value_loss": value_loss.detach(), "clip_fraction": clip_fraction, "approx_kl": approx_kl}  # fmt: skip
+    return loss, parts
