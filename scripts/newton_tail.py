@@ -1,0 +1,56 @@
+#!/usr/bin/env python3
+"""Newton iterations a step and their tail: mean, p99, max, and the mean over steps of the slowest
+world of each 32 (a GPU warp waits for its slowest thread, so a batch steps at that pace).
+
+    python3 scripts/newton_tail.py [--cases cartpole,fourbar,...] [--worlds 256] [--steps 60] [--device cpu]
+
+Each case (``abd_gym.peer_cases``) starts from its random states, steps 3 times, then records each
+world's Newton iterations and factorisations for ``--steps`` steps.
+"""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import warp as wp
+
+CASES = "cartpole,inverted_pendulum_v5,double_pendulum_cart,inverted_double_pendulum_v5,fourbar,slider_crank,chain5"
+
+
+def tail(case: str, worlds: int, steps: int, device: str) -> dict[str, float]:
+    from abd_gym.peer_cases import CASES as PEER
+    from abd_gym.simulator import Simulator
+
+    c = PEER[case]
+    sim = Simulator(c.scene(), num_worlds=worlds, dt=0.01, device=device)
+    sim.set_joint_state(*c.states(worlds, 0))
+    sim.step(3)
+    its, fac = [], []
+    for _ in range(steps):
+        sim.step(1)
+        its.append(sim.newton_iterations().copy())
+        fac.append(sim.newton_factorizations().copy())
+    its, fac = np.array(its), np.array(fac)
+    warp = worlds // 32
+    return {"mean": its.mean(), "p99": np.percentile(its, 99), "max": its.max(),
+            "warp_max": its[:, : warp * 32].reshape(steps, warp, 32).max(-1).mean(), "factorizations": fac.mean(),
+            "warp_max_factorizations": fac[:, : warp * 32].reshape(steps, warp, 32).max(-1).mean()}  # fmt: skip
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--cases", default=CASES)
+    p.add_argument("--worlds", type=int, default=256)
+    p.add_argument("--steps", type=int, default=60)
+    p.add_argument("--device", default="cpu")
+    args = p.parse_args()
+    wp.config.quiet = True
+    print(f"{'case':28s} {'mean':>6s} {'p99':>5s} {'max':>4s} {'warp-max':>9s} {'fact.':>6s} {'warp-max fact.':>15s}")
+    for case in args.cases.split(","):
+        r = tail(case, args.worlds, args.steps, args.device)
+        print(f"{case:28s} {r['mean']:6.2f} {r['p99']:5.0f} {r['max']:4.0f} {r['warp_max']:9.2f} "
+              f"{r['factorizations']:6.2f} {r['warp_max_factorizations']:15.2f}")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
