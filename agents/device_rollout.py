@@ -85,9 +85,9 @@ def rollout_path(cfg: dict[str, Any]) -> tuple[str, str]:
     """(``"device"`` or ``"sb3"``, the reason in words) for a validated training config.
 
     The device path needs PPO and an env that takes ``backend="torch"`` (the abd_gym envs); a
-    VecNormalize config normalises on the device (:mod:`.device_normalize`).  The config's
-    ``rollout``: ``auto`` takes the device path where it applies, ``sb3`` forces SB3's path,
-    ``device`` raises a ``ValueError`` with the reason where the device path does not apply.
+    VecNormalize config normalises on the device (:mod:`.device_normalize`).  The config's ``rollout``: ``auto``
+    takes the device path where it applies, ``sb3`` forces SB3's path, ``device`` raises a
+    ``ValueError`` with the reason where the device path does not apply.
     """
     choice = cfg.get("rollout", "auto")
     if choice == SB3_PATH:
