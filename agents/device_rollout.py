@@ -67,7 +67,6 @@ from stable_baselines3.common.type_aliases import RolloutBufferSamples
 from stable_baselines3.common.utils import explained_variance
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 
-from .device_normalize import DeviceNormalize, find_vecnormalize
 from .graphed_rollout import RolloutStep
 from .graphed_update import GraphedMinibatchStep, ppo_loss
 from .sb3_vec_env import GymnasiumVecEnv, _accepts
@@ -84,8 +83,8 @@ SB3_PATH = "sb3"  # SB3's NumPy rollout
 def rollout_path(cfg: dict[str, Any]) -> tuple[str, str]:
     """(``"device"`` or ``"sb3"``, the reason in words) for a validated training config.
 
-    The device path needs PPO and an env that takes ``backend="torch"`` (the abd_gym envs); a
-    VecNormalize config normalises on the device (:mod:`.device_normalize`).  The config's ``rollout``: ``auto``
+    The device path needs PPO, no VecNormalize (its statistics are NumPy code on the host) and an
+    env that takes ``backend="torch"`` (the abd_gym envs).  The config's ``rollout``: ``auto``
     takes the device path where it applies, ``sb3`` forces SB3's path, ``device`` raises a
     ``ValueError`` with the reason where the device path does not apply.
     """
@@ -95,10 +94,12 @@ def rollout_path(cfg: dict[str, Any]) -> tuple[str, str]:
     refusal = None
     if cfg["algo"] != "ppo":
         refusal = f"{cfg['algo']} is not PPO"
+    elif cfg.get("normalize"):
+        refusal = "VecNormalize normalises on the host"
     elif not _takes_torch_backend(cfg["env_id"]):
         refusal = f"{cfg['env_id']} has no Torch backend"
     if refusal is None:
-        return DEVICE_PATH, "PPO on an env with the Torch backend"
+        return DEVICE_PATH, "PPO on an env with the Torch backend, no VecNormalize"
     if choice == DEVICE_PATH:
         raise ValueError(f"rollout: the device rollout does not apply: {refusal}")
     return SB3_PATH, refusal
@@ -316,7 +317,7 @@ class DevicePPO(PPO):
         # observation is a tensor here, NumPy in SB3's rollout)
         return [*super()._excluded_save_params(), "rollout_buffer_class", "rollout_buffer_kwargs", "_adapter",
                 "_ep_return", "_ep_length", "_low", "_high", "_last_obs", "_last_episode_starts",
-                "_ended", "_next_step", "_minibatch_step", "_rollout_step", "_vecnormalize"]  # fmt: skip
+                "_ended", "_next_step", "_minibatch_step", "_rollout_step"]  # fmt: skip
 
     def get_parameters(self) -> dict[str, dict]:
         """SB3's saved state dicts, the optimiser's as a plain Adam's (the graphed update keeps its
@@ -360,10 +361,6 @@ class DevicePPO(PPO):
         self._adapter = adapter
         self._next_step = adapter.autoreset_mode == AutoresetMode.NEXT_STEP
         self._rollout_step = None
-        self._vecnormalize = find_vecnormalize(env)
-        if self._vecnormalize is not None and not self._next_step:
-            raise ValueError("DevicePPO normalises (VecNormalize) on a NEXT_STEP env only: this env autoresets "
-                             f"{adapter.autoreset_mode.name}")  # fmt: skip
         monitor = env
         while monitor is not None and not isinstance(monitor, VecMonitor):
             monitor = getattr(monitor, "venv", None)
@@ -588,14 +585,11 @@ class DevicePPO(PPO):
         rollout_buffer.next_step = True
         steps = getattr(self, "_rollout_step", None)
         if steps is None:
-            norm = None
-            if self._vecnormalize is not None:
-                norm = DeviceNormalize(self._vecnormalize, env.num_envs, self.device)
             # no capture where a step's launches are not fixed: a state-dependent exploration's noise
             # is redrawn into new tensors, and Categorical sampling (multinomial) reads its
             # probabilities' check back to the host in some Torch versions
             eager = self.use_sde or isinstance(self.action_space, spaces.Discrete)
-            self._rollout_step = steps = RolloutStep(self, capture=False if eager else None, normalize=norm)
+            self._rollout_step = steps = RolloutStep(self, capture=False if eager else None)
         steps.start(rollout_buffer)
         for n_steps in range(n_rollout_steps):
             if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
@@ -606,10 +600,8 @@ class DevicePPO(PPO):
             actions, values, log_probs, rewards = steps.actions, steps.values, steps.log_probs, steps.rewards
             callback.update_locals(locals())
             if not callback.on_step():
-                steps.finish()
                 return False
             steps.record()
-        steps.finish()
         rollout_buffer.pos, rollout_buffer.full = n_rollout_steps, True
         with th.no_grad():
             values = self.policy.predict_values(steps.obs)
