@@ -71,10 +71,17 @@ def _fmt_time(seconds: float) -> str:
     return f"{seconds / 3600:.2f} h"
 
 
-def _fmt_num(x: float | None) -> str:
+def _decimals(x: float) -> int:
+    """Two decimals for small values (a return near Reacher-v5's threshold of -3.75), else one."""
+    return 2 if abs(x) < 10 else 1
+
+
+def _fmt_num(x: float | None, decimals: int | None = None) -> str:
     if x is None:
         return "–"
-    return f"{x:.1f}" if abs(x) < 1e4 else f"{x:.3g}"
+    if abs(x) >= 1e4:
+        return f"{x:.3g}"
+    return f"{x:.{_decimals(x) if decimals is None else decimals}f}"
 
 
 def markdown_table(rows: list[dict[str, Any]]) -> str:
@@ -97,7 +104,7 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
                     f"{int(d['timesteps']):,}",
                     _fmt_time(float(d["wall_time_s"])),
                     device.replace("|", "/"),
-                    f"{_fmt_num(d['mean_return'])} ± {_fmt_num(d['std_return'])}",
+                    f"{_fmt_num(d['mean_return'])} ± {_fmt_num(d['std_return'], _decimals(d['mean_return']))}",
                     str(d.get("eval_episodes", "")),
                     _fmt_num(thr),
                     solved_txt,
