@@ -492,14 +492,19 @@ class DevicePPO(PPO):
             self._minibatch_step = step = GraphedMinibatchStep(self)
         return step
 
-    def _train_graphed(self, step: GraphedMinibatchStep) -> None:
-        """``PPO.train`` with each minibatch replayed from a CUDA graph (:mod:`.graphed_update`)."""
+    def _begin_update(self) -> tuple[float, float | None]:
+        """``PPO.train``'s start: training mode, the learning rate of this update, its clip ranges."""
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         clip_range = self.clip_range(self._current_progress_remaining)  # type: ignore[operator]
         clip_range_vf = None
         if self.clip_range_vf is not None:
             clip_range_vf = self.clip_range_vf(self._current_progress_remaining)  # type: ignore[operator]
+        return clip_range, clip_range_vf
+
+    def _train_graphed(self, step: GraphedMinibatchStep) -> None:
+        """``PPO.train`` with each minibatch replayed from a CUDA graph (:mod:`.graphed_update`)."""
+        clip_range, clip_range_vf = self._begin_update()
         step.begin(self.rollout_buffer, clip_range, clip_range_vf)
         for _ in range(self.n_epochs):
             for batch_inds in self.rollout_buffer.minibatch_indices(self.batch_size):
@@ -510,12 +515,7 @@ class DevicePPO(PPO):
                          clip_range, clip_range_vf)  # fmt: skip
 
     def _train(self) -> None:
-        self.policy.set_training_mode(True)
-        self._update_learning_rate(self.policy.optimizer)
-        clip_range = self.clip_range(self._current_progress_remaining)  # type: ignore[operator]
-        clip_range_vf = None
-        if self.clip_range_vf is not None:
-            clip_range_vf = self.clip_range_vf(self._current_progress_remaining)  # type: ignore[operator]
+        clip_range, clip_range_vf = self._begin_update()
         logged: dict[str, list[th.Tensor]] = {name: [] for name in _LOSS_LOGS}
         approx_kl_divs: list[th.Tensor] = []
         loss = th.zeros((), device=self.device)
