@@ -20,6 +20,7 @@ from one rollout to the next (:meth:`TensorRolloutBuffer.reset`).
 """
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch as th
@@ -48,11 +49,10 @@ class RolloutStep:
         self.terminated = th.zeros(n, dtype=th.bool, device=dev)
         self.truncated = th.zeros(n, dtype=th.bool, device=dev)
         self.pos = th.zeros(1, dtype=th.int64, device=dev)
-        self.discrete = isinstance(algo.action_space, spaces.Discrete)
-        action_dim = 1 if self.discrete else int(th.tensor(algo.action_space.shape).prod())
-        self.actions = th.zeros((n, action_dim), dtype=th.float32, device=dev)
-        self.env_actions = th.zeros(n, dtype=th.int64, device=dev) if self.discrete else th.zeros(
-            (n, *algo.action_space.shape), dtype=th.float32, device=dev)  # fmt: skip
+        discrete = isinstance(algo.action_space, spaces.Discrete)
+        shape = algo.action_space.shape
+        self.actions = th.zeros((n, 1 if discrete else math.prod(shape)), dtype=th.float32, device=dev)
+        self.env_actions = th.zeros((n, *shape), dtype=th.int64 if discrete else th.float32, device=dev)
         self.values = th.zeros(n, dtype=th.float32, device=dev)
         self.log_probs = th.zeros(n, dtype=th.float32, device=dev)
         self.buffer: Any = None
