@@ -118,14 +118,19 @@ def _action_noise(spec: dict[str, Any], action_space) -> Any:
 def build_model(
     cfg: dict[str, Any], env, *, tensorboard_log: str | None = None, verbose: int = 0, rollout: str = "sb3"
 ):
-    """The config's algorithm on ``env``; ``rollout="device"``: PPO as
-    :class:`~abd_gym.agents.device_rollout.DevicePPO` (its rollout on the policy's device)."""
+    """The config's algorithm on ``env``.  PPO is :class:`~abd_gym.agents.device_rollout.DevicePPO`
+    with ``rollout="device"`` (its rollout on the policy's device), else
+    :class:`~abd_gym.agents.graphed_update.GraphedPPO` (SB3's rollout; its update a CUDA graph on
+    a GPU, SB3's own elsewhere)."""
+    algo_cls = algorithm_class(cfg["algo"])
     if rollout == "device":
         from .device_rollout import DevicePPO
 
         algo_cls = DevicePPO
-    else:
-        algo_cls = algorithm_class(cfg["algo"])
+    elif cfg["algo"].lower() == "ppo":
+        from .graphed_update import GraphedPPO
+
+        algo_cls = GraphedPPO
     kwargs = algorithm_kwargs(cfg)
     if isinstance(kwargs.get("action_noise"), dict):
         kwargs["action_noise"] = _action_noise(kwargs["action_noise"], env.action_space)

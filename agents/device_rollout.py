@@ -40,19 +40,17 @@ a_k, reward 0) is no transition of the task, so the buffer marks it invalid and:
   counted transitions is a reset step that trains nothing.
 
 On a CUDA device the NEXT_STEP rollout's policy and bookkeeping run as CUDA graphs
-(:mod:`.graphed_rollout`) and, without ``target_kl``, :meth:`DevicePPO.train` replays PPO's
-minibatch step from a CUDA graph (:mod:`.graphed_update`: the same losses, a padded last minibatch
-weighted out; parameters equal SB3's to float32 rounding).  Elsewhere :meth:`DevicePPO.train` is
-SB3's ``PPO.train`` (the same parameters after it, bit for bit) with its logged statistics kept on
-the device and read once per update, not five times a minibatch.  The rollout and the update build
-Torch distributions without argument checks (each check is a read back to the host).  Each such
-read waits for the GPU, so that the host cannot queue the next kernels while the GPU runs.
+(:mod:`.graphed_rollout`).  The update is :class:`~.graphed_update.GraphedPPO`'s: without
+``target_kl`` on a GPU, PPO's minibatch step replayed from a CUDA graph (parameters equal SB3's
+to float32 rounding), elsewhere SB3's ``PPO.train`` bit for bit, with its statistics read once
+an update.  The rollout and the update build Torch distributions without argument checks (each
+check is a read back to the host).  Each such read waits for the GPU, so that the host cannot
+queue the next kernels while the GPU runs.
 
 :func:`rollout_path` says which path a config gets and, for SB3's path, why.
 """
 from __future__ import annotations
 
-import contextlib
 import time
 from collections.abc import Generator, Iterator
 from typing import Any
@@ -61,18 +59,13 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
-from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import BaseBuffer, RolloutBuffer
 from stable_baselines3.common.type_aliases import RolloutBufferSamples
-from stable_baselines3.common.utils import explained_variance
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 
 from .graphed_rollout import RolloutStep
-from .graphed_update import GraphedMinibatchStep, ppo_loss
+from .graphed_update import SAMPLED, GraphedPPO, unchecked_distributions
 from .sb3_vec_env import GymnasiumVecEnv, _accepts
-
-# PPO.train's logged means over the minibatches (train/<name>)
-_LOSS_LOGS = ("entropy_loss", "policy_gradient_loss", "value_loss", "clip_fraction")
 
 __all__ = ["DEVICE_PATH", "SB3_PATH", "DevicePPO", "TensorRolloutBuffer", "rollout_path", "find_adapter"]
 
@@ -171,7 +164,7 @@ class TensorRolloutBuffer(RolloutBuffer):
 
     FIELDS = ("observations", "actions", "rewards", "returns", "episode_starts", "values", "log_probs", "advantages")
     FLAGS = ("valid", "dones", "cuts", "ep_return", "ep_length")
-    SAMPLED = ("observations", "actions", "values", "log_probs", "advantages", "returns")  # what minibatches read
+    SAMPLED = SAMPLED  # what minibatches read
     observations = _HostView()
     actions = _HostView()
     rewards = _HostView()
@@ -284,22 +277,7 @@ class TensorRolloutBuffer(RolloutBuffer):
         )
 
 
-@contextlib.contextmanager
-def unchecked_distributions() -> Iterator[None]:
-    """Torch distributions built without checking their arguments (``validate_args`` off), restored
-    after.  The checks (``Categorical``'s logits, ``Normal``'s scale, each sample's support) each
-    read a flag back to the host, a wait for the GPU, at every policy call; the values are the
-    same either way.  A non-finite policy is still caught: :meth:`DevicePPO.train` refuses a
-    non-finite loss."""
-    before = th.distributions.Distribution._validate_args
-    th.distributions.Distribution.set_default_validate_args(False)
-    try:
-        yield
-    finally:
-        th.distributions.Distribution.set_default_validate_args(before)
-
-
-class DevicePPO(PPO):
+class DevicePPO(GraphedPPO):
     """PPO whose rollout stays on the policy's device (see the module docstring).
 
     The training env must be a :class:`GymnasiumVecEnv` that :meth:`~GymnasiumVecEnv.step_tensors`
@@ -317,33 +295,15 @@ class DevicePPO(PPO):
         # observation is a tensor here, NumPy in SB3's rollout)
         return [*super()._excluded_save_params(), "rollout_buffer_class", "rollout_buffer_kwargs", "_adapter",
                 "_ep_return", "_ep_length", "_low", "_high", "_last_obs", "_last_episode_starts",
-                "_ended", "_next_step", "_minibatch_step", "_rollout_step"]  # fmt: skip
+                "_ended", "_next_step", "_rollout_step"]  # fmt: skip
 
-    def get_parameters(self) -> dict[str, dict]:
-        """SB3's saved state dicts, the optimiser's as a plain Adam's (the graphed update keeps its
-        learning rate and step counts on the device, ``capturable``), so that a saved model loads
-        anywhere."""
-        params = super().get_parameters()
-        opt = params.get("policy.optimizer")
-        if opt is not None:
-            for group in opt["param_groups"]:  # copies made by state_dict
-                group["lr"] = float(group["lr"])
-                group["capturable"] = False
-            opt["state"] = {k: {**v, "step": v["step"].cpu()} if "step" in v else v for k, v in opt["state"].items()}
-        return params
+    def _flat_fields(self) -> dict[str, th.Tensor]:
+        buf = self.rollout_buffer
+        buf.flatten()
+        return {name: buf.tensors[name] for name in SAMPLED}
 
-    def set_parameters(self, *args: Any, **kwargs: Any) -> None:
-        super().set_parameters(*args, **kwargs)
-        self._minibatch_step = None  # the optimiser's state was replaced: capture again
-
-    def _update_learning_rate(self, optimizers: Any) -> None:
-        lr = self.lr_schedule(self._current_progress_remaining)
-        self.logger.record("train/learning_rate", lr)
-        for group in self.policy.optimizer.param_groups:
-            if isinstance(group["lr"], th.Tensor):  # a graphed update's: written in place
-                group["lr"].fill_(lr)
-            else:
-                group["lr"] = lr
+    def _minibatch_indices(self) -> Iterator[th.Tensor]:
+        return self.rollout_buffer.minibatch_indices(self.batch_size)
 
     def _setup_learn(self, *args: Any, **kwargs: Any) -> Any:
         out = super()._setup_learn(*args, **kwargs)
@@ -470,101 +430,6 @@ class DevicePPO(PPO):
         callback.update_locals(locals())
         callback.on_rollout_end()
         return True
-
-    def train(self) -> None:
-        """SB3's ``PPO.train``: the same losses, minibatches, gradient clipping and optimiser steps in
-        the same order (the same parameters after it, bit for bit), with the statistics it logs kept
-        on the device and read once at the end.  SB3 reads five numbers to the host every minibatch
-        (``.item()``, ``.cpu()``), and each read waits for every kernel queued before it, so the
-        host's launches and the GPU's work never overlap.  With ``target_kl`` the KL estimate is
-        read every minibatch, as the early stop needs.  A non-finite loss raises ``FloatingPointError``."""
-        with unchecked_distributions():
-            step = self._graphed_step()
-            if step is None:
-                self._train()
-            else:
-                self._train_graphed(step)
-
-    def _graphed_step(self) -> GraphedMinibatchStep | None:
-        """The CUDA-graph minibatch step on a CUDA device without ``target_kl`` (built once), else None."""
-        step = getattr(self, "_minibatch_step", None)
-        if step is None and self.device.type == "cuda" and self.target_kl is None:
-            self._minibatch_step = step = GraphedMinibatchStep(self)
-        return step
-
-    def _begin_update(self) -> tuple[float, float | None]:
-        """``PPO.train``'s start: training mode, the learning rate of this update, its clip ranges."""
-        self.policy.set_training_mode(True)
-        self._update_learning_rate(self.policy.optimizer)
-        clip_range = self.clip_range(self._current_progress_remaining)  # type: ignore[operator]
-        clip_range_vf = None
-        if self.clip_range_vf is not None:
-            clip_range_vf = self.clip_range_vf(self._current_progress_remaining)  # type: ignore[operator]
-        return clip_range, clip_range_vf
-
-    def _train_graphed(self, step: GraphedMinibatchStep) -> None:
-        """``PPO.train`` with each minibatch replayed from a CUDA graph (:mod:`.graphed_update`)."""
-        clip_range, clip_range_vf = self._begin_update()
-        step.begin(self.rollout_buffer, clip_range, clip_range_vf)
-        for _ in range(self.n_epochs):
-            for batch_inds in self.rollout_buffer.minibatch_indices(self.batch_size):
-                step.step(batch_inds)
-            self._n_updates += 1
-        means = step.means()
-        self._log_update([means[n] for n in (*_LOSS_LOGS, "approx_kl")], means["last_loss"], means["loss"],
-                         clip_range, clip_range_vf)  # fmt: skip
-
-    def _train(self) -> None:
-        clip_range, clip_range_vf = self._begin_update()
-        logged: dict[str, list[th.Tensor]] = {name: [] for name in _LOSS_LOGS}
-        approx_kl_divs: list[th.Tensor] = []
-        loss = th.zeros((), device=self.device)
-        continue_training = True
-        for epoch in range(self.n_epochs):
-            approx_kl_divs = []
-            for rollout_data in self.rollout_buffer.get(self.batch_size):
-                loss, parts = ppo_loss(self, rollout_data, clip_range, clip_range_vf)
-                approx_kl_div = parts.pop("approx_kl")
-                for name, value in parts.items():
-                    logged[name].append(value)
-                approx_kl_divs.append(approx_kl_div)
-                if self.target_kl is not None and approx_kl_div.item() > 1.5 * self.target_kl:
-                    continue_training = False
-                    if self.verbose >= 1:
-                        print(f"Early stopping at step {epoch} due to reaching max kl: {approx_kl_div.item():.2f}")
-                    break
-                self.policy.optimizer.zero_grad()
-                loss.backward()
-                th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-                self.policy.optimizer.step()
-            self._n_updates += 1
-            if not continue_training:
-                break
-        series = [*(logged[n] for n in _LOSS_LOGS), approx_kl_divs]
-        means = [th.stack(s).double().mean() if s else th.tensor(float("nan"), device=self.device) for s in series]
-        *values, last_loss = th.stack([*means, loss.detach().double()]).cpu().tolist()
-        self._log_update(values, last_loss, last_loss, clip_range, clip_range_vf)
-
-    def _log_update(self, values: list[float], last_loss: float, checked_loss: float, clip_range: float,
-                    clip_range_vf: float | None) -> None:  # fmt: skip
-        """``PPO.train``'s records: ``values`` the means over the minibatches of ``_LOSS_LOGS`` and the
-        KL estimate, ``last_loss`` the last minibatch's loss; a non-finite ``checked_loss`` (the last
-        loss, or the mean over the minibatches where the update keeps it) raises."""
-        names = [*_LOSS_LOGS, "approx_kl"]
-        if not np.isfinite(checked_loss):
-            raise FloatingPointError(f"PPO's loss is {checked_loss} at update {self._n_updates}: the policy or the "
-                                     "rollout's values went non-finite")  # fmt: skip
-        for name, value in zip(names, values):
-            self.logger.record(f"train/{name}", value)
-        self.logger.record("train/loss", last_loss)
-        buf = self.rollout_buffer
-        self.logger.record("train/explained_variance", explained_variance(buf.values.flatten(), buf.returns.flatten()))
-        if hasattr(self.policy, "log_std"):
-            self.logger.record("train/std", th.exp(self.policy.log_std).mean().item())
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/clip_range", clip_range)
-        if clip_range_vf is not None:
-            self.logger.record("train/clip_range_vf", clip_range_vf)
 
     def _act(self, env: VecEnv, n_steps: int) -> tuple:
         """One step of the rollout's policy and env: (actions, values, log-probs, the env's

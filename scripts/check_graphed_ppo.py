@@ -1,11 +1,13 @@
-"""The CUDA-graph PPO on a GPU against its eager forms, from the same seed (gpu/cartpole_ppo):
+"""The CUDA-graph PPO on a GPU against its eager forms, from the same seed:
 
-* the parameters after 1 and 6 updates: graphed update vs SB3's eager arithmetic (``DevicePPO._train``)
-  and vs the weighted arithmetic run eagerly, with each update's wall time;
-* the buffer of the first rollout: graphed ``RolloutStep`` vs the same code run eagerly;
+* the parameters after 1 and 6 updates: graphed update vs SB3's eager arithmetic
+  (``GraphedPPO._train``) and vs the weighted arithmetic run eagerly, with each update's wall time,
+  on the device rollout (gpu/cartpole_ppo, DevicePPO) and on SB3's rollout (a VecNormalize config,
+  GraphedPPO);
+* the buffer of the device rollout's first rollout: graphed ``RolloutStep`` vs the same code run eagerly;
 * a model saved after graphed training loads on the CPU with the same parameters.
 
-    python scripts/check_graphed_ppo.py [--json PATH]
+    python scripts/check_graphed_ppo.py [--sb3-config gpu/fourbar_ppo] [--json PATH]
 """
 from __future__ import annotations
 
@@ -21,17 +23,18 @@ from abd_gym.agents.graphed_rollout import RolloutStep
 from abd_gym.agents.graphed_update import GraphedMinibatchStep
 
 
-def train(mode: str, updates: int):
-    """A DevicePPO on gpu/cartpole_ppo after ``updates`` updates; ``mode``: graph, eager (the graphed
-    code without capture) or sb3 (SB3's arithmetic); the wall time of each update."""
-    cfg = load_config("gpu/cartpole_ppo", ["device=cuda:0"])
+def train(mode: str, updates: int, config: str, rollout: str):
+    """A model on ``config`` after ``updates`` updates on ``rollout`` ("device": DevicePPO, "sb3":
+    GraphedPPO); ``mode``: graph, eager (the graphed code without capture) or sb3 (SB3's
+    arithmetic); the wall time of each update."""
+    cfg = load_config(config, ["device=cuda:0"])
     th.manual_seed(0)
-    model = build_model(cfg, build_train_env(cfg, rollout="device"), rollout="device")
+    model = build_model(cfg, build_train_env(cfg, rollout=rollout), rollout=rollout)
     if mode == "eager":
         model._minibatch_step = GraphedMinibatchStep(model, capture=False)
     if mode == "sb3":
         model._graphed_step = lambda: None
-    if mode != "graph":
+    if mode != "graph" and rollout == "device":
         bind = model._bind
 
         def eager_bind(env):
@@ -59,32 +62,41 @@ def max_diff(a, b) -> float:
     return max(float((p.detach().cpu() - q.detach().cpu()).abs().max()) for p, q in zip(a, b))
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--json", help="write the results here")
-    args = p.parse_args()
-    out: dict = {"device": th.cuda.get_device_name()}
-    buffers = {}
+def compare(config: str, rollout: str, out: dict) -> dict:
+    """Graph, eager and SB3's arithmetic after 1 and 6 updates into ``out[rollout]``; the models
+    after 1 update."""
+    res = out.setdefault(rollout, {"config": config})
     for updates in (1, 6):
-        models = {mode: train(mode, updates) for mode in ("graph", "eager", "sb3")}
-        if updates == 1:  # one rollout from the same parameters: the same transitions
-            buffers = {mode: models[mode][0].rollout_buffer.storage for mode in ("graph", "eager")}
+        models = {mode: train(mode, updates, config, rollout) for mode in ("graph", "eager", "sb3")}
+        if updates == 1:
+            first = {mode: m for mode, (m, _) in models.items()}
         ref = list(models["sb3"][0].policy.parameters())
         for mode, (model, times) in models.items():
             diff = max_diff(model.policy.parameters(), ref)
-            out[f"{mode}_{updates}"] = {"max_param_diff_vs_sb3": diff, "update_s": times}
-            print(f"{mode:5s} after {updates} update(s): parameters within {diff:.3g} of SB3's arithmetic; "
-                  f"update s {[round(t, 4) for t in times]}")
-    graph, eager = buffers["graph"], buffers["eager"]
-    out["rollout_buffer_max_diff"] = {k: float((graph[k] - eager[k]).abs().max()) for k in graph}
-    print("first rollout's buffer, graph vs eager: max difference", max(out["rollout_buffer_max_diff"].values()))
-    model = models["graph"][0]
-    model.save("/tmp/check_graphed_ppo.zip")
+            res[f"{mode}_{updates}"] = {"max_param_diff_vs_sb3": diff, "update_s": times}
+            print(f"{config} ({rollout} rollout) {mode:5s} after {updates} update(s): parameters within "
+                  f"{diff:.3g} of SB3's arithmetic; update s {[round(t, 4) for t in times]}")
+    return first
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sb3-config", default="gpu/fourbar_ppo", help="a config on SB3's rollout (VecNormalize)")
+    p.add_argument("--json", help="write the results here")
+    args = p.parse_args()
+    out: dict = {"gpu": th.cuda.get_device_name()}
+    first = compare("gpu/cartpole_ppo", "device", out)
+    graph, eager = first["graph"].rollout_buffer.storage, first["eager"].rollout_buffer.storage
+    out["device"]["rollout_buffer_max_diff"] = {k: float((graph[k] - eager[k]).abs().max()) for k in graph}
+    print("first rollout's buffer, graph vs eager: max difference",
+          max(out["device"]["rollout_buffer_max_diff"].values()))  # fmt: skip
     from stable_baselines3 import PPO
 
-    loaded = PPO.load("/tmp/check_graphed_ppo.zip", device="cpu")
-    out["load_on_cpu_param_diff"] = max_diff(model.policy.parameters(), loaded.policy.parameters())
-    print("saved after graphed training, loaded on the CPU: parameters within", out["load_on_cpu_param_diff"])
+    for model, rollout in ((first["graph"], "device"), (compare(args.sb3_config, "sb3", out)["graph"], "sb3")):
+        model.save("/tmp/check_graphed_ppo.zip")
+        loaded = PPO.load("/tmp/check_graphed_ppo.zip", device="cpu")
+        out[rollout]["load_on_cpu_param_diff"] = diff = max_diff(model.policy.parameters(), loaded.policy.parameters())
+        print(f"{rollout} rollout: saved after graphed training, loaded on the CPU: parameters within {diff}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=1)

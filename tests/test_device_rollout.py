@@ -2,16 +2,22 @@
 and on a NEXT_STEP env trains on exactly the transitions SB3's rollout collects (CPU)."""
 from __future__ import annotations
 
+from unittest import mock
+
 import numpy as np
 import pytest
 import torch as th
 
 pytest.importorskip("stable_baselines3")
+from stable_baselines3 import PPO  # noqa: E402
 from stable_baselines3.common.vec_env import VecMonitor  # noqa: E402
+
+from abd_gym.agents import graphed_update  # noqa: E402
 
 from abd_gym.agents.common import build_model  # noqa: E402
 from abd_gym.agents.config import load_config  # noqa: E402
 from abd_gym.agents.device_rollout import DevicePPO, TensorRolloutBuffer, rollout_path  # noqa: E402
+from abd_gym.agents.graphed_update import GraphedMinibatchStep, GraphedPPO  # noqa: E402
 from abd_gym.agents.sb3_vec_env import TensorStep, make_vec_env  # noqa: E402
 
 N_ENVS, N_STEPS, ITERATIONS = 8, 16, 2
@@ -32,12 +38,23 @@ def _config(episode_steps=CUT_STEPS, **extra):
     return load_config("cartpole_ppo", overrides)
 
 
-def _train(cfg, rollout):
-    # both paths step the same env (Torch backend); only the rollout differs
+def _train(cfg, rollout, step=None):
+    """A model trained on ``cfg``: ``rollout`` "sb3" is SB3's own PPO (the reference), "graphed"
+    :class:`GraphedPPO` (SB3's rollout), "device" :class:`DevicePPO`; ``step``: the update's
+    minibatch step (a :class:`GraphedMinibatchStep` class) where it is not the default."""
+    # every path steps the same env (Torch backend)
     th.set_num_threads(1)  # the orthogonal initialisation's QR rounds differently with more threads
     env = VecMonitor(make_vec_env(cfg["env_id"], cfg["n_envs"], seed=cfg["seed"], env_kwargs=cfg["env_kwargs"],
                                   backend="torch"))  # fmt: skip
-    model = build_model(cfg, env, rollout=rollout)
+    if rollout == "sb3":
+        with mock.patch.object(graphed_update, "GraphedPPO", PPO):
+            model = build_model(cfg, env, rollout="sb3")
+        assert type(model) is PPO
+    else:
+        model = build_model(cfg, env, rollout="sb3" if rollout == "graphed" else rollout)
+        assert type(model) is (GraphedPPO if rollout == "graphed" else DevicePPO)
+    if step is not None:
+        model._minibatch_step = step(model, capture=False)
     model.learn(total_timesteps=cfg["n_timesteps"])
     return model
 
@@ -55,46 +72,54 @@ _LOGGED = ("train/entropy_loss", "train/policy_gradient_loss", "train/value_loss
            "train/approx_kl", "train/loss", "train/explained_variance", "train/n_updates")
 
 
+def _assert_same(a, b):
+    """The same parameters bit for bit and the same logged means (to their float64 summation)."""
+    for (name, p), q in zip(a.policy.state_dict().items(), b.policy.state_dict().values()):
+        np.testing.assert_array_equal(p.numpy(), q.numpy(), err_msg=name)
+    for key in _LOGGED:
+        assert b.logger.name_to_value[key] == pytest.approx(a.logger.name_to_value[key], rel=1e-6, abs=1e-9), key
+
+
+def _assert_close(a, b, start):
+    """Parameters that moved from ``start`` the same way to 1e-4 of the move, and logged means to 1e-4."""
+    for p, q, p0 in zip(a.policy.parameters(), b.policy.parameters(), start):
+        moved = (p.detach() - p0).abs().max()
+        assert moved > 0
+        assert (p.detach() - q.detach()).abs().max() <= 1e-4 * moved
+    for key in _LOGGED:
+        assert b.logger.name_to_value[key] == pytest.approx(a.logger.name_to_value[key], rel=1e-4, abs=1e-7), key
+
+
+def _initial_parameters(cfg):
+    model = _train(dict(cfg, n_timesteps=0), "sb3")
+    return [p.detach().clone() for p in model.policy.parameters()]
+
+
 @pytest.mark.parametrize("target_kl", [None, 1e-6])
 def test_bit_identical_without_time_limit_cuts(target_kl):
-    # the device path's update is SB3's (DevicePPO.train): the same parameters, the same logged
-    # means, and with a target KL small enough to stop epochs early, the same early stops
+    # the device path's update is SB3's (GraphedPPO._train off a GPU): the same parameters, the
+    # same logged means, and with a target KL small enough to stop epochs early, the same early stops
     cfg = _config(LONG_STEPS, **({} if target_kl is None else {"hyperparams.target_kl": target_kl}))
     sb3, dev = _train(cfg, "sb3"), _train(cfg, "device")
     assert len(sb3.ep_info_buffer) > 0  # some episodes terminated (reset inside a rollout)
     a, b = sb3.rollout_buffer, dev.rollout_buffer
     for name in _FIELDS:
         np.testing.assert_array_equal(getattr(a, name).astype(np.float32), getattr(b, name), err_msg=name)
-    for (name, p), q in zip(sb3.policy.state_dict().items(), dev.policy.state_dict().values()):
-        np.testing.assert_array_equal(p.numpy(), q.numpy(), err_msg=name)
-    logged_a, logged_b = sb3.logger.name_to_value, dev.logger.name_to_value
-    for key in _LOGGED:
-        assert logged_b[key] == pytest.approx(logged_a[key], rel=1e-6, abs=1e-9), key
+    _assert_same(sb3, dev)
     full = ITERATIONS * cfg["hyperparams"]["n_epochs"]
     assert (dev._n_updates < full) == (target_kl is not None)  # the small target stops epochs early
+    # SB3's rollout with GraphedPPO's update off a GPU: SB3's learning bit for bit
+    _assert_same(sb3, _train(cfg, "graphed"))
 
 
 @pytest.mark.parametrize("batch_size", [32, 48])
-def test_graphed_update_is_sb3s_to_rounding(batch_size):
+@pytest.mark.parametrize("rollout", ["device", "graphed"])
+def test_graphed_update_is_sb3s_to_rounding(batch_size, rollout):
     # the CUDA-graph minibatch step's arithmetic (weighted means, padded last minibatch at 48:
-    # 128 = 2 x 48 + 32), run eagerly on the CPU, moves the parameters as SB3's update does
-    from abd_gym.agents.graphed_update import GraphedMinibatchStep
-
+    # 128 = 2 x 48 + 32), run eagerly on the CPU, moves the parameters as SB3's update does, on the
+    # device rollout and on SB3's (whose buffer goes to the update's tensors once an update)
     cfg = _config(LONG_STEPS, **{"hyperparams.batch_size": batch_size})
-    sb3 = _train(cfg, "sb3")
-    env = VecMonitor(make_vec_env(cfg["env_id"], cfg["n_envs"], seed=cfg["seed"], env_kwargs=cfg["env_kwargs"],
-                                  backend="torch"))  # fmt: skip
-    dev = build_model(cfg, env, rollout="device")
-    start = [p.detach().clone() for p in dev.policy.parameters()]
-    dev._minibatch_step = GraphedMinibatchStep(dev, capture=False)
-    dev.learn(total_timesteps=cfg["n_timesteps"])
-    for p, q, p0 in zip(sb3.policy.parameters(), dev.policy.parameters(), start):
-        moved = (p.detach() - p0).abs().max()
-        assert moved > 0
-        assert (p.detach() - q.detach()).abs().max() <= 1e-4 * moved
-    logged_a, logged_b = sb3.logger.name_to_value, dev.logger.name_to_value
-    for key in _LOGGED:
-        assert logged_b[key] == pytest.approx(logged_a[key], rel=1e-4, abs=1e-7), key
+    _assert_close(_train(cfg, "sb3"), _train(cfg, rollout, GraphedMinibatchStep), _initial_parameters(cfg))
 
 
 def test_update_refuses_a_non_finite_loss():
