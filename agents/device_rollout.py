@@ -231,7 +231,7 @@ class TensorRolloutBuffer(RolloutBuffer):
             delta = t["rewards"][step] + self.gamma * nv * nnt - t["values"][step]
             last_gae_lam = delta + self.gamma * self.gae_lambda * nnt * last_gae_lam
             t["advantages"][step] = last_gae_lam
-        t["returns"] = t["advantages"] + t["values"]
+        th.add(t["advantages"], t["values"], out=t["returns"])  # in place: a captured GAE writes here
 
     def get(self, batch_size: int | None = None) -> Generator[RolloutBufferSamples, None, None]:
         """Minibatches of ``batch_size`` (the last one smaller if it must be) in an order drawn from
@@ -468,9 +468,8 @@ class DevicePPO(GraphedPPO):
                 return False
             steps.record()
         rollout_buffer.pos, rollout_buffer.full = n_rollout_steps, True
-        with th.no_grad():
-            values = self.policy.predict_values(steps.obs)
-        rollout_buffer.compute_returns_and_advantage(last_values=values, dones=None)
+        steps.finish()  # the last observation's values and GAE
+        values = steps.last_values
         self._flush_episodes(rollout_buffer)
         callback.update_locals(locals())
         callback.on_rollout_end()

@@ -14,9 +14,12 @@ several times the env's own step on a GPU.  :class:`RolloutStep` runs it as
    the transition ``(obs, action, reward, episode_start, value, log_prob)``; then
    ``obs <- next obs``, ``episode_start <- ended``, ``ended <- done``, ``pos += 1``.
 
-1 and 3 are each one graph replay on a GPU (:class:`~.cuda_graph.GraphedCall`), eager on the CPU,
-with the same arithmetic in the same order either way.  The buffer's storage keeps its addresses
-from one rollout to the next (:meth:`TensorRolloutBuffer.reset`).
+and after the rollout's last step :meth:`finish`: the values of the last observation and GAE over
+the rollout (:meth:`TensorRolloutBuffer.compute_returns_and_advantage`, a loop of ~6 kernels a step).
+
+1, 3 and :meth:`finish` are each one graph replay on a GPU (:class:`~.cuda_graph.GraphedCall`),
+eager on the CPU, with the same arithmetic in the same order either way.  The buffer's storage
+keeps its addresses from one rollout to the next (:meth:`TensorRolloutBuffer.reset`).
 """
 from __future__ import annotations
 
@@ -55,9 +58,11 @@ class RolloutStep:
         self.env_actions = th.zeros((n, *shape), dtype=th.int64 if discrete else th.float32, device=dev)
         self.values = th.zeros(n, dtype=th.float32, device=dev)
         self.log_probs = th.zeros(n, dtype=th.float32, device=dev)
+        self.last_values = th.zeros(n, dtype=th.float32, device=dev)
         self.buffer: Any = None
         self.act = GraphedCall(self._act, dev, capture=capture)
         self.record = GraphedCall(self._record, dev, capture=capture)
+        self.finish = GraphedCall(self._finish, dev, capture=capture)
 
     def start(self, buffer: Any) -> None:
         """A rollout into ``buffer`` (reset) from the algorithm's last observation, episode starts,
@@ -65,7 +70,8 @@ class RolloutStep:
         algo = self.algo
         if buffer.storage is not getattr(self.buffer, "storage", None):
             self.buffer = buffer
-            self.record.reset()  # the captured writes go to the old storage
+            self.record.reset()  # the captured reads and writes go to the old storage
+            self.finish.reset()
         for mine, name in ((self.obs, "_last_obs"), (self.episode_starts, "_last_episode_starts"),
                            (self.ended, "_ended"), (self.ep_return, "_ep_return"), (self.ep_length, "_ep_length")):
             theirs = getattr(algo, name)
@@ -115,3 +121,8 @@ class RolloutStep:
         self.episode_starts.copy_(self.ended)  # a reset step's observation opens an episode
         self.ended.copy_(dones)
         self.pos += 1
+
+    def _finish(self) -> None:
+        with th.no_grad():
+            self.last_values.copy_(self.algo.policy.predict_values(self.obs).flatten())
+        self.buffer.compute_returns_and_advantage(last_values=self.last_values, dones=None)

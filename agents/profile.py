@@ -17,7 +17,8 @@ and K more with every piece timed (the table):
   observations and of the last observation); on the device path the graphed ``RolloutStep.act``;
 * ``buffer add`` and ``GAE``: the rollout buffer's ``add`` (on the device path the graphed
   ``RolloutStep.record``: the transition, flags and episode statistics) and
-  ``compute_returns_and_advantage``;
+  ``compute_returns_and_advantage`` (on the device path the graphed ``RolloutStep.finish``: the
+  last observation's values, then GAE);
 * ``rollout other``: the rest of the rollout loop (action clipping, copies of actions to the host,
   callbacks, episode statistics, the timeout bootstrap's bookkeeping);
 * ``update``: ``PPO.train`` (all epochs: minibatch gathering, forward, backward, optimiser).
@@ -137,7 +138,8 @@ def _instrument(model, clock: _Clock, fine: bool) -> list[tuple[Any, str, Any]]:
     ]
     steps = getattr(model, "_rollout_step", None)  # the device path's graphed policy and bookkeeping
     if steps is not None:
-        pairs += [(steps, "act", clock.wrap("policy", steps.act)), (steps, "record", clock.wrap("buffer add", steps.record))]
+        pairs += [(steps, "act", clock.wrap("policy", steps.act)), (steps, "record", clock.wrap("buffer add", steps.record)),
+                  (steps, "finish", clock.wrap("GAE", steps.finish))]  # fmt: skip
     return pairs
 
 

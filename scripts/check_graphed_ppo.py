@@ -4,7 +4,8 @@
   (``GraphedPPO._train``) and vs the weighted arithmetic run eagerly, with each update's wall time,
   on the device rollout (gpu/cartpole_ppo, DevicePPO) and on SB3's rollout (a VecNormalize config,
   GraphedPPO);
-* the buffer of the device rollout's first rollout: graphed ``RolloutStep`` vs the same code run eagerly;
+* the device rollout's buffer after 3 rollouts (its steps and its closing values and GAE replayed
+  from graphs from the second rollout on) vs the same code run eagerly, both with the graphed update;
 * a model saved after graphed training loads on the CPU with the same parameters.
 
     python scripts/check_graphed_ppo.py [--sb3-config gpu/fourbar_ppo] [--json PATH]
@@ -25,8 +26,9 @@ from abd_gym.agents.graphed_update import GraphedMinibatchStep
 
 def train(mode: str, updates: int, config: str, rollout: str):
     """A model on ``config`` after ``updates`` updates on ``rollout`` ("device": DevicePPO, "sb3":
-    GraphedPPO); ``mode``: graph, eager (the graphed code without capture) or sb3 (SB3's
-    arithmetic); the wall time of each update."""
+    GraphedPPO); ``mode``: graph, eager (the graphed code without capture), sb3 (SB3's
+    arithmetic) or eager_rollout (the graphed update, the device rollout without capture); the
+    wall time of each update."""
     cfg = load_config(config, ["device=cuda:0"])
     th.manual_seed(0)
     model = build_model(cfg, build_train_env(cfg, rollout=rollout), rollout=rollout)
@@ -86,9 +88,10 @@ def main() -> None:
     args = p.parse_args()
     out: dict = {"gpu": th.cuda.get_device_name()}
     first = compare("gpu/cartpole_ppo", "device", out)
-    graph, eager = first["graph"].rollout_buffer.storage, first["eager"].rollout_buffer.storage
+    graph, eager = (train(mode, 3, "gpu/cartpole_ppo", "device")[0].rollout_buffer.storage
+                    for mode in ("graph", "eager_rollout"))  # fmt: skip
     out["device"]["rollout_buffer_max_diff"] = {k: float((graph[k] - eager[k]).abs().max()) for k in graph}
-    print("first rollout's buffer, graph vs eager: max difference",
+    print("third rollout's buffer, graph vs eager: max difference",
           max(out["device"]["rollout_buffer_max_diff"].values()))  # fmt: skip
     from stable_baselines3 import PPO
 
