@@ -221,7 +221,7 @@ def unchecked_distributions() -> Iterator[None]:
 
 class GraphedPPO(PPO):
     """SB3's PPO whose update replays its minibatch step from a CUDA graph on a CUDA device without
-    ``target_kl`` (:class:`GraphedMinibatchStep`: parameters equal SB3's to float32 rounding, the
+    ``target_kl`` and without Dict observations (:class:`GraphedMinibatchStep`: parameters equal SB3's to float32 rounding, the
     minibatches SB3's); elsewhere its update is SB3's ``PPO.train`` (the same parameters after it,
     bit for bit).  Either way the logged statistics stay on the device and are read once an update,
     not five times a minibatch, and a non-finite loss raises ``FloatingPointError``.
@@ -274,9 +274,11 @@ class GraphedPPO(PPO):
                 self._train_graphed(step)
 
     def _graphed_step(self) -> GraphedMinibatchStep | None:
-        """The CUDA-graph minibatch step on a CUDA device without ``target_kl`` (built once), else None."""
+        """The CUDA-graph minibatch step on a CUDA device without ``target_kl`` (built once), else None
+        (and with Dict observations, whose buffer has a tensor per key)."""
         step = getattr(self, "_minibatch_step", None)
-        if step is None and self.device.type == "cuda" and self.target_kl is None:
+        graphable = self.target_kl is None and not isinstance(self.observation_space, spaces.Dict)
+        if step is None and self.device.type == "cuda" and graphable:
             self._minibatch_step = step = GraphedMinibatchStep(self)
         return step
 
