@@ -205,6 +205,18 @@ def test_adapter_refuses_next_step_env_without_partial_reset():
         GymnasiumVecEnv(env)
 
 
+def test_partial_reset_check_allows_float_rounding_only():
+    # a GPU env's step and reset compute observations in different kernels (~1e-7 apart); a world
+    # that was reset moves by far more, and integer observations must match exactly
+    from abd_gym.agents.sb3_vec_env import _unchanged
+
+    obs = np.array([[0.3, -1.2], [2.0, 0.01]], dtype=np.float32)
+    assert _unchanged(obs, obs * (1 + 6e-8))
+    assert not _unchanged(obs, obs + np.float32(1e-3))
+    assert _unchanged(np.array([1, 2]), np.array([1, 2])) and not _unchanged(np.array([1, 2]), np.array([1, 3]))
+    assert not _unchanged(np.array([True, False]), np.array([True, True]))
+
+
 def test_adapter_under_vecmonitor_and_vecnormalize():
     n = 5
     base = make_vec_env(CARTPOLE, n, seed=0)
