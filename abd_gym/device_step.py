@@ -196,12 +196,7 @@ class DeviceStep:
             return self._post_host(a)
         k, N = self.arrays, self.num_envs
         pending = self.next.pending
-        if self.outcome_fn is None:
-            import torch
-
-            fn = self.task_outcome
-            self.outcome_fn = torch.compile(_own_code(fn), dynamic=False) if self.compile_outcome else fn
-        obs, reward, term, info_values = self.outcome_fn(a)
+        obs, reward, term, info_values = self.outcome(a)
         info_values = dict(info_values, sim_status=world_status(env))
         steps = -1 if env.max_episode_steps is None else env.max_episode_steps
         mailed = slot is not None
@@ -224,6 +219,16 @@ class DeviceStep:
         done = terminated | truncated
         self.next.set_pending(done)
         return (obs, reward, terminated, truncated, failed), info_values, done
+
+    def outcome(self, a):
+        """:meth:`task_outcome` of ``a``, compiled by torch.compile where ``compile_outcome`` (on the
+        first call)."""
+        if self.outcome_fn is None:
+            import torch
+
+            fn = self.task_outcome
+            self.outcome_fn = torch.compile(_own_code(fn), dynamic=False) if self.compile_outcome else fn
+        return self.outcome_fn(a)
 
     def task_outcome(self, a):
         """The task's observation (float32, clipped to the space), reward (float32), termination and

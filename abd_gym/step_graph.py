@@ -60,6 +60,10 @@ class StepGraph:
         if ds.sim.solver.holds:
             self.side_stream = wp.Stream(ds.device)
         self.physics, self.posts, self.outputs = [], [], []
+        # the outcome run once on the captured actions' tensor outside the captures (it only reads):
+        # torch.compile specialises on its input and Inductor times a kernel's launch configurations
+        # on its first run, which a capture forbids
+        ds.outcome(self.action_buf)
         for slot in (0, 1):
             self._capture_slot(slot, checked)
 
