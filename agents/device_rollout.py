@@ -63,6 +63,7 @@ from stable_baselines3.common.buffers import BaseBuffer, RolloutBuffer
 from stable_baselines3.common.type_aliases import RolloutBufferSamples
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 
+from .device_normalize import DeviceNormalize, find_vecnormalize
 from .graphed_rollout import RolloutStep
 from .graphed_update import SAMPLED, GraphedPPO, unchecked_distributions
 from .sb3_vec_env import GymnasiumVecEnv, _accepts
@@ -76,8 +77,8 @@ SB3_PATH = "sb3"  # SB3's NumPy rollout
 def rollout_path(cfg: dict[str, Any]) -> tuple[str, str]:
     """(``"device"`` or ``"sb3"``, the reason in words) for a validated training config.
 
-    The device path needs PPO, no VecNormalize (its statistics are NumPy code on the host) and an
-    env that takes ``backend="torch"`` (the abd_gym envs).  The config's ``rollout``: ``auto``
+    The device path needs PPO and an env that takes ``backend="torch"`` (the abd_gym envs); a
+    VecNormalize config normalises on the device (:mod:`.device_normalize`).  The config's ``rollout``: ``auto``
     takes the device path where it applies, ``sb3`` forces SB3's path, ``device`` raises a
     ``ValueError`` with the reason where the device path does not apply.
     """
@@ -87,12 +88,10 @@ def rollout_path(cfg: dict[str, Any]) -> tuple[str, str]:
     refusal = None
     if cfg["algo"] != "ppo":
         refusal = f"{cfg['algo']} is not PPO"
-    elif cfg.get("normalize"):
-        refusal = "VecNormalize normalises on the host"
     elif not _takes_torch_backend(cfg["env_id"]):
         refusal = f"{cfg['env_id']} has no Torch backend"
     if refusal is None:
-        return DEVICE_PATH, "PPO on an env with the Torch backend, no VecNormalize"
+        return DEVICE_PATH, "PPO on an env with the Torch backend"
     if choice == DEVICE_PATH:
         raise ValueError(f"rollout: the device rollout does not apply: {refusal}")
     return SB3_PATH, refusal
@@ -295,7 +294,7 @@ class DevicePPO(GraphedPPO):
         # observation is a tensor here, NumPy in SB3's rollout)
         return [*super()._excluded_save_params(), "rollout_buffer_class", "rollout_buffer_kwargs", "_adapter",
                 "_ep_return", "_ep_length", "_low", "_high", "_last_obs", "_last_episode_starts",
-                "_ended", "_next_step", "_rollout_step"]  # fmt: skip
+                "_ended", "_next_step", "_rollout_step", "_vecnormalize"]  # fmt: skip
 
     def _flat_fields(self) -> dict[str, th.Tensor]:
         buf = self.rollout_buffer
@@ -321,6 +320,10 @@ class DevicePPO(GraphedPPO):
         self._adapter = adapter
         self._next_step = adapter.autoreset_mode == AutoresetMode.NEXT_STEP
         self._rollout_step = None
+        self._vecnormalize = find_vecnormalize(env)
+        if self._vecnormalize is not None and not self._next_step:
+            raise ValueError("DevicePPO normalises (VecNormalize) on a NEXT_STEP env only: this env autoresets "
+                             f"{adapter.autoreset_mode.name}")  # fmt: skip
         monitor = env
         while monitor is not None and not isinstance(monitor, VecMonitor):
             monitor = getattr(monitor, "venv", None)
@@ -442,6 +445,19 @@ class DevicePPO(GraphedPPO):
         new_obs = step.obs.to(self.device, copy=True)  # the env may write its next step into its tensor
         return actions, values, log_probs, step, new_obs, step.rewards.to(self.device)
 
+    def _new_rollout_step(self, capture: bool | None = None) -> RolloutStep:
+        """The NEXT_STEP rollout's step (``capture``: as :class:`~.cuda_graph.GraphedCall`'s), with
+        the training env's VecNormalize statistics on the device where it has them."""
+        norm = None
+        if self._vecnormalize is not None:
+            norm = DeviceNormalize(self._vecnormalize, self._adapter.num_envs, self.device)
+        # no capture where a step's launches are not fixed: a state-dependent exploration's noise
+        # is redrawn into new tensors, and Categorical sampling (multinomial) reads its
+        # probabilities' check back to the host in some Torch versions
+        if self.use_sde or isinstance(self.action_space, spaces.Discrete):
+            capture = False
+        return RolloutStep(self, capture=capture, normalize=norm)
+
     def _collect_next_step(self, env: VecEnv, callback: Any, rollout_buffer: TensorRolloutBuffer,
                            n_rollout_steps: int) -> bool:  # fmt: skip
         """The rollout on a NEXT_STEP env (module docstring): device work only, no host reads until
@@ -450,11 +466,7 @@ class DevicePPO(GraphedPPO):
         rollout_buffer.next_step = True
         steps = getattr(self, "_rollout_step", None)
         if steps is None:
-            # no capture where a step's launches are not fixed: a state-dependent exploration's noise
-            # is redrawn into new tensors, and Categorical sampling (multinomial) reads its
-            # probabilities' check back to the host in some Torch versions
-            eager = self.use_sde or isinstance(self.action_space, spaces.Discrete)
-            self._rollout_step = steps = RolloutStep(self, capture=False if eager else None)
+            self._rollout_step = steps = self._new_rollout_step()
         steps.start(rollout_buffer)
         for n_steps in range(n_rollout_steps):
             if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
@@ -465,8 +477,10 @@ class DevicePPO(GraphedPPO):
             actions, values, log_probs, rewards = steps.actions, steps.values, steps.log_probs, steps.rewards
             callback.update_locals(locals())
             if not callback.on_step():
+                steps.end()
                 return False
             steps.record()
+        steps.end()
         rollout_buffer.pos, rollout_buffer.full = n_rollout_steps, True
         steps.finish()  # the last observation's values and GAE
         values = steps.last_values

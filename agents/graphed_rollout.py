@@ -9,7 +9,9 @@ several times the env's own step on a GPU.  :class:`RolloutStep` runs it as
    Box, or unscaled when squashed), into tensors the env and the buffer read;
 2. the env's step (its own CUDA graph), its observation, rewards and flags copied in;
 3. :meth:`record`: at the buffer position held in a device tensor ``pos`` (so that one graph
-   serves every position): ``valid = not ended``; the episode's return and length so far; the
+   serves every position): ``valid = not ended``; with a VecNormalize config, the observation and
+   reward normalised (:class:`~.device_normalize.DeviceNormalize`); the episode's return and
+   length so far (of the env's own rewards); the
    flags ``valid``, ``done = terminated or truncated``, ``cut = truncated and not terminated``;
    the transition ``(obs, action, reward, episode_start, value, log_prob)``; then
    ``obs <- next obs``, ``episode_start <- ended``, ``ended <- done``, ``pos += 1``.
@@ -30,15 +32,17 @@ import torch as th
 from gymnasium import spaces
 
 from .cuda_graph import GraphedCall
+from .device_normalize import DeviceNormalize
 
 __all__ = ["RolloutStep"]
 
 
 class RolloutStep:
     """The NEXT_STEP rollout state of ``algo`` (a :class:`DevicePPO`) in fixed-address tensors:
-    ``obs`` (the policy's next input), ``episode_starts``, ``ended``, ``ep_return``, ``ep_length``."""
+    ``obs`` (the policy's next input), ``episode_starts``, ``ended``, ``ep_return``, ``ep_length``;
+    ``normalize``: the training env's VecNormalize statistics on the device, or None."""
 
-    def __init__(self, algo: Any, capture: bool | None = None):
+    def __init__(self, algo: Any, capture: bool | None = None, normalize: DeviceNormalize | None = None):
         self.algo = algo
         n, dev = algo._adapter.num_envs, algo.device
         self.n_envs = n
@@ -60,6 +64,8 @@ class RolloutStep:
         self.log_probs = th.zeros(n, dtype=th.float32, device=dev)
         self.last_values = th.zeros(n, dtype=th.float32, device=dev)
         self.buffer: Any = None
+        self.normalize = normalize
+        self._training = None if normalize is None else normalize.training
         self.act = GraphedCall(self._act, dev, capture=capture)
         self.record = GraphedCall(self._record, dev, capture=capture)
         self.finish = GraphedCall(self._finish, dev, capture=capture)
@@ -72,6 +78,11 @@ class RolloutStep:
             self.buffer = buffer
             self.record.reset()  # the captured reads and writes go to the old storage
             self.finish.reset()
+        if self.normalize is not None:
+            self.normalize.load()
+            if self.normalize.training != self._training:  # the captured step updates the statistics or not
+                self._training = self.normalize.training
+                self.record.reset()
         for mine, name in ((self.obs, "_last_obs"), (self.episode_starts, "_last_episode_starts"),
                            (self.ended, "_ended"), (self.ep_return, "_ep_return"), (self.ep_length, "_ep_length")):
             theirs = getattr(algo, name)
@@ -79,6 +90,11 @@ class RolloutStep:
                 mine.copy_(theirs.reshape(mine.shape))
                 setattr(algo, name, mine)
         self.pos.zero_()
+
+    def end(self) -> None:
+        """The rollout's end: the normalisation statistics back to the VecNormalize wrapper."""
+        if self.normalize is not None:
+            self.normalize.store()
 
     def env_step(self) -> None:
         """The env's step on :attr:`env_actions`; its outputs copied in for :meth:`record`."""
@@ -104,6 +120,9 @@ class RolloutStep:
 
         dones = self.terminated | self.truncated
         valid = ~self.ended  # a world that ended at the previous step was reset by this one
+        next_obs, rewards = self.next_obs, self.rewards
+        if self.normalize is not None:
+            next_obs, rewards = self.normalize.step(next_obs, rewards, valid, dones)
         self.ep_return += th.where(valid, self.rewards, 0.0)
         self.ep_length += valid
         put("ep_return", self.ep_return)
@@ -113,11 +132,11 @@ class RolloutStep:
         put("valid", valid)
         put("dones", dones)
         put("cuts", self.truncated & ~self.terminated)
-        for name, value in (("observations", self.obs), ("actions", self.actions), ("rewards", self.rewards),
+        for name, value in (("observations", self.obs), ("actions", self.actions), ("rewards", rewards),
                             ("episode_starts", self.episode_starts), ("values", self.values),
                             ("log_probs", self.log_probs)):  # fmt: skip
             put(name, value)
-        self.obs.copy_(self.next_obs)
+        self.obs.copy_(next_obs)
         self.episode_starts.copy_(self.ended)  # a reset step's observation opens an episode
         self.ended.copy_(dones)
         self.pos += 1

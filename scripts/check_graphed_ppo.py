@@ -2,10 +2,12 @@
 
 * the parameters after 1 and 6 updates: graphed update vs SB3's eager arithmetic
   (``GraphedPPO._train``) and vs the weighted arithmetic run eagerly, with each update's wall time,
-  on the device rollout (gpu/cartpole_ppo, DevicePPO) and on SB3's rollout (a VecNormalize config,
-  GraphedPPO);
+  on the device rollout (gpu/cartpole_ppo, DevicePPO) and on SB3's rollout (a VecNormalize config
+  forced onto it, GraphedPPO);
 * the device rollout's buffer after 3 rollouts (its steps and its closing values and GAE replayed
-  from graphs from the second rollout on) vs the same code run eagerly, both with the graphed update;
+  from graphs from the second rollout on) vs the same code run eagerly, both with the graphed update,
+  on gpu/cartpole_ppo and on a VecNormalize config (its normalisation in the graph: the buffer and
+  the wrapper's statistics);
 * a model saved after graphed training loads on the CPU with the same parameters.
 
     python scripts/check_graphed_ppo.py [--sb3-config gpu/fourbar_ppo] [--json PATH]
@@ -16,11 +18,12 @@ import argparse
 import json
 import time
 
+import numpy as np
 import torch as th
 
 from abd_gym.agents.common import build_model, build_train_env
 from abd_gym.agents.config import load_config
-from abd_gym.agents.graphed_rollout import RolloutStep
+from abd_gym.agents.device_normalize import find_vecnormalize
 from abd_gym.agents.graphed_update import GraphedMinibatchStep
 
 
@@ -41,7 +44,7 @@ def train(mode: str, updates: int, config: str, rollout: str):
 
         def eager_bind(env):
             bind(env)
-            model._rollout_step = RolloutStep(model, capture=False)
+            model._rollout_step = model._new_rollout_step(capture=False)
 
         model._bind = eager_bind
     times, update = [], model.train
@@ -81,18 +84,35 @@ def compare(config: str, rollout: str, out: dict) -> dict:
     return first
 
 
+def graph_vs_eager_rollout(config: str) -> dict:
+    """The largest differences between the graphed and eager device rollouts after 3 rollouts: each
+    buffer field, and the VecNormalize wrapper's statistics where the config has one."""
+    models = {mode: train(mode, 3, config, "device")[0] for mode in ("graph", "eager_rollout")}
+    graph, eager = (m.rollout_buffer.storage for m in models.values())
+    res = {"rollout_buffer_max_diff": {k: float((graph[k] - eager[k]).abs().max()) for k in graph}}
+    print(f"{config}: third rollout's buffer, graph vs eager: max difference",
+          max(res["rollout_buffer_max_diff"].values()))  # fmt: skip
+    norms = [find_vecnormalize(m.get_env()) for m in models.values()]
+    if norms[0] is not None:
+        a, b = norms
+        res["vecnormalize_max_diff"] = {
+            name: float(np.abs(np.asarray(x) - np.asarray(y)).max())
+            for name, x, y in (("obs_mean", a.obs_rms.mean, b.obs_rms.mean), ("obs_var", a.obs_rms.var, b.obs_rms.var),
+                               ("ret_var", a.ret_rms.var, b.ret_rms.var), ("obs_count", a.obs_rms.count, b.obs_rms.count),
+                               ("ret_count", a.ret_rms.count, b.ret_rms.count), ("returns", a.returns, b.returns))}  # fmt: skip
+        print(f"{config}: VecNormalize statistics after 3 rollouts, graph vs eager: {res['vecnormalize_max_diff']}")
+    return res
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--sb3-config", default="gpu/fourbar_ppo", help="a config on SB3's rollout (VecNormalize)")
+    p.add_argument("--sb3-config", default="gpu/fourbar_ppo", help="a VecNormalize config")
     p.add_argument("--json", help="write the results here")
     args = p.parse_args()
     out: dict = {"gpu": th.cuda.get_device_name()}
     first = compare("gpu/cartpole_ppo", "device", out)
-    graph, eager = (train(mode, 3, "gpu/cartpole_ppo", "device")[0].rollout_buffer.storage
-                    for mode in ("graph", "eager_rollout"))  # fmt: skip
-    out["device"]["rollout_buffer_max_diff"] = {k: float((graph[k] - eager[k]).abs().max()) for k in graph}
-    print("third rollout's buffer, graph vs eager: max difference",
-          max(out["device"]["rollout_buffer_max_diff"].values()))  # fmt: skip
+    for config, key in (("gpu/cartpole_ppo", "device"), (args.sb3_config, "device_normalize")):
+        out.setdefault(key, {"config": config}).update(graph_vs_eager_rollout(config))
     from stable_baselines3 import PPO
 
     for model, rollout in ((first["graph"], "device"), (compare(args.sb3_config, "sb3", out)["graph"], "sb3")):

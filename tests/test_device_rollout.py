@@ -133,9 +133,10 @@ def test_update_refuses_a_non_finite_loss():
 def test_paths_choose_as_documented():
     assert rollout_path(_config())[0] == "device"
     assert rollout_path(_config(rollout="sb3"))[0] == "sb3"
-    assert rollout_path(_config(normalize="true"))[0] == "sb3"
-    with pytest.raises(ValueError, match="VecNormalize"):
-        rollout_path(_config(normalize="true", rollout="device"))
+    assert rollout_path(_config(normalize="true"))[0] == "device"  # VecNormalize on the device
+    assert rollout_path(load_config("cartpole_sac"))[0] == "sb3"
+    with pytest.raises(ValueError, match="not PPO"):
+        rollout_path({**load_config("cartpole_sac"), "rollout": "device"})
 
 
 def test_same_rollout_buffer_and_policy(both_paths):
@@ -410,3 +411,89 @@ def test_next_step_training_masks_reset_steps():
             assert th.equal(th.sort(epoch).values, allowed)  # each valid position once per epoch, nothing else
     # PPO's explained variance reads the last rollout's values and returns at its valid positions
     assert model.rollout_buffer.values.shape == (int(flags[-1][0].sum()), 1)
+
+
+def test_masked_update_is_running_mean_std():
+    # Chan's parallel update on the masked rows, an all-masked step included, is SB3's RunningMeanStd
+    from stable_baselines3.common.running_mean_std import RunningMeanStd
+
+    from abd_gym.agents.device_normalize import masked_update
+
+    rng = np.random.default_rng(0)
+    ref = RunningMeanStd(shape=(3,))
+    mean, var, count = th.zeros(3, dtype=th.float64), th.ones(3, dtype=th.float64), th.tensor(1e-4, dtype=th.float64)
+    for step in range(6):
+        x = rng.normal(step, 1.0 + step, size=(10, 3))
+        mask = rng.random(10) < (0.0 if step == 2 else 0.6)
+        if mask.any():
+            ref.update(x[mask])
+        masked_update(mean, var, count, th.as_tensor(x), th.as_tensor(mask))
+    np.testing.assert_allclose(mean.numpy(), ref.mean, rtol=1e-12)
+    np.testing.assert_allclose(var.numpy(), ref.var, rtol=1e-12)
+    assert float(count) == pytest.approx(ref.count, rel=1e-12)
+
+
+def test_device_normalization_is_vecnormalize():
+    # a VecNormalize config on the device path: the buffer holds VecNormalize's observations and
+    # rewards, computed from the env's raw step outputs by SB3's own RunningMeanStd with the
+    # NEXT_STEP masks (a step's last observation of an episode not counted, a reset step's reward
+    # not accumulated), and the wrapper ends the rollout with the same statistics
+    import copy
+
+    from abd_gym.agents.common import build_train_env
+
+    cfg = _config(LONG_STEPS, normalize="true", **{"hyperparams.n_epochs": 1})
+    th.set_num_threads(1)
+    env = build_train_env(cfg, rollout="device")
+    model = build_model(cfg, env, rollout="device")
+    from abd_gym.agents.device_rollout import find_adapter
+
+    wrapper, adapter = env, find_adapter(env)
+    steps, start = [], {}
+    step_tensors = adapter.step_tensors
+
+    def recording(actions):
+        if not steps:
+            start.update(obs=copy.deepcopy(wrapper.obs_rms), ret=copy.deepcopy(wrapper.ret_rms),
+                         returns=wrapper.returns.copy(), first=model._last_obs.detach().clone().numpy())  # fmt: skip
+        out = step_tensors(actions)
+        steps.append([t.detach().clone().numpy() for t in (out.obs, out.rewards, out.terminated, out.truncated)])
+        return out
+
+    adapter.step_tensors = recording
+    model.learn(total_timesteps=N_ENVS * N_STEPS)
+    obs_rms, ret_rms, returns = start["obs"], start["ret"], start["returns"].copy()
+    eps, clip_obs, clip_rew, gamma = wrapper.epsilon, wrapper.clip_obs, wrapper.clip_reward, wrapper.gamma
+    ended = np.zeros(N_ENVS, dtype=bool)
+    want_obs, want_rew = [start["first"]], []
+    for obs, rew, term, trunc in steps:
+        dones, valid = term | trunc, ~ended
+        if (~dones).any():
+            obs_rms.update(obs[~dones].astype(np.float64))
+        returns = np.where(valid, returns * gamma + rew, returns)
+        if valid.any():
+            ret_rms.update(returns[valid])
+        want_obs.append(np.clip((obs - obs_rms.mean) / np.sqrt(obs_rms.var + eps), -clip_obs, clip_obs))
+        want_rew.append(np.clip(rew / np.sqrt(ret_rms.var + eps), -clip_rew, clip_rew))
+        returns[dones] = 0.0
+        ended = dones
+    assert any(s[2].any() for s in steps)  # some episodes ended in the rollout
+    assert ret_rms.count > N_ENVS * (N_STEPS - 2)  # the statistics took (nearly) every step
+    t = model.rollout_buffer.storage
+    np.testing.assert_allclose(t["observations"].numpy(), np.array(want_obs[:-1], dtype=np.float32), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(t["rewards"].numpy(), np.array(want_rew, dtype=np.float32), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(wrapper.obs_rms.mean, obs_rms.mean, rtol=1e-10)
+    np.testing.assert_allclose(wrapper.obs_rms.var, obs_rms.var, rtol=1e-10)
+    np.testing.assert_allclose(wrapper.ret_rms.var, ret_rms.var, rtol=1e-10)
+    assert wrapper.obs_rms.count == pytest.approx(obs_rms.count) and wrapper.ret_rms.count == pytest.approx(ret_rms.count)
+
+
+def test_device_normalization_needs_a_next_step_env():
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    cfg = _config(LONG_STEPS, normalize="true")
+    env = VecNormalize(VecMonitor(make_vec_env(cfg["env_id"], cfg["n_envs"], seed=0, env_kwargs=cfg["env_kwargs"],
+                                               backend="torch")))  # fmt: skip
+    model = build_model(cfg, env, rollout="device")
+    with pytest.raises(ValueError, match="NEXT_STEP env only: this env autoresets SAME_STEP"):
+        model.learn(total_timesteps=N_ENVS * N_STEPS)
