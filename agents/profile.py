@@ -219,11 +219,19 @@ def vector_env_rate(cfg: dict[str, Any], rollout: str, steps: int) -> float:
     return rate
 
 
+def _device_path_applies(cfg: dict[str, Any]) -> bool:
+    try:
+        rollout_path(dict(cfg, rollout=DEVICE_PATH))
+    except ValueError:
+        return False
+    return True
+
+
 def profile(cfg: dict[str, Any], *, rollouts: int = 5, paths: str = "both") -> dict[str, Any]:
     """Profile ``cfg`` (validated) on the chosen rollout paths; the report as a dict."""
     chosen, reason = rollout_path(cfg)
     if paths == "both":
-        todo = [SB3_PATH] + ([DEVICE_PATH] if chosen == DEVICE_PATH else [])
+        todo = [SB3_PATH] + ([DEVICE_PATH] if _device_path_applies(cfg) else [])
     elif paths == "auto":
         todo = [chosen]
     else:

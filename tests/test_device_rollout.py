@@ -131,9 +131,13 @@ def test_update_refuses_a_non_finite_loss():
 
 
 def test_paths_choose_as_documented():
-    assert rollout_path(_config())[0] == "device"
-    assert rollout_path(_config(rollout="sb3"))[0] == "sb3"
-    assert rollout_path(_config(normalize="true"))[0] == "device"  # VecNormalize on the device
+    on_gpu = {**_config(), "device": "cuda:0"}  # the choice reads the name only
+    assert rollout_path(on_gpu)[0] == "device"
+    assert rollout_path({**_config(normalize="true"), "device": "cuda:0"})[0] == "device"  # VecNormalize on the device
+    path, reason = rollout_path(_config())  # auto on the CPU: SB3's NumPy rollout, the faster there
+    assert path == "sb3" and "CPU" in reason
+    assert rollout_path(_config(rollout="device"))[0] == "device"
+    assert rollout_path({**on_gpu, "rollout": "sb3"})[0] == "sb3"
     assert rollout_path(load_config("cartpole_sac"))[0] == "sb3"
     with pytest.raises(ValueError, match="not PPO"):
         rollout_path({**load_config("cartpole_sac"), "rollout": "device"})
@@ -193,7 +197,7 @@ def test_train_takes_and_records_the_device_path(tmp_path, capsys):
 
     from abd_gym.agents import train as agent_train
 
-    cfg = _config(**{"hyperparams.n_steps": 8, "hyperparams.batch_size": 32, "hyperparams.n_epochs": 1})
+    cfg = _config(rollout="device", **{"hyperparams.n_steps": 8, "hyperparams.batch_size": 32, "hyperparams.n_epochs": 1})
     cfg["n_timesteps"], cfg["eval_episodes"] = 2 * N_ENVS * 8, 2
     summary = agent_train.train(cfg, config_name="dev", run_dir=tmp_path / "run", progress_bar=False)
     assert summary["rollout"] == "device" and summary["timesteps"] == 2 * N_ENVS * 8
