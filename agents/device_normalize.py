@@ -91,12 +91,9 @@ class DeviceNormalize:
 
     def store(self) -> None:
         """This rollout's statistics and returns back into the wrapper (one read from the device)."""
-        w = self.wrapper
-        flat = th.cat([t.reshape(-1) for t in self._tensors()]).cpu().numpy()
-        parts, k = [], 0
-        for t in self._tensors():
-            parts.append(flat[k : k + t.numel()].reshape(t.shape))
-            k += t.numel()
+        w, tensors = self.wrapper, self._tensors()
+        flat = th.cat([t.reshape(-1) for t in tensors]).cpu()
+        parts = [p.reshape(t.shape).numpy() for p, t in zip(flat.split([t.numel() for t in tensors]), tensors)]
         obs_mean, obs_var, obs_count, ret_mean, ret_var, ret_count, returns = parts
         w.obs_rms.mean, w.obs_rms.var, w.obs_rms.count = obs_mean.copy(), obs_var.copy(), float(obs_count)
         w.ret_rms.mean, w.ret_rms.var, w.ret_rms.count = ret_mean.copy(), ret_var.copy(), float(ret_count)

@@ -88,11 +88,7 @@ def rollout_path(cfg: dict[str, Any]) -> tuple[str, str]:
     choice = cfg.get("rollout", "auto")
     if choice == SB3_PATH:
         return SB3_PATH, "the config asks for SB3's rollout (rollout: sb3)"
-    refusal = None
-    if cfg["algo"] != "ppo":
-        refusal = f"{cfg['algo']} is not PPO"
-    elif not _takes_torch_backend(cfg["env_id"]):
-        refusal = f"{cfg['env_id']} has no Torch backend"
+    refusal = device_path_refusal(cfg)
     if refusal is None:
         if choice == DEVICE_PATH:
             return DEVICE_PATH, "the config asks for the device rollout (rollout: device)"
@@ -102,6 +98,15 @@ def rollout_path(cfg: dict[str, Any]) -> tuple[str, str]:
     if choice == DEVICE_PATH:
         raise ValueError(f"rollout: the device rollout does not apply: {refusal}")
     return SB3_PATH, refusal
+
+
+def device_path_refusal(cfg: dict[str, Any]) -> str | None:
+    """Why the device path does not apply to ``cfg`` (in words), or None where it does."""
+    if cfg["algo"] != "ppo":
+        return f"{cfg['algo']} is not PPO"
+    if not _takes_torch_backend(cfg["env_id"]):
+        return f"{cfg['env_id']} has no Torch backend"
+    return None
 
 
 def _takes_torch_backend(env_id: str) -> bool:

@@ -45,7 +45,7 @@ import numpy as np
 
 from .common import build_model, build_train_env, device_description, train_autoreset_mode, versions, write_json
 from .config import validate_config
-from .device_rollout import DEVICE_PATH, SB3_PATH, find_adapter, rollout_path
+from .device_rollout import DEVICE_PATH, SB3_PATH, device_path_refusal, find_adapter, rollout_path
 from .train import raw_config_from_args
 
 __all__ = ["profile", "main", "SECTIONS"]
@@ -219,19 +219,11 @@ def vector_env_rate(cfg: dict[str, Any], rollout: str, steps: int) -> float:
     return rate
 
 
-def _device_path_applies(cfg: dict[str, Any]) -> bool:
-    try:
-        rollout_path(dict(cfg, rollout=DEVICE_PATH))
-    except ValueError:
-        return False
-    return True
-
-
 def profile(cfg: dict[str, Any], *, rollouts: int = 5, paths: str = "both") -> dict[str, Any]:
     """Profile ``cfg`` (validated) on the chosen rollout paths; the report as a dict."""
     chosen, reason = rollout_path(cfg)
     if paths == "both":
-        todo = [SB3_PATH] + ([DEVICE_PATH] if _device_path_applies(cfg) else [])
+        todo = [SB3_PATH] + ([DEVICE_PATH] if device_path_refusal(cfg) is None else [])
     elif paths == "auto":
         todo = [chosen]
     else:
