@@ -376,6 +376,9 @@ class DevicePPO(GraphedPPO):
         self._ep_length[idx] = 0
 
     def _add_episodes(self, returns: np.ndarray, lengths: np.ndarray) -> None:
+        keep = self.ep_info_buffer.maxlen
+        if keep:  # the deque keeps the last ``keep`` (100): a dict for each of thousands took ms a rollout
+            returns, lengths = returns[-keep:], lengths[-keep:]
         t = round(time.time() - self._t_start, 6)
         self.ep_info_buffer.extend({"r": round(float(r), 6), "l": int(l), "t": t} for r, l in zip(returns, lengths))
 

@@ -165,6 +165,17 @@ def test_same_episode_statistics(both_paths):
     assert len(episodes[0]) >= N_ENVS * ITERATIONS  # every world finished at least one episode per rollout
 
 
+def test_many_finished_episodes_keep_the_last(both_paths):
+    _, dev = both_paths
+    saved = dev.ep_info_buffer.copy()
+    try:
+        returns, lengths = np.arange(250, dtype=np.float32), np.arange(250) + 1
+        dev._add_episodes(returns, lengths)  # only the last maxlen are kept, as extending with all would
+        assert [(e["r"], e["l"]) for e in dev.ep_info_buffer] == list(zip(range(150, 250), range(151, 251)))
+    finally:
+        dev.ep_info_buffer = saved
+
+
 def test_truncated_episode_bootstrapped(both_paths):
     _, dev = both_paths
     # world 0 terminated, world 1 cut by its time limit, world 2 both (terminal: no bootstrap), world 3 runs on
