@@ -9,7 +9,8 @@ CONFIG defaults to every shipped GPU config (``configs/gpu/*.yaml``).  Each conf
 an ``abd-gym-sweep`` (Ray Tune: trials in parallel where the resources allow, one GPU each with
 ``--gpus-per-trial 1``; an interrupted table resumes) in ``DIR/<config>/``.  The time to the
 threshold is that of the first periodic evaluation (the config's ``eval_freq``) whose mean return
-reaches it: training wall time up to that evaluation, evaluations excluded.  The table (task ×
+reaches it: wall time from the start of training to the end of that evaluation, the periodic
+evaluations' own time included.  The table (task ×
 seed: device, envs, steps, time to the threshold and in total, final return, solved) goes to
 ``DIR/time_to_solve.md`` and ``.json``, and with ``--doc`` to that file too.
 """
@@ -84,9 +85,10 @@ def markdown(rows: list[dict[str, Any]], command: str, date: str) -> str:
         return "—" if x is None else format(x, fmt)
 
     lines = ["# Time to solve", "",
-             f"`{command}`, {date}. Time to the threshold: training wall time up to the first periodic "
-             "evaluation whose mean return reaches the task's threshold (evaluations excluded); total: the "
-             "whole run. Final return: the deterministic policy after training.", "",
+             f"`{command}`, {date}. Time to the threshold: wall time from the start of training to the end "
+             "of the first periodic evaluation whose mean return reaches the task's threshold (the periodic "
+             "evaluations' own time included); total: the whole run. Final return: the deterministic policy "
+             "after training.", "",
              "| task | config | seed | device | envs | steps | steps to threshold | time to threshold [s] "
              "| total time [s] | final return | threshold | solved |",
              "|---|---|---:|---|---:|---:|---:|---:|---:|---|---:|---|"]  # fmt: skip
