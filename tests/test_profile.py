@@ -26,3 +26,24 @@ def test_profile_both_paths(tmp_path, capsys):
     assert report["vector_env_steps_per_s"] > 0
     text = capsys.readouterr().out
     assert "env step" in text and "update" in text and "vector env alone" in text
+
+
+def test_rollout_step_times_brackets_every_piece(tmp_path, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "rollout_step_times.py"
+    spec = importlib.util.spec_from_file_location("rollout_step_times", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    out = tmp_path / "t.json"
+    argv = ["cartpole_ppo", "--num-envs", "4", "--rollouts", "2", "hyperparams.n_steps=8",
+            "hyperparams.batch_size=16", "hyperparams.n_epochs=1", "--json", str(out)]  # fmt: skip
+    assert script.main(argv) == 0
+    r = json.loads(out.read_text())
+    assert r["n_steps"] == 8 and r["gpu_ms"] is None  # the CPU: host clocks only
+    pieces = {name for _, _, name in script.PIECES} | {"callbacks", script.OTHER}
+    assert set(r["host_ms"]) == pieces and all(v > 0 for v in r["host_ms"].values())
+    # the pieces partition the rollout: their times add up to its wall time
+    assert sum(r["host_ms"].values()) == pytest.approx(r["wall_ms"], rel=1e-6)
+    assert "env step" in capsys.readouterr().out
