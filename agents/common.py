@@ -5,7 +5,7 @@ import json
 import os
 import platform
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -65,21 +65,30 @@ def build_eval_env(
     vecnormalize: Any = None,
     device: str | None = None,
     render_mode: str | None = None,
+    on_device: bool | None = None,
 ):
     """Evaluation env: raw returns (VecMonitor inside), observations normalised with frozen stats.
 
     ``vecnormalize`` is a path to saved statistics, a training ``VecNormalize`` to copy them
-    from, or None.
+    from, or None.  ``on_device`` (default: :func:`evaluates_on_device`, and never when
+    rendering): the env has the Torch backend and autoresets in NEXT_STEP mode, for
+    :class:`~.device_eval.DeviceEvaluator`; otherwise it is SB3's (NumPy, SAME_STEP).
     """
+    from gymnasium.vector import AutoresetMode
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
+    device = device or cfg["device"]
+    if on_device is None:
+        on_device = render_mode is None and evaluates_on_device(cfg["env_id"], device)
     venv = make_vec_env(
         cfg["env_id"],
         num_envs,
-        device=device or cfg["device"],
+        device=device,
         seed=seed,
         render_mode=render_mode,
         env_kwargs=cfg["env_kwargs"],
+        backend="torch" if on_device else None,
+        autoreset_mode=AutoresetMode.NEXT_STEP if on_device else AutoresetMode.SAME_STEP,
     )
     venv = VecMonitor(venv)
     if vecnormalize is None:
@@ -155,13 +164,36 @@ def eval_env_count(cfg: dict[str, Any], episodes: int) -> int:
     return int(cfg.get("n_eval_envs") or min(episodes, cfg["n_envs"]))
 
 
-def evaluate(model, env, episodes: int, *, deterministic: bool = True) -> dict[str, Any]:
-    """Mean and std of the (raw) return over ``episodes`` episodes (SB3's evaluate_policy)."""
-    from stable_baselines3.common.evaluation import evaluate_policy
+def evaluates_on_device(env_id: str, device: str) -> bool:
+    """Whether evaluation runs on the device (:class:`~.device_eval.DeviceEvaluator`): on a GPU, for
+    an env with the Torch backend.  On the CPU SB3's ``evaluate_policy`` runs: NumPy is the
+    device there."""
+    from .device_rollout import _takes_torch_backend
 
-    returns, lengths = evaluate_policy(
-        model, env, n_eval_episodes=episodes, deterministic=deterministic, return_episode_rewards=True, warn=False
-    )
+    return str(device).startswith("cuda") and _takes_torch_backend(env_id)
+
+
+def episode_evaluator(env) -> Callable[..., tuple[list[float], list[int]]]:
+    """``(model, episodes, deterministic=...) -> (returns, lengths)`` for ``env``: a
+    :class:`~.device_eval.DeviceEvaluator` where the env was built for one, else SB3's
+    ``evaluate_policy``."""
+    from .device_eval import DeviceEvaluator
+
+    if DeviceEvaluator.refusal(env) is None:
+        return DeviceEvaluator(env)
+
+    def sb3(model, episodes: int, *, deterministic: bool = True) -> tuple[list[float], list[int]]:
+        from stable_baselines3.common.evaluation import evaluate_policy
+
+        return evaluate_policy(model, env, n_eval_episodes=episodes, deterministic=deterministic,
+                               return_episode_rewards=True, warn=False)  # fmt: skip
+
+    return sb3
+
+
+def evaluate(model, env, episodes: int, *, deterministic: bool = True) -> dict[str, Any]:
+    """Mean and std of the (raw) return over ``episodes`` episodes (:func:`episode_evaluator`)."""
+    returns, lengths = episode_evaluator(env)(model, episodes, deterministic=deterministic)
     returns = np.asarray(returns, dtype=float)
     lengths = np.asarray(lengths, dtype=float)
     return {

@@ -12,12 +12,14 @@ time at which the evaluation's mean return reached the task's reward threshold.
 """
 from __future__ import annotations
 
+import os
 import sys
 import time
 from typing import Any, Callable
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
+from stable_baselines3.common.vec_env import sync_envs_normalization
 
 __all__ = ["ProgressLines", "SaveVecNormalize", "ThresholdEval", "mean_episode_return", "stdout_is_terminal"]
 
@@ -83,24 +85,34 @@ class ProgressLines(BaseCallback):
 
 
 class ThresholdEval(EvalCallback):
-    """SB3's ``EvalCallback`` that also records when the evaluation first reached ``threshold``.
+    """SB3's ``EvalCallback`` that evaluates with :func:`~.common.episode_evaluator` (on the device
+    where the eval env was built for it) and records when the evaluation first reached ``threshold``.
 
     ``threshold_step``: ``model.num_timesteps`` (env steps, all worlds) at the first evaluation
     whose mean return is at least ``threshold``; ``threshold_time_s``: wall seconds from the start
     of training to the end of that evaluation (the periodic evaluations' own time included).
-    Both stay None while it has not happened, or when ``threshold`` is None.  ``write`` (if given)
-    receives one line per evaluation.
+    Both stay None while it has not happened, or when ``threshold`` is None.  ``eval_time_s``: the
+    evaluations' wall time so far.  ``write`` (if given) receives one line per evaluation.
+
+    Each evaluation does what ``EvalCallback`` does (statistics synced, ``evaluations.npz``,
+    ``eval/mean_reward`` and ``eval/mean_ep_length`` logged, ``best_model.zip`` and
+    ``callback_on_new_best`` on a new best, ``callback`` after each) but neither renders nor
+    reads ``is_success``.
     """
 
     def __init__(self, eval_env, *, threshold: float | None, name: str = "",
                  write: Callable[[str], None] | None = None, **kwargs: Any):
+        from .common import episode_evaluator
+
         super().__init__(eval_env, **kwargs)
+        self.evaluate = episode_evaluator(self.eval_env)
         self.threshold = threshold
         self.name = name
         self.write = write
         self.threshold_step: int | None = None
         self.threshold_time_s: float | None = None
         self.n_evaluations = 0
+        self.eval_time_s = 0.0
         self.t0 = time.perf_counter()
 
     def _on_training_start(self) -> None:
@@ -108,29 +120,52 @@ class ThresholdEval(EvalCallback):
         self.t0 = time.perf_counter()
 
     def _on_step(self) -> bool:
-        evaluating = self.eval_freq > 0 and self.n_calls % self.eval_freq == 0
-        keep_going = super()._on_step()
-        if evaluating:
-            self.n_evaluations += 1
-            self._after_evaluation()
+        if not (self.eval_freq > 0 and self.n_calls % self.eval_freq == 0):
+            return True
+        if self.model.get_vec_normalize_env() is not None:
+            sync_envs_normalization(self.training_env, self.eval_env)
+        started = time.perf_counter()
+        returns, lengths = self.evaluate(self.model, self.n_eval_episodes, deterministic=self.deterministic)
+        self.eval_time_s += time.perf_counter() - started
+        self.n_evaluations += 1
+        if self.log_path is not None:
+            self.evaluations_timesteps.append(self.num_timesteps)
+            self.evaluations_results.append(returns)
+            self.evaluations_length.append(lengths)
+            np.savez(self.log_path, timesteps=self.evaluations_timesteps, results=self.evaluations_results,
+                     ep_lengths=self.evaluations_length)  # fmt: skip
+        mean = float(np.mean(returns))
+        self.last_mean_reward = mean
+        self.logger.record("eval/mean_reward", mean)
+        self.logger.record("eval/mean_ep_length", float(np.mean(lengths)))
+        self.logger.record("time/total_timesteps", self.num_timesteps, exclude="tensorboard")
+        self.logger.dump(self.num_timesteps)
+        keep_going = True
+        if mean > self.best_mean_reward:
+            if self.best_model_save_path is not None:
+                self.model.save(os.path.join(self.best_model_save_path, "best_model"))
+            self.best_mean_reward = mean
+            if self.callback_on_new_best is not None:
+                keep_going = self.callback_on_new_best.on_step()
+        self._after_evaluation(returns)
+        if self.callback is not None:
+            keep_going = keep_going and self._on_event()
         return keep_going
 
-    def _after_evaluation(self) -> None:
+    def _after_evaluation(self, returns: list[float]) -> None:
         mean = self.last_mean_reward
         reached = self.threshold is not None and mean >= self.threshold
         if reached and self.threshold_step is None:
             self.threshold_step = int(self.num_timesteps)
             self.threshold_time_s = round(time.perf_counter() - self.t0, 2)
         if self.write is not None:
-            results = self.evaluations_results[-1] if self.evaluations_results else []
-            spread = f" ± {np.std(results):.1f}" if len(results) else ""
             thr = ""
             if self.threshold is not None:
                 thr = f" (threshold {self.threshold:g}: {'reached' if reached else 'not reached'})"
             prefix = f"{self.name}: " if self.name else ""
             self.write(
-                f"{prefix}eval at {self.num_timesteps:,} steps: return {mean:.1f}{spread} "
-                f"over {self.n_eval_episodes} episodes{thr}"
+                f"{prefix}eval at {self.num_timesteps:,} steps: return {mean:.1f} ± {np.std(returns):.1f} "
+                f"over {len(returns)} episodes{thr}"
             )
 
 

@@ -192,6 +192,7 @@ def train(
         "eval_wall_time_s": round(eval_wall, 2),
         "eval_freq": cfg["eval_freq"],
         "periodic_evaluations": periodic.n_evaluations if periodic is not None else 0,
+        "periodic_eval_time_s": round(periodic.eval_time_s, 2) if periodic is not None else 0.0,
         "best_periodic_return": _finite_or_none(periodic.best_mean_reward) if periodic is not None else None,
         "threshold_step": periodic.threshold_step if periodic is not None else None,
         "threshold_time_s": periodic.threshold_time_s if periodic is not None else None,
