@@ -103,3 +103,26 @@ def test_threshold_eval_evaluates_on_the_device(tmp_path):
     assert log["results"].shape == (2, N) and (log["results"] == log["ep_lengths"]).all()
     assert (tmp_path / "best_model.zip").is_file()
     assert len(lines) == 2 and f"over {N} episodes (threshold 1: reached)" in lines[0]
+
+
+def test_eval_times_script_times_both_paths(tmp_path, capsys):
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from abd_gym.agents.train import train
+
+    cfg = load_config("cartpole_ppo", ["n_timesteps=256", "eval_freq=0", f"eval_episodes={N}"])
+    train(cfg, config_name="cartpole_ppo", run_dir=tmp_path / "run", progress_bar=False)
+    path = Path(__file__).resolve().parents[1] / "scripts" / "eval_times.py"
+    spec = importlib.util.spec_from_file_location("eval_times", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    out = tmp_path / "t.json"
+    assert script.main([str(tmp_path / "run"), "--repeat", "1", "--json", str(out)]) == 0
+    (row,) = json.loads(out.read_text())
+    assert row["episodes"] == N and row["sb3_s"] > 0 and row["device_s"] > 0
+    # one episode a world from the seeded reset: both paths play the same episodes
+    assert row["device_mean_return"] == pytest.approx(row["sb3_mean_return"], rel=1e-6)
+    assert row["device_mean_length"] == row["sb3_mean_length"]
+    assert "| abd_gym/CartPole-v0 | 8 |" in capsys.readouterr().out
