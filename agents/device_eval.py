@@ -38,6 +38,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
+from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
 from .cuda_graph import GraphedCall
 from .device_normalize import find_vecnormalize
@@ -49,7 +50,8 @@ __all__ = ["DeviceEvaluator"]
 class DeviceEvaluator:
     """Evaluation of a model's policy on ``env`` (an SB3 VecEnv chain over a
     :class:`~.sb3_vec_env.GymnasiumVecEnv` with the Torch backend that autoresets in NEXT_STEP
-    mode; VecMonitor and a frozen VecNormalize may wrap it).  Call it with the model.
+    mode; VecMonitor and a frozen VecNormalize may wrap it, no other wrapper: the evaluation
+    reads the adapter's tensors).  Call it with the model.
 
     ``check_every``: steps between two reads of "has every world played its episodes" (each read
     waits for the GPU).
@@ -78,6 +80,11 @@ class DeviceEvaluator:
         adapter = find_adapter(env)
         if adapter is None:
             return "the env is not a GymnasiumVecEnv"
+        layer = env
+        while layer is not adapter:  # a wrapper that changes observations or rewards would be skipped
+            if not isinstance(layer, (VecMonitor, VecNormalize)):
+                return f"the env is wrapped in {type(layer).__name__} (VecMonitor and VecNormalize only)"
+            layer = layer.venv
         if adapter.autoreset_mode != AutoresetMode.NEXT_STEP:
             return f"the env autoresets in {adapter.autoreset_mode.name} mode, not NEXT_STEP"
         return adapter.tensor_path_refusal()

@@ -85,6 +85,11 @@ def test_device_evaluator_refuses_an_env_that_is_not_next_step():
     with pytest.raises(ValueError, match="SAME_STEP mode, not NEXT_STEP"):
         DeviceEvaluator(env)
     assert not isinstance(episode_evaluator(env), DeviceEvaluator)  # SB3's evaluate_policy serves it
+    from stable_baselines3.common.vec_env import VecFrameStack
+
+    stacked = VecFrameStack(_env("abd_gym/CartPole-v0", True), n_stack=2)  # its observations are not the env's
+    with pytest.raises(ValueError, match="wrapped in VecFrameStack"):
+        DeviceEvaluator(stacked)
 
 
 def test_threshold_eval_evaluates_on_the_device(tmp_path):
