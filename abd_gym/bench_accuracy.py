@@ -29,7 +29,8 @@ world-seconds per second = world-steps/s × dt) over dt; at each error level (1e
 fastest abd_gym setting and the fastest MuJoCo integrator that reach it are compared, once
 against MuJoCo's reference (``summary``) and once each against its own (``summary_own``).  Writes
 ``accuracy.json`` (after every mechanism, so a run cut short keeps what it measured) and, with
-matplotlib, ``accuracy.png`` (one panel per mechanism) to --out.
+matplotlib, ``accuracy.png`` (:func:`plot`: one panel per mechanism, each engine's error against
+its own converged run) to --out.
 """
 import argparse
 import json
@@ -267,7 +268,7 @@ def main(argv=None):
     print()
     print("Against each engine's own converged run (integration error only):")
     print(summary_table(result["summary_own"], limits))
-    _plot(result, os.path.join(args.out, "accuracy.png"))
+    plot(result, os.path.join(args.out, "accuracy.png"))
     return result
 
 
@@ -427,32 +428,43 @@ def _fmt(r):
             f"residual {r['joint_residual']:.1e}{drift}  {r['world_steps_per_second']:,.0f} world-steps/s")  # fmt: skip
 
 
-def _plot(result, path):
+def plot(result, path, key="own_error_max", title=None):
+    """One log-log panel per mechanism of ``result`` (an ``accuracy.json``): each setting of each
+    engine as a curve of (simulated world-seconds per wall second, error ``key`` [rad]) over dt,
+    with :data:`LEVELS` as grey lines.  ``key``: ``own_error_max`` (each engine against its own
+    converged run, the integration error alone) or ``error_max`` (against the common reference).
+    ``title``: the device and batch of the rates (default: the result's).  Written to ``path``;
+    False (nothing written) without matplotlib."""
     try:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        return
+        return False
+    if title is None:
+        title = f"{result['device_name']}, {result['worlds']} worlds"
     cases = list(dict.fromkeys(r["case"] for r in result["rows"]))
     ncol = min(3, len(cases))
     nrow = -(-len(cases) // ncol)
     fig, axes = plt.subplots(nrow, ncol, figsize=(6 * ncol, 4.5 * nrow), squeeze=False)
     for ax in axes.flat[len(cases):]:
         ax.set_visible(False)
+    against = "its own converged run" if key.startswith("own_") else "the reference"
     for ax, case in zip(axes.flat, cases):
         for engine, style in (("abd_gym", "o-"), ("mujoco_warp", "s--")):
-            for name, pts in curves(result["rows"], case, engine).items():
+            for name, pts in curves(result["rows"], case, engine, key=key).items():
                 pts = sorted(pts, key=lambda p: p[1])  # along the rate axis (≈ dt order)
                 ax.loglog([p[1] for p in pts], [p[0] for p in pts], style, label=f"{engine} {name}")
         for level in LEVELS:
             ax.axhline(level, color="grey", lw=0.5, alpha=0.5)
         ax.set_xlabel("simulated world-seconds per wall second (world-steps/s × dt)")
-        ax.set_ylabel("max revolute-joint error over 1 s [rad]")
-        ax.set_title(f"{case} ({result['device_name']}, {result['worlds']} worlds)")
+        ax.set_ylabel(f"max revolute-joint error over 1 s [rad]\nagainst {against}")
+        ax.set_title(f"{case} ({title})")
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=6)
         ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True

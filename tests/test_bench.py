@@ -102,6 +102,14 @@ def test_bench_accuracy(tmp_path):
     assert all(0 < row["own_error_max"] < 0.5 for row in ours.values())
     assert r["model_gap"]["cartpole"]["error_max"] < 1e-3 and r["limited_reference_worlds"] == {"cartpole": 0.0}
     assert r["complete"] and len(r["summary_own"]) == len(summary)
+    # the plot: written where matplotlib is installed (accuracy.png by the run, a saved result by
+    # scripts/plot_accuracy.py), nothing and False without it
+    from abd_gym.bench_accuracy import plot
+
+    has_mpl = importlib.util.find_spec("matplotlib") is not None
+    assert (tmp_path / "accuracy.png").is_file() == has_mpl
+    assert plot(r, str(tmp_path / "again.png"), key="error_max", title="t") == has_mpl
+    assert (tmp_path / "again.png").is_file() == has_mpl
 
 
 def test_equal_error_summary_interpolates_in_simulated_time():
