@@ -192,8 +192,12 @@ def episode_evaluator(env) -> Callable[..., tuple[list[float], list[int]]]:
 
 
 def evaluate(model, env, episodes: int, *, deterministic: bool = True) -> dict[str, Any]:
-    """Mean and std of the (raw) return over ``episodes`` episodes (:func:`episode_evaluator`)."""
-    returns, lengths = episode_evaluator(env)(model, episodes, deterministic=deterministic)
+    """Mean and std of the (raw) return over ``episodes`` episodes (:func:`episode_evaluator`);
+    ``evaluator``: "device" (:class:`~.device_eval.DeviceEvaluator`) or "sb3" (``evaluate_policy``)."""
+    from .device_eval import DeviceEvaluator
+
+    evaluator = episode_evaluator(env)
+    returns, lengths = evaluator(model, episodes, deterministic=deterministic)
     returns = np.asarray(returns, dtype=float)
     lengths = np.asarray(lengths, dtype=float)
     return {
@@ -203,6 +207,7 @@ def evaluate(model, env, episodes: int, *, deterministic: bool = True) -> dict[s
         "mean_episode_length": float(lengths.mean()),
         "episode_returns": [float(r) for r in returns],
         "deterministic": bool(deterministic),
+        "evaluator": "device" if isinstance(evaluator, DeviceEvaluator) else "sb3",
     }
 
 

@@ -189,6 +189,7 @@ def train(
         "solved": bool(threshold is not None and result["mean_return"] >= threshold),
         "episode_returns": result["episode_returns"],
         "eval_deterministic": result["deterministic"],
+        "evaluator": result["evaluator"],
         "eval_wall_time_s": round(eval_wall, 2),
         "eval_freq": cfg["eval_freq"],
         "periodic_evaluations": periodic.n_evaluations if periodic is not None else 0,

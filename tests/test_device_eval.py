@@ -131,3 +131,5 @@ def test_eval_times_script_times_both_paths(tmp_path, capsys):
     assert row["device_mean_return"] == pytest.approx(row["sb3_mean_return"], rel=1e-6)
     assert row["device_mean_length"] == row["sb3_mean_length"]
     assert "| abd_gym/CartPole-v0 | 8 |" in capsys.readouterr().out
+    # the CPU run evaluated with SB3's evaluate_policy, and says so
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["evaluator"] == "sb3"
