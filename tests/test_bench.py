@@ -221,3 +221,26 @@ def test_bench_envs_per_scratch(tmp_path):
                      "--out", str(tmp_path)])  # fmt: skip
     rows = json.loads((tmp_path / "envs.json").read_text())["rows"]
     assert [r["scratch"] for r in rows] == ["auto", "global"] and all(r["env_steps_per_second"] > 0 for r in rows)
+
+
+def test_cpu_compare_script_times_both_engines(tmp_path, capsys):
+    """scripts/cpu_compare.py: abd_gym and MuJoCo C on the same starts, one row per case and size."""
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "cpu_compare.py"
+    spec = importlib.util.spec_from_file_location("cpu_compare", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    out = tmp_path / "c.json"
+    argv = ["--cases", "pendulum", "--worlds", "1,4", "--steps", "5", "--repeat", "1", "--threads", "2",
+            "--json", str(out)]  # fmt: skip
+    assert script.main(argv) == 0
+    r = json.loads(out.read_text())
+    assert r["threads"] == 2 and [row["num_worlds"] for row in r["rows"]] == [1, 4]
+    for row in r["rows"]:
+        assert row["abd_gym"] > 0 and row["mujoco_euler"] > 0 and row["mujoco_rk4"] > 0
+        assert row["ratio_rk4"] == pytest.approx(row["abd_gym"] / row["mujoco_rk4"])
+        assert row["mujoco_euler_nonfinite"] == 0 and row["abd_gym_nonfinite"] == 0
+    assert "| pendulum | 4 |" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        script.main(["--cases", "no_such_case"])
