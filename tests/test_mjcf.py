@@ -128,6 +128,24 @@ def test_double_pendulum_structure_and_margin():
     assert info.timestep == 0.01
 
 
+def test_rotated_mass_data_reaches_the_model_without_rounding_noise():
+    """The capsules' fromto leaves ~1e-17 kg·m² where a second moment is exactly 0; the model stores
+    0 there (float32 products of such entries are denormal, slow on a CPU) and every other entry
+    as it was."""
+    from abd_gym.model import Model, without_rounding_noise
+
+    scene = ag.Scene.from_mjcf(asset("inverted_double_pendulum.xml"))
+    S = np.array([b.moments.second_moment for b in scene.bodies])
+    noise = (S != 0) & (np.abs(S) < 1e-15)
+    assert noise.any()  # the import's rounding, which this test is about
+    m = Model(scene, 1, device="cpu")
+    assert (m.base_S[noise] == 0).all()
+    np.testing.assert_array_equal(m.base_S[~noise], S[~noise])
+    # relative to the largest entry: a small but real moment stays
+    x = np.array([[1.0, 1e-9, 0.0], [1e-9, 1.0, 2e-17], [0.0, 2e-17, 1e-3]])
+    np.testing.assert_array_equal(without_rounding_noise(x), np.where(np.abs(x) < 1e-16, 0.0, x))
+
+
 def test_reacher_structure_with_and_without_target():
     full = ag.Scene.from_mjcf(asset("reacher.xml"))
     info = full.imported
