@@ -30,16 +30,19 @@ def resolve_dtype(dtype):
     return _DTYPES[key]
 
 
-def without_rounding_noise(x: np.ndarray, rel: float = 1e-12) -> np.ndarray:
-    """A copy of ``x`` with the entries at most ``rel`` × its largest magnitude set to 0.
+def without_rounding_noise(x: np.ndarray, rel: float = 1e-12, axis: int | None = None) -> np.ndarray:
+    """A copy of ``x`` with the entries at most ``rel`` × the largest magnitude set to 0: of the
+    whole array, or along ``axis`` (each vector of a stack of them on its own).
 
-    Mass data computed through a rotation (an MJCF geom's ``fromto``, a rotated inertia tensor)
-    carries float64 rounding noise, ~1e-17 of the largest entry, where the exact value is 0.
-    float32 products of such entries fall below 1.2e-38, into denormal numbers, which an x86 CPU
-    handles by a slow microcode assist: InvertedDoublePendulum-v5's second moments, with
-    off-diagonal entries of 1.8e-17 kg·m², made its CPU step 2.6× slower."""
+    Data computed through a rotation (an MJCF geom's ``fromto``, a rotated inertia tensor, a joint
+    frame or anchor in a rotated body's coordinates) carries float64 rounding noise, ~1e-17 of the
+    largest entry, where the exact value is 0.  float32 products of such entries fall below
+    1.2e-38, into denormal numbers, which an x86 CPU handles by a slow microcode assist:
+    InvertedDoublePendulum-v5's second moments, with off-diagonal entries of 1.8e-17 kg·m², made
+    its CPU step 2.6× slower."""
     x = np.array(x, dtype=np.float64)
-    x[np.abs(x) <= rel * np.abs(x).max(initial=0.0)] = 0.0
+    scale = np.abs(x).max(axis=axis, keepdims=axis is not None, initial=0.0)
+    x[np.abs(x) <= rel * scale] = 0.0
     return x
 
 
@@ -110,16 +113,17 @@ class Model:
         for k, j in enumerate(joints):
             A, B = bodies[j.body_a], bodies[j.body_b]
             t, n, b = j.frame
-            frames[:, k] = [A.to_local_point(j.anchor), B.to_local_point(j.anchor), A.to_local_dir(t), B.to_local_dir(t),
-                            A.to_local_dir(n), B.to_local_dir(n), A.to_local_dir(b), B.to_local_dir(b)]  # fmt: skip
+            frames[:, k] = without_rounding_noise(
+                [A.to_local_point(j.anchor), B.to_local_point(j.anchor), A.to_local_dir(t), B.to_local_dir(t),
+                 A.to_local_dir(n), B.to_local_dir(n), A.to_local_dir(b), B.to_local_dir(b)], axis=-1)  # fmt: skip
             L = j.half_length
             if j.kind == FIXED:
                 world_pts = [j.anchor] + [j.anchor + L * e for e in np.eye(3)]
             else:
                 world_pts = [j.anchor + L * t, j.anchor - L * t]
             for p, x in enumerate(world_pts):
-                pts[0, k, p] = A.to_local_point(x)
-                pts[1, k, p] = B.to_local_point(x)
+                pts[0, k, p] = without_rounding_noise(A.to_local_point(x))
+                pts[1, k, p] = without_rounding_noise(B.to_local_point(x))
             K[k] = ratios[k] * (A.mass + B.mass)
             qpair = np.concatenate([A.q(), B.q()])
             (c, *_), (s, *_) = angles.cos_sin_np(qpair, frames[4, k], frames[6, k], frames[5, k], frames[7, k])

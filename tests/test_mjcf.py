@@ -144,6 +144,24 @@ def test_rotated_mass_data_reaches_the_model_without_rounding_noise():
     # relative to the largest entry: a small but real moment stays
     x = np.array([[1.0, 1e-9, 0.0], [1e-9, 1.0, 2e-17], [0.0, 2e-17, 1e-3]])
     np.testing.assert_array_equal(without_rounding_noise(x), np.where(np.abs(x) < 1e-16, 0.0, x))
+    # along an axis, each vector on its own: a short vector's own entries are its scale
+    v = np.array([[1.0, 3e-17, 0.5], [1e-6, 2e-6, 4e-23]])
+    np.testing.assert_array_equal(without_rounding_noise(v, axis=-1), [[1.0, 0.0, 0.5], [1e-6, 2e-6, 0.0]])
+
+
+def test_joint_frames_in_rotated_bodies_reach_the_model_without_rounding_noise():
+    """The four-bar's links are rotated by trigonometry: its joints' local frames and points carry
+    ~1e-17 where they are 0 until the model stores them."""
+    from abd_gym.model import Model
+    from abd_gym.peer_cases import CASES
+
+    scene = CASES["fourbar"].scene()
+    assert any(((b.rotation != 0) & (np.abs(b.rotation) < 1e-15)).any() for b in scene.bodies)
+    m = Model(scene, 1, device="cpu")
+    for x in (m.base_frames, m.base_points):
+        assert not ((x != 0) & (np.abs(x) < 1e-12)).any()
+    # the frames stay unit vectors
+    np.testing.assert_allclose(np.linalg.norm(m.base_frames[2:], axis=-1)[:, : m.num_joints], 1.0, atol=1e-15)
 
 
 def test_reacher_structure_with_and_without_target():
