@@ -1,4 +1,6 @@
+import importlib.util
 import os
+from pathlib import Path
 
 import pytest
 
@@ -23,3 +25,18 @@ def pytest_runtest_makereport(item, call):
             and str(call.excinfo.value).startswith(NO_CPU):  # fmt: skip
         report.outcome = "skipped"
         report.longrepr = (str(item.path), item.location[1] or 0, f"Skipped: {call.excinfo.value}")
+
+
+@pytest.fixture
+def script():
+    """``script(name)``: the module ``scripts/<name>.py`` of the repository, loaded from its file
+    (scripts/ is no package), so that a test can call its ``main``."""
+
+    def load(name: str):
+        path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

@@ -223,14 +223,9 @@ def test_bench_envs_per_scratch(tmp_path):
     assert [r["scratch"] for r in rows] == ["auto", "global"] and all(r["env_steps_per_second"] > 0 for r in rows)
 
 
-def test_cpu_compare_script_times_both_engines(tmp_path, capsys):
+def test_cpu_compare_script_times_both_engines(tmp_path, capsys, script):
     """scripts/cpu_compare.py: abd_gym and MuJoCo C on the same starts, one row per case and size."""
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "cpu_compare.py"
-    spec = importlib.util.spec_from_file_location("cpu_compare", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = script("cpu_compare")
     out = tmp_path / "c.json"
     argv = ["--cases", "pendulum", "--worlds", "1,4", "--steps", "5", "--repeat", "1", "--threads", "2",
             "--json", str(out)]  # fmt: skip

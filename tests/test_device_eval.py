@@ -110,19 +110,14 @@ def test_threshold_eval_evaluates_on_the_device(tmp_path):
     assert len(lines) == 2 and f"over {N} episodes (threshold 1: reached)" in lines[0]
 
 
-def test_eval_times_script_times_both_paths(tmp_path, capsys):
-    import importlib.util
+def test_eval_times_script_times_both_paths(tmp_path, capsys, script):
     import json
-    from pathlib import Path
 
     from abd_gym.agents.train import train
 
     cfg = load_config("cartpole_ppo", ["n_timesteps=256", "eval_freq=0", f"eval_episodes={N}"])
     train(cfg, config_name="cartpole_ppo", run_dir=tmp_path / "run", progress_bar=False)
-    path = Path(__file__).resolve().parents[1] / "scripts" / "eval_times.py"
-    spec = importlib.util.spec_from_file_location("eval_times", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = script("eval_times")
     out = tmp_path / "t.json"
     assert script.main([str(tmp_path / "run"), "--repeat", "1", "--json", str(out)]) == 0
     (row,) = json.loads(out.read_text())

@@ -28,14 +28,8 @@ def test_profile_both_paths(tmp_path, capsys):
     assert "env step" in text and "update" in text and "vector env alone" in text
 
 
-def test_rollout_step_times_brackets_every_piece(tmp_path, capsys):
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "rollout_step_times.py"
-    spec = importlib.util.spec_from_file_location("rollout_step_times", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+def test_rollout_step_times_brackets_every_piece(tmp_path, capsys, script):
+    script = script("rollout_step_times")
     out = tmp_path / "t.json"
     argv = ["cartpole_ppo", "--num-envs", "4", "--rollouts", "2", "hyperparams.n_steps=8",
             "hyperparams.batch_size=16", "hyperparams.n_epochs=1", "--json", str(out)]  # fmt: skip
