@@ -138,7 +138,7 @@ class _EvalState:
         self.key = key
         self.evaluator, self.model, self.deterministic = evaluator, model, deterministic
         policy, n = model.policy, evaluator.n_envs
-        dev = self.device = policy.device
+        dev = policy.device
         self.targets = th.tensor([(n_episodes + i) // n for i in range(n)], dtype=th.int64, device=dev)
         self.most_episodes = int(math.ceil(n_episodes / n))
         obs_shape = model.observation_space.shape
