@@ -81,6 +81,8 @@ class DeviceStep:
         self.go = None
         self.undo = None  # a step checked on the device: the host's bookkeeping before it
         self.arrays = None  # Warp views of the buffers, by name (buffers)
+        self.fixed = None  # the caller's buffer for every step's packed outputs (fixed_outputs), or None
+        self.fixed_views = None  # unpack(fixed), handed back by every step
 
     # ------------------------------------------------------------------ buffers
     def buffers(self):
@@ -106,6 +108,20 @@ class DeviceStep:
                            reward=wp.from_torch(reward), flags=wp.from_torch(self.out_b),
                            bad=wp.from_torch(self.out_b[4]), elapsed=wp.from_torch(ep.elapsed),
                            task=wp.from_torch(ep.task) if ep.task_width else None)  # fmt: skip
+
+    def fixed_outputs(self):
+        """Views (observations, rewards, terminated, truncated) of one buffer that every later step
+        writes its outputs into and returns, in place of a fresh buffer each step (Torch only); the
+        info values are then handed back uncopied too (a graph slot's, rewritten two steps later).
+        A caller that reads each step's outputs before the next step's launch (a training rollout,
+        on the same stream) saves a copy of each; a caller that keeps them must copy them."""
+        if self.xp is np:
+            raise ValueError("fixed_outputs needs the Torch backend")
+        self.buffers()
+        if self.fixed is None:
+            self.fixed = self.xp.empty(self.out_head, dtype=self.xp.float32, device=self.out_raw.device)
+            self.fixed_views = self.unpack(self.fixed)
+        return self.fixed_views[:4]
 
     def unpack(self, raw, rows: int = 3):
         """Views of the packed outputs ``raw`` (float32 words, the buffer or a copy of its head, at
@@ -263,18 +279,21 @@ class DeviceStep:
         if replayed:
             if self.graph is None:
                 self.graph = step_graph.StepGraph(self)
-            raw, (_, info_values, flags), slot = self.graph.replay(a)
-            out = self.unpack(raw)
+            raw, (_, info_values, flags), slot = self.graph.replay(a, self.fixed)
+            out = self.fixed_views if raw is self.fixed else self.unpack(raw)
         else:
             if checked:
                 a = a.clone()  # clipped in place by the check
             out, info_values, flags = self.run(a)
             self.warm = True
-            if torch_backend:
+            if self.fixed is not None:
+                self.fixed.copy_(self.out_raw[: self.out_head])
+                out = self.fixed_views
+            elif torch_backend:
                 # the step's outputs are rewritten by the next step: the caller gets its own copies
                 # (one clone of the packed bytes)
                 out = self.unpack(self.out_raw[: self.out_head].clone())
-        if torch_backend:
+        if torch_backend and self.fixed is None:  # else handed back in place, as the outputs
             info_values = {k: v.clone() for k, v in info_values.items()}
         obs, reward, terminated, truncated, failed = out
         # the worlds the device just reset (last step's ended ones, known on the host now): their

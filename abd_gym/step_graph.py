@@ -91,9 +91,10 @@ class StepGraph:
         self.posts.append(None if nested else post)
         self.outputs.append(out)
 
-    def replay(self, a):
+    def replay(self, a, out=None):
         """The next slot's step graph replayed on Torch's current stream with the actions ``a``;
-        returns (the step's fresh packed outputs, that slot's post outputs, the slot)."""
+        returns (the step's packed outputs: ``out``, or else a fresh buffer, that slot's post
+        outputs, the slot)."""
         import torch
 
         slot = self.slot
@@ -105,8 +106,8 @@ class StepGraph:
             ts = torch.cuda.current_stream(self.torch_device)
             self.replay_stream, self.stream_id, self.torch_stream = wp.stream_from_torch(ts), sid, ts
         # the outputs' buffer: fresh from Torch's allocator each step (stream-ordered, as a clone's
-        # would be), which the caller keeps
-        raw = torch.empty(self.ds.out_head, dtype=torch.float32, device=self.torch_device)
+        # would be), which the caller keeps, or the caller's own (DeviceStep.fixed_outputs)
+        raw = torch.empty(self.ds.out_head, dtype=torch.float32, device=self.torch_device) if out is None else out
         mail = self.pinned.mail_np[slot]
         mail[1] = raw.data_ptr()
         if self.mailed:

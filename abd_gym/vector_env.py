@@ -410,6 +410,18 @@ class ABDVectorEnv(Task, VectorEnv):
             return x, xd
         return x, xd, self.episodes.task_matrix(self.draw_task(n, self._next_rng, {}), n)
 
+    def fixed_outputs(self):
+        """Views (obs, reward, terminated, truncated) of one buffer that every later ``step`` on the
+        device (NEXT_STEP autoresets with the Torch backend; :mod:`abd_gym.device_step`) writes its
+        outputs into and returns, instead of fresh tensors each step (its info values are then not
+        copied either); None where this env's steps do not run there.  For a caller that reads
+        each step's outputs before it calls ``step`` again (a training rollout on the same CUDA
+        stream): it saves a copy of each output a step.
+        A caller that keeps outputs across steps must copy them."""
+        if self.next_episodes is None or self.xp is np:
+            return None
+        return self.device_step.fixed_outputs()
+
     def _pending_now(self) -> np.ndarray:
         """NEXT_STEP: the worlds that ended in the last step (host bool mask; pending.py), after the
         verdict of a step checked on the device (raises if the device refused it)."""

@@ -298,6 +298,15 @@ class GymnasiumVecEnv(VecEnv):
             return f"observation space {type(self.observation_space).__name__} is not a Box"
         return None
 
+    def fixed_outputs(self) -> tuple | None:
+        """(obs, rewards, terminated, truncated): the tensors every later NEXT_STEP
+        :meth:`step_tensors` writes and returns, where the env offers them
+        (``ABDVectorEnv.fixed_outputs``, with no wrapper between), else None."""
+        fixed = getattr(self.env, "fixed_outputs", None) if self.env is self.env.unwrapped else None
+        if self.autoreset_mode != AutoresetMode.NEXT_STEP or fixed is None:
+            return None
+        return fixed()
+
     def step_tensors(self, actions: Any) -> TensorStep:
         """Step all worlds with ``actions`` (a tensor on any device) and return the tensors as the
         env gives them; the env's info dicts are not split per world (no ``infos`` list).  A

@@ -303,6 +303,34 @@ def _cuda_or_skip(device):
 
 
 @pytest.mark.parametrize("device", ["cpu", "cuda:0"])
+def test_fixed_outputs_are_written_in_place(device):
+    """fixed_outputs: every later NEXT_STEP step writes its outputs into the same tensors and hands
+    them back, with the values of an env that returns fresh ones (autoresets included); a NumPy or
+    SAME_STEP env has none."""
+    torch = pytest.importorskip("torch")
+    _cuda_or_skip(device)
+    env = make(backend="torch", device=device)
+    ref = make(backend="torch", device=device)
+    env.reset(seed=8)
+    ref.reset(seed=8)
+    fixed = env.fixed_outputs()
+    ptrs = [x.data_ptr() for x in fixed]
+    actions = torch.as_tensor(np.random.default_rng(1).uniform(-1, 1, size=(60, N, 1)), dtype=torch.float32,
+                              device=fixed[0].device)  # fmt: skip
+    ended = False
+    for a in actions:
+        out = env.step(a)[:4]
+        expected = ref.step(a)[:4]
+        assert [x.data_ptr() for x in out] == ptrs
+        for x, fx, y in zip(out, fixed, expected):
+            assert torch.equal(x, fx) and torch.equal(x, y)
+        ended |= bool(out[2].any())
+    assert ended
+    assert make().fixed_outputs() is None
+    assert make(AutoresetMode.SAME_STEP, backend="torch", device=device).fixed_outputs() is None
+
+
+@pytest.mark.parametrize("device", ["cpu", "cuda:0"])
 @pytest.mark.parametrize("mode", [AutoresetMode.SAME_STEP, AutoresetMode.NEXT_STEP])
 def test_torch_backend_matches_numpy_and_stays_on_device(mode, device):
     """The torch backend against the numpy one on the same device and seed, autoresets included
