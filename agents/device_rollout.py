@@ -35,7 +35,7 @@ a_k, reward 0) is no transition of the task, so the buffer marks it invalid and:
   can be a reset step);
 * ``episode_starts`` marks position k+1 after a reset step k (its observation opens the episode);
 * episode returns and lengths count the episode's own steps (not the reset step) and reach
-  ``ep_info_buffer`` at the rollout's end (one host read per rollout; ``"t"`` is that time);
+  ``ep_info_buffer`` at the rollout's end (read on the host once per rollout; ``"t"`` is that time);
 * ``num_timesteps`` counts every world at every step as SB3 does, so 1 in (episode length + 1)
   counted transitions is a reset step that trains nothing.
 
@@ -57,6 +57,7 @@ from typing import Any
 
 import numpy as np
 import torch as th
+import warp as wp
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.buffers import BaseBuffer, RolloutBuffer
@@ -66,6 +67,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 from .device_normalize import DeviceNormalize, find_vecnormalize
 from .graphed_rollout import RolloutStep
 from .graphed_update import SAMPLED, GraphedPPO, unchecked_distributions
+from .rollout_kernels import gae_kernel, warp_on_torch_stream
 from .sb3_vec_env import GymnasiumVecEnv, _accepts
 
 __all__ = ["DEVICE_PATH", "SB3_PATH", "DevicePPO", "TensorRolloutBuffer", "rollout_path", "find_adapter"]
@@ -161,8 +163,9 @@ class TensorRolloutBuffer(RolloutBuffer):
     in SB3's buffer.  Actions are stored as float32 (SB3 casts them to float32 when sampling).  The
     SB3 field names read as host NumPy copies.
 
-    ``storage`` holds the (n_steps, n_envs, ...) tensors, allocated once and zeroed by each
-    :meth:`reset` (``tensors`` starts each rollout as a view of it).
+    ``storage`` holds the (n_steps, n_envs, ...) tensors, allocated once (``tensors`` starts each
+    rollout as a view of it); :meth:`reset` leaves their values, which a rollout writes whole
+    before its update reads them (every position of the fields it fills, then GAE's).
 
     ``next_step`` (set after :meth:`reset`, read by :meth:`compute_returns_and_advantage` and
     :meth:`get`): the rollout came from a NEXT_STEP env, and :class:`~.graphed_rollout.RolloutStep`
@@ -196,9 +199,6 @@ class TensorRolloutBuffer(RolloutBuffer):
                                device=self.device)
                 for name in self.FIELDS + self.FLAGS
             }  # fmt: skip
-        else:
-            for x in self.storage.values():
-                x.zero_()
         self.tensors = dict(self.storage)
         self.next_step = False
         self.generator_ready = False
@@ -224,18 +224,22 @@ class TensorRolloutBuffer(RolloutBuffer):
 
         ``next_step``: ``1 - d_{t+1}`` is ``1 - done_t`` (the step's own flags; ``dones`` is not
         read) and a position cut by its time limit first gets ``r_t += gamma V_{t+1}``
-        (``V_{t+1}``: the next position's value, of the final observation, or ``last_values``)."""
+        (``V_{t+1}``: the next position's value, of the final observation, or ``last_values``);
+        one kernel (:func:`~.rollout_kernels.gae_kernel`) runs it, a thread per world."""
         t = self.tensors
         last_values = last_values.detach().flatten().to(th.float32)
         if self.next_step:
-            next_values = th.cat([t["values"][1:], last_values[None]])
-            t["rewards"] += self.gamma * next_values * t["cuts"]
-            next_non_terminal = 1.0 - t["dones"]
+            device = last_values.device
+            with warp_on_torch_stream(device):
+                wp.launch(gae_kernel, dim=self.n_envs,
+                          inputs=[*(wp.from_torch(t[k]) for k in ("rewards", "values", "dones", "cuts")),
+                                  wp.from_torch(last_values), self.gamma, self.gamma * self.gae_lambda,
+                                  wp.from_torch(t["advantages"]), wp.from_torch(t["returns"])],
+                          device=wp.device_from_torch(device))  # fmt: skip
+            return
         last_gae_lam: Any = 0
         for step in reversed(range(self.buffer_size)):
-            if self.next_step:
-                nnt, nv = next_non_terminal[step], next_values[step]
-            elif step == self.buffer_size - 1:
+            if step == self.buffer_size - 1:
                 nnt, nv = 1.0 - dones.to(th.float32), last_values
             else:
                 nnt, nv = 1.0 - t["episode_starts"][step + 1], t["values"][step + 1]
@@ -384,13 +388,19 @@ class DevicePPO(GraphedPPO):
 
     def _flush_episodes(self, buf: TensorRolloutBuffer) -> None:
         """NEXT_STEP: the rollout's finished episodes to ``ep_info_buffer`` in SB3's order (step by
-        step, worlds in order), with one read of the buffer's flags on the host."""
-        t = buf.tensors
-        done = t["dones"] > 0
-        returns = t["ep_return"][done].cpu().numpy()  # boolean indexing is row-major: step, then world
-        lengths = t["ep_length"][done].cpu().numpy()
-        if len(returns):
-            self._add_episodes(returns, lengths.astype(np.int64))
+        step, worlds in order): the last ``maxlen`` of them, which the rollout step's :meth:`finish`
+        gathered (``tail``), in one read on the host."""
+        steps = self._rollout_step
+        size = steps.tail_size
+        if not size:  # a buffer without maxlen keeps every episode
+            t = buf.tensors
+            ended = th.nonzero(t["dones"].flatten()).flatten()
+            tail = th.stack((t["ep_return"].flatten()[ended], t["ep_length"].flatten()[ended])).cpu().numpy()
+        else:
+            tail = steps.tail.cpu().numpy()
+            tail = tail[:, : int(tail[0, size])]
+        if tail.shape[1]:
+            self._add_episodes(tail[0], tail[1].astype(np.int64))
 
     def _bootstrap_timeouts(self, step: Any, rewards: th.Tensor) -> th.Tensor:
         """``rewards + gamma * V(final_obs)`` in the worlds cut by their time limit (not terminated)."""
@@ -452,13 +462,17 @@ class DevicePPO(GraphedPPO):
     def _act(self, env: VecEnv, n_steps: int) -> tuple:
         """One step of the rollout's policy and env: (actions, values, log-probs, the env's
         TensorStep, the next observation (a copy on the policy's device), the rewards there)."""
-        if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
-            self.policy.reset_noise(env.num_envs)
+        self._sample_noise(n_steps)
         with th.no_grad():
             actions, values, log_probs = self.policy(self._last_obs)
         step = self._adapter.step_tensors(self._env_actions(actions))
         new_obs = step.obs.to(self.device, copy=True)  # the env may write its next step into its tensor
         return actions, values, log_probs, step, new_obs, step.rewards.to(self.device)
+
+    def _sample_noise(self, n_steps: int) -> None:
+        """A state-dependent exploration's new noise before step ``n_steps``'s action, as SB3 draws it."""
+        if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
+            self.policy.reset_noise(self._adapter.num_envs)
 
     def _new_rollout_step(self, capture: bool | None = None) -> RolloutStep:
         """The NEXT_STEP rollout's step (``capture``: as :class:`~.cuda_graph.GraphedCall`'s), with
@@ -483,10 +497,9 @@ class DevicePPO(GraphedPPO):
         if steps is None:
             self._rollout_step = steps = self._new_rollout_step()
         steps.start(rollout_buffer)
+        self._sample_noise(0)
+        steps.act()
         for n_steps in range(n_rollout_steps):
-            if self.use_sde and self.sde_sample_freq > 0 and n_steps % self.sde_sample_freq == 0:
-                self.policy.reset_noise(env.num_envs)
-            steps.act()
             steps.env_step()
             self.num_timesteps += env.num_envs
             actions, values, log_probs, rewards = steps.actions, steps.values, steps.log_probs, steps.rewards
@@ -494,7 +507,11 @@ class DevicePPO(GraphedPPO):
             if not callback.on_step():
                 steps.end()
                 return False
-            steps.record()
+            if n_steps + 1 < n_rollout_steps:
+                self._sample_noise(n_steps + 1)
+                steps.record_act()  # this step's record and the next step's policy, one graph
+            else:
+                steps.record()
         steps.end()
         rollout_buffer.pos, rollout_buffer.full = n_rollout_steps, True
         steps.finish()  # the last observation's values and GAE

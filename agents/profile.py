@@ -14,9 +14,11 @@ and K more with every piece timed (the table):
 * ``host<->device``: the adapter's conversions around it (tensors to NumPy, info dicts, or
   nothing but reshapes on the device path) and SB3's ``obs_as_tensor``;
 * ``policy``: forward passes of the rollout (actions, values, log-probs; V of cut episodes' last
-  observations and of the last observation); on the device path the graphed ``RolloutStep.act``;
+  observations and of the last observation); on the device path the graphed ``RolloutStep.act``
+  of a rollout's first step;
 * ``buffer add`` and ``GAE``: the rollout buffer's ``add`` (on the device path the graphed
-  ``RolloutStep.record``: the transition, flags and episode statistics) and
+  ``RolloutStep.record``: the transition, flags and episode statistics; between two steps
+  ``RolloutStep.record_act``, which runs the next step's policy in the same graph) and
   ``compute_returns_and_advantage`` (on the device path the graphed ``RolloutStep.finish``: the
   last observation's values, then GAE);
 * ``rollout other``: the rest of the rollout loop (action clipping, copies of actions to the host,
@@ -27,7 +29,8 @@ Each timed piece is closed by ``torch.cuda.synchronize()`` and ``wp.synchronize(
 the table's sum is slower than the untimed run; the shares are what it is for.  A piece's time
 excludes the pieces timed inside it.  Last, the vector env alone steps the same number of steps
 with random actions made where its actions live (the last path's env: NEXT_STEP where the device
-path is profiled).  A table is printed and JSON written
+path is profiled), best of three runs: its step is bound by the host's Python, whose speed
+varies from run to run.  A table is printed and JSON written
 (default ``runs/profile-<config>-<YYYYmmdd-HHMMSS>.json``).
 """
 from __future__ import annotations
@@ -139,6 +142,7 @@ def _instrument(model, clock: _Clock, fine: bool) -> list[tuple[Any, str, Any]]:
     steps = getattr(model, "_rollout_step", None)  # the device path's graphed policy and bookkeeping
     if steps is not None:
         pairs += [(steps, "act", clock.wrap("policy", steps.act)), (steps, "record", clock.wrap("buffer add", steps.record)),
+                  (steps, "record_act", clock.wrap("buffer add", steps.record_act)),
                   (steps, "finish", clock.wrap("GAE", steps.finish))]  # fmt: skip
     return pairs
 
@@ -185,7 +189,8 @@ def profile_path(cfg: dict[str, Any], rollout: str, k: int) -> dict[str, Any]:
 
 
 def vector_env_rate(cfg: dict[str, Any], rollout: str, steps: int) -> float:
-    """The vector env's own env-steps/s with random actions (made on its device), no policy."""
+    """The vector env's own env-steps/s with random actions (made on its device), no policy: the
+    best of three runs of ``steps`` steps."""
     venv = build_train_env(cfg, rollout=rollout)
     adapter = find_adapter(venv)
     env, n = adapter.env, adapter.num_envs
@@ -209,14 +214,16 @@ def vector_env_rate(cfg: dict[str, Any], rollout: str, steps: int) -> float:
     sync = _syncer(cfg["device"])
     for _ in range(10):
         env.step(actions())
-    sync()
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        env.step(actions())
-    sync()
-    rate = steps * n / (time.perf_counter() - t0)
+    rates = []
+    for _ in range(3):
+        sync()
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            env.step(actions())
+        sync()
+        rates.append(steps * n / (time.perf_counter() - t0))
     venv.close()
-    return rate
+    return max(rates)
 
 
 def profile(cfg: dict[str, Any], *, rollouts: int = 5, paths: str = "both") -> dict[str, Any]:

@@ -7,8 +7,8 @@
 (``key=value`` overrides as in ``abd-gym-train``.)  Builds the training env and ``DevicePPO`` as
 ``abd-gym-train`` does, trains three iterations (compiles, captures), then times ``--rollouts``
 calls of ``collect_rollouts`` (no updates between them).  Each piece (the buffer's reset, the
-rollout step's ``start``, ``act``, ``env_step``, ``record``, ``end`` and ``finish``, the callbacks
-and the flush of finished episodes) is bracketed by a host clock and, on a GPU, a CUDA event on the
+rollout step's ``start``, ``act``, ``env_step``, ``record_act``, ``record``, ``end`` and
+``finish``, the callbacks and the flush of finished episodes) is bracketed by a host clock and, on a GPU, a CUDA event on the
 current stream, so that the GPU's queue is never drained inside the rollout as the profiler's
 synchronised pieces do (``python -m abd_gym.agents.profile``).  Per rollout it prints:
 
@@ -36,7 +36,8 @@ from abd_gym.agents.config import validate_config
 from abd_gym.agents.train import raw_config_from_args
 
 PIECES = (("rollout_buffer", "reset", "buffer reset"), ("steps", "start", "start"), ("steps", "act", "act"),
-          ("steps", "env_step", "env step"), ("steps", "record", "record"), ("steps", "end", "end"),
+          ("steps", "record_act", "record and act"), ("steps", "env_step", "env step"), ("steps", "record", "record"),
+          ("steps", "end", "end"),
           ("steps", "finish", "finish"), ("model", "_flush_episodes", "flush"))  # fmt: skip
 OTHER = "collect_rollouts, the rest"
 

@@ -364,6 +364,24 @@ def test_valid_advantages_are_gae_of_the_same_step_run(next_and_same_step):
             offset[w] = b
 
 
+@pytest.mark.parametrize("size", [1, 3, 1000])
+def test_rollout_tail_is_the_last_finished_episodes(next_and_same_step, size):
+    """The rollout step's tail (what ep_info_buffer takes from a rollout): the returns and lengths
+    of the last ``size`` finished episodes in row-major order, and their count."""
+    steps, t = next_and_same_step[0]._rollout_step, next_and_same_step[0].rollout_buffer.storage
+    done = t["dones"].flatten() > 0
+    expected = th.stack((t["ep_return"].flatten()[done], t["ep_length"].flatten()[done]))[:, -size:]
+    saved = steps.tail_size, steps.tail
+    try:
+        steps.tail_size, steps.tail = size, th.full((2, size + 1), -1.0)
+        steps._tail()
+        k = int(steps.tail[0, size])
+        assert k == expected.shape[1] > 1 or size == 1
+        np.testing.assert_array_equal(steps.tail[:, :k].numpy(), expected.numpy())
+    finally:
+        steps.tail_size, steps.tail = saved
+
+
 def test_next_step_episode_statistics(next_and_same_step):
     from collections import Counter
 
