@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from . import env_kernels, step_graph
-from .outcome import batch_info, outcome, world_status
+from .outcome import batch_info, outcome
 
 
 def _own_code(method):
@@ -82,7 +82,7 @@ class DeviceStep:
         self.undo = None  # a step checked on the device: the host's bookkeeping before it
         self.arrays = None  # Warp views of the buffers, by name (buffers)
         self.fixed = None  # the caller's buffer for every step's packed outputs (fixed_outputs), or None
-        self.fixed_views = None  # unpack(fixed), handed back by every step
+        self.fixed_views = self.fixed_status = None  # unpack(fixed) and status_of(fixed), handed back by every step
 
     # ------------------------------------------------------------------ buffers
     def buffers(self):
@@ -96,16 +96,17 @@ class DeviceStep:
         N, d = self.num_envs, env.single_observation_space.shape[0]
         dev = env.arrays.torch_device
         self.go = wp.ones(1, dtype=wp.int32, device=self.device)
-        # one buffer (float32 words: the observations' and rewards' type; the flags' bytes after them),
-        # so that one clone of its head copies the observations, rewards and the three flags returned
-        self.out_raw = torch.zeros(-(-(4 * N * (d + 1) + 5 * N) // 4), dtype=torch.float32, device=dev)
-        self.out_head = -(-(4 * N * (d + 1) + 3 * N) // 4)
+        # one buffer (4-byte words: the observations' and rewards' float32, the status' int32; the
+        # flags' bytes after them), so that one clone of its head copies every output returned
+        F = 4 * N * (d + 2)
+        self.out_raw = torch.zeros(-(-(F + 5 * N) // 4), dtype=torch.float32, device=dev)
+        self.out_head = -(-(F + 3 * N) // 4)
         obs, reward = self.unpack(self.out_raw, 0)
-        F = 4 * N * (d + 1)
         self.out_b = self.out_raw.view(torch.uint8)[F: F + 5 * N].view(torch.bool).view(5, N)
         ep = env.episodes
         self.arrays = dict(scale=wp.from_torch(env.action_scale), obs=wp.from_torch(obs),
-                           reward=wp.from_torch(reward), flags=wp.from_torch(self.out_b),
+                           reward=wp.from_torch(reward), status=wp.from_torch(self.status_of(self.out_raw)),
+                           flags=wp.from_torch(self.out_b),
                            bad=wp.from_torch(self.out_b[4]), elapsed=wp.from_torch(ep.elapsed),
                            task=wp.from_torch(ep.task) if ep.task_width else None)  # fmt: skip
 
@@ -121,20 +122,27 @@ class DeviceStep:
         if self.fixed is None:
             self.fixed = self.xp.empty(self.out_head, dtype=self.xp.float32, device=self.out_raw.device)
             self.fixed_views = self.unpack(self.fixed)
+            self.fixed_status = self.status_of(self.fixed)
         return self.fixed_views[:4]
 
     def unpack(self, raw, rows: int = 3):
-        """Views of the packed outputs ``raw`` (float32 words, the buffer or a copy of its head, at
+        """Views of the packed outputs ``raw`` (4-byte words, the buffer or a copy of its head, at
         storage offset 0): observations (N, d), rewards (N,), then the first ``rows`` flag rows
-        (terminated, truncated, failed, done, bad: bytes after the rewards), each (N,).  Built by
-        as_strided, one Torch call a view: slicing and retyping took 11 calls, ~15 µs of host time a
-        step on the H100's host at 1,024 envs."""
+        (terminated, truncated, failed, done, bad: bytes after the rewards and the status), each
+        (N,).  Built by as_strided, one Torch call a view: slicing and retyping took 11 calls,
+        ~15 µs of host time a step on the H100's host at 1,024 envs."""
         torch = self.xp
         N, d = self.num_envs, self.env.single_observation_space.shape[0]
-        F = 4 * N * (d + 1)
+        F = 4 * N * (d + 2)
         flags = raw.view(torch.bool) if rows else None
         return (raw.as_strided((N, d), (d, 1)), raw.as_strided((N,), (1,), N * d),
                 *(flags.as_strided((N,), (1,), F + k * N) for k in range(rows)))  # fmt: skip
+
+    def status_of(self, raw):
+        """The worlds' status codes (N,) int32 in the packed outputs ``raw`` (after the rewards):
+        ``info["sim_status"]``, a copy of the simulator's that the step's last kernel writes."""
+        N, d = self.num_envs, self.env.single_observation_space.shape[0]
+        return raw.view(self.xp.int32).as_strided((N,), (1,), N * (d + 1))
 
     # ------------------------------------------------------------------ the step's parts
     def pre(self, a, checked: bool, slot: int | None = None, mail=None):
@@ -204,8 +212,9 @@ class DeviceStep:
         ``step`` (reward 0, both flags False), the ended worlds marked for the next step.  With
         Torch, in env_kernels' launch after the task's own operations (a step the device refused
         changes no pending mask), into the packed outputs; returns (the outputs, info values, the
-        flags' rows done and bad).  ``slot`` (a step graph's): the outputs go to the buffer mailed
-        in that slot and the rows done and bad to its slot of the ``pinned`` host flags (the packed
+        flags' rows done and bad); the worlds' status is among the packed outputs (``status_of``),
+        not in the info values.  ``slot`` (a step graph's): the outputs go to the buffer mailed in
+        that slot and the rows done and bad to its slot of the ``pinned`` host flags (the packed
         outputs are not written)."""
         env = self.env
         if self.xp is np:
@@ -213,13 +222,12 @@ class DeviceStep:
         k, N = self.arrays, self.num_envs
         pending = self.next.pending
         obs, reward, term, info_values = self.outcome(a)
-        info_values = dict(info_values, sim_status=world_status(env))
         steps = -1 if env.max_episode_steps is None else env.max_episode_steps
         mailed = slot is not None
         wp.launch(env_kernels.finish_step(mailed), dim=N,
                   inputs=[wp.from_torch(obs), wp.from_torch(reward), wp.from_torch(term),
                           self.sim.state.status, self.go, pending, k["elapsed"], steps, k["obs"], k["reward"],
-                          k["flags"], pinned.mail_dev if mailed else None, slot or 0,
+                          k["status"], k["flags"], pinned.mail_dev if mailed else None, slot or 0,
                           pinned.flags_dev if mailed else None], device=self.device)  # fmt: skip
         return self.unpack(self.out_raw), info_values, self.out_b[3:5]
 
@@ -280,21 +288,27 @@ class DeviceStep:
             if self.graph is None:
                 self.graph = step_graph.StepGraph(self)
             raw, (_, info_values, flags), slot = self.graph.replay(a, self.fixed)
-            out = self.fixed_views if raw is self.fixed else self.unpack(raw)
         else:
             if checked:
                 a = a.clone()  # clipped in place by the check
             out, info_values, flags = self.run(a)
             self.warm = True
+            raw = None
             if self.fixed is not None:
                 self.fixed.copy_(self.out_raw[: self.out_head])
-                out = self.fixed_views
+                raw = self.fixed
             elif torch_backend:
                 # the step's outputs are rewritten by the next step: the caller gets its own copies
                 # (one clone of the packed bytes)
-                out = self.unpack(self.out_raw[: self.out_head].clone())
-        if torch_backend and self.fixed is None:  # else handed back in place, as the outputs
-            info_values = {k: v.clone() for k, v in info_values.items()}
+                raw = self.out_raw[: self.out_head].clone()
+        if raw is self.fixed and raw is not None:
+            out, status = self.fixed_views, self.fixed_status
+        elif raw is not None:
+            out, status = self.unpack(raw), self.status_of(raw)
+        if torch_backend:
+            if self.fixed is None:  # else handed back in place, as the outputs
+                info_values = {k: v.clone() for k, v in info_values.items()}
+            info_values["sim_status"] = status
         obs, reward, terminated, truncated, failed = out
         # the worlds the device just reset (last step's ended ones, known on the host now): their
         # info is a reset's (none), their clock restarts, they took a row of their queues; this

@@ -62,26 +62,31 @@ def finish_step(mailed: bool = False):
     def finish(obs: wp.array2d(dtype=wp.float32), reward: wp.array(dtype=wp.float32), term: wp.array(dtype=wp.bool),
                status: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32),
                elapsed: wp.array(dtype=wp.int64), max_steps: wp.int64, out_obs: wp.array2d(dtype=wp.float32),
-               out_reward: wp.array(dtype=wp.float32), flags: wp.array2d(dtype=wp.bool),
+               out_reward: wp.array(dtype=wp.float32), out_status: wp.array(dtype=wp.int32),
+               flags: wp.array2d(dtype=wp.bool),
                mail: wp.array2d(dtype=wp.uint64), slot: int, host_flags: wp.array3d(dtype=wp.bool)):  # fmt: skip
         """World w's outcome from the task's observation, reward and termination: failed where its
         solve failed or an observation is not finite (zero observation and reward, terminated); a
         world reset in this step (pending, when the step ran) has reward 0 and neither flag;
         truncated at ``max_steps`` env steps (none when negative).  flags rows: terminated,
         truncated, failed, done (and bad, the check's); done becomes the next step's pending mask
-        unless the step was refused.  Mailed, the buffer holds the observations (N, d) and rewards
-        (float32), then the rows terminated, truncated, failed (bytes): ``DeviceStep.unpack`` (device_step.py)."""
+        unless the step was refused; the world's status is copied to ``out_status``.  Mailed, the
+        buffer holds the observations (N, d) and rewards (float32), the status (int32), then the
+        rows terminated, truncated, failed (bytes): ``DeviceStep.unpack`` (device_step.py)."""
         w = wp.tid()
         n = obs.shape[0]
         d = obs.shape[1]
         o = out_obs
         r_out = out_reward
+        s_out = out_status
         f_out = flags
         if wp.static(mailed):
             p = mail[slot, 1]
             o = wp.array(ptr=p, shape=(n, d), dtype=wp.float32)
             r_out = wp.array(ptr=p + wp.uint64(4 * n * d), shape=(n,), dtype=wp.float32)
-            f_out = wp.array(ptr=p + wp.uint64(4 * n * (d + 1)), shape=(3, n), dtype=wp.bool)
+            s_out = wp.array(ptr=p + wp.uint64(4 * n * (d + 1)), shape=(n,), dtype=wp.int32)
+            f_out = wp.array(ptr=p + wp.uint64(4 * n * (d + 2)), shape=(3, n), dtype=wp.bool)
+        s_out[w] = status[w]
         failed = bool(status[w] != 0)
         for j in range(d):
             if not wp.isfinite(obs[w, j]):

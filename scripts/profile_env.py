@@ -84,7 +84,7 @@ def device_parts(env, actions, steps):
     stream = wp.stream_from_torch(torch.cuda.current_stream(u.arrays.torch_device))
     alone, _ = graphs.capture(u.device, lambda: u.sim.launch_step(u.frame_skip))
     # the graphs alone write where their mail slots point: a buffer that outlives them
-    raw = torch.empty(u.device_step.out_head, dtype=torch.uint8, device=u.arrays.torch_device)
+    raw = torch.empty(u.device_step.out_head, dtype=torch.float32, device=u.arrays.torch_device)
     a0 = actions[0].contiguous()
     for slot in (0, 1):
         g.pinned.mail_np[slot] = (a0.data_ptr(), raw.data_ptr())

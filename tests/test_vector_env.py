@@ -601,30 +601,34 @@ def test_mailed_env_kernels_match_plain_ones():
     ins = dict(obs=obs, reward=rng.normal(size=n).astype(np.float32), term=np.array([1, 0, 0, 1, 0], bool),
                status=np.array([0, 0, 0, 0, 1], np.int32), go=np.ones(1, np.int32),
                pending=np.array([1, 0, 0, 0, 0], np.int32), elapsed=np.array([1, 9, 3, 9, 2], np.int64))
-    out = np.zeros(4 * n * (d + 1) + 3 * n, dtype=np.uint8)
+    out = np.zeros(4 * n * (d + 2) + 3 * n, dtype=np.uint8)
 
     def finish(mailed):
         arrays = {k: wp.array(v, device="cpu") for k, v in ins.items()}
         o, r = wp.zeros((n, d), dtype=wp.float32, device="cpu"), wp.zeros(n, dtype=wp.float32, device="cpu")
+        status = wp.full(n, -1, dtype=wp.int32, device="cpu")
         flags = wp.array(np.eye(5, n, dtype=bool), device="cpu")  # row 4 (bad): the check's
         host = wp.zeros((3, 2, n), dtype=wp.bool, device="cpu")
         if mailed:
             mail.numpy()[slot, 1] = out.ctypes.data
         wp.launch(env_kernels.finish_step(mailed), dim=n,
-                  inputs=[*arrays.values(), wp.int64(8), o, r, flags, mail if mailed else None, slot,
+                  inputs=[*arrays.values(), wp.int64(8), o, r, status, flags, mail if mailed else None, slot,
                           host if mailed else None], device="cpu")  # fmt: skip
         if mailed:
             f = out[: 4 * n * (d + 1)].view(np.float32)
-            rows = out[4 * n * (d + 1):].view(bool).reshape(3, n)
+            codes = out[4 * n * (d + 1) : 4 * n * (d + 2)].view(np.int32)
+            rows = out[4 * n * (d + 2):].view(bool).reshape(3, n)
             assert not host.numpy()[[0, 2]].any()
-            return f[: n * d].reshape(n, d), f[n * d:], rows, host.numpy()[slot], arrays["pending"].numpy()
+            return (f[: n * d].reshape(n, d), f[n * d:], codes, rows, host.numpy()[slot],
+                    arrays["pending"].numpy())  # fmt: skip
         fl = flags.numpy()
-        return o.numpy(), r.numpy(), fl[:3], fl[3:5], arrays["pending"].numpy()
+        return o.numpy(), r.numpy(), status.numpy(), fl[:3], fl[3:5], arrays["pending"].numpy()
 
     mailed, plain = finish(True), finish(False)
     for x, y in zip(mailed, plain):
         np.testing.assert_array_equal(x, y)
-    assert plain[2][2, 2] and plain[2][2, 4] and plain[3][0].any()  # failures seen; some world done
+    np.testing.assert_array_equal(plain[2], ins["status"])  # the status copied out
+    assert plain[3][2, 2] and plain[3][2, 4] and plain[4][0].any()  # failures seen; some world done
 
 
 def test_device_autoreset_draws_fresh_episodes():
@@ -673,10 +677,11 @@ def test_graph_step_matches_launched_step(task):
         mine.fill_(float("nan"))
         for x, y in zip(out_g[:4], out_p[:4]):
             torch.testing.assert_close(x, y, rtol=1e-6, atol=1e-6)
-        torch.testing.assert_close(out_g[4]["sim_failed"], out_p[4]["sim_failed"])
+        for key in ("sim_failed", "sim_status"):
+            torch.testing.assert_close(out_g[4][key], out_p[4][key])
         ends += int((out_g[2] | out_g[3]).sum())
-        returned.append(out_g[:4])
-        copies.append([x.clone() for x in out_g[:4]])
+        returned.append((*out_g[:4], out_g[4]["sim_status"]))
+        copies.append([x.clone() for x in returned[-1]])
     assert g.unwrapped.device_step.graph is not None
     for out, kept in zip(returned, copies):  # each step's outputs are the caller's (no later step writes them)
         for x, y in zip(out, kept):
