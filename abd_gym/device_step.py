@@ -301,14 +301,12 @@ class DeviceStep:
                 # the step's outputs are rewritten by the next step: the caller gets its own copies
                 # (one clone of the packed bytes)
                 raw = self.out_raw[: self.out_head].clone()
-        if raw is self.fixed and raw is not None:
-            out, status = self.fixed_views, self.fixed_status
-        elif raw is not None:
-            out, status = self.unpack(raw), self.status_of(raw)
-        if torch_backend:
-            if self.fixed is None:  # else handed back in place, as the outputs
+        if raw is not None:  # Torch: the outputs are views of raw
+            fixed = raw is self.fixed
+            out = self.fixed_views if fixed else self.unpack(raw)
+            if not fixed:  # else handed back in place, as the outputs
                 info_values = {k: v.clone() for k, v in info_values.items()}
-            info_values["sim_status"] = status
+            info_values = dict(info_values, sim_status=self.fixed_status if fixed else self.status_of(raw))
         obs, reward, terminated, truncated, failed = out
         # the worlds the device just reset (last step's ended ones, known on the host now): their
         # info is a reset's (none), their clock restarts, they took a row of their queues; this

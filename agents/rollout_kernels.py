@@ -1,6 +1,6 @@
-"""The device rollout's Warp kernels: one thread per world does what a step's or a rollout's
-dozens of small Torch kernels did (:mod:`.graphed_rollout`, :mod:`.device_rollout`), with the
-same float32 operations in the same order (a compiler may fuse a multiply and an add)."""
+"""The device rollout's Warp kernels: one thread per world does the work of a step's or a
+rollout's dozens of small Torch kernels (:mod:`.graphed_rollout`, :mod:`.device_rollout`), with
+the same float32 operations in the same order (a compiler may fuse a multiply and an add)."""
 from __future__ import annotations
 
 import contextlib
