@@ -391,14 +391,8 @@ class DevicePPO(GraphedPPO):
         step, worlds in order): the last ``maxlen`` of them, which the rollout step's :meth:`finish`
         gathered (``tail``), in one read on the host."""
         steps = self._rollout_step
-        size = steps.tail_size
-        if not size:  # a buffer without maxlen keeps every episode
-            t = buf.tensors
-            ended = th.nonzero(t["dones"].flatten()).flatten()
-            tail = th.stack((t["ep_return"].flatten()[ended], t["ep_length"].flatten()[ended])).cpu().numpy()
-        else:
-            tail = steps.tail.cpu().numpy()
-            tail = tail[:, : int(tail[0, size])]
+        tail = steps.tail.cpu().numpy()
+        tail = tail[:, : int(tail[0, steps.tail_size])]
         if tail.shape[1]:
             self._add_episodes(tail[0], tail[1].astype(np.int64))
 

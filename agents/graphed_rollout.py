@@ -78,9 +78,10 @@ class RolloutStep:
         self.values = th.zeros(n, dtype=th.float32, device=dev)
         self.log_probs = th.zeros(n, dtype=th.float32, device=dev)
         self.last_values = th.zeros(n, dtype=th.float32, device=dev)
-        # the last finished episodes: returns, lengths, and their count at [0, tail_size]
+        # the last finished episodes: returns, lengths, and their count at [0, tail_size]; as many as
+        # ep_info_buffer keeps, or a whole rollout's worth where it keeps all
         episodes = getattr(algo, "ep_info_buffer", None)
-        self.tail_size = (episodes.maxlen or 0) if episodes is not None else 0
+        self.tail_size = getattr(episodes, "maxlen", None) or algo.n_steps * n
         self.tail = th.zeros((2, self.tail_size + 1), dtype=th.float32, device=dev)
         self.buffer: Any = None
         self._inputs: list = []  # record_kernel's arguments after the reward, as Warp views
@@ -172,8 +173,7 @@ class RolloutStep:
         with th.no_grad():
             self.last_values.copy_(self.algo.policy.predict_values(self.obs).flatten())
         self.buffer.compute_returns_and_advantage(last_values=self.last_values, dones=None)
-        if self.tail_size:
-            self._tail()
+        self._tail()
 
     def _tail(self) -> None:
         """:attr:`tail`: the returns ``[0, :k]`` and lengths ``[1, :k]`` of the rollout's last
