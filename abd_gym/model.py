@@ -104,6 +104,10 @@ class Model:
                 block_first[hi // 12] = min(block_first[hi // 12], lo)
         self.first_np = np.repeat(np.array(block_first, dtype=np.int32), 12)
         self.envelope = bool(self.first_np.any())  # False: the Hessian is dense, the plain loops run
+        # three or more free bodies, each coupled to the one before it at most (chains, and loops
+        # closed through the ground: the four-bar, the slider-crank): the Hessian lies in its block
+        # band, which a thread per world stores packed (solver_kernels.h_words)
+        self.banded = len(block_first) >= 3 and all(f >= 12 * (b - 1) for b, f in enumerate(block_first))
         self.first = self.int_array(self.first_np)
         frames = np.zeros((8, max(nj, 1), 3))
         pts = np.zeros((2, max(nj, 1), 4, 3))

@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from .fused import lanes_scratch_words
+from .solver_kernels import h_words
 from .terms import joint_terms, term_counts
 
 SCRATCHES = ("global", "shared", "lanes")
@@ -46,7 +47,8 @@ class ExecutionPlan:
     steps_per_launch: int | None = None
     # the fused kernel also opens and closes each world's step, so a step is one launch; None: with "lanes"
     one_launch: bool | None = None
-    # factor only the Hessian's envelope (Model.first); None: where the scene has one ("shared", "lanes": never)
+    # factor only the Hessian's envelope (Model.first); a thread per world on a scene with Model.banded
+    # stores only its block band, packed; None: where the scene has one ("shared": a banded one; "lanes": never)
     envelope: bool | None = None
     # CPU: the fused step's threads as this many launches run at once on as many cores; None: default_cpu_workers
     cpu_workers: int | None = None
@@ -95,15 +97,16 @@ def default_block_dim(device, threads: int) -> int:
 SHARED_BLOCK_BYTES = 48 * 1024 - 1024  # static shared memory a block, less Warp's own (its tile base)
 
 
-def shared_bytes_per_thread(n: int, dtype) -> int:
-    """A thread's Newton system in shared memory: H's packed lower triangle, g and Δq [bytes]."""
-    return (n * (n + 1) // 2 + 2 * n) * (4 if dtype == wp.float32 else 8)
+def shared_bytes_per_thread(n: int, dtype, band: bool = False) -> int:
+    """A thread's Newton system in shared memory: H's packed lower triangle (``band``: its packed
+    block band), g and Δq [bytes]."""
+    return (h_words(n, True, band) + 2 * n) * (4 if dtype == wp.float32 else 8)
 
 
-def default_block_dim_shared(n: int, dtype) -> int:
+def default_block_dim_shared(n: int, dtype, band: bool = False) -> int:
     """Threads a block for scratch="shared": 32 (one warp) where their systems fit the block's
     static shared memory; else as many as fit; 0 when not even one does."""
-    return min(32, SHARED_BLOCK_BYTES // shared_bytes_per_thread(n, dtype))
+    return min(32, SHARED_BLOCK_BYTES // shared_bytes_per_thread(n, dtype, band))
 
 
 def default_steps_per_launch(lockstep_warps: int = 1) -> int:
@@ -190,23 +193,26 @@ WIDE_LANES_MAX_WORLDS = 4096
 # past those worlds, a chain's systems in shared memory where this many fit a block (fewer threads
 # than a warp): H100, 5-link chains (6 a block) 2.7x / 1.84x / 1.51x / 1.07x the global step at
 # 1,024 / 8,192 / 16,384 / 65,536 worlds; 10-link chains (1 a block) 1.06x at 4,096 but 0.51x at
-# 16,384.  Worlds of 36 unknowns (15 a block): InvertedDoublePendulum-v5's env 2.5x at 16,384.
+# 16,384.  Worlds of 36 unknowns (16 a block): InvertedDoublePendulum-v5's env 2.5x at 16,384.
+# With the block band (Model.banded; results/band_plans_h100.json, band_ab_h200.json): 5-link
+# chains (11 a block) 1.36x / 0.95x the global band step at 16,384 / 131,072 worlds (H100);
+# 10-link chains (5 a block) 0.96x / 0.59x (H200), so they stay global.
 SHARED_MIN_SYSTEMS = 6
 
 
-def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int = 0) -> str:
+def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int = 0, band: bool = False) -> str:
     """On a GPU, for up to LANES_MAX_UNKNOWNS unknowns (a cart-pole, a double pendulum, a four-bar
     or slider-crank linkage): "lanes" where the worlds' warps fit the GPU at once
     (default_lane_width: up to 4,224 worlds on an H100's 132 SMs), where one thread per world
     leaves most SMs idle; for more (chains): "lanes" at 32 lanes up to WIDE_LANES_MAX_WORLDS worlds
     where a world's system fits a block's shared memory; else "shared" where SHARED_MIN_SYSTEMS
-    threads' systems fit a block's shared memory (32 of them up to 24 unknowns in float32, 15 at
-    36); else "global".  Measured on an H100
-    (``python -m abd_gym.bench --scratch global,shared,lanes``): shared 1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on
+    threads' systems fit a block's shared memory (32 of them up to 24 unknowns in float32, 16 at
+    36; with ``band``, a Model.banded scene's block band, 20 at 36 and 11 at 60); else "global".
+    Measured on an H100 (``python -m abd_gym.bench --scratch global,shared,lanes``): shared 1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on
     double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast as shared on both at 1,024
     worlds, and narrower lanes 1.7-2.4x at 2,048 and 4,096; for the 36 unknowns of FourBar-v0's and SliderCrank-v0's
     scenes, lanes 6.6x / 9.0x as fast as global at 1,024 worlds, 4.5x / 6.7x at 2,048 and 2.9x /
-    3.2x at 4,096; past those worlds, shared (15 threads a block) 2.5x as fast as global for the 36
+    3.2x at 4,096; past those worlds, shared (16 threads a block) 2.5x as fast as global for the 36
     unknowns of InvertedDoublePendulum-v5 at 16,384 worlds (env-steps/s 2.05 M against 0.83 M), and
     in float64 (17 threads a block) 1.17x / 1.30x on cart-poles and 1.31x / 1.58x on double
     pendulums at 4,096 / 16,384 worlds (results/scratch_float64_24_unknowns_h100.json)."""
@@ -214,7 +220,7 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
         return "global"
     if default_lane_width(device, num_worlds, dtype, n):
         return "lanes"
-    fit = default_block_dim_shared(n, dtype)
+    fit = default_block_dim_shared(n, dtype, band)
     if fit >= SHARED_MIN_SYSTEMS:
         return "shared"
     return "global"
@@ -236,27 +242,39 @@ def resolve_plan(plan, model) -> ExecutionPlan:
     _check_values(plan)
     device, W, n, dtype = wp.get_device(model.device), model.num_worlds, model.num_dofs, model.dtype
     fused = True if plan.fused is None else bool(plan.fused)
-    scratch = plan.scratch or default_scratch(device, n, dtype, fused, W)
+    banded = bool(getattr(model, "banded", False))
+    scratch = plan.scratch or default_scratch(device, n, dtype, fused, W, banded and plan.envelope is not False)
     if scratch != "global" and not fused:
         raise ValueError(f"scratch={scratch!r} needs the fused step (fused=True)")
     lanes, shared = scratch == "lanes", scratch == "shared"
-    if (shared or lanes) and plan.envelope:
-        raise ValueError(f"scratch={scratch!r} factors densely (H packed): it takes envelope=False or None")
+    if lanes and plan.envelope:
+        raise ValueError("scratch='lanes' factors densely (H packed): it takes envelope=False or None")
+    if shared and plan.envelope and not banded:
+        raise ValueError("scratch='shared' factors densely (H packed) but for a banded scene (Model.banded: three or "
+                         "more free bodies, each coupled to the one before it at most): it takes envelope=False or "
+                         "None here")  # fmt: skip
+    envelope = (banded if shared else model.envelope) if plan.envelope is None else bool(plan.envelope)
+    envelope = envelope and not lanes
     if plan.lane_groups not in (None, 1) and not lanes:
         raise ValueError(f"lane_groups={plan.lane_groups!r} needs scratch='lanes'")
     workers, threads = _threads(plan, device, W, fused, scratch)
-    block_dim, groups = _blocks(plan, model, device, scratch, threads)
+    block_dim, groups = _blocks(plan, model, device, scratch, threads, envelope)
     lock = _lockstep(plan, device, W, scratch, block_dim, groups, n, dtype)
-    envelope = model.envelope if plan.envelope is None else plan.envelope
     steps = int(plan.steps_per_launch or default_steps_per_launch(lock))
     out = ExecutionPlan(fused=fused, scratch=scratch, threads=threads, block_dim=block_dim, lane_groups=groups,
                         lockstep_warps=lock, steps_per_launch=steps,
                         one_launch=bool(fused and (lanes if plan.one_launch is None else plan.one_launch)),
-                        envelope=bool(not (shared or lanes) and envelope), cpu_workers=workers,
+                        envelope=envelope, cpu_workers=workers,
                         use_graph=True if plan.use_graph is None else bool(plan.use_graph),
                         phase_clock=bool(plan.phase_clock))  # fmt: skip
-    _check_memory(out, device, n, dtype)
+    _check_memory(out, device, n, dtype, banded)
     return out
+
+
+def plan_band(plan: ExecutionPlan, banded: bool) -> bool:
+    """Whether a resolved plan's step stores only H's block band (packed): the fused step's thread
+    per world with the envelope on a scene with Model.banded (``banded``)."""
+    return bool(banded and plan.fused and plan.envelope and plan.scratch != "lanes")
 
 
 def worlds_per_block(plan: ExecutionPlan, device) -> int:
@@ -327,7 +345,7 @@ def _threads(plan: ExecutionPlan, device, W: int, fused: bool, scratch: str):
     return workers, int(min(T, W))
 
 
-def _blocks(plan: ExecutionPlan, model, device, scratch: str, threads: int):
+def _blocks(plan: ExecutionPlan, model, device, scratch: str, threads: int, band: bool = False):
     """(block_dim, lane_groups): lanes a world and their groups for the lane-split step (narrow
     worlds where the GPU must hold more of them at once, one group each), the threads a block
     whose systems fit its shared memory for "shared" on CUDA, default_block_dim otherwise."""
@@ -339,10 +357,10 @@ def _blocks(plan: ExecutionPlan, model, device, scratch: str, threads: int):
     groups = int(plan.lane_groups or (1 if narrow else default_lane_groups(device, scratch, W, terms, n, dtype)))
     block_dim = plan.block_dim or ((width if narrow else 32 * groups) if lanes else default_block_dim(device, threads))
     if scratch == "shared" and device.is_cuda:
-        fit = default_block_dim_shared(n, dtype)
+        fit = default_block_dim_shared(n, dtype, band)
         block_dim = plan.block_dim or fit
         if not 1 <= block_dim <= fit:
-            per = shared_bytes_per_thread(n, dtype)
+            per = shared_bytes_per_thread(n, dtype, band)
             raise ValueError(f"scratch='shared': {block_dim or 1} thread(s) of {n} unknowns need "
                              f"{max(block_dim, 1) * per} B of shared memory a block, more than its "
                              f"{SHARED_BLOCK_BYTES} B; at most {fit} fit (block_dim), else use "
@@ -372,7 +390,7 @@ def _lockstep(plan: ExecutionPlan, device, W: int, scratch: str, L: int, groups:
     return int(lock)
 
 
-def _check_memory(plan: ExecutionPlan, device, n: int, dtype):
+def _check_memory(plan: ExecutionPlan, device, n: int, dtype, banded: bool = False):
     """A lane-split block's systems within its shared memory; the flat scratch within 32-bit indices."""
     if plan.scratch == "lanes" and device.is_cuda:
         per_block = worlds_per_block(plan, device)
@@ -382,6 +400,7 @@ def _check_memory(plan: ExecutionPlan, device, n: int, dtype):
                              f"{plan.lane_groups} lane group(s) needs {need} B of shared memory, more than its "
                              f"{SHARED_BLOCK_BYTES} B: take 32 lanes a world (block_dim=32), lane_groups=1 and "
                              "lockstep_warps=1, or scratch='shared' or 'global'")  # fmt: skip
-    if n * n * plan.threads >= 2**31:  # the flat scratch is indexed with 32-bit integers
+    band = plan_band(plan, banded)
+    if h_words(n, band or plan.scratch != "global", band) * plan.threads >= 2**31:  # 32-bit indices
         raise ValueError(f"the Newton scratch of {plan.threads} columns of {n} unknowns exceeds 2**31 entries: use the "
                          "fused step (fused=True, its threads reuse their scratch) or fewer worlds")  # fmt: skip

@@ -26,9 +26,9 @@ import warp as wp
 from . import coordinates, fused
 from .constitutions import REGISTRY, affine_body, drive
 from .fused import PHASES, fused_kernel
-from .plan import ExecutionPlan, resolve_plan, worlds_per_block
+from .plan import ExecutionPlan, plan_band, resolve_plan, worlds_per_block
 from .scene import FIXED, PRISMATIC, REVOLUTE
-from .solver_kernels import kernels as solver_kernels
+from .solver_kernels import h_row_starts, h_words, kernels as solver_kernels
 from .terms import fused_flags, joint_terms, term_counts
 from .warp_ops import HESSIAN
 
@@ -147,6 +147,8 @@ class Solver:
         # the resolved plan's choices, as the step's code reads them
         self.fused, self.scratch, self.one_launch = plan.fused, plan.scratch, plan.one_launch
         self.envelope = plan.envelope
+        # the fused thread-per-world step of a banded scene stores only H's block band (solver_kernels.h_words)
+        self.band = plan_band(plan, model.banded)
         self.threads, self.block_dim, self.lane_groups = plan.threads, plan.block_dim, plan.lane_groups
         self.lockstep_warps, self.steps_per_launch = plan.lockstep_warps, plan.steps_per_launch
         self.worlds_per_block = worlds_per_block(plan, wp.get_device(dev))
@@ -175,13 +177,17 @@ class Solver:
         # the systems live in shared memory)
         Tg = 1 if self.in_smem or (self.lanes and cuda) else T
         self.g = wp.zeros((n, Tg), dtype=dt_, device=dev)
-        self.H = wp.zeros((n, n, Tg), dtype=dt_, device=dev)
+        # the staged kernels' square H; the fused step's band is a flat array of its own (H_flat), and
+        # the square one is then made only where a staged assembly asks for it (H)
+        self._H = None if self.band else wp.zeros((n, n, Tg), dtype=dt_, device=dev)
+        self._H_shape = (n, n, Tg)
         self.dq = wp.zeros((n, Tg), dtype=dt_, device=dev)
         # the staged step's Cholesky factors, kept for an iteration that reuses them (H is reassembled)
         self.L = None if self.fused else wp.zeros((n, n, T), dtype=dt_, device=dev)
         # the same memory as flat 1-D arrays, which the factor, the solves and the fused step index
         # (solver_kernels: one multiply per access instead of three, and no negative-index tests)
-        self.g_flat, self.H_flat, self.dq_flat = (_flat(a) for a in (self.g, self.H, self.dq))
+        self.g_flat, self.dq_flat = _flat(self.g), _flat(self.dq)
+        self.H_flat = wp.zeros(h_words(n, True, True) * Tg, dtype=dt_, device=dev) if self.band else _flat(self._H)
         self.L_flat = None if self.L is None else _flat(self.L)
         # the CPU's lanes keep each world's g, H, Δq contiguous: H packed, a copy per lane group
         # (fused.newton_lanes), G·n(n+1)/2 words apiece
@@ -208,6 +214,14 @@ class Solver:
         self.restarts = bool(self.bdf2 and any(model.limit_joints.values()))
         self._restart_cmds = {}  # restart_joints' recorded launches
 
+    @property
+    def H(self) -> wp.array:
+        """(n, n, columns) H of the staged kernels (assemble, hessian); with the band the fused step
+        uses H_flat alone and this square array is made on first use."""
+        if self._H is None:
+            self._H = wp.zeros(self._H_shape, dtype=self.model.dtype, device=self.model.device)
+        return self._H
+
     def _columns(self, physical):
         names = [t for c in self.parts for t in c.terms(self.model, physical)]
         cols = {t: i for i, t in enumerate(names)}
@@ -229,15 +243,30 @@ class Solver:
         """(T, n) copy of the last assembled gradient (T = W unless the fused step has fewer threads)."""
         return self.g.numpy().T.copy()
 
-    def hessian(self) -> np.ndarray:
-        """(T, n, n) copy of the last assembled Hessian (before factorisation)."""
+    def hessian(self, fused: bool = False) -> np.ndarray:
+        """(T, n, n) copy of the last assembled Hessian (before factorisation) of the staged
+        kernels; ``fused``: of the fused step's scratch (square, or its block band unpacked), which
+        its factor then holds in place."""
+        if fused and self.band:
+            return self._unpack(self.H_flat.numpy().reshape(-1, self.g.shape[1]).T)
         return np.moveaxis(self.H.numpy(), -1, 0).copy()
+
+    def _unpack(self, packed: np.ndarray) -> np.ndarray:
+        """(columns, n, n) lower triangles from (columns, words) packed rows, the triangle or
+        (``band``) the block band (row i from h_row_starts[i], its stored columns only)."""
+        n = self.model.num_dofs
+        starts = h_row_starts(n, True, self.band)
+        full = np.zeros((packed.shape[0], n, n), dtype=packed.dtype)
+        for i in range(n):
+            lo = max(i // 12 - 1, 0) * 12 if self.band else 0  # the band's first stored column
+            full[:, i, lo : i + 1] = packed[:, starts[i] + lo : starts[i] + i + 1]
+        return full
 
     def fused_system(self, state, derivs: int = HESSIAN):
         """(E (W,), g (W, n), H (W, n, n) lower triangle) of the incremental potential at state.q as
-        the fused step assembles them (global scratch, one thread per world, or the lane-split
-        step's lanes, each adding its own rows): for checking it against the staged kernels'
-        ``hessian()``.  Uses the solver's scratch (g, H)."""
+        the fused step assembles them (global scratch, one thread per world, square or the packed
+        block band, or the lane-split step's lanes, each adding its own rows): for checking it
+        against the staged kernels' ``hessian()``.  Uses the solver's scratch (g, H)."""
         m = self.model
         if self.threads != m.num_worlds or self.shared:
             raise RuntimeError("fused_system needs the fused step's global scratch with one thread per world, or lanes")
@@ -245,7 +274,7 @@ class Solver:
             self._fused = self._build_fused(state)
         _, terms, _, assemble_system = self._fused
         W, n, L = m.num_worlds, m.num_dofs, self.block_dim if self.lanes else 1
-        g, H = self.g, self.H
+        g, H = self.g, self.H_flat if self.band else self.H
         if self.lanes:  # world w's g and H (packed, a copy per lane group) from w·lane_stride
             g, H = (wp.zeros((W, self.lane_stride), dtype=m.dtype, device=m.device) for _ in range(2))
         g.zero_()
@@ -253,13 +282,9 @@ class Solver:
         E = wp.zeros(W, dtype=m.dtype, device=m.device)
         wp.launch(assemble_system, dim=W * L, inputs=[state.q, terms, int(derivs), _flat(g), _flat(H), E],
                   block_dim=L, device=m.device)  # fmt: skip
-        if not self.lanes:
-            return E.numpy(), self.gradient(), self.hessian()
-        packed = H.numpy()  # row i from i(i+1)/2
-        full = np.zeros((W, n, n), dtype=packed.dtype)
-        for i in range(n):
-            full[:, i, : i + 1] = packed[:, i * (i + 1) // 2 : i * (i + 1) // 2 + i + 1]
-        return E.numpy(), g.numpy()[:, :n].copy(), full
+        if self.lanes:
+            return E.numpy(), g.numpy()[:, :n].copy(), self._unpack(H.numpy().reshape(W, -1))
+        return E.numpy(), self.gradient(), self.hessian(fused=True)
 
     def energies(self, state) -> dict:
         """Each term's own physical energy [J] per world (see Simulator.energies)."""
@@ -419,14 +444,14 @@ class Solver:
                 state.factorizations, state.converged, int(steps)], block_dim=L * self.worlds_per_block,
                 device=m.device)  # fmt: skip
             return
-        n = m.num_dofs
+        n, hw = m.num_dofs, h_words(m.num_dofs, self.band, self.band)
 
         def inputs(start, count, wa, wb):
             # the launch's own scratch: columns start … start + count − 1 of g, H, dq, stored as a
             # block of their own (count columns wide), so concurrent launches share no cache lines
             g, H, dq = self.g_flat, self.H_flat, self.dq_flat
             if count != self.threads:
-                g, H, dq = (a[start * size:(start + count) * size] for a, size in ((g, n), (H, n * n), (dq, n)))
+                g, H, dq = (a[start * size:(start + count) * size] for a, size in ((g, n), (H, hw), (dq, n)))
             return [state.q, self.q_trial, terms, bracket, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.h),
                     s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
                     state.factorizations, state.converged]  # fmt: skip
@@ -459,8 +484,8 @@ class Solver:
         own, folds = fused_flags(m, jt)
         st = self.settings
         kernel, Terms, Bracket, assemble_system = fused_kernel(
-            m.dtype, own, folds, scratch=self.scratch, n=m.num_dofs, envelope=self.envelope,
-            phase_clock=self.plan.phase_clock,
+            m.dtype, own, folds, scratch=self.scratch, n=m.num_dofs, envelope=self.envelope and not self.band,
+            band=self.band, phase_clock=self.plan.phase_clock,
             cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
             groups=self.lane_groups, per_block=self.worlds_per_block, quadratic=float(st.quadratic_stop), hold=self.hold_worlds)  # fmt: skip

@@ -29,7 +29,7 @@ def keep_restart(fresh: wp.array(dtype=wp.int32), w: int):
 
 # the names kernels() returns
 _PUBLIC = (
-    "predict", "start", "newton_direction", "h_row", "cholesky_solve", "factored_solve", "reductions",
+    "predict", "start", "newton_direction", "h_row", "row_first", "cholesky_solve", "factored_solve", "reductions",
     "noise_floor", "energy_noise", "trial", "accept", "commit", "converge", "finalize", "open_step", "open_body",
     "predict_body", "finalize_body", "limit_reach",
 )  # fmt: skip
@@ -43,19 +43,68 @@ def _scalars(dtype):
     return o.vec3, o.vec12, dtype(0.0), dtype(1.0), EPS
 
 
+# H's block band, packed ("band": a scene whose joints couple each free body to the one before it at
+# most, Model.banded): rows of body b ≥ 1 from column 12(b − 1), so a body's 12 rows hold
+# BAND_BODY words (13 … 24 each) after the first body's triangle of BAND_FIRST
+BAND_FIRST, BAND_BODY = 78, 222
+
+
+def h_words(n: int, packed: bool = False, band: bool = False) -> int:
+    """Words of H in a scratch column: n² square, n(n+1)/2 packed, the block band's
+    78 + 222(n/12 − 1) (``band``, n a multiple of 12; the packed triangle up to 24 unknowns)."""
+    if band and n > 24:
+        return BAND_FIRST + BAND_BODY * (n // 12 - 1)
+    return n * (n + 1) // 2 if packed or band else n * n
+
+
+def h_row_starts(n: int, packed: bool = False, band: bool = False) -> np.ndarray:
+    """(n,) where row i starts: entry (i, j) of a scratch column at h_row_starts[i] + j (h_row, on the
+    host: for reading a scratch back; row i holds columns band_first(i) … i)."""
+    i = np.arange(n)
+    if not (packed or band):
+        return i * n
+    rows = i * (i + 1) // 2
+    if band:
+        b, k = i // 12, i % 12
+        rows = np.where(i >= 24, BAND_FIRST + (BAND_BODY - 12) * (b - 1) + 13 * k + k * (k - 1) // 2, rows)
+    return rows
+
+
 @functools.lru_cache(maxsize=None)
-def _rows(packed):
-    """h_row: where a row of H starts in a scratch column, square or ``packed``."""
+def _rows(packed, band=False):
+    """(h_row, row_first, column_end): where a row of H starts in a scratch column (square,
+    ``packed`` or the packed block ``band``), the first column a row stores, and the end of the rows
+    that store a column."""
 
     @wp.func
     def h_row(i: int, n: int):
         """Where row i of H starts in a scratch column (entry (i, j) at (h_row(i, n) + j)·T + w): i·n
-        square, i(i+1)/2 packed."""
-        if wp.static(packed):
+        square, i(i+1)/2 packed; in the band, past the first two bodies (where it is the packed
+        triangle), 78 + 210(b − 1) + 13k + k(k − 1)/2 for row k of body b (h_row_starts)."""
+        if wp.static(band):
+            if i >= 24:
+                b = i // 12
+                k = i - 12 * b
+                return BAND_FIRST + (BAND_BODY - 12) * (b - 1) + 13 * k + ((k * (k - 1)) >> 1)
+        if wp.static(packed or band):
             return (i * (i + 1)) >> 1
         return i * n
 
-    return h_row
+    @wp.func
+    def row_first(i: int):
+        """The first column row i stores: 12(b − 1) for body b ≥ 1 in the band, else 0."""
+        if wp.static(band):
+            return wp.max(i // 12 - 1, 0) * 12
+        return 0
+
+    @wp.func
+    def column_end(j: int, n: int):
+        """One past the last row that stores column j: the next body's in the band, else n."""
+        if wp.static(band):
+            return wp.min(n, (j // 12 + 2) * 12)
+        return n
+
+    return h_row, row_first, column_end
 
 
 @functools.lru_cache(maxsize=None)
@@ -346,10 +395,10 @@ def _tile_row(dtype):
 
 
 @functools.lru_cache(maxsize=None)
-def _cholesky_dense(dtype, packed):
-    """cholesky_dense: the dense factor by 4 × 4 tiles (square or ``packed`` scratch)."""
+def _cholesky_dense(dtype, packed, band=False):
+    """cholesky_dense: the dense factor by 4 × 4 tiles (square, ``packed`` or ``band`` scratch)."""
     vec3, vec12, zero, one, EPS = _scalars(dtype)
-    h_row = _rows(packed)
+    h_row, row_first, column_end = _rows(packed, band)
     tile_row = _tile_row(dtype)
 
     @wp.func
@@ -359,7 +408,10 @@ def _cholesky_dense(dtype, packed):
         its H tile less Σ_k L[I, k] L[J, k]ᵀ, sixteen sums in registers from eight loads per k (one
         row at a time loads five values for four products), then divided by the diagonal tile's
         factor, formed in registers; reciprocals of the diagonal, so a column's n − j divisions are
-        one division and multiplies (a GPU's IEEE division is a call of ~20 instructions)."""
+        one division and multiplies (a GPU's IEEE division is a call of ~20 instructions).  In the
+        block band the sums start at a row's first stored column and the tiles stop at the next
+        body's rows: L keeps H's band (Cholesky fills nothing left of a row's first non-zero), so
+        the products skipped are exact zeros and L is the dense factor's, bit for bit."""
         J = int(0)
         while J < n:
             c = J * T
@@ -377,8 +429,9 @@ def _cholesky_dense(dtype, packed):
             a31 = H[j3 + c + T]
             a32 = H[j3 + c + 2 * T]
             a33 = H[j3 + c + 3 * T]
-            p = int(0)
-            for k in range(J):
+            lo = row_first(J)
+            p = lo * T
+            for k in range(lo, J):
                 v0 = H[j0 + p]
                 v1 = H[j1 + p]
                 v2 = H[j2 + p]
@@ -432,7 +485,8 @@ def _cholesky_dense(dtype, packed):
             H[j3 + c + 3 * T] = d3
             # the tiles below it: rows I … I + 3, columns J … J + 3
             I = J + 4
-            while I < n:
+            end = column_end(J, n)
+            while I < end:
                 r0 = h_row(I, n) * T + w
                 r1 = h_row(I + 1, n) * T + w
                 r2 = h_row(I + 2, n) * T + w
@@ -453,8 +507,9 @@ def _cholesky_dense(dtype, packed):
                 t31 = H[r3 + c + T]
                 t32 = H[r3 + c + 2 * T]
                 t33 = H[r3 + c + 3 * T]
-                p = int(0)
-                for k in range(J):
+                lo = row_first(I)
+                p = lo * T
+                for k in range(lo, J):
                     u0 = H[r0 + p]
                     u1 = H[r1 + p]
                     u2 = H[r2 + p]
@@ -494,16 +549,18 @@ def _cholesky_dense(dtype, packed):
 
 @functools.lru_cache(maxsize=None)
 def _solve_funcs(dtype, envelope, packed):
-    """The triangular solves of a factored H and the direction's reductions."""
+    """The triangular solves of a factored H and the direction's reductions (``envelope`` and
+    ``packed``: the packed block band)."""
     vec3, vec12, zero, one, EPS = _scalars(dtype)
-    h_row = _rows(packed)
+    h_row, row_first, column_end = _rows(packed, envelope and packed)
 
     @wp.func
     def solve_dense(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, n: int,
                     T: int):  # fmt: skip
         """dq = −(L Lᵀ)⁻¹g, n a multiple of 4 (12 per body): each substitution runs four rows at a
         time (as cholesky_dense, for loads in flight), the known part first, then the 4 × 4
-        triangle of the four rows themselves."""
+        triangle of the four rows themselves (in the block band, within each row's stored columns:
+        four rows of one body share them)."""
         i = int(0)
         while i < n:  # L y = −g
             r0 = h_row(i, n) * T + w
@@ -520,8 +577,9 @@ def _solve_funcs(dtype, envelope, packed):
             t1 = -g[(i + 1) * T + w]
             t2 = -g[(i + 2) * T + w]
             t3 = -g[(i + 3) * T + w]
-            pk = w
-            for k in range(i):
+            lo = row_first(i)
+            pk = lo * T + w
+            for k in range(lo, i):
                 y = dq[pk]
                 ck = k * T
                 t0 -= L[r0 + ck] * y
@@ -546,7 +604,7 @@ def _solve_funcs(dtype, envelope, packed):
             t2 = dq[c + 2 * T + w]
             t3 = dq[c + 3 * T + w]
             pk = h_row(i + 4, n) * T + c + w  # L[k, i], k = i + 4, …
-            for k in range(i + 4, n):
+            for k in range(i + 4, column_end(i, n)):
                 x = dq[k * T + w]
                 t0 -= L[pk] * x
                 t1 -= L[pk + T] * x
@@ -575,7 +633,7 @@ def _solve_funcs(dtype, envelope, packed):
                    T: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
         """dq = −(L Lᵀ)⁻¹g by two triangular solves (n² multiply-adds, against n³/6 for the factor);
         flat arrays, column w of T."""
-        if wp.static(envelope):
+        if wp.static(envelope and not packed):
             R = n * T
             for i in range(n):  # L y = −g
                 t = -g[i * T + w]
@@ -624,9 +682,10 @@ def _solve_funcs(dtype, envelope, packed):
 
 @functools.lru_cache(maxsize=None)
 def _factor_funcs(dtype, envelope, packed):
-    """H's Cholesky factor (the ``envelope`` or the dense one) and the solve through it."""
+    """H's Cholesky factor (the ``envelope``'s, the dense one or, both flags, the packed band's by
+    the dense loops) and the solve through it."""
     vec3, vec12, zero, one, EPS = _scalars(dtype)
-    cholesky_dense = _cholesky_dense(dtype, packed)
+    cholesky_dense = _cholesky_dense(dtype, packed, envelope and packed)
     factored_solve = _solve_funcs(dtype, envelope, packed)["factored_solve"]
 
     @wp.func
@@ -661,7 +720,7 @@ def _factor_funcs(dtype, envelope, packed):
     def cholesky(H: wp.array(dtype=dtype), w: int, n: int, T: int, first: wp.array(dtype=wp.int32)):
         """H = L Lᵀ in place (flat, column w of T; ``envelope``: within Model.first's envelope); 0
         when H is not positive definite."""
-        if wp.static(envelope):
+        if wp.static(envelope and not packed):
             return cholesky_envelope(H, w, n, T, first)
         return cholesky_dense(H, w, n, T)
 
@@ -920,10 +979,11 @@ def kernels(dtype, envelope=False, packed=False):
     """The per-world Newton kernels for ``dtype``; ``envelope``: the Cholesky factor and solves skip
     the columns left of each row's first non-zero (``Model.first``), for block-banded scenes;
     ``packed``: H's lower triangle stored packed, row i from i(i+1)/2 (n(n+1)/2 words a column
-    instead of n², for a scratch in shared memory; the dense loops only)."""
-    if packed and envelope:
-        raise ValueError("the packed Newton scratch has the dense factor only (envelope=False)")
-    found = {**_noise_funcs(dtype), **_predict_funcs(dtype), **_finalize_funcs(dtype), "h_row": _rows(packed)}
+    instead of n², for a scratch in shared memory); both: only the block band stored, packed
+    (h_words, h_row_starts; for a scene with Model.banded), factored by the dense loops within it."""
+    h_row, row_first, _ = _rows(packed, envelope and packed)
+    found = {**_noise_funcs(dtype), **_predict_funcs(dtype), **_finalize_funcs(dtype), "h_row": h_row,
+             "row_first": row_first}
     found.update(_solve_funcs(dtype, envelope, packed))
     found.update(_factor_funcs(dtype, envelope, packed))
     found.update(_direction_kernels(dtype, envelope, packed))

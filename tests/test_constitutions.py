@@ -1080,7 +1080,7 @@ def test_fused_step_assembles_the_same_system(sims, ref, dtype, rtol):
     assert set(sim.state.status.numpy().tolist()) <= {int(WorldStatus.OK), int(WorldStatus.UNCONVERGED)}
     sim.state.status.zero_()  # (the module's simulators are shared)
     assert (sim.state.iterations.numpy() == 1).all()
-    g, Hraw = s.gradient().astype(np.float64), s.hessian().astype(np.float64)
+    g, Hraw = s.gradient().astype(np.float64), s.hessian(fused=True).astype(np.float64)
     for w in range(2):
         g_ref = sum(v[1] for v in want[w].values())
         H_ref = sum(v[2] for v in want[w].values())

@@ -21,15 +21,18 @@ def test_envelope_follows_the_joints():
     np.testing.assert_array_equal(loop.first_np[::12], [0, 0, 12, 0])
 
 
-@pytest.mark.parametrize("fused", [True, False])
-def test_envelope_factor_gives_the_dense_trajectory(fused):
+@pytest.mark.parametrize("fused,workers", [(True, 1), (True, 2), (False, 1)])
+def test_envelope_factor_gives_the_dense_trajectory(fused, workers):
     """A 5-link chain (float64): 20 steps with the envelope factor match the dense factor to
-    rounding (the back substitution runs in another order), fused and staged."""
-    x0 = [[0.4, -0.3, 0.2, 0.5, -0.1], [1.0, 0.0, -0.5, 0.3, 0.2]]
+    rounding (the back substitution runs in another order), staged, and fused where the step stores
+    only the block band (Model.banded), in one launch and in two concurrent ones on the CPU (each
+    with its own block of scratch columns)."""
+    x0 = [[0.4, -0.3, 0.2, 0.5, -0.1], [1.0, 0.0, -0.5, 0.3, 0.2]] * 2
     runs = {}
     for envelope in (False, True):
-        sim = ag.Simulator(mechanisms.chain(5, length=0.2), num_worlds=2, dt=0.01, dtype="float64",
-                           plan=ag.ExecutionPlan(envelope=envelope, fused=fused))  # fmt: skip
+        sim = ag.Simulator(mechanisms.chain(5, length=0.2), num_worlds=4, dt=0.01, dtype="float64",
+                           plan=ag.ExecutionPlan(envelope=envelope, fused=fused, cpu_workers=workers if fused else None))  # fmt: skip
+        assert sim.solver.band == (fused and envelope) and len(sim.solver.newton_launches) == (workers if fused else 1)
         sim.set_joint_state(x0)
         sim.step(20)
         assert sim.converged().all()
@@ -57,19 +60,34 @@ def _solve_kernel(dtype, envelope, packed=False):
     return solve
 
 
+def _stored(n, band):
+    """(rows, cols) of the entries a scratch column stores, row by row: the lower triangle, or its
+    block band (row i of body b ≥ 1 from column 12(b − 1))."""
+    rows, cols = np.tril_indices(n)
+    if band:
+        keep = cols >= np.maximum(rows // 12 - 1, 0) * 12
+        rows, cols = rows[keep], cols[keep]
+    return rows, cols
+
+
 @pytest.mark.parametrize("dtype,envelope,packed", [("float64", False, False), ("float32", False, False),
                                                    ("float64", True, False), ("float64", False, True),
-                                                   ("float32", False, True)])  # fmt: skip
+                                                   ("float32", False, True), ("float64", True, True),
+                                                   ("float32", True, True)])  # fmt: skip
 def test_factor_and_solves_match_numpy(dtype, envelope, packed):
     """The per-world Cholesky solve (4 × 4 tiles when dense; flat world-minor scratch, entry (i, j)
-    of world w at (i·n + j)·W + w, or packed at (i(i+1)/2 + j)·W + w) against NumPy on random SPD
-    systems of 12, 24 and 36 unknowns (banded by 12 × 12 blocks for the envelope), with the factor
-    left in H's lower triangle; a matrix that is not positive definite reports 0."""
+    of world w at (i·n + j)·W + w, packed at (i(i+1)/2 + j)·W + w, or in the packed block band at
+    (h_row_starts[i] + j)·W + w) against NumPy on random SPD systems of 12 to 60 unknowns (block
+    tridiagonal by 12 × 12 blocks for the envelope and the band), with the factor left in H's lower
+    triangle; a matrix that is not positive definite reports 0."""
     import warp as wp
+
+    from abd_gym.solver_kernels import h_row_starts, h_words
 
     wdt = getattr(wp, dtype)
     rng = np.random.default_rng(3)
-    for n in (12, 24, 36):
+    band = envelope and packed
+    for n in (12, 24, 36, 60):
         W = 5
         A = rng.normal(size=(W, n, n))
         H = A @ A.transpose(0, 2, 1) + n * np.eye(n)
@@ -79,8 +97,10 @@ def test_factor_and_solves_match_numpy(dtype, envelope, packed):
             H *= np.abs(np.arange(n)[:, None] // 12 - np.arange(n)[None, :] // 12) <= 1
         H[-1] = -np.eye(n)  # not positive definite
         g = rng.normal(size=(W, n))
-        rows, cols = np.tril_indices(n)  # row by row: the packed order
+        rows, cols = _stored(n, band)
         if packed:
+            at = h_row_starts(n, packed, band)[rows] + cols
+            np.testing.assert_array_equal(at, np.arange(h_words(n, packed, band)))  # row by row, no gaps
             Hd = wp.array(H[:, rows, cols].T.reshape(-1), dtype=wdt)
         else:
             Hd = wp.array(np.tril(H).transpose(1, 2, 0).reshape(-1), dtype=wdt)

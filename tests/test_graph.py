@@ -472,7 +472,7 @@ def test_default_scratch_by_device_size_and_batch():
 
     import warp as wp
 
-    from abd_gym.plan import default_lane_width, default_scratch
+    from abd_gym.plan import default_block_dim_shared, default_lane_width, default_scratch
 
     gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False, sm_count=0)
     assert default_scratch(cpu, 24, wp.float32, True, 16) == "global"
@@ -494,6 +494,11 @@ def test_default_scratch_by_device_size_and_batch():
     assert default_scratch(gpu, 60, wp.float64, True, 4097) == "global"  # three fit
     assert default_scratch(gpu, 120, wp.float64, True, 1024) == "global"  # one system: 60 KB
     assert default_scratch(gpu, 156, wp.float32, True, 1024) == "global"  # 49.6 KB
-    assert default_scratch(gpu, 36, wp.float32, True, 4225) == "shared"  # 15 fit a block
+    assert default_scratch(gpu, 36, wp.float32, True, 4225) == "shared"  # 16 fit a block
     assert default_scratch(gpu, 24, wp.float64, True, 4096) == "shared"  # 17 fit
     assert default_scratch(gpu, 24, wp.float32, False, 64) == "global"  # the staged step has one layout
+    # a banded scene's block band (Model.banded): 20 three-body systems a block, 11 of 60 unknowns, 5 of 120
+    assert [default_block_dim_shared(n, wp.float32, True) for n in (36, 60, 120)] == [20, 11, 5]
+    assert default_block_dim_shared(36, wp.float32) == 16
+    assert default_scratch(gpu, 60, wp.float64, True, 4097, band=True) == "global"  # five fit
+    assert default_scratch(gpu, 120, wp.float32, True, 4097, band=True) == "global"  # five fit

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from .. import coordinates, solver_kernels
+from .. import coordinates
 from ..solver_kernels import RESTART, keep_restart
 from ..status import OK
 from ..warp_ops import ops
@@ -24,7 +24,7 @@ def world_step(spec: KernelSpec):
     dtype, LANES, lanes, bracket, hold = spec.dtype, spec.LANES, spec.lanes, spec.bracket, spec.hold
     vec12 = ops(dtype).vec12
     Terms, Bracket = structs(dtype).Terms, structs(dtype).Bracket
-    staged = solver_kernels.kernels(dtype, spec.envelope, spec.packed)
+    staged = spec.staged()
     open_body, predict_body, finalize_body = staged["open_body"], staged["predict_body"], staged["finalize_body"]
     # the passive terms' predicted rate, kept only where a scene has them
     has_passive = any(f[0] == "passive" for f in spec.folds)

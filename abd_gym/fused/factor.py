@@ -10,7 +10,6 @@ import functools
 import warp as wp
 from types import SimpleNamespace
 
-from .. import solver_kernels
 from .layout import KernelSpec, indexing
 
 
@@ -150,7 +149,7 @@ def factor(spec: KernelSpec):
     """The lane-split factor and solves (``ldl_lanes``, ``solve_lanes``) for the kernel's N
     unknowns and LANES lanes a world."""
     dtype, N, LANES = spec.dtype, spec.N, spec.LANES
-    reductions = solver_kernels.kernels(dtype, spec.envelope, spec.packed)["reductions"]
+    reductions = spec.staged()["reductions"]
     at = indexing(spec)
     hrow, own_all, block_sync = at.hrow, at.own_all, at.block_sync
     zero, one = dtype(0.0), dtype(1.0)

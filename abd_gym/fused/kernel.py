@@ -50,7 +50,7 @@ def assembly_kernel(spec: KernelSpec):
 @functools.lru_cache(maxsize=None)
 def thread_kernel(spec: KernelSpec):
     """``newton``: a thread per world (scratch "global" or "shared")."""
-    dtype, N, TRI, block = spec.dtype, spec.N, spec.TRI, spec.block
+    dtype, N, HW, block = spec.dtype, spec.N, spec.HW, spec.block
     vec12 = ops(dtype).vec12
     Terms, Bracket = structs(dtype).Terms, structs(dtype).Bracket
     step_world = world_step(spec).step_world
@@ -58,10 +58,10 @@ def thread_kernel(spec: KernelSpec):
     # a thread per world with its g, H, Δq in the block's shared memory (scratch="shared", CUDA): the
     # factor's and solves' ~n³/6 dependent loads then wait ~30 cycles each instead of an L1 miss's
     # trip to L2 (131,072 worlds' columns exceed L1); H packed, so a block of 32 float32 threads of
-    # 24 unknowns fits the 48 KB of static shared memory (44.5 KB)
+    # 24 unknowns fits the 48 KB of static shared memory (44.5 KB); with ``band`` only H's block band
     in_smem = spec.in_smem
     if in_smem:
-        one_count = (TRI + 2 * N) * block
+        one_count = (HW + 2 * N) * block
         one_scratch = shared_array(dtype, one_count)
 
     @wp.kernel(**options)
@@ -84,9 +84,9 @@ def thread_kernel(spec: KernelSpec):
         if wp.static(in_smem):
             col = c % block  # the thread's column of its block's scratch
             base = one_scratch()
-            Hs = wp.array(ptr=base, shape=(TRI * block,), dtype=dtype)
-            gs = wp.array(ptr=base + wp.uint64(TRI * block * SIZE), shape=(N * block,), dtype=dtype)
-            ds = wp.array(ptr=base + wp.uint64((TRI + N) * block * SIZE), shape=(N * block,), dtype=dtype)
+            Hs = wp.array(ptr=base, shape=(HW * block,), dtype=dtype)
+            gs = wp.array(ptr=base + wp.uint64(HW * block * SIZE), shape=(N * block,), dtype=dtype)
+            ds = wp.array(ptr=base + wp.uint64((HW + N) * block * SIZE), shape=(N * block,), dtype=dtype)
             for w in range(wa + c, wb, Tw):
                 step_world(q, q_trial, t, k, gs, Hs, ds, w, col, block, s, threshold, max_iterations,
                            max_line_search, reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
@@ -156,7 +156,7 @@ def lanes_kernel(spec: KernelSpec):
 
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False, phase_clock=False, cuda=False,
-                 block=0, bracket=True, groups=1, per_block=1, quadratic=0.0, hold=False):  # fmt: skip
+                 block=0, bracket=True, groups=1, per_block=1, quadratic=0.0, hold=False, band=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``own``: the names of the joint and coordinate constitutions with terms of their own; ``folds``:
@@ -170,6 +170,9 @@ def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False,
     "shared": a thread per world as "global", H's lower triangle packed (n(n+1)/2 words) and, built
     for CUDA (``cuda``), the block's ``block`` threads' g, H, Δq in its shared memory, one column
     per thread (on the CPU the packed columns stay in the global arrays);
+    ``band`` (a thread per world, a scene with Model.banded): only H's block band, packed
+    (solver_kernels.h_words: 2,076 words for a 10-link chain's 120 unknowns, against 7,260 for the
+    triangle and 14,400 square), and the dense factor's loops within it;
     "lanes": a block of ``block`` lanes per world, its system packed (see the package's docstring).
     ``cuda``: built for a GPU (the lane-split step then keeps its scratch in shared memory).
     ``phase_clock``: lane 0 adds each phase's cycles (PHASES) to ``Terms.clock`` (profiling only).
@@ -194,6 +197,6 @@ def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False,
     every world (step_world; a vector env's step graph), a check that a scene stepped on its own
     does not carry."""
     spec = KernelSpec(dtype, tuple(own), tuple(folds), scratch, n, envelope, phase_clock, cuda, block, bracket, groups,
-                      per_block, quadratic, hold)  # fmt: skip
+                      per_block, quadratic, hold, band)  # fmt: skip
     kernel = lanes_kernel(spec) if spec.lanes else thread_kernel(spec)
     return kernel, structs(dtype).Terms, structs(dtype).Bracket, assembly_kernel(spec)

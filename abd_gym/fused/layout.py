@@ -1,7 +1,8 @@
 """What a fused kernel is built for (``KernelSpec``) and where a world's system lies in its scratch.
 
 A thread's scratch column s of the flat g, H (``solver_kernels``): entry (i, j) of H at
-(hrow(i) + j)·B + s, hrow(i) = i·N (square) or i(i+1)/2 (packed lower triangle); entry i of g at
+(hrow(i) + j)·B + s, hrow(i) = i·N (square), i(i+1)/2 (packed lower triangle) or the packed block
+band's (solver_kernels.h_row_starts: body b's rows from column 12(b − 1)); entry i of g at
 i·B + s, B the scratch width (the thread count, or 1 for a world's contiguous scratch).
 
 Lanes (``scratch="lanes"``): a world's L lanes split its rows, lane l owning the rows i ≡ l (mod L)
@@ -104,12 +105,15 @@ class KernelSpec:
     per_block: int = 1
     quadratic: float = 0.0
     hold: bool = False
+    band: bool = False
 
     def __post_init__(self):
         if self.LANES % self.G:
             raise ValueError(f"{self.LANES} lanes a world do not split into {self.G} equal groups")
         if self.WPB > 1 and self.G > 1:
             raise ValueError("lane groups take a block per world (per_block 1)")
+        if self.band and (self.lanes or self.envelope):
+            raise ValueError("the block band is a thread per world's packed H (not with lanes or the square envelope)")
 
     def has(self, name: str) -> bool:
         """Whether constitution ``name`` has fused terms of its own (terms.fused_flags)."""
@@ -128,8 +132,19 @@ class KernelSpec:
     @property
     def packed(self) -> bool:
         """H's lower triangle packed: in shared memory on CUDA ("shared": the block's threads'
-        columns; "lanes": the world's system), else contiguous in the global scratch."""
-        return self.scratch in ("shared", "lanes")
+        columns; "lanes": the world's system), else contiguous in the global scratch; or, with
+        ``band`` (a thread per world), only its block band (solver_kernels.h_words)."""
+        return self.scratch in ("shared", "lanes") or self.band
+
+    @property
+    def HW(self) -> int:
+        """Words of H in a thread's scratch column (a thread per world)."""
+        return solver_kernels.h_words(self.N, self.packed, self.band)
+
+    def staged(self) -> dict:
+        """solver_kernels' functions for this scratch: square, packed, the square envelope's or the
+        packed band's factor and solves."""
+        return solver_kernels.kernels(self.dtype, self.envelope or self.band, self.packed)
 
     @property
     def in_smem(self) -> bool:
@@ -210,13 +225,13 @@ def indexing(spec: KernelSpec):
     """The kernel's scratch indexing and its world's barrier and lane: ``hrow``, ``own_from``,
     ``own_all``, ``block_sync`` (the world's lanes' barrier), ``lane_index`` (the lane in its world)."""
     N, LANES, RL, lanes = spec.N, spec.LANES, spec.RL, spec.lanes
-    h_row = solver_kernels.kernels(spec.dtype, spec.envelope, spec.packed)["h_row"]
+    h_row = spec.staged()["h_row"]
     # a world's barrier and lane: the block's, or its own lanes' of a warp shared with other worlds
     block_sync, lane_index = world_funcs(LANES, spec.WPB)  # noqa: F811 (the world's, shadowing the module's)
 
     @wp.func
     def hrow(i: int):
-        """Where row i of H starts in a scratch column (solver_kernels.h_row: square or packed)."""
+        """Where row i of H starts in a scratch column (solver_kernels.h_row: square, packed or the band)."""
         return h_row(i, N)
 
     @wp.func

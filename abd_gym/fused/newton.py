@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from .. import solver_kernels
 from ..constitutions import affine_body
 from ..status import BREAKDOWN, OK, UNCONVERGED
 from ..warp_ops import ENERGY, GRADIENT, HESSIAN, ops
@@ -128,7 +127,7 @@ def stepping(spec: KernelSpec):
     dtype, LANES, lanes = spec.dtype, spec.LANES, spec.lanes
     vec12 = ops(dtype).vec12
     Terms = structs(dtype).Terms
-    staged = solver_kernels.kernels(dtype, spec.envelope, spec.packed)
+    staged = spec.staged()
     noise_floor, energy_noise = staged["noise_floor"], staged["energy_noise"]
     block_sync = indexing(spec).block_sync
     search = line_search(spec).search
@@ -229,10 +228,11 @@ def stepping(spec: KernelSpec):
 def newton(spec: KernelSpec):
     """``solve_world``: a world's whole Newton solve (see its docstring)."""
     dtype, N, NF, TRI, LANES, G, RL = spec.dtype, spec.N, spec.NF, spec.TRI, spec.LANES, spec.G, spec.RL
-    lanes, compact, envelope, warp_regs = spec.lanes, spec.compact, spec.envelope, spec.warp_regs
+    lanes, compact, envelope, band, warp_regs = spec.lanes, spec.compact, spec.envelope, spec.band, spec.warp_regs
     vec12 = ops(dtype).vec12
     Terms = structs(dtype).Terms
-    staged = solver_kernels.kernels(dtype, envelope, spec.packed)
+    staged = spec.staged()
+    row_first = staged["row_first"]
     cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
     reductions = staged["reductions"]
     regs_ldl_solve = warp_ldl_solve(dtype, N, RL) if warp_regs else None
@@ -292,6 +292,8 @@ def newton(spec: KernelSpec):
                         j0 = int(0)
                         if wp.static(envelope):
                             j0 = t.first[i]
+                        if wp.static(band):
+                            j0 = row_first(i)
                         p = (hrow(i) + j0) * T + s
                         for j in range(j0, i + 1):
                             H[p] = zero
