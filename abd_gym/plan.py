@@ -120,7 +120,8 @@ def default_steps_per_launch(lockstep_warps: int = 1) -> int:
     return 50 if lockstep_warps > 1 else 2
 
 
-def default_lockstep_warps(device, scratch: str, num_worlds: int, lanes: int, groups: int, n: int, dtype) -> int:
+def default_lockstep_warps(device, scratch: str, num_worlds: int, lanes: int, groups: int, n: int, dtype,
+                           band: bool = False) -> int:
     """Warps a block of the lane-split step on a GPU (ExecutionPlan.lockstep_warps): the most of 8
     (LANE_WARPS_PER_SM, an SM's worth), 4, 2 that split the worlds into whole blocks (worlds ×
     lanes a multiple of 32 × warps) whose systems fit the block's shared memory; 1 for one thread
@@ -128,20 +129,35 @@ def default_lockstep_warps(device, scratch: str, num_worlds: int, lanes: int, gr
     if scratch != "lanes" or groups != 1 or not getattr(device, "is_cuda", False) or lanes > 32:
         return 1
     return next(k for k in (8, 4, 2, 1) if k == 1 or (num_worlds * lanes % (32 * k) == 0 and lanes_scratch_bytes(
-        n, dtype, 1, 32 * k // lanes) <= SHARED_BLOCK_BYTES))  # fmt: skip
+        n, dtype, 1, 32 * k // lanes, band) <= SHARED_BLOCK_BYTES))  # fmt: skip
 
 
 # warps of the lane-split kernel an SM holds at once: its threads take ~255 registers (65,536 a SM)
 LANE_WARPS_PER_SM = 8
 
 
-def lanes_scratch_bytes(n: int, dtype, groups: int = 1, per_block: int = 1) -> int:
+def lanes_scratch_bytes(n: int, dtype, groups: int = 1, per_block: int = 1, band: bool = False) -> int:
     """Shared memory of a block of the lane-split step on CUDA: ``per_block`` worlds of ``n``
-    unknowns, each with ``groups`` copies of its system (fused.lanes_scratch_words)."""
-    return per_block * lanes_scratch_words(n, groups) * (4 if dtype == wp.float32 else 8)
+    unknowns, each with ``groups`` copies of its system (fused.lanes_scratch_words; ``band``: H's
+    block band)."""
+    return per_block * lanes_scratch_words(n, groups, band) * (4 if dtype == wp.float32 else 8)
 
 
-def default_lane_groups(device, scratch: str, num_worlds: int, terms: int = 3, n: int = 0, dtype=wp.float32) -> int:
+# the lane-split step keeps a banded scene's block band where a world's rows do not fit its warp's
+# registers (more than 3 rows a lane of 32: warp_ldl_solve, which reads the triangle): chains of
+# 9 links and more.  H100, 1,024 worlds (results/lanes_band_h100.json): 10-link chains 3.2x the
+# packed triangle, 20-link chains (whose triangle does not fit a block) 4.6x the global band step
+LANES_BAND_MIN_UNKNOWNS = 3 * 32 + 1
+
+
+def lanes_band(n: int, banded: bool) -> bool:
+    """Whether the lane-split step stores the block band of a world of ``n`` unknowns (``banded``:
+    Model.banded) by default."""
+    return bool(banded and n >= LANES_BAND_MIN_UNKNOWNS)
+
+
+def default_lane_groups(device, scratch: str, num_worlds: int, terms: int = 3, n: int = 0, dtype=wp.float32,
+                        band: bool = False) -> int:
     """Lane groups a world of the lane-split step on a GPU: one for the bodies and one for each of
     the world's ``terms`` (joints, limits and drives, term_counts), at most 4, else 2, else 1: the
     most whose blocks (a warp a group) all fit on the GPU at once (LANE_WARPS_PER_SM), else the
@@ -157,15 +173,15 @@ def default_lane_groups(device, scratch: str, num_worlds: int, terms: int = 3, n
     # a block's warps share an SM: LANE_WARPS_PER_SM // g blocks of g warps fit on one
     return next(g for g in sorted({top, min(top, 2), 1}, reverse=True)
                 if g == 1 or (num_worlds <= LANE_WARPS_PER_SM // g * device.sm_count
-                              and lanes_scratch_bytes(n, dtype, g) <= SHARED_BLOCK_BYTES))  # fmt: skip
+                              and lanes_scratch_bytes(n, dtype, g, 1, band) <= SHARED_BLOCK_BYTES))  # fmt: skip
 
 
-def default_lane_width(device, num_worlds: int, dtype=wp.float32, n: int = 0) -> int:
+def default_lane_width(device, num_worlds: int, dtype=wp.float32, n: int = 0, band: bool = False) -> int:
     """Lanes a world of the lane-split step on a GPU: for up to LANES_MAX_UNKNOWNS unknowns ``n``,
     the most of 32, 16, 8 whose warps all fit on the GPU at once (LANE_WARPS_PER_SM; under 32
     lanes, 32 // lanes worlds share a warp), else 0; for more, 32 up to WIDE_LANES_MAX_WORLDS
-    worlds where one world's system fits a block's shared memory, else 0.
-    A world's step is a chain of dependent work on its lanes, so the GPU runs ~8 warps an SM (its
+    worlds where one world's system (``band``: a banded scene's block band) fits a block's shared
+    memory, else 0.  A world's step is a chain of dependent work on its lanes, so the GPU runs ~8 warps an SM (its
     registers' worth) each taking about as long whether it holds 1, 2 or 4 worlds: narrower worlds
     pay only once one wave of full-width worlds no longer holds them.  Measured on an H100,
     world-steps/s against a thread per world ("shared"): 2,048
@@ -175,7 +191,7 @@ def default_lane_width(device, num_worlds: int, dtype=wp.float32, n: int = 0) ->
     a lane; unmeasured)."""
     room = LANE_WARPS_PER_SM * getattr(device, "sm_count", 0)
     if n > LANES_MAX_UNKNOWNS:
-        fits = room and lanes_scratch_bytes(n, dtype) <= SHARED_BLOCK_BYTES
+        fits = room and lanes_scratch_bytes(n, dtype, band=band) <= SHARED_BLOCK_BYTES
         return 32 if fits and 0 < num_worlds <= WIDE_LANES_MAX_WORLDS else 0
     widths = (32, 16, 8) if dtype == wp.float32 else (32,)
     return next((L for L in widths if 0 < num_worlds and -(-num_worlds * L // 32) <= room), 0)
@@ -218,7 +234,7 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
     pendulums at 4,096 / 16,384 worlds (results/scratch_float64_24_unknowns_h100.json)."""
     if not (fused and device.is_cuda):
         return "global"
-    if default_lane_width(device, num_worlds, dtype, n):
+    if default_lane_width(device, num_worlds, dtype, n, lanes_band(n, band)):
         return "lanes"
     fit = default_block_dim_shared(n, dtype, band)
     if fit >= SHARED_MIN_SYSTEMS:
@@ -247,19 +263,17 @@ def resolve_plan(plan, model) -> ExecutionPlan:
     if scratch != "global" and not fused:
         raise ValueError(f"scratch={scratch!r} needs the fused step (fused=True)")
     lanes, shared = scratch == "lanes", scratch == "shared"
-    if lanes and plan.envelope:
-        raise ValueError("scratch='lanes' factors densely (H packed): it takes envelope=False or None")
-    if shared and plan.envelope and not banded:
-        raise ValueError("scratch='shared' factors densely (H packed) but for a banded scene (Model.banded: three or "
-                         "more free bodies, each coupled to the one before it at most): it takes envelope=False or "
+    if (shared or lanes) and plan.envelope and not banded:
+        raise ValueError(f"scratch={scratch!r} factors densely (H packed) but for a banded scene (Model.banded: three "
+                         "or more free bodies, each coupled to the one before it at most): it takes envelope=False or "
                          "None here")  # fmt: skip
-    envelope = (banded if shared else model.envelope) if plan.envelope is None else bool(plan.envelope)
-    envelope = envelope and not lanes
+    default = lanes_band(n, banded) if lanes else banded if shared else model.envelope
+    envelope = default if plan.envelope is None else bool(plan.envelope)
     if plan.lane_groups not in (None, 1) and not lanes:
         raise ValueError(f"lane_groups={plan.lane_groups!r} needs scratch='lanes'")
     workers, threads = _threads(plan, device, W, fused, scratch)
     block_dim, groups = _blocks(plan, model, device, scratch, threads, envelope)
-    lock = _lockstep(plan, device, W, scratch, block_dim, groups, n, dtype)
+    lock = _lockstep(plan, device, W, scratch, block_dim, groups, n, dtype, envelope)
     steps = int(plan.steps_per_launch or default_steps_per_launch(lock))
     out = ExecutionPlan(fused=fused, scratch=scratch, threads=threads, block_dim=block_dim, lane_groups=groups,
                         lockstep_warps=lock, steps_per_launch=steps,
@@ -273,8 +287,8 @@ def resolve_plan(plan, model) -> ExecutionPlan:
 
 def plan_band(plan: ExecutionPlan, banded: bool) -> bool:
     """Whether a resolved plan's step stores only H's block band (packed): the fused step's thread
-    per world with the envelope on a scene with Model.banded (``banded``)."""
-    return bool(banded and plan.fused and plan.envelope and plan.scratch != "lanes")
+    per world or lanes with the envelope on a scene with Model.banded (``banded``)."""
+    return bool(banded and plan.fused and plan.envelope)
 
 
 def worlds_per_block(plan: ExecutionPlan, device) -> int:
@@ -351,10 +365,10 @@ def _blocks(plan: ExecutionPlan, model, device, scratch: str, threads: int, band
     whose systems fit its shared memory for "shared" on CUDA, default_block_dim otherwise."""
     W, n, dtype = model.num_worlds, model.num_dofs, model.dtype
     lanes = scratch == "lanes"
-    width = plan.block_dim or (lanes and default_lane_width(device, W, dtype, n)) or 32
+    width = plan.block_dim or (lanes and default_lane_width(device, W, dtype, n, band)) or 32
     narrow = lanes and width < 32
     terms = sum(term_counts(model, joint_terms(model)).values())
-    groups = int(plan.lane_groups or (1 if narrow else default_lane_groups(device, scratch, W, terms, n, dtype)))
+    groups = int(plan.lane_groups or (1 if narrow else default_lane_groups(device, scratch, W, terms, n, dtype, band)))
     block_dim = plan.block_dim or ((width if narrow else 32 * groups) if lanes else default_block_dim(device, threads))
     if scratch == "shared" and device.is_cuda:
         fit = default_block_dim_shared(n, dtype, band)
@@ -375,7 +389,8 @@ def _blocks(plan: ExecutionPlan, model, device, scratch: str, threads: int, band
     return int(block_dim), groups
 
 
-def _lockstep(plan: ExecutionPlan, device, W: int, scratch: str, L: int, groups: int, n: int, dtype) -> int:
+def _lockstep(plan: ExecutionPlan, device, W: int, scratch: str, L: int, groups: int, n: int, dtype,
+              band: bool = False) -> int:
     """Warps a lockstep block: only where a block's warps are worlds of one group on a GPU (narrow
     worlds sharing a warp, or a warp a world); else 1."""
     lanes = scratch == "lanes" and device.is_cuda and groups == 1
@@ -383,7 +398,7 @@ def _lockstep(plan: ExecutionPlan, device, W: int, scratch: str, L: int, groups:
         return 1
     lock = plan.lockstep_warps
     if lock is None:
-        return default_lockstep_warps(device, scratch, W, L, groups, n, dtype)
+        return default_lockstep_warps(device, scratch, W, L, groups, n, dtype, band)
     if W * L % (32 * lock):
         raise ValueError(f"lockstep_warps={lock}: {W} worlds of {L} lanes do not fill whole blocks of {lock} "
                          "warps (worlds × lanes a multiple of 32 × lockstep_warps)")  # fmt: skip
@@ -392,15 +407,15 @@ def _lockstep(plan: ExecutionPlan, device, W: int, scratch: str, L: int, groups:
 
 def _check_memory(plan: ExecutionPlan, device, n: int, dtype, banded: bool = False):
     """A lane-split block's systems within its shared memory; the flat scratch within 32-bit indices."""
+    band = plan_band(plan, banded)
     if plan.scratch == "lanes" and device.is_cuda:
         per_block = worlds_per_block(plan, device)
-        need = lanes_scratch_bytes(n, dtype, plan.lane_groups, per_block)
+        need = lanes_scratch_bytes(n, dtype, plan.lane_groups, per_block, band)
         if need > SHARED_BLOCK_BYTES:
             raise ValueError(f"scratch='lanes': a block of {per_block} world(s) of {n} unknowns in "
                              f"{plan.lane_groups} lane group(s) needs {need} B of shared memory, more than its "
                              f"{SHARED_BLOCK_BYTES} B: take 32 lanes a world (block_dim=32), lane_groups=1 and "
                              "lockstep_warps=1, or scratch='shared' or 'global'")  # fmt: skip
-    band = plan_band(plan, banded)
     if h_words(n, band or plan.scratch != "global", band) * plan.threads >= 2**31:  # 32-bit indices
         raise ValueError(f"the Newton scratch of {plan.threads} columns of {n} unknowns exceeds 2**31 entries: use the "
                          "fused step (fused=True, its threads reuse their scratch) or fewer worlds")  # fmt: skip

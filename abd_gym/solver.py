@@ -190,8 +190,8 @@ class Solver:
         self.H_flat = wp.zeros(h_words(n, True, True) * Tg, dtype=dt_, device=dev) if self.band else _flat(self._H)
         self.L_flat = None if self.L is None else _flat(self.L)
         # the CPU's lanes keep each world's g, H, Δq contiguous: H packed, a copy per lane group
-        # (fused.newton_lanes), G·n(n+1)/2 words apiece
-        self.lane_stride = self.lane_groups * (n * (n + 1) // 2)
+        # (fused.newton_lanes), G copies of the triangle or the block band (h_words) apiece
+        self.lane_stride = self.lane_groups * h_words(n, True, self.band)
         if self.lanes and not cuda:
             self.g_flat, self.H_flat, self.dq_flat = (wp.zeros(W * self.lane_stride, dtype=dt_, device=dev)
                                                       for _ in range(3))  # fmt: skip

@@ -29,7 +29,7 @@ def keep_restart(fresh: wp.array(dtype=wp.int32), w: int):
 
 # the names kernels() returns
 _PUBLIC = (
-    "predict", "start", "newton_direction", "h_row", "row_first", "cholesky_solve", "factored_solve", "reductions",
+    "predict", "start", "newton_direction", "h_row", "row_first", "column_end", "cholesky_solve", "factored_solve", "reductions",
     "noise_floor", "energy_noise", "trial", "accept", "commit", "converge", "finalize", "open_step", "open_body",
     "predict_body", "finalize_body", "limit_reach",
 )  # fmt: skip
@@ -981,9 +981,9 @@ def kernels(dtype, envelope=False, packed=False):
     ``packed``: H's lower triangle stored packed, row i from i(i+1)/2 (n(n+1)/2 words a column
     instead of n², for a scratch in shared memory); both: only the block band stored, packed
     (h_words, h_row_starts; for a scene with Model.banded), factored by the dense loops within it."""
-    h_row, row_first, _ = _rows(packed, envelope and packed)
+    h_row, row_first, column_end = _rows(packed, envelope and packed)
     found = {**_noise_funcs(dtype), **_predict_funcs(dtype), **_finalize_funcs(dtype), "h_row": h_row,
-             "row_first": row_first}
+             "row_first": row_first, "column_end": column_end}
     found.update(_solve_funcs(dtype, envelope, packed))
     found.update(_factor_funcs(dtype, envelope, packed))
     found.update(_direction_kernels(dtype, envelope, packed))

@@ -850,8 +850,8 @@ def check_fused_system(sim, ref, case_name):
             assert not Hf.any()
 
 
-@pytest.mark.parametrize("lanes, groups", [(8, 1), (15, 3)])
-def test_lane_split_assembly_matches_staged(scene, ref, lanes, groups):
+@pytest.mark.parametrize("lanes, groups, band", [(8, 1, False), (15, 3, False), (15, 3, True)])
+def test_lane_split_assembly_matches_staged(scene, ref, lanes, groups, band):
     """scratch="lanes": each lane adds only its own rows of every term's blocks (rows i ≡ lane mod
     lanes), as cooperative CPU fibers, and together they give the staged kernels' energy, gradient
     and lower-triangular Hessian (H packed in the scratch).  15 lanes in 3 groups: each group of 5
@@ -859,15 +859,17 @@ def test_lane_split_assembly_matches_staged(scene, ref, lanes, groups):
     on the first, the joints, limits and drives, of every kind, on the other two), and the copies'
     sum is the whole system.  (A prismatic joint's limit and a drive on it ride on the joint's own
     term, and a revolute joint's limit and drives are one term on its angle, terms.joint_terms:
-    five kinds of work are left.)"""
+    five kinds of work are left.)  ``band``: each copy holds only the block band of the scene's
+    four bodies (Model.banded), packed."""
     import warp as wp
 
     before = wp.config.enable_cpu_blocks
     wp.config.enable_cpu_blocks = True
     try:
         sim = ag.Simulator(scene, num_worlds=2, dt=0.01, dtype="float64", device="cpu", integrator="implicit_euler",
-                           plan=ag.ExecutionPlan(scratch="lanes", block_dim=lanes, lane_groups=groups))  # fmt: skip
-        assert sim.solver.block_dim == lanes and sim.solver.lane_groups == groups
+                           plan=ag.ExecutionPlan(scratch="lanes", block_dim=lanes, lane_groups=groups,
+                                                 envelope=band))  # fmt: skip
+        assert sim.solver.block_dim == lanes and sim.solver.lane_groups == groups and sim.solver.band == band
         sim.solver.fused_system(sim.state)  # builds the kernel and the groups' shares
         if groups > 1:
             kinds, _, counts = sim.solver.work

@@ -40,6 +40,33 @@ def test_envelope_factor_gives_the_dense_trajectory(fused, workers):
     np.testing.assert_allclose(runs[True], runs[False], rtol=0, atol=1e-11)
 
 
+def test_lane_split_band_gives_the_dense_trajectory():
+    """The lane-split step in the block band (its factor and substitutions a column at a time
+    within it, 8 lanes as cooperative CPU fibers): a 5-link chain's 10 steps equal the packed
+    triangle's bit for bit (float64); by default only chains whose rows overflow a warp's registers
+    keep the band in lanes (plan.lanes_band)."""
+    import warp as wp
+
+    from abd_gym.plan import lanes_band
+
+    assert not lanes_band(60, True) and lanes_band(108, True) and not lanes_band(108, False)
+    before = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = True
+    try:
+        runs = {}
+        for band in (False, True):
+            sim = ag.Simulator(mechanisms.chain(5, length=0.2), num_worlds=2, dt=0.01, dtype="float64", device="cpu",
+                               plan=ag.ExecutionPlan(scratch="lanes", block_dim=8, envelope=band))  # fmt: skip
+            assert sim.solver.band == band
+            sim.set_joint_state([[0.4, -0.3, 0.2, 0.5, -0.1], [1.0, 0.0, -0.5, 0.3, 0.2]])
+            sim.step(10)
+            assert sim.converged().all()
+            runs[band] = sim.body_q()
+        np.testing.assert_array_equal(runs[True], runs[False])
+    finally:
+        wp.config.enable_cpu_blocks = before
+
+
 def _solve_kernel(dtype, envelope, packed=False):
     import warp as wp
 

@@ -149,7 +149,8 @@ def factor(spec: KernelSpec):
     """The lane-split factor and solves (``ldl_lanes``, ``solve_lanes``) for the kernel's N
     unknowns and LANES lanes a world."""
     dtype, N, LANES = spec.dtype, spec.N, spec.LANES
-    reductions = spec.staged()["reductions"]
+    staged = spec.staged()
+    reductions, row_first, column_end = staged["reductions"], staged["row_first"], staged["column_end"]
     at = indexing(spec)
     hrow, own_all, block_sync = at.hrow, at.own_all, at.block_sync
     zero, one = dtype(0.0), dtype(1.0)
@@ -162,7 +163,8 @@ def factor(spec: KernelSpec):
         column j and writes right of it only: one barrier a column.  Left in H: D_j L_ij below the
         diagonal (no pass to scale it) and 1/D_j on it, stored a column late by the row's owner,
         once no lane reads D_j.  0 when H is not positive definite (the same test of the same D_j
-        on every lane)."""
+        on every lane).  In the block band (``band``) column j reaches only the rows up to the
+        next body's, and those rows store every column from j on: the dense factor, bit for bit."""
         inv = zero
         for j in range(N):
             dj = H[s + hrow(j) + j]
@@ -171,7 +173,7 @@ def factor(spec: KernelSpec):
             if j > 0 and (j - 1) % LANES == lane:
                 H[s + hrow(j - 1) + j - 1] = inv
             inv = one / dj
-            for i in range(j + 1 + own_all(j + 1, lane), N, LANES):
+            for i in range(j + 1 + own_all(j + 1, lane), column_end(j, N), LANES):
                 ri = s + hrow(i)
                 cj = H[ri + j] * inv
                 k = j + 1
@@ -200,20 +202,22 @@ def factor(spec: KernelSpec):
         updated by their owners); backward, Δq_k = (y_k − Σ_{i>k} H[i, k] Δq_i) / D_k from the last
         row, the same way.
         One barrier a column; a backward Δq_k is stored after its barrier, once no lane reads y_k.
-        Then every lane forms (ok, gᵀΔq, ‖Δq‖∞, ‖g‖₁)."""
+        Then every lane forms (ok, gᵀΔq, ‖Δq‖∞, ‖g‖₁).  In the block band, only the stored entries:
+        rows up to column_end(j) forward, columns from row_first(k) backward."""
         for i in range(lane, N, LANES):
             dq[s + i] = -g[s + i]
         block_sync()
         for j in range(N):
             tj = dq[s + j] * H[s + hrow(j) + j]  # y_j / D_j: L_ij y_j = H[i, j] y_j / D_j
-            for i in range(j + 1 + own_all(j + 1, lane), N, LANES):
+            for i in range(j + 1 + own_all(j + 1, lane), column_end(j, N), LANES):
                 dq[s + i] = dq[s + i] - H[s + hrow(i) + j] * tj
             block_sync()
         for kk in range(N):
             k = N - 1 - kk
             xk = dq[s + k] * H[s + hrow(k) + k]
             rk = s + hrow(k)
-            for i in range(lane, k, LANES):
+            lo = row_first(k)
+            for i in range(lo + own_all(lo, lane), k, LANES):
                 dq[s + i] = dq[s + i] - H[rk + i] * xk
             block_sync()
             if k % LANES == lane:

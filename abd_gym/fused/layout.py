@@ -44,11 +44,12 @@ def shared_array(dtype, count: int):
     return shared_scratch
 
 
-def lanes_scratch_words(n: int, groups: int) -> int:
+def lanes_scratch_words(n: int, groups: int, band: bool = False) -> int:
     """Words of one world's scratch in the lane-split step (its block's shared memory on CUDA):
-    ``groups`` copies of H's packed lower triangle (n(n+1)/2 each), g (n, then the bodies' energies
-    and, with groups, the copies' g, the groups' energies and the factor's flag) and Δq (n)."""
-    tri, nf = n * (n + 1) // 2, n // 12
+    ``groups`` copies of H's packed lower triangle (n(n+1)/2 each; ``band``: its packed block band,
+    solver_kernels.h_words), g (n, then the bodies' energies and, with groups, the copies' g, the
+    groups' energies and the factor's flag) and Δq (n)."""
+    tri, nf = solver_kernels.h_words(n, True, band), n // 12
     glen = n + nf if groups == 1 else (groups - 1) * tri + n + nf + groups + 1
     return groups * tri + glen + n
 
@@ -112,8 +113,8 @@ class KernelSpec:
             raise ValueError(f"{self.LANES} lanes a world do not split into {self.G} equal groups")
         if self.WPB > 1 and self.G > 1:
             raise ValueError("lane groups take a block per world (per_block 1)")
-        if self.band and (self.lanes or self.envelope):
-            raise ValueError("the block band is a thread per world's packed H (not with lanes or the square envelope)")
+        if self.band and self.envelope:
+            raise ValueError("the block band is a packed H, not the square envelope")
 
     def has(self, name: str) -> bool:
         """Whether constitution ``name`` has fused terms of its own (terms.fused_flags)."""
@@ -163,8 +164,9 @@ class KernelSpec:
 
     @property
     def TRI(self) -> int:
-        """H's packed lower triangle (and, lanes, the stride of the groups' copies)."""
-        return self.N * (self.N + 1) // 2
+        """Words of H packed: its lower triangle, or with ``band`` its block band (and, lanes, the
+        stride of the groups' copies)."""
+        return solver_kernels.h_words(self.N, True, self.band)
 
     @property
     def LANES(self) -> int:
@@ -197,7 +199,8 @@ class KernelSpec:
         """On a GPU, a world whose lanes (the first group's warp, when there are several) hold at
         most 3 of its rows each factors and solves in registers (warp_ldl_solve)."""
         one_warp = self.G == 1 or self.RL == 32
-        return self.lanes and self.cuda and self.RL in (8, 16, 32) and one_warp and self.n <= 3 * self.RL
+        regs = self.RL in (8, 16, 32) and one_warp and self.n <= 3 * self.RL
+        return self.lanes and self.cuda and regs and not self.band
 
     @property
     def compact(self) -> bool:
@@ -217,7 +220,7 @@ class KernelSpec:
     @property
     def WORDS(self) -> int:
         """A lane-split world's scratch words."""
-        return lanes_scratch_words(self.N, self.G)
+        return lanes_scratch_words(self.N, self.G, self.band)
 
 
 @functools.lru_cache(maxsize=None)
