@@ -161,7 +161,8 @@ def main(argv=None):
                     help="comma-separated auto/0/1: reuse the Cholesky factor after a full Newton step "
                          "(auto: in float32 only)")
     ap.add_argument("--envelope", default="auto",
-                    help="comma-separated auto/0/1: factor the Hessian's envelope only (default: when the scene has one)")
+                    help="comma-separated auto/0/1: factor the Hessian's envelope only, as the block band where "
+                         "the scene is banded (default: when the scene has one; see ExecutionPlan.envelope)")
     ap.add_argument("--cpu-workers", default="auto",
                     help="comma-separated auto/N: concurrent launches of the fused step on the CPU (auto: one per core)")
     ap.add_argument("--lane-groups", default="auto",

@@ -224,11 +224,12 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
     where a world's system fits a block's shared memory; else "shared" where SHARED_MIN_SYSTEMS
     threads' systems fit a block's shared memory (32 of them up to 24 unknowns in float32, 16 at
     36; with ``band``, a Model.banded scene's block band, 20 at 36 and 11 at 60); else "global".
-    Measured on an H100 (``python -m abd_gym.bench --scratch global,shared,lanes``): shared 1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on
-    double pendulums, at 1,024 to 131,072 worlds; lanes 1.15x as fast as shared on both at 1,024
-    worlds, and narrower lanes 1.7-2.4x at 2,048 and 4,096; for the 36 unknowns of FourBar-v0's and SliderCrank-v0's
-    scenes, lanes 6.6x / 9.0x as fast as global at 1,024 worlds, 4.5x / 6.7x at 2,048 and 2.9x /
-    3.2x at 4,096; past those worlds, shared (16 threads a block) 2.5x as fast as global for the 36
+    Measured on an H100 (``python -m abd_gym.bench --scratch global,shared,lanes``): shared
+    1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on double pendulums, at 1,024 to
+    131,072 worlds; lanes 1.15x as fast as shared on both at 1,024 worlds, and narrower lanes
+    1.7-2.4x at 2,048 and 4,096; for the 36 unknowns of FourBar-v0's and SliderCrank-v0's scenes,
+    lanes 6.6x / 9.0x as fast as global at 1,024 worlds, 4.5x / 6.7x at 2,048 and 2.9x / 3.2x at
+    4,096; past those worlds, shared (16 threads a block) 2.5x as fast as global for the 36
     unknowns of InvertedDoublePendulum-v5 at 16,384 worlds (env-steps/s 2.05 M against 0.83 M), and
     in float64 (17 threads a block) 1.17x / 1.30x on cart-poles and 1.31x / 1.58x on double
     pendulums at 4,096 / 16,384 worlds (results/scratch_float64_24_unknowns_h100.json)."""

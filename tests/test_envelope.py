@@ -31,7 +31,8 @@ def test_envelope_factor_gives_the_dense_trajectory(fused, workers):
     runs = {}
     for envelope in (False, True):
         sim = ag.Simulator(mechanisms.chain(5, length=0.2), num_worlds=4, dt=0.01, dtype="float64",
-                           plan=ag.ExecutionPlan(envelope=envelope, fused=fused, cpu_workers=workers if fused else None))  # fmt: skip
+                           plan=ag.ExecutionPlan(envelope=envelope, fused=fused,
+                                                 cpu_workers=workers if fused else None))  # fmt: skip
         assert sim.solver.band == (fused and envelope) and len(sim.solver.newton_launches) == (workers if fused else 1)
         sim.set_joint_state(x0)
         sim.step(20)
