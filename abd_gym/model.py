@@ -106,7 +106,7 @@ class Model:
         self.envelope = bool(self.first_np.any())  # False: the Hessian is dense, the plain loops run
         # three or more free bodies, each coupled to the one before it at most (chains, and loops
         # closed through the ground: the four-bar, the slider-crank): the Hessian lies in its block
-        # band, which a thread per world stores packed (solver_kernels.h_words)
+        # band, which the fused step stores packed (solver_kernels.h_words, plan.plan_band)
         self.banded = len(block_first) >= 3 and all(f >= 12 * (b - 1) for b, f in enumerate(block_first))
         self.first = self.int_array(self.first_np)
         frames = np.zeros((8, max(nj, 1), 3))

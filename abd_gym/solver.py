@@ -28,7 +28,7 @@ from .constitutions import REGISTRY, affine_body, drive
 from .fused import PHASES, fused_kernel
 from .plan import ExecutionPlan, plan_band, resolve_plan, worlds_per_block
 from .scene import FIXED, PRISMATIC, REVOLUTE
-from .solver_kernels import h_row_starts, h_words, kernels as solver_kernels
+from .solver_kernels import h_row_first, h_row_starts, h_words, kernels as solver_kernels
 from .terms import fused_flags, joint_terms, term_counts
 from .warp_ops import HESSIAN
 
@@ -147,7 +147,8 @@ class Solver:
         # the resolved plan's choices, as the step's code reads them
         self.fused, self.scratch, self.one_launch = plan.fused, plan.scratch, plan.one_launch
         self.envelope = plan.envelope
-        # the fused thread-per-world step of a banded scene stores only H's block band (solver_kernels.h_words)
+        # the fused step of a banded scene with the envelope (a thread per world, or lanes for chains
+        # of 9 links and more) stores only H's block band (solver_kernels.h_words)
         self.band = plan_band(plan, model.banded)
         self.threads, self.block_dim, self.lane_groups = plan.threads, plan.block_dim, plan.lane_groups
         self.lockstep_warps, self.steps_per_launch = plan.lockstep_warps, plan.steps_per_launch
@@ -255,11 +256,10 @@ class Solver:
         """(columns, n, n) lower triangles from (columns, words) packed rows, the triangle or
         (``band``) the block band (row i from h_row_starts[i], its stored columns only)."""
         n = self.model.num_dofs
-        starts = h_row_starts(n, True, self.band)
+        starts, firsts = h_row_starts(n, True, self.band), h_row_first(n, self.band)
         full = np.zeros((packed.shape[0], n, n), dtype=packed.dtype)
-        for i in range(n):
-            lo = max(i // 12 - 1, 0) * 12 if self.band else 0  # the band's first stored column
-            full[:, i, lo : i + 1] = packed[:, starts[i] + lo : starts[i] + i + 1]
+        for i, (start, lo) in enumerate(zip(starts, firsts)):
+            full[:, i, lo : i + 1] = packed[:, start + lo : start + i + 1]
         return full
 
     def fused_system(self, state, derivs: int = HESSIAN):

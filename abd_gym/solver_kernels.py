@@ -70,6 +70,12 @@ def h_row_starts(n: int, packed: bool = False, band: bool = False) -> np.ndarray
     return rows
 
 
+def h_row_first(n: int, band: bool = False) -> np.ndarray:
+    """(n,) the first column each row of H stores: 12(b − 1) for body b ≥ 1 in the block band, else 0."""
+    i = np.arange(n)
+    return np.maximum(i // 12 - 1, 0) * 12 if band else np.zeros(n, dtype=int)
+
+
 @functools.lru_cache(maxsize=None)
 def _rows(packed, band=False):
     """(h_row, row_first, column_end): where a row of H starts in a scratch column (square,

@@ -133,8 +133,8 @@ class KernelSpec:
     @property
     def packed(self) -> bool:
         """H's lower triangle packed: in shared memory on CUDA ("shared": the block's threads'
-        columns; "lanes": the world's system), else contiguous in the global scratch; or, with
-        ``band`` (a thread per world), only its block band (solver_kernels.h_words)."""
+        columns; "lanes": the world's system), else contiguous in the global scratch; with
+        ``band``, only its block band (solver_kernels.h_words), in any scratch."""
         return self.scratch in ("shared", "lanes") or self.band
 
     @property
