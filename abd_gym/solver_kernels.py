@@ -59,7 +59,7 @@ def h_words(n: int, packed: bool = False, band: bool = False) -> int:
 
 def h_row_starts(n: int, packed: bool = False, band: bool = False) -> np.ndarray:
     """(n,) where row i starts: entry (i, j) of a scratch column at h_row_starts[i] + j (h_row, on the
-    host: for reading a scratch back; row i holds columns band_first(i) … i)."""
+    host: for reading a scratch back; row i holds columns h_row_first(n)[i] … i)."""
     i = np.arange(n)
     if not (packed or band):
         return i * n
