@@ -259,7 +259,7 @@ def resolve_plan(plan, model) -> ExecutionPlan:
     _check_values(plan)
     device, W, n, dtype = wp.get_device(model.device), model.num_worlds, model.num_dofs, model.dtype
     fused = True if plan.fused is None else bool(plan.fused)
-    banded = bool(getattr(model, "banded", False))
+    banded = model.banded
     scratch = plan.scratch or default_scratch(device, n, dtype, fused, W, banded and plan.envelope is not False)
     if scratch != "global" and not fused:
         raise ValueError(f"scratch={scratch!r} needs the fused step (fused=True)")
