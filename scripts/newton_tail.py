@@ -3,9 +3,11 @@
 world of each 32 (a GPU warp waits for its slowest thread, so a batch steps at that pace).
 
     python3 scripts/newton_tail.py [--cases cartpole,fourbar,...] [--worlds 256] [--steps 60] [--device cpu]
+        [--reuse-factor auto,0,1]
 
 Each case (``abd_gym.peer_cases``) starts from its random states, steps 3 times, then records each
-world's Newton iterations and factorisations for ``--steps`` steps.
+world's Newton iterations and factorisations for ``--steps`` steps, once per ``--reuse-factor``
+setting (auto: the simulator's default, factor reuse in float32).
 """
 from __future__ import annotations
 
@@ -17,12 +19,12 @@ import warp as wp
 CASES = "cartpole,inverted_pendulum_v5,double_pendulum_cart,inverted_double_pendulum_v5,fourbar,slider_crank,chain5"
 
 
-def tail(case: str, worlds: int, steps: int, device: str) -> dict[str, float]:
+def tail(case: str, worlds: int, steps: int, device: str, reuse_factor: bool | None = None) -> dict[str, float]:
     from abd_gym.peer_cases import CASES as PEER
     from abd_gym.simulator import Simulator
 
     c = PEER[case]
-    sim = Simulator(c.scene(), num_worlds=worlds, dt=0.01, device=device)
+    sim = Simulator(c.scene(), num_worlds=worlds, dt=0.01, device=device, reuse_factor=reuse_factor)
     sim.set_joint_state(*c.states(worlds, 0))
     sim.step(3)
     its, fac = [], []
@@ -43,13 +45,17 @@ def main() -> None:
     p.add_argument("--worlds", type=int, default=256)
     p.add_argument("--steps", type=int, default=60)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--reuse-factor", default="auto", help="comma-separated auto/0/1 (SolverSettings.reuse_factor)")
     args = p.parse_args()
     wp.config.quiet = True
-    print(f"{'case':28s} {'mean':>6s} {'p99':>5s} {'max':>4s} {'warp-max':>9s} {'fact.':>6s} {'warp-max fact.':>15s}")
+    reuse = {"auto": None, "0": False, "1": True}
+    print(f"{'case':28s} {'reuse':>5s} {'mean':>6s} {'p99':>5s} {'max':>4s} {'warp-max':>9s} {'fact.':>6s} "
+          f"{'warp-max fact.':>15s}")  # fmt: skip
     for case in args.cases.split(","):
-        r = tail(case, args.worlds, args.steps, args.device)
-        print(f"{case:28s} {r['mean']:6.2f} {r['p99']:5.0f} {r['max']:4.0f} {r['warp_max']:9.2f} "
-              f"{r['factorizations']:6.2f} {r['warp_max_factorizations']:15.2f}")  # fmt: skip
+        for setting in args.reuse_factor.split(","):
+            r = tail(case, args.worlds, args.steps, args.device, reuse[setting])
+            print(f"{case:28s} {setting:>5s} {r['mean']:6.2f} {r['p99']:5.0f} {r['max']:4.0f} {r['warp_max']:9.2f} "
+                  f"{r['factorizations']:6.2f} {r['warp_max_factorizations']:15.2f}")  # fmt: skip
 
 
 if __name__ == "__main__":
