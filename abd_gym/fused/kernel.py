@@ -50,7 +50,7 @@ def assembly_kernel(spec: KernelSpec):
 @functools.lru_cache(maxsize=None)
 def thread_kernel(spec: KernelSpec):
     """``newton``: a thread per world (scratch "global" or "shared")."""
-    dtype, N, HW, block = spec.dtype, spec.N, spec.HW, spec.block
+    dtype, N, TRI, block = spec.dtype, spec.N, spec.TRI, spec.block
     vec12 = ops(dtype).vec12
     Terms, Bracket = structs(dtype).Terms, structs(dtype).Bracket
     step_world = world_step(spec).step_world
@@ -61,7 +61,7 @@ def thread_kernel(spec: KernelSpec):
     # 24 unknowns fits the 48 KB of static shared memory (44.5 KB); with ``band`` only H's block band
     in_smem = spec.in_smem
     if in_smem:
-        one_count = (HW + 2 * N) * block
+        one_count = (TRI + 2 * N) * block
         one_scratch = shared_array(dtype, one_count)
 
     @wp.kernel(**options)
@@ -84,9 +84,9 @@ def thread_kernel(spec: KernelSpec):
         if wp.static(in_smem):
             col = c % block  # the thread's column of its block's scratch
             base = one_scratch()
-            Hs = wp.array(ptr=base, shape=(HW * block,), dtype=dtype)
-            gs = wp.array(ptr=base + wp.uint64(HW * block * SIZE), shape=(N * block,), dtype=dtype)
-            ds = wp.array(ptr=base + wp.uint64((HW + N) * block * SIZE), shape=(N * block,), dtype=dtype)
+            Hs = wp.array(ptr=base, shape=(TRI * block,), dtype=dtype)
+            gs = wp.array(ptr=base + wp.uint64(TRI * block * SIZE), shape=(N * block,), dtype=dtype)
+            ds = wp.array(ptr=base + wp.uint64((TRI + N) * block * SIZE), shape=(N * block,), dtype=dtype)
             for w in range(wa + c, wb, Tw):
                 step_world(q, q_trial, t, k, gs, Hs, ds, w, col, block, s, threshold, max_iterations,
                            max_line_search, reuse, status, iterations, factorizations, converged, 0)  # fmt: skip

@@ -137,11 +137,6 @@ class KernelSpec:
         ``band``, only its block band (solver_kernels.h_words), in any scratch."""
         return self.scratch in ("shared", "lanes") or self.band
 
-    @property
-    def HW(self) -> int:
-        """Words of H in a thread's scratch column (a thread per world)."""
-        return solver_kernels.h_words(self.N, self.packed, self.band)
-
     def staged(self) -> dict:
         """solver_kernels' functions for this scratch: square, packed, the square envelope's or the
         packed band's factor and solves."""
