@@ -157,9 +157,8 @@ def main(argv=None):
     ap.add_argument("--block-dim", type=int, default=None, help="CUDA block size (default: per solver)")
     ap.add_argument("--repeat", type=int, default=1, help="time each row this many times and keep the fastest")
     ap.add_argument("--threads", default=None, help="fused-step threads: all (one per world), Nsm (N per SM) or a count")
-    ap.add_argument("--reuse-factor", default="auto",
-                    help="comma-separated auto/0/1: reuse the Cholesky factor after a full Newton step "
-                         "(auto: in float32 only)")
+    ap.add_argument("--reuse-factor", default="0",
+                    help="comma-separated 0/1: reuse the Cholesky factor after a full Newton step (default 0)")
     ap.add_argument("--envelope", default="auto",
                     help="comma-separated auto/0/1: factor the Hessian's envelope only, as the block band where "
                          "the scene is banded (default: when the scene has one; see ExecutionPlan.envelope)")
@@ -188,8 +187,9 @@ def main(argv=None):
         if CASES[case]["mode"] is not None:
             accuracy.append(dict(case=case, dt=args.dt, dtype=args.dtype,
                                  period_error=period_error(case, args.dt, args.dtype, args.device)))  # fmt: skip
-        reuse_choice = {"auto": None, "0": False, "1": True}
-        variants = [(k, float(t), reuse_choice[ru], reuse_choice[en],
+        reuse_choice = {"0": False, "1": True}
+        envelope_choice = {"auto": None, "0": False, "1": True}
+        variants = [(k, float(t), reuse_choice[ru], envelope_choice[en],
                      None if cw == "auto" else int(cw), None if lg == "auto" else int(lg),
                      None if spl == "auto" else int(spl), None if lw == "auto" else int(lw))
                     for k in args.scratch.split(",") for t in args.tol.split(",") for ru in args.reuse_factor.split(",")

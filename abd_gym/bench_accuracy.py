@@ -128,7 +128,7 @@ def limited_worlds(case, dt=1e-3):
     return float(out.mean())
 
 
-def run_ours(case, q0, v0, dt, dtype, tol, device, integrator="implicit_euler", reuse_factor=None, **options):
+def run_ours(case, q0, v0, dt, dtype, tol, device, integrator="implicit_euler", reuse_factor=False, **options):
     """Measured joints' coordinates (samples, worlds, measured joints) [rad, m] over 1 s from joint
     coordinates q0 and rates v0, the largest joint residual [m], the largest energy drift
     E(1 s) − E(0) [J] and whether Newton reused its factors (``options``: more Simulator settings)."""
@@ -217,7 +217,7 @@ def main(argv=None):
     ap.add_argument("--tols", default="1e-5,1e-3")
     ap.add_argument("--integrators", default="implicit_euler,bdf2", help="ours")
     ap.add_argument("--mj-integrators", default=",".join(MJ_INTEGRATORS), help="MuJoCo's (Euler, implicitfast, RK4)")
-    ap.add_argument("--reuse-factors", default="auto", help="comma-separated auto/0/1 (Simulator reuse_factor)")
+    ap.add_argument("--reuse-factors", default="0", help="comma-separated 0/1 (Simulator reuse_factor)")
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--reference-worlds", type=int, default=8, help="worlds the error is measured on")
     ap.add_argument("--reference-dt", type=float, default=1e-4, help="step of the reference run [s]")
@@ -226,7 +226,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     W = args.worlds or (16384 if args.device.startswith("cuda") else 8)
     dts = [float(d) for d in args.dts.split(",")]
-    reuse_choice = {"auto": None, "0": False, "1": True}
+    reuse_choice = {"0": False, "1": True}
     settings = [(i, d, float(t), reuse_choice[r]) for i in args.integrators.split(",")
                 for d in args.dtypes.split(",") for t in args.tols.split(",") for r in args.reuse_factors.split(",")]
     rows, references, reference_seconds, limits, gaps = [], {}, {}, {}, {}

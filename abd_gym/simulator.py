@@ -48,9 +48,9 @@ class Simulator:
     (SolverSettings): it stops a world once ‖Δq‖∞/h < ``tol`` [m/s], after at most
     ``max_iterations`` iterations of at most ``max_line_search`` Armijo trials each;
     ``reuse_factor`` solves an iteration after a full step against the last Cholesky factor
-    (None: in float32 only); ``quadratic_stop``: a Newton step from a fresh factor accepted whole
-    (α = 1) under this many times q's rounding floor 4·eps·(1 + ‖q‖∞) ends the solve (float32
-    only in effect; 0: off).
+    (off by default: it stops short of the solution, SolverSettings); ``quadratic_stop``: a
+    Newton step from a fresh factor accepted whole (α = 1) under this many times q's rounding
+    floor 4·eps·(1 + ‖q‖∞) ends the solve (float32 only in effect; 0: off).
 
     How the step runs on the device (kernels, memory layout, launches, graphs) is ``plan``, an
     ExecutionPlan (or a dict of its fields) whose None fields are derived from the device, the
@@ -60,7 +60,7 @@ class Simulator:
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "bdf2",
                  dtype="float32", device=None, tol: float = 1e-5, max_iterations: int = 50,
-                 max_line_search: int = 12, reuse_factor: bool | None = None, quadratic_stop: float = 100.0,
+                 max_line_search: int = 12, reuse_factor: bool = False, quadratic_stop: float = 100.0,
                  plan: ExecutionPlan | dict | None = None):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")

@@ -5,7 +5,7 @@
 Newton starts from the last step's motion extrapolated (``predict``).  Each iteration assembles
 every world's gradient and dense Hessian (only the constitutions the scene has), solves it by
 Cholesky (one thread per world), backtracks on E (Armijo), and stops a world once its Newton step
-``‖Δq‖∞/h`` is under ``tol`` [m/s].  With ``reuse_factor`` (float32 by default) an iteration after
+``‖Δq‖∞/h`` is under ``tol`` [m/s].  With ``reuse_factor`` (off by default) an iteration after
 a full step taken whole assembles only the gradient and solves it against the last factor (a
 simplified-Newton step: two triangular solves instead of a factorisation; tried at α = 1, kept
 while the steps shrink 8× an iteration, else the next iteration factors again).  Worlds that
@@ -51,10 +51,15 @@ class SolverSettings:
     integrator: str = "bdf2"
     # after a full Newton step taken whole, solve the next iteration's gradient against the same
     # Cholesky factor (a simplified-Newton step, tried at α = 1, kept while it converges 8× per
-    # iteration); False: factor at every iteration.  None: in float32 only, where rounding bounds
-    # the solve's error either way; in float64 the reused factor's linear convergence leaves ~1e-10 m
-    # per step where Newton's quadratic convergence leaves ~1e-14 (tests/test_hard_cases.py)
-    reuse_factor: bool | None = None
+    # iteration); False: factor at every iteration.  Off by default: a reused factor converges
+    # linearly and stops short of the solution.  In float32, one implicit-Euler step from float64
+    # states against the float64 step (CPU, 256 worlds × 30 steps): largest error 3.5e-6 m
+    # (Reacher-v0), 1.2e-5 (FourBar-v0), 2.0e-5 (5-link chain) with reuse, 3.5e-7, 3.2e-6, 1.6e-6
+    # without; in float64 ~1e-10 m a step where Newton leaves ~1e-14 (tests/test_hard_cases.py).
+    # Nor is it faster where it matters: its extra iterations fall on a warp's slowest world
+    # (docs/performance.md, "Factor reuse": 1.1–1.8× faster without it on the loops and chains,
+    # 0.94–1.00× on the mechanisms of one to three bodies without limits).
+    reuse_factor: bool = False
     # a step from a fresh factor accepted at α = 1 (Armijo, or taken whole) that is under this many
     # times q's rounding floor (4·eps·(1 + ‖q‖∞)) ends the solve without an iteration to confirm it:
     # Newton's next step would be below that rounding (float32 cart-poles and double pendulums at
@@ -70,6 +75,9 @@ class SolverSettings:
         if not (isinstance(q, (int, float)) and math.isfinite(q) and q >= 0):
             raise ValueError(f"quadratic_stop must be a finite number >= 0, got {q!r}")
         self.quadratic_stop = float(q)
+        if not isinstance(self.reuse_factor, (bool, np.bool_)):
+            raise ValueError(f"reuse_factor must be True or False, got {self.reuse_factor!r}")
+        self.reuse_factor = bool(self.reuse_factor)
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be 'implicit_euler' or 'bdf2', got {self.integrator!r}")
 
@@ -129,8 +137,7 @@ class Solver:
         self.plan = plan = resolve_plan(plan, model)
         self.h = float(dt)
         self.bdf2 = int(settings.integrator == "bdf2")
-        reuse = settings.reuse_factor
-        self.reuse_factor = bool(model.dtype == wp.float32 if reuse is None else reuse)
+        self.reuse_factor = settings.reuse_factor
         # the step's effective h: physical potentials sit inside h_eff², velocities are Δq/h_eff
         self.h_eff = self.h * (2.0 / 3.0 if self.bdf2 else 1.0)
         W, n, dev, dt_ = model.num_worlds, model.num_dofs, model.device, model.dtype

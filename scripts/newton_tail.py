@@ -3,11 +3,11 @@
 world of each 32 (a GPU warp waits for its slowest thread, so a batch steps at that pace).
 
     python3 scripts/newton_tail.py [--cases cartpole,fourbar,...] [--worlds 256] [--steps 60] [--device cpu]
-        [--reuse-factor auto,0,1]
+        [--reuse-factor 0,1]
 
 Each case (``abd_gym.peer_cases``) starts from its random states, steps 3 times, then records each
 world's Newton iterations and factorisations for ``--steps`` steps, once per ``--reuse-factor``
-setting (auto: the simulator's default, factor reuse in float32).
+setting (0: the simulator's default, a fresh factor every iteration).
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import warp as wp
 CASES = "cartpole,inverted_pendulum_v5,double_pendulum_cart,inverted_double_pendulum_v5,fourbar,slider_crank,chain5"
 
 
-def tail(case: str, worlds: int, steps: int, device: str, reuse_factor: bool | None = None) -> dict[str, float]:
+def tail(case: str, worlds: int, steps: int, device: str, reuse_factor: bool = False) -> dict[str, float]:
     from abd_gym.peer_cases import CASES as PEER
     from abd_gym.simulator import Simulator
 
@@ -45,10 +45,10 @@ def main() -> None:
     p.add_argument("--worlds", type=int, default=256)
     p.add_argument("--steps", type=int, default=60)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--reuse-factor", default="auto", help="comma-separated auto/0/1 (SolverSettings.reuse_factor)")
+    p.add_argument("--reuse-factor", default="0", help="comma-separated 0/1 (SolverSettings.reuse_factor)")
     args = p.parse_args()
     wp.config.quiet = True
-    reuse = {"auto": None, "0": False, "1": True}
+    reuse = {"0": False, "1": True}
     print(f"{'case':28s} {'reuse':>5s} {'mean':>6s} {'p99':>5s} {'max':>4s} {'warp-max':>9s} {'fact.':>6s} "
           f"{'warp-max fact.':>15s}")  # fmt: skip
     for case in args.cases.split(","):

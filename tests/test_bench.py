@@ -77,7 +77,7 @@ def test_bench_accuracy(tmp_path):
     for row in ours.values():
         assert {"case", "dt", "dtype", "tol", "reuse_factor", "diverged", "error_final", "error_max", "error_max_slide",
                 "joint_residual", "energy_drift", "world_steps_per_second"} <= set(row)  # fmt: skip
-        assert row["reuse_factor"] is False  # float64's default: a factorisation per Newton iteration
+        assert row["reuse_factor"] is False  # the default: a factorisation per Newton iteration
         assert row["joint_residual"] < 1e-4
         assert not row["diverged"] and row["error_max_slide"] is not None  # the cart's slide, in m
     # second order: at dt 0.02 BDF2 tracks the reference better than implicit Euler

@@ -8,7 +8,7 @@ import abd_gym as ag
 from abd_gym import mechanisms
 
 
-def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global", reuse_factor=None, cpu_workers=1,
+def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global", reuse_factor=False, cpu_workers=1,
          block_dim=None, one_launch=None, integrator="implicit_euler", lane_groups=None):  # fmt: skip
     plan = ag.ExecutionPlan(use_graph=use_graph, fused=fused, threads=threads, scratch=scratch, cpu_workers=cpu_workers,
                             block_dim=block_dim, one_launch=one_launch, lane_groups=lane_groups)  # fmt: skip

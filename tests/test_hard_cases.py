@@ -70,13 +70,16 @@ def test_large_step_dt_0_05(integrator):
 
 
 @INTEGRATORS
-def test_hard_steps_take_few_iterations(integrator):
-    """dt = 0.05, 32 double pendulums released at random angles up to 2.5 rad, float32 (factor
-    reuse on): no step's Newton solve takes more than 25 iterations.  A reused factor whose step
-    was rejected ends reuse for the rest of the step; when reuse and refactoring alternated, one
-    step took 46 iterations under implicit Euler, near the cap of 50 (and reached it on an H100)."""
+@pytest.mark.parametrize("reuse", [False, True])
+def test_hard_steps_take_few_iterations(integrator, reuse):
+    """dt = 0.05, 32 double pendulums released at random angles up to 2.5 rad, float32, with and
+    without factor reuse: no step's Newton solve takes more than 25 iterations.  A reused factor
+    whose step was rejected ends reuse for the rest of the step; when reuse and refactoring
+    alternated, one step took 46 iterations under implicit Euler, near the cap of 50 (and reached
+    it on an H100)."""
     x0 = np.random.default_rng(0).uniform(-2.5, 2.5, (32, 2))
-    sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=32, dt=0.05, integrator=integrator)
+    sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=32, dt=0.05, integrator=integrator,
+                       reuse_factor=reuse)  # fmt: skip
     sim.set_joint_state(x0)
     most = 0
     for _ in range(100):
@@ -185,6 +188,14 @@ def test_quadratic_stop_ends_on_one_newton_step():
     for bad in (-1.0, float("nan")):
         with pytest.raises(ValueError, match="quadratic_stop"):
             ag.Simulator(mechanisms.double_pendulum(), quadratic_stop=bad)
+
+
+@pytest.mark.parametrize("bad", [None, 1, "yes"])
+def test_reuse_factor_must_be_a_bool(bad):
+    """reuse_factor is True or False (default False); anything else is refused, naming the value."""
+    assert ag.Simulator(mechanisms.pendulum()).solver.reuse_factor is False
+    with pytest.raises(ValueError, match=f"reuse_factor must be True or False, got {bad!r}"):
+        ag.Simulator(mechanisms.pendulum(), reuse_factor=bad)
 
 
 def test_third_order_guess_only_under_a_steady_control():

@@ -790,10 +790,10 @@ def test_make_and_make_vec():
 
 def test_simulator_options_reach_the_simulator():
     """simulator_options passes more Simulator settings through gym.make_vec (here Newton's iteration
-    budget, max_iterations 2, where random forces take ~3.8 iterations a step with the reused
-    factor: a solve that has not converged in 2 is retried from a fresh factor for 2 more, which
-    the default budget never needs); the task's own settings cannot be overridden, and a bad value
-    is the Simulator's error."""
+    budget, max_iterations 2, with the factor reused, where random forces take ~3.8 iterations a
+    step: a solve that has not converged in 2 is retried from a fresh factor for 2 more, which the
+    default budget never needs); the task's own settings cannot be overridden, and a bad value is
+    the Simulator's error."""
     def retried(**kw):
         venv = gym.make_vec("abd_gym/CartPole-v0", num_envs=8, vectorization_mode="vector_entry_point", **kw)
         venv.reset(seed=0)
@@ -804,11 +804,12 @@ def test_simulator_options_reach_the_simulator():
             venv.step(venv.action_space.sample())
             assert sim.newton_iterations().max() <= 2 * sim.solver.settings.max_iterations
             count += int(sim.newton_retried().sum())
-        assert sim.solver.settings.max_iterations == (2 if kw else 50)
+        assert sim.solver.settings.max_iterations == kw["simulator_options"].get("max_iterations", 50)
         venv.close()
         return count
 
-    assert retried(simulator_options={"max_iterations": 2}) > 0 == retried()
+    assert retried(simulator_options={"max_iterations": 2, "reuse_factor": True}) > 0 == retried(
+        simulator_options={"reuse_factor": True})
     with pytest.raises(ValueError, match="dt"):
         gym.make_vec("abd_gym/CartPole-v0", num_envs=2, vectorization_mode="vector_entry_point",
                      simulator_options={"dt": 0.5})  # fmt: skip

@@ -69,7 +69,7 @@ def test_a_world_flung_at_1e25_m_s_is_reported_and_the_others_step_on(dtype, pla
 @pytest.mark.parametrize("plan", ["default", "staged", "lanes"])
 def test_a_stalled_reused_factor_is_retried_as_a_fresh_factor_solve(plan):
     """A float32 link spinning at 10-50 rad/s into a revolute limit at ±3.1 rad (strength 1e5, BDF2,
-    dt 0.002), with a budget of 5 iterations, which a reused factor runs out of at the limit on
+    dt 0.002), with the factor reused and a budget of 5 iterations, which a reused factor runs out of at the limit on
     some world-steps where a fresh one converges: the step is solved again from q̃ with a fresh
     factor at every iteration.  A retried step either converges (and is committed) or is rejected
     (the world keeps qⁿ); the retries save most of the steps they take up, and no committed step
@@ -77,7 +77,7 @@ def test_a_stalled_reused_factor_is_retried_as_a_fresh_factor_solve(plan):
     W = 64
     scene = mechanisms.pendulum(limit=(-3.1, 3.1, 1e5))
     sim = ag.Simulator(scene, num_worlds=W, dt=0.002, integrator="bdf2", dtype="float32", max_iterations=5,
-                       plan=PLANS[plan])  # fmt: skip
+                       reuse_factor=True, plan=PLANS[plan])  # fmt: skip
     rng = np.random.default_rng(0)
     rates = rng.uniform(10, 50, W) * rng.choice([-1, 1], W)
     sim.set_joint_state(2.0 * np.sign(rates)[:, None], rates[:, None])
@@ -100,7 +100,7 @@ def test_a_stalled_reused_factor_is_retried_as_a_fresh_factor_solve(plan):
 
 
 def test_factor_reuse_off_rejects_without_a_retry():
-    """Without factor reuse (float64's default) there is no retry: a step that does not converge in
+    """Without factor reuse (the default) there is no retry: a step that does not converge in
     max_iterations is rejected at once, and newton_retried stays False."""
     sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, dt=0.01, dtype="float64", max_iterations=1)
     sim.set_joint_state([[1.0, -0.5], [0.5, 0.0]], [[5.0, -5.0], [0.0, 3.0]])
