@@ -58,7 +58,7 @@ class SolverSettings:
     # without; in float64 ~1e-10 m a step where Newton leaves ~1e-14 (tests/test_hard_cases.py).
     # Nor is it faster where it matters: its extra iterations fall on a warp's slowest world
     # (docs/performance.md, "Factor reuse": 1.1–1.8× faster without it on the loops and chains,
-    # 0.94–1.00× on the mechanisms of one to three bodies without limits).
+    # 0.95–1.01× on the mechanisms of one to three bodies without limits).
     reuse_factor: bool = False
     # a step from a fresh factor accepted at α = 1 (Armijo, or taken whole) that is under this many
     # times q's rounding floor (4·eps·(1 + ‖q‖∞)) ends the solve without an iteration to confirm it:
