@@ -137,7 +137,6 @@ class Solver:
         self.plan = plan = resolve_plan(plan, model)
         self.h = float(dt)
         self.bdf2 = int(settings.integrator == "bdf2")
-        self.reuse_factor = settings.reuse_factor
         # the step's effective h: physical potentials sit inside h_eff², velocities are Δq/h_eff
         self.h_eff = self.h * (2.0 / 3.0 if self.bdf2 else 1.0)
         W, n, dev, dt_ = model.num_worlds, model.num_dofs, model.device, model.dtype
@@ -221,6 +220,11 @@ class Solver:
         # BDF2 restarts a world's history where a limit is engaged (solver_kernels.open_body)
         self.restarts = bool(self.bdf2 and any(model.limit_joints.values()))
         self._restart_cmds = {}  # restart_joints' recorded launches
+
+    @property
+    def reuse_factor(self) -> bool:
+        """SolverSettings.reuse_factor: an iteration after a full step reuses the last factor."""
+        return self.settings.reuse_factor
 
     @property
     def H(self) -> wp.array:
