@@ -501,5 +501,12 @@ def test_default_scratch_by_device_size_and_batch():
     # a banded scene's block band (Model.banded): 20 three-body systems a block, 11 of 60 unknowns, 5 of 120
     assert [default_block_dim_shared(n, wp.float32, True) for n in (36, 60, 120)] == [20, 11, 5]
     assert default_block_dim_shared(36, wp.float32) == 16
+    # past two waves of them, blocks four of which fill an H100's SM (228 KB): 24 and 13
+    h100 = SimpleNamespace(is_cuda=True, sm_count=132, arch=90)
+    assert [default_block_dim_shared(36, wp.float32, True, h100, w) for w in (16384, 25343, 25344)] == [20, 20, 24]
+    assert default_block_dim_shared(60, wp.float32, True, h100, 131072) == 13
+    assert default_block_dim_shared(24, wp.float32, False, h100, 131072) == 32  # a warp already
+    assert default_block_dim_shared(36, wp.float32, True, SimpleNamespace(is_cuda=True, sm_count=84, arch=89),
+                                    131072) == 20  # an SM of 100 KB: the 48 KB rule
     assert default_scratch(gpu, 60, wp.float64, True, 4097, band=True) == "global"  # five fit
     assert default_scratch(gpu, 120, wp.float32, True, 4097, band=True) == "global"  # five fit

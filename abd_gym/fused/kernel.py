@@ -7,7 +7,7 @@ import functools
 import warp as wp
 
 from .bracket import world_step
-from .layout import KernelSpec, block_sync as whole_block_sync, indexing, shared_array
+from .layout import KernelSpec, block_sync as whole_block_sync, indexing, shared_array, tile_address
 from .assembly import assembly
 from .structs import structs
 from ..warp_ops import ops
@@ -58,11 +58,12 @@ def thread_kernel(spec: KernelSpec):
     # a thread per world with its g, H, Δq in the block's shared memory (scratch="shared", CUDA): the
     # factor's and solves' ~n³/6 dependent loads then wait ~30 cycles each instead of an L1 miss's
     # trip to L2 (131,072 worlds' columns exceed L1); H packed, so a block of 32 float32 threads of
-    # 24 unknowns fits the 48 KB of static shared memory (44.5 KB); with ``band`` only H's block band
+    # 24 unknowns fits in 44.5 KB; with ``band`` only H's block band.  A shared tile, not a static
+    # array: Warp gives the kernel dynamic shared memory past 48 KB (plan.default_block_dim_shared)
     in_smem = spec.in_smem
     if in_smem:
         one_count = (TRI + 2 * N) * block
-        one_scratch = shared_array(dtype, one_count)
+        one_address = tile_address(dtype, one_count)
 
     @wp.kernel(**options)
     def newton(
@@ -83,7 +84,7 @@ def thread_kernel(spec: KernelSpec):
         s = c + s0
         if wp.static(in_smem):
             col = c % block  # the thread's column of its block's scratch
-            base = one_scratch()
+            base = one_address(wp.tile_empty(shape=(one_count,), dtype=dtype, storage="shared"))
             Hs = wp.array(ptr=base, shape=(TRI * block,), dtype=dtype)
             gs = wp.array(ptr=base + wp.uint64(TRI * block * SIZE), shape=(N * block,), dtype=dtype)
             ds = wp.array(ptr=base + wp.uint64((TRI + N) * block * SIZE), shape=(N * block,), dtype=dtype)

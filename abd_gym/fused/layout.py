@@ -44,6 +44,20 @@ def shared_array(dtype, count: int):
     return shared_scratch
 
 
+@functools.lru_cache(maxsize=None)
+def tile_address(dtype, count: int):
+    """A function returning the address of a shared tile of ``count`` ``dtype`` words (made by
+    ``wp.tile_empty(shape=(count,), dtype=dtype, storage="shared")``).  Warp sizes a kernel's
+    dynamic shared memory from its shared tiles and opts the kernel in past the 48 KB that a static
+    array may take, so a block's scratch may fill a quarter of an SM's 228 KB (H100)."""
+
+    @wp.func_native("return (uint64_t)(t.data.ptr);")
+    def address(t: wp.tile(dtype=dtype, shape=(count,), storage="shared")) -> wp.uint64:
+        ...
+
+    return address
+
+
 def lanes_scratch_words(n: int, groups: int, band: bool = False) -> int:
     """Words of one world's scratch in the lane-split step (its block's shared memory on CUDA):
     ``groups`` copies of H's packed lower triangle (n(n+1)/2 each; ``band``: its packed block band,
