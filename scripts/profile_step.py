@@ -17,8 +17,8 @@ import time
 
 import warp as wp
 
-from abd_gym.bench import CASES
 from abd_gym.bench_compare import random_states
+from abd_gym.peer_cases import CASES
 from abd_gym.plan import ExecutionPlan
 from abd_gym.simulator import Simulator
 
@@ -26,7 +26,7 @@ from abd_gym.simulator import Simulator
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cuda:0")
-    ap.add_argument("--case", default="cartpole", choices=sorted(CASES))
+    ap.add_argument("--case", default="cartpole", choices=list(CASES), help="a mechanism of abd_gym.peer_cases")
     ap.add_argument("--worlds", type=int, default=16384)
     ap.add_argument("--scratch", default="auto", help="auto (the simulator's default), global, shared or lanes")
     ap.add_argument("--warmup", type=int, default=3)
@@ -51,7 +51,7 @@ def main():
                          block_dim=args.block_dim, one_launch={"default": None, "one": True, "two": False}[args.launch],
                          lane_groups=args.lane_groups, steps_per_launch=args.steps_per_launch,
                          phase_clock=args.phases)  # fmt: skip
-    sim = Simulator(CASES[args.case]["scene"](), num_worlds=args.worlds, dt=0.01, device=args.device, plan=plan)
+    sim = Simulator(CASES[args.case].scene(), num_worlds=args.worlds, dt=0.01, device=args.device, plan=plan)
     sim.set_joint_state(random_states(args.case, args.worlds))
     sim.step(args.warmup)
     wp.synchronize_device(sim.device)
