@@ -405,14 +405,14 @@ def _blocks(plan: ExecutionPlan, model, device, scratch: str, threads: int, band
     groups = int(plan.lane_groups or (1 if narrow else default_lane_groups(device, scratch, W, terms, n, dtype, band)))
     block_dim = plan.block_dim or ((width if narrow else 32 * groups) if lanes else default_block_dim(device, threads))
     if scratch == "shared" and device.is_cuda:
-        block_dim = plan.block_dim or default_block_dim_shared(n, dtype, band, device, W)
         fit = max_block_dim_shared(device, n, dtype, band)
+        block_dim = plan.block_dim or default_block_dim_shared(n, dtype, band, device, W) or fit
         if not 1 <= block_dim <= fit:
             per = shared_bytes_per_thread(n, dtype, band)
+            room = getattr(device, "max_shared_memory_per_block", 0) or SHARED_BLOCK_BYTES
             raise ValueError(f"scratch='shared': {block_dim or 1} thread(s) of {n} unknowns need "
-                             f"{max(block_dim, 1) * per} B of shared memory a block, more than its "
-                             f"{fit * per} B; at most {fit} fit (block_dim), else use "
-                             "scratch='global'")  # fmt: skip
+                             f"{max(block_dim, 1) * per} B of shared memory a block, more than the {room} B "
+                             f"a block may take; at most {fit} fit (block_dim), else use scratch='global'")  # fmt: skip
     if lanes and not 1 <= block_dim <= 256:
         raise ValueError(f"scratch='lanes' takes 1 to 256 lanes a world (block_dim), got {block_dim!r}")
     if lanes and device.is_cpu and not wp.config.enable_cpu_blocks:
