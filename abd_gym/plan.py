@@ -135,11 +135,15 @@ def default_block_dim_shared(n: int, dtype, band: bool = False, device=None, num
     return fit
 
 
+def shared_block_room(device) -> int:
+    """The dynamic shared memory one block of scratch="shared" may take [bytes]: the device's opt-in
+    maximum (227 KB on an H100), else SHARED_BLOCK_BYTES."""
+    return getattr(device, "max_shared_memory_per_block", 0) or SHARED_BLOCK_BYTES
+
+
 def max_block_dim_shared(device, n: int, dtype, band: bool = False) -> int:
-    """The most threads a block of scratch="shared" holds: their systems in the dynamic shared
-    memory one block may take (the device's opt-in maximum: 227 KB on an H100)."""
-    room = getattr(device, "max_shared_memory_per_block", 0) or SHARED_BLOCK_BYTES
-    return room // shared_bytes_per_thread(n, dtype, band)
+    """The most threads a block of scratch="shared" holds: their systems in shared_block_room."""
+    return shared_block_room(device) // shared_bytes_per_thread(n, dtype, band)
 
 
 def default_steps_per_launch(lockstep_warps: int = 1) -> int:
@@ -409,9 +413,9 @@ def _blocks(plan: ExecutionPlan, model, device, scratch: str, threads: int, band
         block_dim = plan.block_dim or default_block_dim_shared(n, dtype, band, device, W) or fit
         if not 1 <= block_dim <= fit:
             per = shared_bytes_per_thread(n, dtype, band)
-            room = getattr(device, "max_shared_memory_per_block", 0) or SHARED_BLOCK_BYTES
             raise ValueError(f"scratch='shared': {block_dim or 1} thread(s) of {n} unknowns need "
-                             f"{max(block_dim, 1) * per} B of shared memory a block, more than the {room} B "
+                             f"{max(block_dim, 1) * per} B of shared memory a block, more than the "
+                             f"{shared_block_room(device)} B "
                              f"a block may take; at most {fit} fit (block_dim), else use scratch='global'")  # fmt: skip
     if lanes and not 1 <= block_dim <= 256:
         raise ValueError(f"scratch='lanes' takes 1 to 256 lanes a world (block_dim), got {block_dim!r}")

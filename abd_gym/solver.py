@@ -187,7 +187,6 @@ class Solver:
         # the staged kernels' square H; the fused step's band is a flat array of its own (H_flat), and
         # the square one is then made only where a staged assembly asks for it (H)
         self._H = None if self.band else wp.zeros((n, n, Tg), dtype=dt_, device=dev)
-        self._H_shape = (n, n, Tg)
         self.dq = wp.zeros((n, Tg), dtype=dt_, device=dev)
         # the staged step's Cholesky factors, kept for an iteration that reuses them (H is reassembled)
         self.L = None if self.fused else wp.zeros((n, n, T), dtype=dt_, device=dev)
@@ -231,7 +230,8 @@ class Solver:
         """(n, n, columns) H of the staged kernels (assemble, hessian); with the band the fused step
         uses H_flat alone and this square array is made on first use."""
         if self._H is None:
-            self._H = wp.zeros(self._H_shape, dtype=self.model.dtype, device=self.model.device)
+            n, columns = self.g.shape  # g is (n, Tg)
+            self._H = wp.zeros((n, n, columns), dtype=self.model.dtype, device=self.model.device)
         return self._H
 
     def _columns(self, physical):
