@@ -121,18 +121,36 @@ def quarter_sm_block_dim(device, n: int, dtype, band: bool = False) -> int:
 def default_block_dim_shared(n: int, dtype, band: bool = False, device=None, num_worlds: int = 0) -> int:
     """Threads a block for scratch="shared": 32 (one warp) where their systems fit 48 KB (a static
     array's most); else as many as fit; 0 when not even one does.  On a GPU (``device``) whose SM
-    holds four blocks of more (quarter_sm_block_dim), those, where ``num_worlds`` fill at least two
-    waves of them (four a SM): a warp waits on its slowest world, and there the SM's four warps hold
-    more worlds.  Measured on an H100, world-steps/s of 24 against 20 threads a block (36 unknowns,
-    the block band) and 13 against 11 (5-link chains, 60), at 16,384 / 32,768 / 65,536 / 131,072
-    worlds: FourBar-v0 0.97x / 1.12x / 1.09x / 1.11x, DoublePendulumCart-v0 0.98x / 1.12x / 1.07x /
-    1.09x, 5-link chain 0.99x / 1.12x / 1.12x / 1.11x; SliderCrank-v0 1.01x / 1.11x and
-    InvertedDoublePendulum-v5 0.98x / 1.14x at 16,384 / 131,072 (results/shared_quarter_sm_h100.json)."""
+    holds four blocks of more (quarter_sm_block_dim), those, where ``num_worlds`` fill a wave of
+    them (four a SM): an SM's four warps then hold more worlds, and the threads' world queue
+    (fused.kernel.run_worlds) keeps them busy past the wave.  Measured on an H100, world-steps/s of
+    24 against 20 threads a block (36 unknowns, the block band) at 16,384 worlds, with the queue:
+    FourBar-v0 1.11x, DoublePendulumCart-v0 1.00x, SliderCrank-v0 0.99x
+    (results/world_queue_h100.json); without it, at 16,384 / 32,768 / 65,536 / 131,072 worlds:
+    FourBar-v0 0.97x / 1.12x / 1.09x / 1.11x, DoublePendulumCart-v0 0.98x / 1.12x / 1.07x / 1.09x,
+    and 13 against 11 threads for 5-link chains (60 unknowns) 0.99x / 1.12x / 1.12x / 1.11x
+    (results/shared_quarter_sm_h100.json)."""
     fit = min(32, SHARED_BLOCK_BYTES // shared_bytes_per_thread(n, dtype, band))
     big = quarter_sm_block_dim(device, n, dtype, band) if getattr(device, "is_cuda", False) else 0
-    if big > fit and num_worlds >= 2 * 4 * device.sm_count * big:
+    if big > fit and num_worlds >= 4 * device.sm_count * big:
         return big
     return fit
+
+
+# warps an SM holds of a thread-per-world step: its threads take up to 255 registers (65,536 an SM)
+THREAD_WARPS_PER_SM = 8
+
+
+def resident_threads_shared(device, n: int, dtype, band: bool, block_dim: int) -> int:
+    """Threads of scratch="shared" that a GPU holds at once, in blocks of ``block_dim``: as many
+    blocks an SM as its shared memory holds (SM_SHARED_BYTES), at most THREAD_WARPS_PER_SM, on
+    every SM; 0 where the SM is not in SM_SHARED_BYTES.  The step's threads claim worlds from a
+    queue as they finish (fused.kernel.run_worlds), so a launch of these many keeps every SM
+    full with no second wave."""
+    sm = SM_SHARED_BYTES.get(getattr(device, "arch", 0), 0)
+    per_block = block_dim * shared_bytes_per_thread(n, dtype, band) + BLOCK_SHARED_OVERHEAD
+    blocks = min(sm // per_block, THREAD_WARPS_PER_SM // -(-block_dim // 32))
+    return blocks * device.sm_count * block_dim
 
 
 def shared_block_room(device) -> int:
@@ -311,6 +329,8 @@ def resolve_plan(plan, model) -> ExecutionPlan:
         raise ValueError(f"lane_groups={plan.lane_groups!r} needs scratch='lanes'")
     workers, threads = _threads(plan, device, W, fused, scratch)
     block_dim, groups = _blocks(plan, model, device, scratch, threads, envelope)
+    if shared and device.is_cuda and plan.threads is None:
+        threads = min(threads, resident_threads_shared(device, n, dtype, envelope and banded, block_dim) or threads)
     lock = _lockstep(plan, device, W, scratch, block_dim, groups, n, dtype, envelope)
     steps = int(plan.steps_per_launch or default_steps_per_launch(lock))
     out = ExecutionPlan(fused=fused, scratch=scratch, threads=threads, block_dim=block_dim, lane_groups=groups,

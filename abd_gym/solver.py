@@ -174,6 +174,8 @@ class Solver:
         wb = np.linspace(0, W, chunks + 1).round().astype(int)
         self.newton_launches = [(int(tb[k]), int(tb[k + 1] - tb[k]), int(wb[k]), int(wb[k + 1])) for k in range(chunks)]
         self._chunk_cmds = None
+        # each launch's world queue (thread_kernel's run_worlds): worlds claimed, threads done
+        self.queue = wp.zeros(2 * chunks, dtype=wp.int32, device=dev)
         # how the fused step groups limits and drives with their joints (read again by _build_fused)
         self.joint_terms = joint_terms(model)
         self.q_trial = wp.zeros((T, model.num_bodies), dtype=model.vec12, device=dev)
@@ -457,7 +459,7 @@ class Solver:
             return
         n, hw = m.num_dofs, h_words(m.num_dofs, self.band, self.band)
 
-        def inputs(start, count, wa, wb):
+        def inputs(chunk, start, count, wa, wb):
             # the launch's own scratch: columns start … start + count − 1 of g, H, dq, stored as a
             # block of their own (count columns wide), so concurrent launches share no cache lines
             g, H, dq = self.g_flat, self.H_flat, self.dq_flat
@@ -465,18 +467,18 @@ class Solver:
                 g, H, dq = (a[start * size:(start + count) * size] for a, size in ((g, n), (H, hw), (dq, n)))
             return [state.q, self.q_trial, terms, bracket, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.h),
                     s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
-                    state.factorizations, state.converged]  # fmt: skip
+                    state.factorizations, state.converged, self.queue[2 * chunk: 2 * chunk + 2]]  # fmt: skip
 
         if len(self.newton_launches) == 1:
-            wp.launch(kernel, dim=self.threads, inputs=inputs(*self.newton_launches[0]), device=m.device,
+            wp.launch(kernel, dim=self.threads, inputs=inputs(0, *self.newton_launches[0]), device=m.device,
                       block_dim=self.block_dim)  # fmt: skip
             return
         # CPU: each chunk of threads in its own launch, run at once (a launch releases the GIL);
         # recorded once, since the arguments never change (one state, arrays never reallocated)
         if self._chunk_cmds is None:
-            self._chunk_cmds = [wp.launch(kernel, dim=chunk[1], inputs=inputs(*chunk), device=m.device,
+            self._chunk_cmds = [wp.launch(kernel, dim=chunk[1], inputs=inputs(i, *chunk), device=m.device,
                                           block_dim=self.block_dim, record_cmd=True)
-                                for chunk in self.newton_launches]  # fmt: skip
+                                for i, chunk in enumerate(self.newton_launches)]  # fmt: skip
         futures = [_pool(len(self._chunk_cmds)).submit(cmd.launch) for cmd in self._chunk_cmds[1:]]
         self._chunk_cmds[0].launch()
         for f in futures:

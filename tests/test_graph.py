@@ -326,6 +326,46 @@ def test_held_worlds_are_not_stepped():
         staged.launch_step(1, hold=hold)
 
 
+def test_world_queue_steps_every_world_once():
+    """The thread-per-world step with fewer threads than worlds: each thread takes its first world,
+    then claims the next from the launch's queue whenever its world's solve is over (a GPU warp
+    then never idles on its slowest world).  Every world steps once, bit for bit as with a thread
+    each, held worlds are left alone, and the queue is empty again after every launch, whether the
+    threads run as one launch or as concurrent launches each with its own queue."""
+    import warp as wp
+
+    def make(**kw):
+        sim = ag.Simulator(mechanisms.cartpole(), num_worlds=7, dt=0.02, plan=ag.ExecutionPlan(**kw))
+        rng = np.random.default_rng(11)
+        sim.set_joint_state(rng.uniform(-1.0, 1.0, (7, 2)), rng.uniform(-3.0, 3.0, (7, 2)))
+        sim.set_controls(rng.uniform(-20, 20, (7, 1)))
+        return sim
+
+    ref = make(scratch="global", threads=7, cpu_workers=1, one_launch=True)
+    ref.step(5)
+    iters = ref.newton_iterations()
+    assert iters.min() < iters.max()  # worlds that finish first hand their threads on
+    for kw in (dict(threads=2, cpu_workers=1), dict(threads=4, cpu_workers=2), dict(scratch="shared", threads=3)):
+        sim = make(one_launch=True, **dict(dict(scratch="global"), **kw))
+        assert sim.solver.threads == kw["threads"]
+        sim.step(5)
+        np.testing.assert_array_equal(sim.state.q.numpy(), ref.state.q.numpy(), err_msg=str(kw))
+        np.testing.assert_array_equal(sim.newton_iterations(), iters)
+        assert not sim.solver.queue.numpy().any()
+    free, held = (make(scratch="global", threads=2, cpu_workers=1, one_launch=True) for _ in range(2))
+    assert held.solver.enable_hold()
+    hold = wp.array([0, 0, 1, 0, 0, 1, 0], dtype=wp.int32, device=held.device)
+    q0 = held.state.q.numpy()
+    free.step(3)
+    held.launch_step(3, hold=hold)
+    q, want = held.state.q.numpy(), free.state.q.numpy()
+    np.testing.assert_array_equal(q[[2, 5]], q0[[2, 5]])
+    np.testing.assert_array_equal(np.delete(q, [2, 5], 0), np.delete(want, [2, 5], 0))
+    held.launch_step(2, go=wp.zeros(1, dtype=wp.int32, device=held.device))
+    np.testing.assert_array_equal(held.state.q.numpy(), q)
+    assert not held.solver.queue.numpy().any()
+
+
 def test_default_lane_groups_fill_the_gpu_once():
     """Lane groups a world by default: on a GPU the most of 4, 2, 1 whose warps all fit at once
     (8 a streaming multiprocessor, a block's warps on one) and that each have work (the bodies or
@@ -473,7 +513,7 @@ def test_default_scratch_by_device_size_and_batch():
 
     import warp as wp
 
-    from abd_gym.plan import default_block_dim_shared, default_lane_width, default_scratch
+    from abd_gym.plan import default_block_dim_shared, default_lane_width, default_scratch, resident_threads_shared
 
     gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False, sm_count=0)
     assert default_scratch(cpu, 24, wp.float32, True, 16) == "global"
@@ -501,10 +541,17 @@ def test_default_scratch_by_device_size_and_batch():
     # a banded scene's block band (Model.banded): 20 three-body systems a block, 11 of 60 unknowns, 5 of 120
     assert [default_block_dim_shared(n, wp.float32, True) for n in (36, 60, 120)] == [20, 11, 5]
     assert default_block_dim_shared(36, wp.float32) == 16
-    # past two waves of them, blocks four of which fill an H100's SM (228 KB): 24 and 13
+    # past a wave of them, blocks four of which fill an H100's SM (228 KB): 24 and 13
     h100 = SimpleNamespace(is_cuda=True, sm_count=132, arch=90)
-    assert [default_block_dim_shared(36, wp.float32, True, h100, w) for w in (16384, 25343, 25344)] == [20, 20, 24]
+    assert [default_block_dim_shared(36, wp.float32, True, h100, w) for w in (12671, 12672, 16384)] == [20, 24, 24]
     assert default_block_dim_shared(60, wp.float32, True, h100, 131072) == 13
+    # threads of the shared step by default: the blocks an SM's 228 KB holds, on every SM (the rest
+    # of the worlds from the threads' queue): 4 of 24 three-body systems (58,176 B), 5 of 32
+    # cart-poles (44,544 B), 4 of 20 three-body systems (48,672 B); none known for other SMs
+    assert resident_threads_shared(h100, 36, wp.float32, True, 24) == 4 * 132 * 24
+    assert resident_threads_shared(h100, 24, wp.float32, False, 32) == 5 * 132 * 32
+    assert resident_threads_shared(h100, 36, wp.float32, True, 20) == 4 * 132 * 20
+    assert resident_threads_shared(SimpleNamespace(is_cuda=True, sm_count=84, arch=89), 36, wp.float32, True, 20) == 0
     assert default_block_dim_shared(24, wp.float32, False, h100, 131072) == 32  # a warp already
     assert default_block_dim_shared(36, wp.float32, True, SimpleNamespace(is_cuda=True, sm_count=84, arch=89),
                                     131072) == 20  # an SM of 100 KB: the 48 KB rule

@@ -1,7 +1,8 @@
 """Opening and closing a world's step inside the fused kernel (``bracket``): ``open_world`` runs
 ``Solver.open_step``'s kernels (the finite check, the joints' references, the prediction q̃ and the
 initial guess), ``close_world`` ``Solver.close_step``'s (velocities, histories, joint coordinates),
-a body or a joint per lane; ``step_world`` composes them around the solve."""
+a body or a joint per lane; ``step_world`` composes them around the solve, ``held`` says which
+worlds a step leaves alone."""
 import functools
 from types import SimpleNamespace
 
@@ -112,6 +113,15 @@ def world_step(spec: KernelSpec):
         tick(t, w, lane, PHASE_CLOSE_JOINTS, c)  # (lane 0's joints: no barrier follows them)
 
     @wp.func
+    def held(k: Bracket, w: int):
+        """1 where world w is not stepped: built with ``hold`` (and bracket), a world held
+        (k.hold[w] != 0) or a batch refused (k.go[0] == 0); else 0."""
+        if wp.static(bracket and hold):
+            if k.go[0] == 0 or k.hold[w] != 0:
+                return 1
+        return 0
+
+    @wp.func
     def step_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, k: Bracket,
                    g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, s: int, T: int,
                    row: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
@@ -122,9 +132,8 @@ def world_step(spec: KernelSpec):
         is not stepped: no row of the world is read or written, so that another kernel may rewrite
         it meanwhile (the vector env's autoreset, on a second stream), and its Newton counters keep
         their last values."""
-        if wp.static(bracket and hold):
-            if k.go[0] == 0 or k.hold[w] != 0:
-                return
+        if held(k, w) != 0:
+            return
         if wp.static(bracket):
             c = clock_now()
             open_world(q, t, k, status, w, lane)
@@ -136,4 +145,4 @@ def world_step(spec: KernelSpec):
             close_world(q, t, k, status, w, lane)
             tick(t, w, lane, PHASE_CLOSE, c)
 
-    return SimpleNamespace(step_world=step_world)
+    return SimpleNamespace(step_world=step_world, held=held, open_world=open_world, close_world=close_world)

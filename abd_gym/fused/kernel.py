@@ -7,8 +7,10 @@ import functools
 import warp as wp
 
 from .bracket import world_step
+from .clock import PHASE_CLOSE, PHASE_OPEN, clock
 from .layout import KernelSpec, block_sync as whole_block_sync, indexing, shared_array, tile_address
 from .assembly import assembly
+from .newton import newton as newton_funcs
 from .structs import structs
 from ..warp_ops import ops
 
@@ -50,10 +52,15 @@ def assembly_kernel(spec: KernelSpec):
 @functools.lru_cache(maxsize=None)
 def thread_kernel(spec: KernelSpec):
     """``newton``: a thread per world (scratch "global" or "shared")."""
-    dtype, N, TRI, block = spec.dtype, spec.N, spec.TRI, spec.block
+    dtype, N, TRI, block, bracket = spec.dtype, spec.N, spec.TRI, spec.block, spec.bracket
     vec12 = ops(dtype).vec12
     Terms, Bracket = structs(dtype).Terms, structs(dtype).Bracket
-    step_world = world_step(spec).step_world
+    ws = world_step(spec)
+    held, open_world, close_world = ws.held, ws.open_world, ws.close_world
+    nt = newton_funcs(spec)
+    open_solve, iterate = nt.open_solve, nt.iterate
+    clock_now, tick = clock(spec).clock_now, clock(spec).tick
+    zero = dtype(0.0)
     SIZE = 4 if dtype == wp.float32 else 8
     # a thread per world with its g, H, Δq in the block's shared memory (scratch="shared", CUDA): the
     # factor's and solves' ~n³/6 dependent loads then wait ~30 cycles each instead of an L1 miss's
@@ -65,36 +72,93 @@ def thread_kernel(spec: KernelSpec):
         one_count = (TRI + 2 * N) * block
         one_address = tile_address(dtype, one_count)
 
+    @wp.func
+    def run_worlds(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, k: Bracket,
+                   g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), col: int, B: int,
+                   row: int, c: int, Tw: int, wa: int, wb: int, threshold: dtype, max_iterations: int,
+                   max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
+                   iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
+                   converged: wp.array(dtype=wp.int32), queue: wp.array(dtype=wp.int32)):  # fmt: skip
+        """Thread c's worlds, one Newton iteration a pass: world wa + c first, then those it claims
+        from the launch's queue (queue[0]: worlds wa + Tw, wa + Tw + 1, … taken so far) whenever its
+        world's solve is over, until none is left.  A GPU warp runs its threads' passes together, so
+        a world that converges in one iteration hands its thread the next world while a slower
+        world of the same warp iterates on, where a world a thread would leave that thread idle
+        until the warp's slowest world converged.  The last thread out (queue[1] counts them)
+        empties the queue for the next launch."""
+        w = wa + c
+        fresh = int(1)  # 1: w is a world this thread has not opened yet
+        skip = int(0)
+        solving = int(0)
+        chord = int(0)
+        d_prev = zero
+        nfact = int(0)
+        its = int(0)
+        cap = int(0)
+        spare = int(0)
+        while w < wb:
+            if fresh != 0:
+                fresh = 0
+                solving = 0
+                skip = held(k, w)
+                if skip == 0:
+                    if wp.static(bracket):
+                        ck = clock_now()
+                        open_world(q, t, k, status, w, 0)
+                        tick(t, w, 0, PHASE_OPEN, ck)
+                    solving = open_solve(t, w, status, iterations, factorizations, converged, 0)
+                    chord = 0
+                    d_prev = zero
+                    nfact = 0
+                    its = 0
+                    cap = max_iterations
+                    spare = reuse
+                    if cap <= 0:
+                        solving = 0
+            over = int(1)
+            if solving != 0:
+                over, chord, d_prev, nfact, its, cap, spare = iterate(
+                    q, q_trial, t, g, H, dq, w, col, B, row, threshold, max_iterations, max_line_search, reuse,
+                    status, iterations, factorizations, converged, 0, chord, d_prev, nfact, its, cap, spare)  # fmt: skip
+            if over != 0:
+                if wp.static(bracket):
+                    if skip == 0:
+                        ck = clock_now()
+                        close_world(q, t, k, status, w, 0)
+                        tick(t, w, 0, PHASE_CLOSE, ck)
+                w = wa + Tw + wp.atomic_add(queue, 0, 1)
+                fresh = 1
+        if wp.atomic_add(queue, 1, 1) == Tw - 1:
+            queue[0] = 0
+            queue[1] = 0
+
     @wp.kernel(**options)
     def newton(
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, k: Bracket,
         g: wp.array(dtype=dtype), H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype),
         s0: int, Tw: int, wa: int, wb: int, threshold: dtype, max_iterations: int, max_line_search: int, reuse: int,
         status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-        factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
+        factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), queue: wp.array(dtype=wp.int32),
     ):  # fmt: skip
-        """The launch's Tw threads solve worlds wa … wb − 1, thread c the worlds wa + c, wa + c + Tw,
-        …: a thread's scratch is reused world after world, so it stays in cache however many worlds
-        there are.  On a GPU one launch runs every world; on the CPU ranges of threads and worlds run
-        as concurrent launches, each with its own scratch (g, H, dq: Tw columns) and its own run of
-        worlds, so they share no cache lines; s0 + c is the thread's row of q_trial.  (One step a
-        launch: a loop of steps around step_world cost 12% at 16,384 and 131,072 cart-poles on an
-        H100.)"""
+        """The launch's Tw threads solve worlds wa … wb − 1 (run_worlds), each a world at a time: a
+        thread's scratch is reused world after world, so it stays in cache however many worlds there
+        are.  On the CPU ranges of threads and worlds run as concurrent launches, each with its own
+        scratch (g, H, dq: Tw columns), its own run of worlds and its own queue (2 words); s0 + c is
+        the thread's row of q_trial.  (One step a launch: a loop of steps around a world's step cost
+        12% at 16,384 and 131,072 cart-poles on an H100.)"""
         c = wp.tid()
         s = c + s0
         if wp.static(in_smem):
-            col = c % block  # the thread's column of its block's scratch
             base = one_address(wp.tile_empty(shape=(one_count,), dtype=dtype, storage="shared"))
             Hs = wp.array(ptr=base, shape=(TRI * block,), dtype=dtype)
             gs = wp.array(ptr=base + wp.uint64(TRI * block * SIZE), shape=(N * block,), dtype=dtype)
             ds = wp.array(ptr=base + wp.uint64((TRI + N) * block * SIZE), shape=(N * block,), dtype=dtype)
-            for w in range(wa + c, wb, Tw):
-                step_world(q, q_trial, t, k, gs, Hs, ds, w, col, block, s, threshold, max_iterations,
-                           max_line_search, reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
+            # the thread's column c % block of its block's scratch
+            run_worlds(q, q_trial, t, k, gs, Hs, ds, c % block, block, s, c, Tw, wa, wb, threshold, max_iterations,
+                       max_line_search, reuse, status, iterations, factorizations, converged, queue)  # fmt: skip
         else:
-            for w in range(wa + c, wb, Tw):
-                step_world(q, q_trial, t, k, g, H, dq, w, c, Tw, s, threshold, max_iterations, max_line_search,
-                           reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
+            run_worlds(q, q_trial, t, k, g, H, dq, c, Tw, s, c, Tw, wa, wb, threshold, max_iterations,
+                       max_line_search, reuse, status, iterations, factorizations, converged, queue)  # fmt: skip
 
     return newton
 

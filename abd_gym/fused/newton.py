@@ -245,13 +245,143 @@ def newton(spec: KernelSpec):
     zero, one = dtype(0.0), dtype(1.0)
 
     @wp.func
+    def open_solve(t: Terms, w: int, status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
+                   factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
+        """World w's counters cleared (by lane 0); 1 where its solve runs (its status is OK), else 0."""
+        if lane == 0:
+            iterations[w] = 0
+            factorizations[w] = 0
+            converged[w] = 0
+            t.retried[w] = 0
+        return wp.where(status[w] == OK, 1, 0)
+
+    @wp.func
+    def iterate(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
+                H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, s: int, T: int, row: int, threshold: dtype,
+                max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
+                iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
+                converged: wp.array(dtype=wp.int32), lane: int, chord: int, d_prev: dtype, nfact: int, its: int,
+                cap: int, spare: int):  # fmt: skip
+        """One Newton iteration of world w's solve (solve_world): zero, assemble, factor and solve, take
+        the step.  The solve's state goes in and comes back: ``chord`` (1: H holds the factor of an
+        earlier iteration, reused for this one; chord_step), ``d_prev`` (the last step's ‖Δq‖∞),
+        ``nfact`` (factorisations so far), ``its`` (Newton iterations, solves, so far), ``cap`` (the
+        budget), ``spare`` (1: a budget from a fresh factor is left).  Returns (1 when the solve is
+        over, converged or rejected, else 0; the new state)."""
+        c = clock_now()
+        if wp.static(G > 1):  # every group's copy (lanes: T = 1)
+            for cp in range(G):
+                for i in range(lane, N, LANES):
+                    g[s + cp * TRI + i] = zero
+                if chord <= 0:
+                    for p in range(lane, TRI, LANES):
+                        H[s + cp * TRI + p] = zero
+        else:
+            for i in range(lane, N, LANES):
+                g[i * T + s] = zero
+                if chord <= 0:
+                    j0 = int(0)
+                    if wp.static(envelope):
+                        j0 = t.first[i]
+                    if wp.static(band):
+                        j0 = row_first(i)
+                    p = (hrow(i) + j0) * T + s
+                    for j in range(j0, i + 1):
+                        H[p] = zero
+                        p += T
+        if wp.static(lanes):
+            block_sync()
+        c = tick(t, w, lane, PHASE_ZERO, c)
+        e0 = zero
+        ok = int(0)
+        gdq = zero
+        dmax = zero
+        g_abs = zero
+        if wp.static(compact):
+            # one call with the derivatives chosen at run time: a second inlined assemble
+            # (gradient only) would add ~54 KB of code
+            e0 = assemble(q, w, w, s, T, wp.where(chord > 0, GRADIENT, HESSIAN), t, g, H)
+        elif chord > 0:
+            e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
+        else:
+            e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
+        c = tick(t, w, lane, PHASE_ASSEMBLE, c)
+        if chord <= 0:
+            nfact += 1
+        if wp.static(warp_regs and G == 1):
+            block_sync()  # the factor reads every lane's rows
+            ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
+            c = tick(t, w, lane, PHASE_FACTOR, c)  # (the factor and the substitutions)
+            if ok != 0:
+                ok, gdq, dmax, g_abs = reductions(g, dq, s, N, 1)
+            c = tick(t, w, lane, PHASE_SOLVE, c)
+        elif wp.static(warp_regs):
+            # lane groups: the first group's warp factors and solves (assemble_groups ended with a
+            # barrier), and passes ok to the others through slot N + NF + G of g
+            if lane < 32:
+                ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
+                if lane == 0:
+                    g[s + N + NF + G] = wp.where(ok != 0, one, zero)
+            block_sync()
+            ok = wp.where(g[s + N + NF + G] != zero, 1, 0)
+            c = tick(t, w, lane, PHASE_FACTOR, c)
+            if ok != 0:
+                ok, gdq, dmax, g_abs = reductions(g, dq, s, N, 1)
+            c = tick(t, w, lane, PHASE_SOLVE, c)
+        elif wp.static(lanes):
+            block_sync()  # the factor and the solves read every lane's rows
+            ok = 1
+            if chord <= 0:
+                ok = ldl_lanes(H, s, lane)
+            c = tick(t, w, lane, PHASE_FACTOR, c)
+            if ok != 0:
+                ok, gdq, dmax, g_abs = solve_lanes(H, g, dq, s, lane)
+            c = tick(t, w, lane, PHASE_SOLVE, c)
+        elif chord > 0:
+            ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, N, T, t.first)
+            c = tick(t, w, lane, PHASE_SOLVE, c)
+        else:
+            ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, N, T, t.first)
+            c = tick(t, w, lane, PHASE_FACTOR, c)
+        if lane == 0:
+            factorizations[w] = nfact
+        stop = int(3)  # 3: the factor or the solve broke down
+        if ok != 0:
+            its += 1
+            if lane == 0:
+                iterations[w] = its
+            stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord,
+                                    reuse, d_prev, max_line_search, converged, lane)  # fmt: skip
+            c = tick(t, w, lane, PHASE_STEP, c)
+        if stop == 1:
+            return 1, chord, dmax, nfact, its, cap, spare
+        if stop >= 2 or its == cap:
+            if spare == 0:
+                if lane == 0:
+                    status[w] = wp.where(stop == 3, BREAKDOWN, UNCONVERGED)
+                return 1, chord, dmax, nfact, its, cap, spare
+            # the retry: reuse's budget spent, or its iterates broke down or stalled
+            spare = 0
+            chord = -1
+            cap = its + max_iterations
+            if lane == 0:
+                t.retried[w] = 1
+            for b in range(lane, q.shape[1], LANES):
+                if t.dof[b] >= 0:
+                    q[w, b] = t.q_tilde[w, b]
+            if wp.static(lanes):
+                block_sync()
+        return 0, chord, dmax, nfact, its, cap, spare
+
+    @wp.func
     def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
                     H: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, s: int, T: int, row: int, threshold: dtype,
                     max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
                     iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
                     converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
         """World w's whole Newton solve, in scratch column s (of T) of the flat g, H, dq and row
-        ``row`` of q_trial; lane ``lane`` of LANES (one thread per world: 0 of 1).
+        ``row`` of q_trial; lane ``lane`` of LANES (one thread per world: 0 of 1): open_solve, then
+        iterate until the solve is over.
 
         With ``reuse``, an iteration after a full step (α = 1) keeps the Cholesky factor it left in H
         and solves only the new gradient against it (a simplified-Newton step; see ``chord_step``).
@@ -259,128 +389,23 @@ def newton(spec: KernelSpec):
         convergence or the factor breaks down.  A solve with ``reuse`` then starts again from the
         prediction q̃ (t.q_tilde: the extrapolated guess it began from is not kept, which would cost a
         store per body every step) with max_iterations more, factoring at every one (chord −1), so
-        factor reuse never commits a step that a fresh factor could not solve.  A solve that ends its last budget unconverged is
-        rejected (status UNCONVERGED, or BREAKDOWN; close_world keeps qⁿ).  The counts include the
-        retry's iterations.  Lane-split, every lane takes every branch (each decides from the same
-        sums in the same order) and lane 0 alone writes the world's counters."""
-        if lane == 0:
-            iterations[w] = 0
-            factorizations[w] = 0
-            converged[w] = 0
-            t.retried[w] = 0
-        if status[w] != OK:
+        factor reuse never commits a step that a fresh factor could not solve.  A solve that ends its
+        last budget unconverged is rejected (status UNCONVERGED, or BREAKDOWN; close_world keeps qⁿ).
+        The counts include the retry's iterations.  Lane-split, every lane takes every branch (each
+        decides from the same sums in the same order) and lane 0 alone writes the world's counters."""
+        if open_solve(t, w, status, iterations, factorizations, converged, lane) == 0:
             return 0
-        chord = int(0)  # 1: H holds the factor of an earlier iteration, reused for this one (chord_step)
+        chord = int(0)
         d_prev = zero
         nfact = int(0)
-        its = int(0)  # Newton iterations (solves) so far
-        cap = max_iterations  # the budget
-        spare = reuse  # 1: a budget from a fresh factor is left
-        while its < cap:
-            c = clock_now()
-            if wp.static(G > 1):  # every group's copy (lanes: T = 1)
-                for cp in range(G):
-                    for i in range(lane, N, LANES):
-                        g[s + cp * TRI + i] = zero
-                    if chord <= 0:
-                        for p in range(lane, TRI, LANES):
-                            H[s + cp * TRI + p] = zero
-            else:
-                for i in range(lane, N, LANES):
-                    g[i * T + s] = zero
-                    if chord <= 0:
-                        j0 = int(0)
-                        if wp.static(envelope):
-                            j0 = t.first[i]
-                        if wp.static(band):
-                            j0 = row_first(i)
-                        p = (hrow(i) + j0) * T + s
-                        for j in range(j0, i + 1):
-                            H[p] = zero
-                            p += T
-            if wp.static(lanes):
-                block_sync()
-            c = tick(t, w, lane, PHASE_ZERO, c)
-            e0 = zero
-            ok = int(0)
-            gdq = zero
-            dmax = zero
-            g_abs = zero
-            if wp.static(compact):
-                # one call with the derivatives chosen at run time: a second inlined assemble
-                # (gradient only) would add ~54 KB of code
-                e0 = assemble(q, w, w, s, T, wp.where(chord > 0, GRADIENT, HESSIAN), t, g, H)
-            elif chord > 0:
-                e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
-            else:
-                e0 = assemble(q, w, w, s, T, HESSIAN, t, g, H)
-            c = tick(t, w, lane, PHASE_ASSEMBLE, c)
-            if chord <= 0:
-                nfact += 1
-            if wp.static(warp_regs and G == 1):
-                block_sync()  # the factor reads every lane's rows
-                ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
-                c = tick(t, w, lane, PHASE_FACTOR, c)  # (the factor and the substitutions)
-                if ok != 0:
-                    ok, gdq, dmax, g_abs = reductions(g, dq, s, N, 1)
-                c = tick(t, w, lane, PHASE_SOLVE, c)
-            elif wp.static(warp_regs):
-                # lane groups: the first group's warp factors and solves (assemble_groups ended with a
-                # barrier), and passes ok to the others through slot N + NF + G of g
-                if lane < 32:
-                    ok = regs_ldl_solve(H, g, dq, lane, wp.where(chord <= 0, 1, 0))
-                    if lane == 0:
-                        g[s + N + NF + G] = wp.where(ok != 0, one, zero)
-                block_sync()
-                ok = wp.where(g[s + N + NF + G] != zero, 1, 0)
-                c = tick(t, w, lane, PHASE_FACTOR, c)
-                if ok != 0:
-                    ok, gdq, dmax, g_abs = reductions(g, dq, s, N, 1)
-                c = tick(t, w, lane, PHASE_SOLVE, c)
-            elif wp.static(lanes):
-                block_sync()  # the factor and the solves read every lane's rows
-                ok = 1
-                if chord <= 0:
-                    ok = ldl_lanes(H, s, lane)
-                c = tick(t, w, lane, PHASE_FACTOR, c)
-                if ok != 0:
-                    ok, gdq, dmax, g_abs = solve_lanes(H, g, dq, s, lane)
-                c = tick(t, w, lane, PHASE_SOLVE, c)
-            elif chord > 0:
-                ok, gdq, dmax, g_abs = factored_solve(H, g, dq, s, N, T, t.first)
-                c = tick(t, w, lane, PHASE_SOLVE, c)
-            else:
-                ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, N, T, t.first)
-                c = tick(t, w, lane, PHASE_FACTOR, c)
-            if lane == 0:
-                factorizations[w] = nfact
-            stop = int(3)  # 3: the factor or the solve broke down
-            if ok != 0:
-                its += 1
-                if lane == 0:
-                    iterations[w] = its
-                stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord,
-                                        reuse, d_prev, max_line_search, converged, lane)  # fmt: skip
-                c = tick(t, w, lane, PHASE_STEP, c)
-            if stop == 1:
-                return 0
-            if stop >= 2 or its == cap:
-                if spare == 0:
-                    if lane == 0:
-                        status[w] = wp.where(stop == 3, BREAKDOWN, UNCONVERGED)
-                    return 0
-                # the retry: reuse's budget spent, or its iterates broke down or stalled
-                spare = 0
-                chord = -1
-                cap = its + max_iterations
-                if lane == 0:
-                    t.retried[w] = 1
-                for b in range(lane, q.shape[1], LANES):
-                    if t.dof[b] >= 0:
-                        q[w, b] = t.q_tilde[w, b]
-                if wp.static(lanes):
-                    block_sync()
-            d_prev = dmax
+        its = int(0)
+        cap = max_iterations
+        spare = reuse
+        over = wp.where(cap > 0, 0, 1)
+        while over == 0:
+            over, chord, d_prev, nfact, its, cap, spare = iterate(
+                q, q_trial, t, g, H, dq, w, s, T, row, threshold, max_iterations, max_line_search, reuse, status,
+                iterations, factorizations, converged, lane, chord, d_prev, nfact, its, cap, spare)  # fmt: skip
         return 0
 
-    return SimpleNamespace(solve_world=solve_world)
+    return SimpleNamespace(solve_world=solve_world, open_solve=open_solve, iterate=iterate)
