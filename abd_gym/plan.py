@@ -34,7 +34,7 @@ class ExecutionPlan:
     # the fused step's g, H, Δq: "global" (a column a thread), "shared" (a thread a world, H packed in its block's
     # shared memory) or "lanes" (block_dim lanes a world, its system packed); None: default_scratch
     scratch: str | None = None
-    # fused-step threads, thread s solving worlds s, s + threads, … (not with "lanes"); None: default_threads
+    # fused-step threads, each solving worlds in turn from the launch's queue (not with "lanes"); None: default_threads
     threads: int | None = None
     # CUDA block size, lanes a world with "lanes"; None: default_block_dim / _block_dim_shared / default_lane_width
     block_dim: int | None = None
