@@ -228,11 +228,11 @@ def stepping(spec: KernelSpec):
 def newton(spec: KernelSpec):
     """``solve_world``: a world's whole Newton solve (see its docstring)."""
     dtype, N, NF, TRI, LANES, G, RL = spec.dtype, spec.N, spec.NF, spec.TRI, spec.LANES, spec.G, spec.RL
-    lanes, compact, envelope, band, warp_regs = spec.lanes, spec.compact, spec.envelope, spec.band, spec.warp_regs
+    lanes, compact, envelope, warp_regs = spec.lanes, spec.compact, spec.envelope, spec.warp_regs
+    packed = spec.packed and not envelope
     vec12 = ops(dtype).vec12
     Terms = structs(dtype).Terms
     staged = spec.staged()
-    row_first = staged["row_first"]
     cholesky_solve, factored_solve = staged["cholesky_solve"], staged["factored_solve"]
     reductions = staged["reductions"]
     regs_ldl_solve = warp_ldl_solve(dtype, N, RL) if warp_regs else None
@@ -276,6 +276,13 @@ def newton(spec: KernelSpec):
                 if chord <= 0:
                     for p in range(lane, TRI, LANES):
                         H[s + cp * TRI + p] = zero
+        elif wp.static(packed):
+            # H packed (the triangle or the block band): its TRI words are one run of the column
+            for i in range(lane, N, LANES):
+                g[i * T + s] = zero
+            if chord <= 0:
+                for p in range(lane, TRI, LANES):
+                    H[p * T + s] = zero
         else:
             for i in range(lane, N, LANES):
                 g[i * T + s] = zero
@@ -283,8 +290,6 @@ def newton(spec: KernelSpec):
                     j0 = int(0)
                     if wp.static(envelope):
                         j0 = t.first[i]
-                    if wp.static(band):
-                        j0 = row_first(i)
                     p = (hrow(i) + j0) * T + s
                     for j in range(j0, i + 1):
                         H[p] = zero
