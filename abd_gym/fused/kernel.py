@@ -81,11 +81,11 @@ def thread_kernel(spec: KernelSpec):
                    converged: wp.array(dtype=wp.int32), queue: wp.array(dtype=wp.int32)):  # fmt: skip
         """Thread c's worlds, one Newton iteration a pass: world wa + c first, then those it claims
         from the launch's queue (queue[0]: worlds wa + Tw, wa + Tw + 1, … taken so far) whenever its
-        world's solve is over, until none is left.  A GPU warp runs its threads' passes together, so
-        a world that converges in one iteration hands its thread the next world while a slower
-        world of the same warp iterates on, where a world a thread would leave that thread idle
-        until the warp's slowest world converged.  The last thread out (queue[1] counts them)
-        empties the queue for the next launch."""
+        world's solve is over, until none is left.  A GPU warp runs its threads' passes together: a
+        thread whose world has converged takes the next world while a slower world of the warp
+        iterates on, instead of idling until that world converges.  A claim returns only once the
+        counter has moved, so when the last thread out (queue[1] counts them) empties the queue for
+        the next launch, every claim of this one is done."""
         w = wa + c
         fresh = int(1)  # 1: w is a world this thread has not opened yet
         skip = int(0)
