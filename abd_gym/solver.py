@@ -175,7 +175,7 @@ class Solver:
         self.newton_launches = [(int(tb[k]), int(tb[k + 1] - tb[k]), int(wb[k]), int(wb[k + 1])) for k in range(chunks)]
         self._chunk_cmds = None
         # each launch's world queue (thread_kernel's run_worlds): worlds claimed, threads done
-        self.queue = wp.zeros(2 * chunks, dtype=wp.int32, device=dev)
+        self.queues = [wp.zeros(2, dtype=wp.int32, device=dev) for _ in range(chunks)]
         # how the fused step groups limits and drives with their joints (read again by _build_fused)
         self.joint_terms = joint_terms(model)
         self.q_trial = wp.zeros((T, model.num_bodies), dtype=model.vec12, device=dev)
@@ -467,7 +467,7 @@ class Solver:
                 g, H, dq = (a[start * size:(start + count) * size] for a, size in ((g, n), (H, hw), (dq, n)))
             return [state.q, self.q_trial, terms, bracket, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.h),
                     s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
-                    state.factorizations, state.converged, self.queue[2 * chunk: 2 * chunk + 2]]  # fmt: skip
+                    state.factorizations, state.converged, self.queues[chunk]]  # fmt: skip
 
         if len(self.newton_launches) == 1:
             wp.launch(kernel, dim=self.threads, inputs=inputs(0, *self.newton_launches[0]), device=m.device,
