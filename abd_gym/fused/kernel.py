@@ -106,15 +106,8 @@ def thread_kernel(spec: KernelSpec):
                         ck = clock_now()
                         open_world(q, t, k, status, w, 0)
                         tick(t, w, 0, PHASE_OPEN, ck)
-                    solving = open_solve(t, w, status, iterations, factorizations, converged, 0)
-                    chord = 0
-                    d_prev = zero
-                    nfact = 0
-                    its = 0
-                    cap = max_iterations
-                    spare = reuse
-                    if cap <= 0:
-                        solving = 0
+                    solving, chord, d_prev, nfact, its, cap, spare = open_solve(
+                        t, w, max_iterations, reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
             over = int(1)
             if solving != 0:
                 over, chord, d_prev, nfact, its, cap, spare = iterate(

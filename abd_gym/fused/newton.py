@@ -245,15 +245,18 @@ def newton(spec: KernelSpec):
     zero, one = dtype(0.0), dtype(1.0)
 
     @wp.func
-    def open_solve(t: Terms, w: int, status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32),
-                   factorizations: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
-        """World w's counters cleared (by lane 0); 1 where its solve runs (its status is OK), else 0."""
+    def open_solve(t: Terms, w: int, max_iterations: int, reuse: int, status: wp.array(dtype=wp.int32),
+                   iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
+                   converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
+        """World w's counters cleared (by lane 0); (1 where its solve runs: its status is OK and the
+        budget max_iterations is not empty, else 0; the solve's first state, as iterate takes it)."""
         if lane == 0:
             iterations[w] = 0
             factorizations[w] = 0
             converged[w] = 0
             t.retried[w] = 0
-        return wp.where(status[w] == OK, 1, 0)
+        solving = wp.where(status[w] == OK and max_iterations > 0, 1, 0)
+        return solving, int(0), zero, int(0), int(0), max_iterations, reuse
 
     @wp.func
     def iterate(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
@@ -269,20 +272,15 @@ def newton(spec: KernelSpec):
         budget), ``spare`` (1: a budget from a fresh factor is left).  Returns (1 when the solve is
         over, converged or rejected, else 0; the new state)."""
         c = clock_now()
-        if wp.static(G > 1):  # every group's copy (lanes: T = 1)
+        if wp.static(G > 1 or packed):
+            # H packed (the triangle or the block band): its TRI words are one run of the column;
+            # lane groups (T = 1): every group's copy of g and H, each TRI words on
             for cp in range(G):
                 for i in range(lane, N, LANES):
-                    g[s + cp * TRI + i] = zero
+                    g[(cp * TRI + i) * T + s] = zero
                 if chord <= 0:
                     for p in range(lane, TRI, LANES):
-                        H[s + cp * TRI + p] = zero
-        elif wp.static(packed):
-            # H packed (the triangle or the block band): its TRI words are one run of the column
-            for i in range(lane, N, LANES):
-                g[i * T + s] = zero
-            if chord <= 0:
-                for p in range(lane, TRI, LANES):
-                    H[p * T + s] = zero
+                        H[(cp * TRI + p) * T + s] = zero
         else:
             for i in range(lane, N, LANES):
                 g[i * T + s] = zero
@@ -398,15 +396,9 @@ def newton(spec: KernelSpec):
         last budget unconverged is rejected (status UNCONVERGED, or BREAKDOWN; close_world keeps qⁿ).
         The counts include the retry's iterations.  Lane-split, every lane takes every branch (each
         decides from the same sums in the same order) and lane 0 alone writes the world's counters."""
-        if open_solve(t, w, status, iterations, factorizations, converged, lane) == 0:
-            return 0
-        chord = int(0)
-        d_prev = zero
-        nfact = int(0)
-        its = int(0)
-        cap = max_iterations
-        spare = reuse
-        over = wp.where(cap > 0, 0, 1)
+        solving, chord, d_prev, nfact, its, cap, spare = open_solve(t, w, max_iterations, reuse, status, iterations,
+                                                                    factorizations, converged, lane)  # fmt: skip
+        over = 1 - solving
         while over == 0:
             over, chord, d_prev, nfact, its, cap, spare = iterate(
                 q, q_trial, t, g, H, dq, w, s, T, row, threshold, max_iterations, max_line_search, reuse, status,
