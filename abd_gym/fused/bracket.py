@@ -33,8 +33,7 @@ def world_step(spec: KernelSpec):
     limit_engaged = coordinates.restart_funcs(dtype)[0]
     limit_reach = staged["limit_reach"]
     # the scene's limits, by kind: a term of their own or folded into their joint's
-    has_rlim, has_plim = (spec.has(name) or any(f[0] == name for f in spec.folds)
-                          for name in ("revolute_limit", "prismatic_limit"))  # fmt: skip
+    has_rlim, has_plim = spec.models("revolute_limit"), spec.models("prismatic_limit")
     block_sync = indexing(spec).block_sync
     clock_now, tick = clock(spec).clock_now, clock(spec).tick
     solve_world = newton(spec).solve_world

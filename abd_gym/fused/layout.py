@@ -121,6 +121,7 @@ class KernelSpec:
     quadratic: float = 0.0
     hold: bool = False
     band: bool = False
+    limits: tuple = (0, 0)
 
     def __post_init__(self):
         if self.LANES % self.G:
@@ -133,6 +134,11 @@ class KernelSpec:
     def has(self, name: str) -> bool:
         """Whether constitution ``name`` has fused terms of its own (terms.fused_flags)."""
         return name in self.own
+
+    def models(self, name: str) -> bool:
+        """Whether the scene has constitution ``name`` at all: terms of its own or folded into its
+        joints' terms."""
+        return self.has(name) or any(f[0] == name for f in self.folds)
 
     def folded(self, joint_kind: str) -> tuple:
         """The coordinate constitutions folded into joints of ``joint_kind``'s terms, in registry

@@ -2,7 +2,8 @@
 (unless it reuses the factor) H, factors and solves H Δq = −g, then ``take_step``: the stop tests
 (‖Δq‖∞ under the tolerance; the predicted decrease −gᵀΔq under the energy's rounding; a fresh
 step under ``quadratic`` × q's rounding), the line search (Armijo's test
-E(q + αΔq) ≤ E(q) + 10⁻⁴ α gᵀΔq with rounding-level slack, α halved on rejection), the choice
+E(q + αΔq) ≤ E(q) + 10⁻⁴ α gᵀΔq with rounding-level slack, α halved on rejection, in a scene
+with limits the step their cubics put the minimum at tried first: ``limit_step``), the choice
 to reuse the factor (``chord_step``) and the update of q along the bodies' retraction."""
 import functools
 from types import SimpleNamespace
@@ -11,6 +12,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from ..angles import angle_ops
 from ..constitutions import affine_body
 from ..status import BREAKDOWN, OK, UNCONVERGED
 from ..warp_ops import ENERGY, GRADIENT, HESSIAN, ops
@@ -33,7 +35,14 @@ def line_search(spec: KernelSpec):
     block_sync = indexing(spec).block_sync
     assemble = assembly(spec).assemble
     clock_now, tick = clock(spec).clock_now, clock(spec).tick
-    one, half = dtype(1.0), dtype(0.5)
+    angles = angle_ops(dtype)
+    cos_sin, delta_theta, displacement = angles.cos_sin, angles.delta_theta, angles.displacement
+    # the scene's limits (KernelSpec.limits), whose cubics the line search models (limit_step)
+    NR, NP = spec.limits
+    NL = NR + NP
+    has_limits = NL > 0
+    vecL = wp.types.vector(length=max(NL, 1), dtype=dtype)
+    zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
 
     @wp.func
@@ -55,6 +64,108 @@ def line_search(spec: KernelSpec):
             block_sync()
 
     @wp.func
+    def overrun(x: dtype, lo: dtype, up: dtype, inv: dtype):
+        """A limit's overrun r = max(x − u, l − x)·inv: > 0 where its cubic s·r³ acts."""
+        return wp.max(x - up, lo - x) * inv
+
+    @wp.func
+    def rlim_overrun(q: wp.array2d(dtype=vec12), qr: int, t: Terms, w: int, k: int):
+        """Revolute limit k's overrun [rad] at row qr of q (its angle θ0 + ΔΘ as revolute_limit)."""
+        j = t.rlim_ids[k]
+        c, sn = cos_sin(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.n_a[w, j], t.b_a[w, j], t.n_b[w, j], t.b_b[w, j])
+        x = t.theta0[w, j] + delta_theta(c, sn, t.c_prev[w, j], t.s_prev[w, j])
+        return overrun(x, t.rlim_lo[w, k], t.rlim_up[w, k], one)
+
+    @wp.func
+    def plim_overrun(q: wp.array2d(dtype=vec12), qr: int, t: Terms, w: int, k: int):
+        """Prismatic limit k's overrun at row qr of q, over the range's width (prismatic_limit)."""
+        j = t.plim_ids[k]
+        lo = t.plim_lo[w, k]
+        up = t.plim_up[w, k]
+        x = displacement(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.c_a[w, j], t.c_b[w, j], t.t_a[w, j])
+        return overrun(x, lo, up, wp.where(up > lo, one / (up - lo), one))
+
+    @wp.func
+    def line_slope(r0: vecL, dr: vecL, st: vecL, A: dtype, B: dtype, alpha: dtype):
+        """(φ′(α), φ″(α)) of the line model φ(α) = Aα + Bα²/2 + Σ s(r₀ + αΔ)³₊ (limit_step)."""
+        d1 = A + B * alpha
+        d2 = B
+        for k in range(wp.static(NL)):
+            r = r0[k] + alpha * dr[k]
+            if r > zero:
+                sd = st[k] * dr[k]
+                d1 += dtype(3.0) * sd * r * r
+                d2 += dtype(6.0) * sd * dr[k] * r
+        return d1, d2
+
+    @wp.func
+    def limit_step(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, w: int, row: int,
+                   gdq: dtype):  # fmt: skip
+        """The step α* along the Newton step Δq at which the world's energy is least, where a limit
+        acts at q or at the trial q + Δq (row ``row`` of q_trial); else 1.
+
+        Newton's quadratic model misses a limit's one-sided cubic s·r³ wherever the iterate is off
+        it: from r ≤ 0 the model has no curvature there, and its step runs to the free motion's
+        overrun (backtracking then halves it, an iteration at a time); from r > 0 its curvature
+        6s·r overestimates the cubic's on the way out, and the step stops halfway to r = 0.  Each
+        costs iterations (design.md §4).  Along the step this model keeps the cubics exact: each
+        limit's overrun goes linearly from r₀ (at q) to r₁ (at the trial), Δ = r₁ − r₀, and the
+        rest of the energy is Newton's quadratic with the limits' own parts taken out, slope
+        A = gᵀΔq − Σ 3s·r₀₊²Δ and curvature B = −gᵀΔq − Σ 6s·r₀₊Δ² (H Δq = −g).  φ(α) = Aα + Bα²/2
+        + Σ s(r₀ + αΔ)³₊ is convex; its minimum is found by Newton's method on φ′ in a bracket."""
+        r0 = vecL()
+        dr = vecL()
+        st = vecL()
+        A = gdq
+        B = -gdq
+        acts = int(0)
+        for k in range(wp.static(NL)):
+            r1 = zero
+            if wp.static(k < NR):
+                r0[k] = rlim_overrun(q, w, t, w, k)
+                r1 = rlim_overrun(q_trial, row, t, w, k)
+                st[k] = t.rlim_s[w, k]
+            else:
+                r0[k] = plim_overrun(q, w, t, w, k - NR)
+                r1 = plim_overrun(q_trial, row, t, w, k - NR)
+                st[k] = t.plim_s[w, k - NR]
+            dr[k] = r1 - r0[k]
+            if r0[k] > zero or r1 > zero:
+                acts = 1
+            if r0[k] > zero:
+                A -= dtype(3.0) * st[k] * r0[k] * r0[k] * dr[k]
+                B -= dtype(6.0) * st[k] * r0[k] * dr[k] * dr[k]
+        if acts == 0 or gdq >= zero:
+            return one
+        # the rest of the energy is convex (the bodies' inertia at least): a model that says
+        # otherwise is off, and a thousandth of Newton's own curvature along the step stands in
+        B = wp.max(B, dtype(1.0e-3) * (-gdq))
+        lo = zero
+        hi = one
+        d1, d2 = line_slope(r0, dr, st, A, B, hi)
+        while d1 < zero and hi < dtype(4.0):
+            lo = hi
+            hi = hi * dtype(2.0)
+            d1, d2 = line_slope(r0, dr, st, A, B, hi)
+        if d1 < zero:
+            return hi
+        a = hi
+        for _it in range(24):
+            # Newton on φ′ from the bracket's right end (φ′ > 0), bisection where it leaves it
+            a_new = a - d1 / d2
+            if a_new <= lo or a_new >= hi:
+                a_new = dtype(0.5) * (lo + hi)
+            a = a_new
+            d1, d2 = line_slope(r0, dr, st, A, B, a)
+            if d1 > zero:
+                hi = a
+            else:
+                lo = a
+            if hi - lo < dtype(1.0e-3) * hi or wp.abs(d1) <= dtype(1.0e-6) * (-gdq):
+                break
+        return a
+
+    @wp.func
     def armijo(e0: dtype, e1: dtype, alpha: dtype, gdq: dtype):
         """(accepted, stalled) for the trial energy e1 at step α: Armijo's test with rounding-level
         slack; stalled when the decrease is below what the precision resolves."""
@@ -64,20 +175,88 @@ def line_search(spec: KernelSpec):
         return 0, 0
 
     @wp.func
+    def next_trial(phase: int, accepted: int, a_star: dtype, e1: dtype, e_first: dtype, alpha: dtype,
+                   min_alpha: dtype, chord: int):  # fmt: skip
+        """The line search after a trial at α: (over, take, phase, α, e_first).
+
+        phase 0: the Newton step's first trial, α = 1, and ``a_star`` the step at which the world's
+        limits put the minimum along it (limit_step; 1 where no limit acts on the step).  Accepted
+        by Armijo, the step is kept unless a_star lies outside [0.75, 1.25]: then a_star is tried
+        (phase 1), and kept where ``accepted`` (decide: its energy is below the first trial's,
+        e_first, by more than rounding), else the search goes back to α = 1 (phase 2, kept without
+        a test).  Rejected, the next α is a_star where it
+        is below 1, else 1/2, then α is halved (phase 3) until accepted or α ≤ min_alpha (the
+        search ran out: over 1, take 0).  A reused factor's step (chord > 0) is tried at α = 1
+        only."""
+        if phase == 1:
+            if accepted != 0:
+                return 1, 1, phase, alpha, e_first
+            return 0, 0, 2, one, e_first
+        if phase == 0 and chord <= 0:
+            if accepted != 0:
+                if a_star > dtype(1.25) or a_star < dtype(0.75):
+                    return 0, 0, 1, a_star, e1
+                return 1, 1, phase, alpha, e_first
+            if alpha > min_alpha:
+                return 0, 0, 3, wp.max(wp.where(a_star < one, a_star, dtype(0.5)), min_alpha), e_first
+            return 1, 0, 3, alpha, e_first
+        if accepted != 0:
+            return 1, 1, phase, alpha, e_first
+        if chord > 0 or alpha <= min_alpha:
+            return 1, 0, phase, alpha, e_first
+        return 0, 0, 3, alpha * dtype(0.5), e_first
+
+    @wp.func
+    def decide(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, w: int, row: int, ok: int,
+               e0: dtype, e1: dtype, gdq: dtype, alpha: dtype, phase: int, e_first: dtype, min_alpha: dtype,
+               chord: int):  # fmt: skip
+        """After a trial's Armijo test ``ok``: (over, accepted, phase, α, e_first).  Without limits,
+        α is halved until accepted; with them, next_trial from the limits' step α* (limit_step, at
+        the first trial).  α* is sought only where the first trial's energy e1 is off Newton's
+        quadratic model e0 + gᵀΔq/2 by more than |gᵀΔq|/32 (elsewhere the energy along the step
+        is as good as quadratic, and so is the step), and where the predicted decrease −gᵀΔq is
+        100× the energies' rounding (below it, e1 is mostly rounding, and so would the model be;
+        a float32 SliderCrank-v0 crank resting on its limit drifted 5× as far from float64 with
+        α* sought there).  A tried α* is kept only where its energy is below the first trial's by
+        more than rounding."""
+        if wp.static(has_limits):
+            a_star = one
+            noise = dtype(16.0) * EPS * (wp.abs(e0) + wp.abs(e1))
+            if phase == 0 and chord <= 0:
+                off = wp.abs(e1 - e0 - half * gdq) > dtype(0.03125) * wp.abs(gdq)
+                if off and -gdq > dtype(100.0) * noise:
+                    a_star = limit_step(q, q_trial, t, w, row, gdq)
+            if phase == 1:
+                ok = wp.where(ok != 0 and e1 < e_first - dtype(16.0) * EPS * (wp.abs(e1) + wp.abs(e_first)), 1, 0)
+            return next_trial(phase, ok, a_star, e1, e_first, alpha, min_alpha, chord)
+        return ok, ok, phase, wp.where(ok != 0, alpha, alpha * half), e_first
+
+    @wp.func
     def search(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, skip: int, done: int, chord: int,
                max_line_search: int, lane: int):  # fmt: skip
         """(accepted, stalled, α) for the step: taken whole when ``skip`` (whole_step); a reused
-        factor's step tried at α = 1 only; else Armijo backtracking on the world's own energy.  The
-        trial points go to row ``row`` of q_trial; s, B as in assemble, lane as in trial."""
+        factor's step tried at α = 1 only; else Armijo's test on the world's own energy, α halved on
+        rejection, or where the scene has limits the next α from ``decide``.  The search runs out
+        after ``max_line_search`` rejections (α ≤ 2^-(max_line_search − 1)).  The trial points go
+        to row ``row`` of q_trial; s, B as in assemble, lane as in trial."""
         c = clock_now()
         alpha = one
         accepted = int(0)
         stalled = int(0)
+        over = int(0)
+        phase = int(0)  # (next_trial's phases, with limits)
+        e_first = zero
+        stalled_first = int(0)
+        min_alpha = zero
+        tries = max_line_search
+        if wp.static(has_limits):
+            min_alpha = wp.pow(half, dtype(max_line_search - 1))
+            tries = max_line_search + 2  # α* and, where it fails, α = 1 again
         if wp.static(compact):
             # one trial and one energy in the code (a loop of tries, not a first try and a loop):
             # each inlined copy of assemble's energy costs ~28 KB of a cart-pole kernel's SASS
-            tries = wp.where(skip != 0 or chord > 0, 1, max_line_search)
+            tries = wp.where(skip != 0 or chord > 0, 1, tries)
             for _ls in range(tries):
                 trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
                 c = tick(t, w, lane, PHASE_STEP_TRIAL, c)
@@ -85,11 +264,21 @@ def line_search(spec: KernelSpec):
                     accepted = 1
                     stalled = done
                     break
-                accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
+                if wp.static(has_limits):
+                    if phase == 2:
+                        accepted = 1  # back at the first trial's point, which passed
+                        stalled = stalled_first
+                        break
+                e1 = assemble(q_trial, row, w, s, B, ENERGY, t, g, H)
+                ok, stalled = armijo(e0, e1, alpha, gdq)
                 c = tick(t, w, lane, PHASE_STEP_ENERGY, c)
-                if accepted != 0:
+                if wp.static(has_limits):
+                    if phase == 0:
+                        stalled_first = stalled
+                over, accepted, phase, alpha, e_first = decide(q, q_trial, t, w, row, ok, e0, e1, gdq, alpha, phase,
+                                                               e_first, min_alpha, chord)  # fmt: skip
+                if over != 0:
                     break
-                alpha = alpha * half  # (a rejected reused-factor step's α is unused: chord_step retries)
                 if wp.static(lanes):
                     # the next trial moves q_trial: every lane's energy must have read it first
                     # (assemble ends on the joints' terms, with no barrier; without this one a
@@ -106,15 +295,25 @@ def line_search(spec: KernelSpec):
                 accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), one, gdq)
                 c = tick(t, w, lane, PHASE_STEP_ENERGY, c)
             else:
-                for ls in range(max_line_search):
+                for ls in range(tries):
                     if ls > 0:
                         trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
                         c = tick(t, w, lane, PHASE_STEP_TRIAL, c)
-                    accepted, stalled = armijo(e0, assemble(q_trial, row, w, s, B, ENERGY, t, g, H), alpha, gdq)
+                        if wp.static(has_limits):
+                            if phase == 2:
+                                accepted = 1
+                                stalled = stalled_first
+                                break
+                    e1 = assemble(q_trial, row, w, s, B, ENERGY, t, g, H)
+                    ok, stalled = armijo(e0, e1, alpha, gdq)
                     c = tick(t, w, lane, PHASE_STEP_ENERGY, c)
-                    if accepted != 0:
+                    if wp.static(has_limits):
+                        if phase == 0:
+                            stalled_first = stalled
+                    over, accepted, phase, alpha, e_first = decide(q, q_trial, t, w, row, ok, e0, e1, gdq, alpha, phase,
+                                                                   e_first, min_alpha, 0)  # fmt: skip
+                    if over != 0:
                         break
-                    alpha = alpha * half
         return accepted, stalled, alpha
 
     return SimpleNamespace(search=search)
