@@ -1,6 +1,8 @@
 #!/usr/bin/env python3
-"""Newton iterations a step and their tail: mean, p99, max, and the mean over steps of the slowest
-world of each 32 (a GPU warp waits for its slowest thread, so a batch steps at that pace).
+"""Newton iterations a step and their tail: mean, p99, max, the mean over steps of the slowest
+world of each 32 (a GPU warp waits for its slowest thread, so a batch steps at that pace) and of
+the batch's slowest world (where a GPU holds about a world a thread, a step lasts about as long as
+that world's solve: the shared step at 16,384 worlds).
 
     python3 scripts/newton_tail.py [--cases cartpole,fourbar,...] [--worlds 256] [--steps 60] [--device cpu]
         [--reuse-factor 0,1]
@@ -35,7 +37,8 @@ def tail(case: str, worlds: int, steps: int, device: str, reuse_factor: bool = F
     its, fac = np.array(its), np.array(fac)
     warp = worlds // 32
     return {"mean": its.mean(), "p99": np.percentile(its, 99), "max": its.max(),
-            "warp_max": its[:, : warp * 32].reshape(steps, warp, 32).max(-1).mean(), "factorizations": fac.mean(),
+            "warp_max": its[:, : warp * 32].reshape(steps, warp, 32).max(-1).mean(), "step_max": its.max(1).mean(),
+            "factorizations": fac.mean(),
             "warp_max_factorizations": fac[:, : warp * 32].reshape(steps, warp, 32).max(-1).mean()}  # fmt: skip
 
 
@@ -49,12 +52,12 @@ def main() -> None:
     args = p.parse_args()
     wp.config.quiet = True
     reuse = {"0": False, "1": True}
-    print(f"{'case':28s} {'reuse':>5s} {'mean':>6s} {'p99':>5s} {'max':>4s} {'warp-max':>9s} {'fact.':>6s} "
+    print(f"{'case':28s} {'reuse':>5s} {'mean':>6s} {'p99':>5s} {'max':>4s} {'warp-max':>9s} {'step-max':>9s} {'fact.':>6s} "
           f"{'warp-max fact.':>15s}")  # fmt: skip
     for case in args.cases.split(","):
         for setting in args.reuse_factor.split(","):
             r = tail(case, args.worlds, args.steps, args.device, reuse[setting])
-            print(f"{case:28s} {setting:>5s} {r['mean']:6.2f} {r['p99']:5.0f} {r['max']:4.0f} {r['warp_max']:9.2f} "
+            print(f"{case:28s} {setting:>5s} {r['mean']:6.2f} {r['p99']:5.0f} {r['max']:4.0f} {r['warp_max']:9.2f} {r['step_max']:9.2f} "
                   f"{r['factorizations']:6.2f} {r['warp_max_factorizations']:15.2f}")  # fmt: skip
 
 
