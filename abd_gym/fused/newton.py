@@ -184,10 +184,9 @@ def line_search(spec: KernelSpec):
         by Armijo, the step is kept unless a_star lies outside [0.75, 1.25]: then a_star is tried
         (phase 1), and kept where ``accepted`` (decide: its energy is below the first trial's,
         e_first, by more than rounding), else the search goes back to α = 1 (phase 2, kept without
-        a test).  Rejected, the next α is a_star where it
-        is below 1, else 1/2, then α is halved (phase 3) until accepted or α ≤ min_alpha (the
-        search ran out: over 1, take 0).  A reused factor's step (chord > 0) is tried at α = 1
-        only."""
+        a test).  Rejected, the next α is a_star where it is below 1, else 1/2, then α is halved
+        (phase 3) until accepted or α ≤ min_alpha (the search ran out: over 1, take 0).  A reused
+        factor's step (chord > 0) is tried at α = 1 only."""
         if phase == 1:
             if accepted != 0:
                 return 1, 1, phase, alpha, e_first
@@ -215,10 +214,9 @@ def line_search(spec: KernelSpec):
         the first trial).  α* is sought only where the first trial's energy e1 is off Newton's
         quadratic model e0 + gᵀΔq/2 by more than |gᵀΔq|/32 (elsewhere the energy along the step
         is as good as quadratic, and so is the step), and where the predicted decrease −gᵀΔq is
-        100× the energies' rounding (below it, e1 is mostly rounding, and so would the model be;
-        a float32 SliderCrank-v0 crank resting on its limit drifted 5× as far from float64 with
-        α* sought there).  A tried α* is kept only where its energy is below the first trial's by
-        more than rounding."""
+        100× the energies' rounding (below it, e1 is mostly rounding, and so would the model be).
+        A tried α* is kept only where its energy is below the first trial's by more than rounding,
+        for the same reason."""
         if wp.static(has_limits):
             a_star = one
             noise = dtype(16.0) * EPS * (wp.abs(e0) + wp.abs(e1))
