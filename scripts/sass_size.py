@@ -48,8 +48,9 @@ def build(case: str, lanes: int = 32, lineinfo: bool = False, groups: int = 1, o
         env.close()
     m = Model(scene, num_worlds=1, device="cpu")
     own, folds = fused_flags(m)
+    limits = tuple(len(m.limit_joints[kind]) for kind in ("revolute", "prismatic"))
     kernel = fused_kernel(wp.float32, own, folds, scratch="lanes", n=m.num_dofs, cuda=True, block=lanes, bracket=True,
-                          groups=groups, quadratic=float(SolverSettings.quadratic_stop))[0]  # fmt: skip
+                          groups=groups, quadratic=float(SolverSettings.quadratic_stop), limits=limits)[0]  # fmt: skip
     kernel.module.options["block_dim"] = lanes
     out = tempfile.mkdtemp() if out is None else out
     (cubin,) = wp.compile_aot_module(kernel.module, arch=90, module_dir=out, use_ptx=False)

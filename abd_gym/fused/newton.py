@@ -176,7 +176,7 @@ def line_search(spec: KernelSpec):
 
     @wp.func
     def next_trial(phase: int, accepted: int, a_star: dtype, e1: dtype, e_first: dtype, alpha: dtype,
-                   min_alpha: dtype, chord: int):  # fmt: skip
+                   max_line_search: int, chord: int):  # fmt: skip
         """The line search after a trial at α: (over, take, phase, α, e_first).
 
         phase 0: the Newton step's first trial, α = 1, and ``a_star`` the step at which the world's
@@ -185,8 +185,10 @@ def line_search(spec: KernelSpec):
         (phase 1), and kept where ``accepted`` (decide: its energy is below the first trial's,
         e_first, by more than rounding), else the search goes back to α = 1 (phase 2, kept without
         a test).  Rejected, the next α is a_star where it is below 1, else 1/2, then α is halved
-        (phase 3) until accepted or α ≤ min_alpha (the search ran out: over 1, take 0).  A reused
+        (phase 3) until accepted or α ≤ 2^-(max_line_search − 1) (the search ran out: over 1,
+        take 0).  A reused
         factor's step (chord > 0) is tried at α = 1 only."""
+        min_alpha = wp.pow(half, dtype(max_line_search - 1))
         if phase == 1:
             if accepted != 0:
                 return 1, 1, phase, alpha, e_first
@@ -207,7 +209,7 @@ def line_search(spec: KernelSpec):
 
     @wp.func
     def decide(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, w: int, row: int, ok: int,
-               e0: dtype, e1: dtype, gdq: dtype, alpha: dtype, phase: int, e_first: dtype, min_alpha: dtype,
+               e0: dtype, e1: dtype, gdq: dtype, alpha: dtype, phase: int, e_first: dtype, max_line_search: int,
                chord: int):  # fmt: skip
         """After a trial's Armijo test ``ok``: (over, accepted, phase, α, e_first).  Without limits,
         α is halved until accepted; with them, next_trial from the limits' step α* (limit_step, at
@@ -226,7 +228,7 @@ def line_search(spec: KernelSpec):
                     a_star = limit_step(q, q_trial, t, w, row, gdq)
             if phase == 1:
                 ok = wp.where(ok != 0 and e1 < e_first - dtype(16.0) * EPS * (wp.abs(e1) + wp.abs(e_first)), 1, 0)
-            return next_trial(phase, ok, a_star, e1, e_first, alpha, min_alpha, chord)
+            return next_trial(phase, ok, a_star, e1, e_first, alpha, max_line_search, chord)
         return ok, ok, phase, wp.where(ok != 0, alpha, alpha * half), e_first
 
     @wp.func
@@ -245,11 +247,8 @@ def line_search(spec: KernelSpec):
         over = int(0)
         phase = int(0)  # (next_trial's phases, with limits)
         e_first = zero
-        stalled_first = int(0)
-        min_alpha = zero
         tries = max_line_search
         if wp.static(has_limits):
-            min_alpha = wp.pow(half, dtype(max_line_search - 1))
             tries = max_line_search + 2  # α* and, where it fails, α = 1 again
         if wp.static(compact):
             # one trial and one energy in the code (a loop of tries, not a first try and a loop):
@@ -265,16 +264,13 @@ def line_search(spec: KernelSpec):
                 if wp.static(has_limits):
                     if phase == 2:
                         accepted = 1  # back at the first trial's point, which passed
-                        stalled = stalled_first
+                        _ok, stalled = armijo(e0, e_first, one, gdq)
                         break
                 e1 = assemble(q_trial, row, w, s, B, ENERGY, t, g, H)
                 ok, stalled = armijo(e0, e1, alpha, gdq)
                 c = tick(t, w, lane, PHASE_STEP_ENERGY, c)
-                if wp.static(has_limits):
-                    if phase == 0:
-                        stalled_first = stalled
                 over, accepted, phase, alpha, e_first = decide(q, q_trial, t, w, row, ok, e0, e1, gdq, alpha, phase,
-                                                               e_first, min_alpha, chord)  # fmt: skip
+                                                               e_first, max_line_search, chord)  # fmt: skip
                 if over != 0:
                     break
                 if wp.static(lanes):
@@ -300,16 +296,13 @@ def line_search(spec: KernelSpec):
                         if wp.static(has_limits):
                             if phase == 2:
                                 accepted = 1
-                                stalled = stalled_first
+                                _ok, stalled = armijo(e0, e_first, one, gdq)
                                 break
                     e1 = assemble(q_trial, row, w, s, B, ENERGY, t, g, H)
                     ok, stalled = armijo(e0, e1, alpha, gdq)
                     c = tick(t, w, lane, PHASE_STEP_ENERGY, c)
-                    if wp.static(has_limits):
-                        if phase == 0:
-                            stalled_first = stalled
                     over, accepted, phase, alpha, e_first = decide(q, q_trial, t, w, row, ok, e0, e1, gdq, alpha, phase,
-                                                                   e_first, min_alpha, 0)  # fmt: skip
+                                                                   e_first, max_line_search, 0)  # fmt: skip
                     if over != 0:
                         break
         return accepted, stalled, alpha
