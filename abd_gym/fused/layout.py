@@ -130,6 +130,10 @@ class KernelSpec:
             raise ValueError("lane groups take a block per world (per_block 1)")
         if self.band and self.envelope:
             raise ValueError("the block band is a packed H, not the square envelope")
+        for kind, count in zip(("revolute_limit", "prismatic_limit"), self.limits):
+            # the bracket's guess (limit_reach) reads the constitutions, the line search the counts
+            if self.models(kind) != (count > 0):
+                raise ValueError(f"limits={self.limits} disagrees with the scene's {kind} terms")
 
     def has(self, name: str) -> bool:
         """Whether constitution ``name`` has fused terms of its own (terms.fused_flags)."""

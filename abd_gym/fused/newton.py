@@ -135,8 +135,8 @@ def line_search(spec: KernelSpec):
             if r0[k] > zero:
                 A -= dtype(3.0) * st[k] * r0[k] * r0[k] * dr[k]
                 B -= dtype(6.0) * st[k] * r0[k] * dr[k] * dr[k]
-        if acts == 0 or gdq >= zero:
-            return one
+        if acts == 0:
+            return one  # (decide calls this only for a descent step, gᵀΔq < 0)
         # the rest of the energy is convex (the bodies' inertia at least): a model that says
         # otherwise is off, and a thousandth of Newton's own curvature along the step stands in
         B = wp.max(B, dtype(1.0e-3) * (-gdq))
