@@ -1,5 +1,6 @@
 """A world's Newton solve (``solve_world``): each iteration zeroes its system, assembles E, g and
-(unless it reuses the factor) H, factors and solves H Δq = −g, then ``take_step``: the stop tests
+(unless it reuses the factor) H, factors and solves H Δq = −g (a thread per world, in a scene
+with limits: Newton's step without the one limit it leaves, ``release``), then ``take_step``: the stop tests
 (‖Δq‖∞ under the tolerance; the predicted decrease −gᵀΔq under the energy's rounding; a fresh
 step under ``quadratic`` × q's rounding), the line search (Armijo's test
 E(q + αΔq) ≤ E(q) + 10⁻⁴ α gᵀΔq with rounding-level slack, α halved on rejection, in a scene
@@ -21,6 +22,7 @@ from .clock import (PHASE_ZERO, PHASE_ASSEMBLE, PHASE_FACTOR, PHASE_SOLVE, PHASE
                      PHASE_STEP_TRIAL, clock)  # fmt: skip
 from .factor import factor, warp_ldl_solve
 from .layout import KernelSpec, indexing
+from .release import release
 from .structs import structs
 
 
@@ -431,6 +433,9 @@ def newton(spec: KernelSpec):
     hrow, block_sync = at.hrow, at.block_sync
     assemble = assembly(spec).assemble
     take_step = stepping(spec).take_step
+    # a limit let go where the step leaves it (release), in scenes with limits, a thread per world
+    releases = spec.limits != (0, 0) and not lanes
+    release_step = release(spec).release_step
     clock_now, tick = clock(spec).clock_now, clock(spec).tick
     zero, one = dtype(0.0), dtype(1.0)
 
@@ -536,6 +541,10 @@ def newton(spec: KernelSpec):
         else:
             ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, N, T, t.first)
             c = tick(t, w, lane, PHASE_FACTOR, c)
+        if wp.static(releases):
+            if ok != 0 and chord <= 0:
+                gdq, dmax = release_step(q, t, w, g, H, dq, s, T, gdq, dmax)
+                c = tick(t, w, lane, PHASE_SOLVE, c)
         if lane == 0:
             factorizations[w] = nfact
         stop = int(3)  # 3: the factor or the solve broke down
