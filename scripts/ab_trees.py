@@ -8,8 +8,9 @@ processes of their own, alternating over rounds, so that both trees see the same
 
 The command runs with the tree as its working directory and first on PYTHONPATH, and with
 ``--out OUT/<tree>_<round>`` appended, where it writes ``bench.json`` (the format of
-``python -m abd_gym.bench``; a tree whose module paths differ may name its own command with
-``--command-for TREE='...'``).  Prints each tree's best world-steps/s per (case, worlds) and its
+``python -m abd_gym.bench``) or ``compare.json`` (``python -m abd_gym.bench compare``, whose
+``--mjw-integrators ""`` times abd_gym alone on every mechanism); a tree whose module paths differ
+may name its own command with ``--command-for TREE='...'``.  Prints each tree's best world-steps/s per (case, worlds) and its
 ratio to the first tree, and writes them to ``OUT/ab_trees.json``.
 """
 import argparse
@@ -20,8 +21,13 @@ import subprocess
 import sys
 
 
-def rates(path):
-    """{(case, worlds): world-steps/s} of a bench.json, and {("env TASK", envs): env-steps/s} of its env rows."""
+def rates(out_dir):
+    """{(case, worlds): world-steps/s} of the bench.json in out_dir, and {("env TASK", envs): env-steps/s}
+    of its env rows; or abd_gym's {(case, worlds): world-steps/s} of its compare.json."""
+    path = os.path.join(out_dir, "bench.json")
+    if not os.path.exists(path):
+        with open(os.path.join(out_dir, "compare.json")) as f:
+            return {(r["case"], int(r["num_worlds"])): float(r["abd_gym"]) for r in json.load(f)["rows"]}
     with open(path) as f:
         result = json.load(f)
     out = {(r["case"], int(r["num_worlds"])): float(r["world_steps_per_second"]) for r in result.get("simulator", [])}
@@ -50,9 +56,15 @@ def main(argv=None):
             if run.returncode:
                 print(f"{name} round {r} failed:\n{run.stdout[-2000:]}\n{run.stderr[-3000:]}", flush=True)
                 continue
-            for key, rate in rates(os.path.join(out, "bench.json")).items():
+            for key, rate in rates(out).items():
                 best.setdefault(key, {})[name] = max(rate, best.get(key, {}).get(name, 0.0))
             print(f"round {r} {name} done", flush=True)
+        # the table so far, after every round (a run cut short keeps its finished rounds)
+        summary(trees, best, r + 1, command, args.out)
+
+
+def summary(trees: dict, best: dict, rounds: int, command: list, out: str) -> None:
+    """Print each tree's best rate per (case, worlds) and its ratio to the first tree; write OUT/ab_trees.json."""
     names, rows = list(trees), []
     for (case, worlds), by_tree in sorted(best.items()):
         base = by_tree.get(names[0], float("nan"))
@@ -60,10 +72,11 @@ def main(argv=None):
                    **{f"{n}_ratio": by_tree.get(n, float("nan")) / base for n in names[1:]})
         rows.append(row)
         print(f"{case:>16} {worlds:>8}  " + "  ".join(
-            f"{n} {by_tree.get(n, float('nan')) / 1e6:8.2f} M (x{by_tree.get(n, float('nan')) / base:.3f})" for n in names))
-    os.makedirs(args.out, exist_ok=True)
-    with open(os.path.join(args.out, "ab_trees.json"), "w") as f:
-        json.dump(dict(trees=trees, rounds=args.rounds, command=command, rows=rows), f, indent=1)
+            f"{n} {by_tree.get(n, float('nan')) / 1e6:8.2f} M (x{by_tree.get(n, float('nan')) / base:.3f})" for n in names),
+            flush=True)  # fmt: skip
+    os.makedirs(out, exist_ok=True)
+    with open(os.path.join(out, "ab_trees.json"), "w") as f:
+        json.dump(dict(trees=trees, rounds=rounds, command=command, rows=rows), f, indent=1)
 
 
 if __name__ == "__main__":
