@@ -5,11 +5,12 @@ the batch's slowest world (where a GPU holds about a world a thread, a step last
 that world's solve: the shared step at 16,384 worlds).
 
     python3 scripts/newton_tail.py [--cases cartpole,fourbar,...] [--worlds 256] [--steps 60] [--device cpu]
-        [--reuse-factor 0,1]
+        [--reuse-factor 0,1] [--limit-secant auto,0,1]
 
 Each case (``abd_gym.peer_cases``) starts from its random states, steps 3 times, then records each
 world's Newton iterations and factorisations for ``--steps`` steps, once per ``--reuse-factor``
-setting (0: the simulator's default, a fresh factor every iteration).
+setting (0: the simulator's default, a fresh factor every iteration) and ``--limit-secant``
+setting (ExecutionPlan.limit_secant; auto: the plan's default, which the CPU's is off).
 """
 from __future__ import annotations
 
@@ -21,12 +22,14 @@ import warp as wp
 CASES = "cartpole,inverted_pendulum_v5,double_pendulum_cart,inverted_double_pendulum_v5,fourbar,slider_crank,chain5"
 
 
-def tail(case: str, worlds: int, steps: int, device: str, reuse_factor: bool = False) -> dict[str, float]:
+def tail(case: str, worlds: int, steps: int, device: str, reuse_factor: bool = False,
+         limit_secant: bool | None = None) -> dict[str, float]:
     from abd_gym.peer_cases import CASES as PEER
     from abd_gym.simulator import Simulator
 
     c = PEER[case]
-    sim = Simulator(c.scene(), num_worlds=worlds, dt=0.01, device=device, reuse_factor=reuse_factor)
+    sim = Simulator(c.scene(), num_worlds=worlds, dt=0.01, device=device, reuse_factor=reuse_factor,
+                    plan={"limit_secant": limit_secant})  # fmt: skip
     sim.set_joint_state(*c.states(worlds, 0))
     sim.step(3)
     its, fac = [], []
@@ -49,16 +52,19 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=60)
     p.add_argument("--device", default="cpu")
     p.add_argument("--reuse-factor", default="0", help="comma-separated 0/1 (SolverSettings.reuse_factor)")
+    p.add_argument("--limit-secant", default="auto", help="comma-separated auto/0/1 (ExecutionPlan.limit_secant)")
     args = p.parse_args()
     wp.config.quiet = True
     reuse = {"0": False, "1": True}
-    print(f"{'case':28s} {'reuse':>5s} {'mean':>6s} {'p99':>5s} {'max':>4s} {'warp-max':>9s} {'step-max':>9s} {'fact.':>6s} "
-          f"{'warp-max fact.':>15s}")  # fmt: skip
+    secant = {"auto": None, "0": False, "1": True}
+    print(f"{'case':28s} {'reuse':>5s} {'secant':>6s} {'mean':>6s} {'p99':>5s} {'max':>4s} {'warp-max':>9s} {'step-max':>9s} "
+          f"{'fact.':>6s} {'warp-max fact.':>15s}")  # fmt: skip
     for case in args.cases.split(","):
         for setting in args.reuse_factor.split(","):
-            r = tail(case, args.worlds, args.steps, args.device, reuse[setting])
-            print(f"{case:28s} {setting:>5s} {r['mean']:6.2f} {r['p99']:5.0f} {r['max']:4.0f} {r['warp_max']:9.2f} {r['step_max']:9.2f} "
-                  f"{r['factorizations']:6.2f} {r['warp_max_factorizations']:15.2f}")  # fmt: skip
+            for sec in args.limit_secant.split(","):
+                r = tail(case, args.worlds, args.steps, args.device, reuse[setting], secant[sec])
+                print(f"{case:28s} {setting:>5s} {sec:>6s} {r['mean']:6.2f} {r['p99']:5.0f} {r['max']:4.0f} {r['warp_max']:9.2f} "
+                      f"{r['step_max']:9.2f} {r['factorizations']:6.2f} {r['warp_max_factorizations']:15.2f}")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -38,7 +38,7 @@ its ``wp.func`` functions (data flows down this list):
 - ``terms``: each constitution's term (coordinate terms folded into their joint's, as the registry declares);
 - ``assembly``: a world's incremental potential, gradient and Hessian, per layout;
 - ``factor``: the lane-split L D Lᵀ factor and substitutions;
-- ``release``: a thread per world's Newton direction without the limit it is leaving;
+- ``limit_secant``: a thread per world's Newton direction at an acting limit (its secant curvature);
 - ``newton``: the Newton iteration, line search and stop tests of a world's solve;
 - ``bracket``: opening and closing a world's step around its solve;
 - ``kernel``: the kernels, and ``fused_kernel``, the factory the solver calls."""

@@ -215,7 +215,7 @@ def lanes_kernel(spec: KernelSpec):
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False, phase_clock=False, cuda=False,
                  block=0, bracket=True, groups=1, per_block=1, quadratic=0.0, hold=False, band=False,
-                 limits=(0, 0)):  # fmt: skip
+                 limits=(0, 0), secant=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``own``: the names of the joint and coordinate constitutions with terms of their own; ``folds``:
@@ -255,8 +255,9 @@ def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False,
     ``bracket``): the step leaves alone the worlds of Bracket.hold and, while Bracket.go[0] is 0,
     every world (step_world; a vector env's step graph), a check that a scene stepped on its own
     does not carry.  ``limits``: the scene's (revolute, prismatic) limit counts, for the line
-    search's model of them (line_search.limit_step)."""
+    search's model of them (line_search.limit_step).  ``secant`` (a thread per world): the Newton
+    direction at an acting limit takes the limit's secant curvature (limit_secant)."""
     spec = KernelSpec(dtype, tuple(own), tuple(folds), scratch, n, envelope, phase_clock, cuda, block, bracket, groups,
-                      per_block, quadratic, hold, band, tuple(limits))  # fmt: skip
+                      per_block, quadratic, hold, band, tuple(limits), bool(secant))  # fmt: skip
     kernel = lanes_kernel(spec) if spec.lanes else thread_kernel(spec)
     return kernel, structs(dtype).Terms, structs(dtype).Bracket, assembly_kernel(spec)

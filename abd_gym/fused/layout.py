@@ -122,6 +122,7 @@ class KernelSpec:
     hold: bool = False
     band: bool = False
     limits: tuple = (0, 0)
+    secant: bool = False
 
     def __post_init__(self):
         if self.LANES % self.G:
@@ -134,6 +135,8 @@ class KernelSpec:
             # the bracket's guess (limit_reach) reads the constitutions, the line search the counts
             if self.models(kind) != (count > 0):
                 raise ValueError(f"limits={self.limits} disagrees with the scene's {kind} terms")
+        if self.secant and self.lanes:
+            raise ValueError("the limits' secant direction (secant=True) is a thread per world's, not the lanes'")
 
     def has(self, name: str) -> bool:
         """Whether constitution ``name`` has fused terms of its own (terms.fused_flags)."""

@@ -1,6 +1,6 @@
 """A world's Newton solve (``solve_world``): each iteration zeroes its system, assembles E, g and
-(unless it reuses the factor) H, factors and solves H Δq = −g (a thread per world, in a scene
-with limits: Newton's step without the one limit it leaves, ``release``), then ``take_step``: the stop tests
+(unless it reuses the factor) H, factors and solves H Δq = −g (with ``secant``, at an acting limit
+the limit's curvature its secant: ``limit_secant``), then ``take_step``: the stop tests
 (‖Δq‖∞ under the tolerance; the predicted decrease −gᵀΔq under the energy's rounding; a fresh
 step under ``quadratic`` × q's rounding), the line search (Armijo's test
 E(q + αΔq) ≤ E(q) + 10⁻⁴ α gᵀΔq with rounding-level slack, α halved on rejection, in a scene
@@ -22,7 +22,7 @@ from .clock import (PHASE_ZERO, PHASE_ASSEMBLE, PHASE_FACTOR, PHASE_SOLVE, PHASE
                      PHASE_STEP_TRIAL, clock)  # fmt: skip
 from .factor import factor, warp_ldl_solve
 from .layout import KernelSpec, indexing
-from .release import release
+from .limit_secant import limit_secant
 from .structs import structs
 
 
@@ -433,9 +433,9 @@ def newton(spec: KernelSpec):
     hrow, block_sync = at.hrow, at.block_sync
     assemble = assembly(spec).assemble
     take_step = stepping(spec).take_step
-    # a limit let go where the step leaves it (release), in scenes with limits, a thread per world
-    releases = spec.limits != (0, 0) and not lanes
-    release_step = release(spec).release_step
+    # the direction at an acting limit from its secant (limit_secant), where the plan takes it
+    secant = spec.secant and spec.limits != (0, 0) and not lanes
+    secant_step = limit_secant(spec).secant_step
     clock_now, tick = clock(spec).clock_now, clock(spec).tick
     zero, one = dtype(0.0), dtype(1.0)
 
@@ -541,9 +541,9 @@ def newton(spec: KernelSpec):
         else:
             ok, gdq, dmax, g_abs = cholesky_solve(H, g, dq, s, N, T, t.first)
             c = tick(t, w, lane, PHASE_FACTOR, c)
-        if wp.static(releases):
+        if wp.static(secant):
             if ok != 0 and chord <= 0:
-                gdq, dmax = release_step(q, t, w, g, H, dq, s, T, gdq, dmax)
+                gdq, dmax = secant_step(q, t, w, g, H, dq, s, T, gdq, dmax)
                 c = tick(t, w, lane, PHASE_SOLVE, c)
         if lane == 0:
             factorizations[w] = nfact
