@@ -77,8 +77,7 @@ def limit_secant(spec: KernelSpec):
         dde = zero
         ui = vec12()
         uj = vec12()
-        oi = int(-1)
-        oj = int(-1)
+        ja = int(0)  # its joint
         for k in range(wp.static(NR)):
             j = t.rlim_ids[k]
             e, d1, d2, gi, gj = rlim_parts(q[w, t.body_a[j]], q[w, t.body_b[j]], t.n_a[w, j], t.b_a[w, j], t.n_b[w, j],
@@ -86,19 +85,15 @@ def limit_secant(spec: KernelSpec):
                                            t.rlim_lo[w, k], t.rlim_up[w, k], t.rlim_s[w, k], GRADIENT)  # fmt: skip
             if d2 > zero:
                 acting += 1
-                de, dde, ui, uj = d1, d2, gi, gj
-                oi = int(t.dof[t.body_a[j]])
-                oj = int(t.dof[t.body_b[j]])
+                de, dde, ui, uj, ja = d1, d2, gi, gj, j
         for k in range(wp.static(NP)):
             j = t.plim_ids[k]
             e, d1, d2, gi, gj = plim_parts(q[w, t.body_a[j]], q[w, t.body_b[j]], t.c_a[w, j], t.c_b[w, j], t.t_a[w, j],
                                            t.plim_lo[w, k], t.plim_up[w, k], t.plim_s[w, k], GRADIENT)  # fmt: skip
             if d2 > zero:
                 acting += 1
-                de, dde, ui, uj = d1, d2, gi, gj
-                oi = int(t.dof[t.body_a[j]])
-                oj = int(t.dof[t.body_b[j]])
-        return acting, de, dde, ui, uj, oi, oj
+                de, dde, ui, uj, ja = d1, d2, gi, gj, j
+        return acting, de, dde, ui, uj, int(t.dof[t.body_a[ja]]), int(t.dof[t.body_b[ja]])
 
     @wp.func
     def u_row(i: int, ui: vec12, uj: vec12, oi: int, oj: int):
