@@ -30,7 +30,7 @@ def keep_restart(fresh: wp.array(dtype=wp.int32), w: int):
 # the names kernels() returns
 _PUBLIC = (
     "predict", "start", "newton_direction", "h_row", "row_first", "column_end", "cholesky_solve", "factored_solve",
-    "reductions", "substitute", "noise_floor", "energy_noise", "trial", "accept", "commit", "converge", "finalize", "open_step",
+    "reductions", "noise_floor", "energy_noise", "trial", "accept", "commit", "converge", "finalize", "open_step",
     "open_body", "predict_body", "finalize_body", "limit_reach",
 )  # fmt: skip
 

@@ -10,8 +10,9 @@ The command runs with the tree as its working directory and first on PYTHONPATH,
 ``--out OUT/<tree>_<round>`` appended, where it writes ``bench.json`` (the format of
 ``python -m abd_gym.bench``) or ``compare.json`` (``python -m abd_gym.bench compare``, whose
 ``--mjw-integrators ""`` times abd_gym alone on every mechanism); a tree whose module paths differ
-may name its own command with ``--command-for TREE='...'``.  Prints each tree's best world-steps/s per (case, worlds) and its
-ratio to the first tree, and writes them to ``OUT/ab_trees.json``.
+may name its own command with ``--command-for TREE='...'``.  Prints each tree's best world-steps/s
+per (case, worlds) and its ratio to the first tree, and writes them to ``OUT/ab_trees.json``, after
+every round.
 """
 import argparse
 import json

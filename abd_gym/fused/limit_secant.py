@@ -63,8 +63,8 @@ def limit_secant(spec: KernelSpec):
     vec12 = ops(dtype).vec12
     Terms = structs(dtype).Terms
     staged = spec.staged()
-    substitute, h_row, row_first = staged["substitute"], staged["h_row"], staged["row_first"]
-    square_envelope = spec.envelope and not spec.packed
+    h_row, row_first = staged["h_row"], staged["row_first"]
+    square_envelope = spec.envelope and not spec.packed  # H square, each row from Terms.first
     rlim_parts = revolute_limit.kernel(dtype).parts
     plim_parts = prismatic_limit.kernel(dtype).parts
     zero, one, two, eighth = dtype(0.0), dtype(1.0), dtype(2.0), dtype(0.125)
@@ -118,27 +118,31 @@ def limit_secant(spec: KernelSpec):
         return d
 
     @wp.func
-    def solve_in_place(L: Any, v: Any, s: int, T: int, t: Terms):
-        """v ← −(L Lᵀ)⁻¹v through the Cholesky factor in L, row by row within each row's stored
-        columns: compact loops, where the Newton step's substitutions (solver_kernels.solve_dense,
-        four rows at a time) would add ~30 KB of code for a solve that few iterations take."""
-        n = t.free.shape[0] * 12  # N, read at run time: loops the compiler does not unroll
+    def first_column(t: Terms, i: int):
+        """The first column row i of the factor stores (the solves skip only exact zeros left of it)."""
         if wp.static(square_envelope):
-            substitute(L, v, v, s, N, T, t.first)
-        else:
-            for i in range(n):  # L y = −v
-                r = h_row(i, N)
-                acc = -v[i * T + s]
-                for k in range(row_first(i), i):
-                    acc -= L[(r + k) * T + s] * v[k * T + s]
-                v[i * T + s] = acc / L[(r + i) * T + s]
-            for ii in range(n):  # Lᵀ x = y, a column of Lᵀ (a row of L) at a time
-                i = n - 1 - ii
-                r = h_row(i, N)
-                xi = v[i * T + s] / L[(r + i) * T + s]
-                v[i * T + s] = xi
-                for k in range(row_first(i), i):
-                    v[k * T + s] = v[k * T + s] - L[(r + k) * T + s] * xi
+            return t.first[i]
+        return row_first(i)
+
+    @wp.func
+    def solve_in_place(L: Any, v: Any, s: int, T: int, t: Terms, n: int):
+        """v ← −(L Lᵀ)⁻¹v through the Cholesky factor in L (n = N rows, read at run time), row by row
+        within each row's stored columns: compact loops, where the Newton step's substitutions
+        (solver_kernels.solve_dense, four rows at a time) would add ~30 KB of code for a solve that
+        few iterations take."""
+        for i in range(n):  # L y = −v
+            r = h_row(i, N)
+            acc = -v[i * T + s]
+            for k in range(first_column(t, i), i):
+                acc -= L[(r + k) * T + s] * v[k * T + s]
+            v[i * T + s] = acc / L[(r + i) * T + s]
+        for ii in range(n):  # Lᵀ x = y, a column of Lᵀ (a row of L) at a time
+            i = n - 1 - ii
+            r = h_row(i, N)
+            xi = v[i * T + s] / L[(r + i) * T + s]
+            v[i * T + s] = xi
+            for k in range(first_column(t, i), i):
+                v[k * T + s] = v[k * T + s] - L[(r + k) * T + s] * xi
 
     @wp.func
     def secant_step(q: wp.array2d(dtype=vec12), t: Terms, w: int, g: Any, H: Any, dq: Any, s: int, T: int,
@@ -159,7 +163,7 @@ def limit_secant(spec: KernelSpec):
         n = t.free.shape[0] * 12  # N, read at run time (loops not unrolled: a rare path's code kept small)
         for i in range(n):
             g[i * T + s] = u_row(i, ui, uj, oi, oj)
-        solve_in_place(H, g, s, T, t)  # g = −w, w = H⁻¹u
+        solve_in_place(H, g, s, T, t, n)  # g = −w, w = H⁻¹u
         a = -u_dot(g, s, T, ui, uj, oi, oj)
         if not (dde * a < one):
             return gdq, dmax  # (H less the limit's part is positive definite: rounding alone gets here)

@@ -434,7 +434,7 @@ def newton(spec: KernelSpec):
     assemble = assembly(spec).assemble
     take_step = stepping(spec).take_step
     # the direction at an acting limit from its secant (limit_secant), where the plan takes it
-    secant = spec.secant and spec.limits != (0, 0) and not lanes
+    secant = spec.secant and spec.limits != (0, 0)  # (KernelSpec refuses it with lanes)
     secant_step = limit_secant(spec).secant_step
     clock_now, tick = clock(spec).clock_now, clock(spec).tick
     zero, one = dtype(0.0), dtype(1.0)
