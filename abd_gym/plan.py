@@ -350,17 +350,25 @@ def resolve_plan(plan, model) -> ExecutionPlan:
     return out
 
 
+# the most worlds a thread of the fused step's launch (world queue) at which the plan takes the
+# limits' secant direction: measured on an H200 (default_limit_secant) faster at 1.0-2.6 worlds a
+# thread, slower from 3.1
+SECANT_MAX_WORLDS_PER_THREAD = 2.75
+
+
 def default_limit_secant(device, scratch: str, num_worlds: int, threads: int) -> bool:
     """Whether the fused step's thread per world takes the limits' secant direction (fused.limit_secant):
-    on a GPU where its threads hold at most two worlds each.  A step then lasts about as long as its
-    slowest worlds' solves, and those are the worlds striking and leaving limits, whose iterations
-    the secant saves; with many worlds a thread, the world queue evens their iterations out and the
-    acting limits' check at every iteration is a loss.  Measured on an H200 against Newton's
-    direction (results/limit_secant_h200.json): SliderCrank-v0 1.14x at 16,384 worlds (1.3 a
-    thread), 0.78x at 131,072 (10.3), InvertedPendulum-v5 1.11x (1.0) and 0.81x (6.2); where
-    between 1.3 and 6.2 worlds a thread the two cross was not measured.  On the CPU, whose threads
-    run one after another, no slowest world sets the pace: never."""
-    return bool(device.is_cuda and scratch != "lanes" and num_worlds <= 2 * threads)
+    on a GPU where its threads hold at most SECANT_MAX_WORLDS_PER_THREAD worlds each.  A step then
+    lasts about as long as its slowest worlds' solves, and those are the worlds striking and
+    leaving limits, whose iterations the secant saves; with many worlds a thread, the world queue
+    evens their iterations out and the acting limits' check at every iteration is a loss.  Measured
+    on an H200 against Newton's direction, world-steps/s (results/limit_secant_h200.json,
+    results/limit_secant_gate_h200.json): SliderCrank-v0 (12,672 threads) 1.14x at 16,384 worlds
+    (1.3 a thread), 1.065x at 32,768 (2.6), 0.92x at 65,536 (5.2), 0.78x at 131,072 (10.3);
+    InvertedPendulum-v5 (21,120 threads) 1.11x at 16,384 (1.0), 0.92x at 65,536 (3.1), 0.81x at
+    131,072 (6.2).  On the CPU, whose threads run one after another, no slowest world sets the
+    pace: never."""
+    return bool(device.is_cuda and scratch != "lanes" and num_worlds <= SECANT_MAX_WORLDS_PER_THREAD * threads)
 
 
 def plan_band(plan: ExecutionPlan, banded: bool) -> bool:

@@ -78,17 +78,18 @@ def test_bad_settings_are_refused_before_the_model_is_built():
         ag.Simulator(mechanisms.pendulum(), 1, 0.01, "cpu")  # (everything after dt by name)
 
 
-def test_limit_secant_where_a_thread_holds_at_most_two_worlds():
+def test_limit_secant_where_a_thread_holds_few_worlds():
     """The limits' secant direction by default (plan.default_limit_secant): on a GPU, a thread per
-    world, where the launch's threads hold at most two worlds each (measured: 1.11-1.14x at 1.0-1.3
-    worlds a thread, 0.78-0.81x at 6.2-10.3); never on the CPU or with lanes."""
+    world, where the launch's threads hold at most 2.75 worlds each (measured: 1.065-1.14x at
+    1.0-2.6 worlds a thread, 0.78-0.92x at 3.1-10.3); never on the CPU or with lanes."""
     from types import SimpleNamespace
 
     from abd_gym.plan import default_limit_secant
 
     gpu, cpu = SimpleNamespace(is_cuda=True), SimpleNamespace(is_cuda=False)
     assert default_limit_secant(gpu, "shared", 16384, 12672) and default_limit_secant(gpu, "shared", 16384, 16384)
-    assert default_limit_secant(gpu, "global", 25344, 12672) and not default_limit_secant(gpu, "shared", 25345, 12672)
+    assert default_limit_secant(gpu, "global", 32768, 12672) and not default_limit_secant(gpu, "shared", 65536, 21120)
+    assert default_limit_secant(gpu, "shared", 34848, 12672) and not default_limit_secant(gpu, "shared", 34849, 12672)
     assert not default_limit_secant(gpu, "shared", 131072, 21120) and not default_limit_secant(gpu, "lanes", 1024, 1024)
     assert not default_limit_secant(cpu, "global", 16, 16)
     assert not ag.Simulator(mechanisms.cartpole(), num_worlds=4).plan.limit_secant
