@@ -11,7 +11,11 @@ each replay, into ``mail[slot]`` (page-locked host memory, which a kernel reads 
 CUDA's unified addressing), and write the done and bad rows straight to page-locked host memory
 (``host_flags[slot]``), so that a step is the graph alone: no copy of the actions in, of the
 outputs out or of the flags to the host as stream operations of their own.  ``slot`` alternates
-between two graphs: the host reads step t's flags while step t + 1 (the other slot) runs.
+between two graphs: the host reads step t's flags while step t + 1 (the other slot) runs.  A
+kernel's read of host memory lasts a PCIe round trip (on an H200, 2.7 µs for a kernel of 1,024
+threads that reads a pointer there against 1.3 µs for one that reads it from device memory;
+writes there cost nothing measurable): the check, the step's first kernel, reads the mailbox
+and copies the output buffer's pointer to device memory for the step's last.
 """
 import functools
 
@@ -25,17 +29,21 @@ def check_actions(control_dtype, scaled: bool, mailed: bool = False):
     @wp.kernel(module="unique")  # a variant made later must not reload the others (in a graph)
     def check(a: wp.array2d(dtype=wp.float32), scale: wp.array(dtype=wp.float32), bound: wp.float32,
               bad: wp.array(dtype=wp.bool), go: wp.array(dtype=wp.int32), controls: wp.array2d(dtype=control_dtype),
-              mail: wp.array2d(dtype=wp.uint64), slot: int):  # fmt: skip
+              mail: wp.array2d(dtype=wp.uint64), slot: int, mail_copy: wp.array2d(dtype=wp.uint64)):  # fmt: skip
         """A NaN action flags its world (bad[w]) and clears the go flag, which only the host sets
         again; the actions clipped to [−bound, bound] in place (NaN as 0); with ``scaled``, the
         controls a × scale [N, N·m] (max effort / bound: the bound maps to the drive's max
         effort).  ``mailed``: the actions read from the caller's float32 (N, A) batch at
-        mail[slot, 0], clipped into ``a`` (else ``mail`` is unused)."""
+        mail[slot, 0], clipped into ``a``, and mail[slot] copied to ``mail_copy[slot]`` (device
+        memory, for ``finish_step``; else ``mail`` and ``mail_copy`` are unused)."""
         w = wp.tid()
         b = bool(False)
         src = a
         if wp.static(mailed):
             src = wp.array(ptr=mail[slot, 0], shape=(a.shape[0], a.shape[1]), dtype=wp.float32)
+            if w == 0:
+                mail_copy[slot, 0] = mail[slot, 0]
+                mail_copy[slot, 1] = mail[slot, 1]
         for j in range(a.shape[1]):
             x = src[w, j]
             if wp.isnan(x):
@@ -59,13 +67,15 @@ def finish_step(mailed: bool = False):
     ``out_reward`` and ``flags``; ``mail`` and ``host_flags`` unused)."""
 
     @wp.kernel(module="unique")  # a variant made later must not reload the others (in a graph)
-    def finish(obs: wp.array2d(dtype=wp.float32), reward: wp.array(dtype=wp.float32), term: wp.array(dtype=wp.bool),
+    def finish(outcome: wp.array2d(dtype=wp.float32),
                status: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32), pending: wp.array(dtype=wp.int32),
                elapsed: wp.array(dtype=wp.int64), max_steps: wp.int64, out_obs: wp.array2d(dtype=wp.float32),
                out_reward: wp.array(dtype=wp.float32), out_status: wp.array(dtype=wp.int32),
                flags: wp.array2d(dtype=wp.bool),
                mail: wp.array2d(dtype=wp.uint64), slot: int, host_flags: wp.array3d(dtype=wp.bool)):  # fmt: skip
-        """World w's outcome from the task's observation, reward and termination: failed where its
+        """World w's outcome from the task's, ``outcome[w]``: the observation (d columns), the reward
+        and the termination (1 or 0; the three packed in one array, which torch.compile writes in
+        one kernel where three arrays of two sizes took three): failed where its
         solve failed or an observation is not finite (zero observation and reward, terminated); a
         world reset in this step (pending, when the step ran) has reward 0 and neither flag;
         truncated at ``max_steps`` env steps (none when negative).  flags rows: terminated,
@@ -74,8 +84,8 @@ def finish_step(mailed: bool = False):
         buffer holds the observations (N, d) and rewards (float32), the status (int32), then the
         rows terminated, truncated, failed (bytes): ``DeviceStep.unpack`` (device_step.py)."""
         w = wp.tid()
-        n = obs.shape[0]
-        d = obs.shape[1]
+        n = outcome.shape[0]
+        d = outcome.shape[1] - 2
         o = out_obs
         r_out = out_reward
         s_out = out_status
@@ -89,18 +99,18 @@ def finish_step(mailed: bool = False):
         s_out[w] = status[w]
         failed = bool(status[w] != 0)
         for j in range(d):
-            if not wp.isfinite(obs[w, j]):
+            if not wp.isfinite(outcome[w, j]):
                 failed = True
         ran = go[0] != 0
         reset = ran and pending[w] != 0
-        terminated = (term[w] or failed) and not reset
+        terminated = (outcome[w, d + 1] != 0.0 or failed) and not reset
         truncated = max_steps >= wp.int64(0) and elapsed[w] >= max_steps and not reset
         for j in range(d):
-            x = obs[w, j]
+            x = outcome[w, j]
             if failed:
                 x = 0.0
             o[w, j] = x
-        r = reward[w]
+        r = outcome[w, d]
         if failed or reset:
             r = 0.0
         r_out[w] = r

@@ -37,6 +37,8 @@ class StepGraph:
         self.slot = 0  # the graph (and mailbox and host flags slot) replayed next
         self.side_stream = None  # the graphs' second stream (the autoreset beside the physics)
         self.kept = None  # the action batch the last graph reads (kept until it has)
+        # the check's copy of the mailbox (device memory), which the step's last kernel reads
+        self.mail_copy = wp.zeros((2, 2), dtype=wp.uint64, device=ds.device)
         self._capture()
 
     def _capture(self):
@@ -69,16 +71,17 @@ class StepGraph:
 
     def _capture_slot(self, slot: int, checked: bool):
         ds, buf, pinned = self.ds, self.action_buf, self.pinned
+        mail = self.mail_copy if self.mailed else pinned.mail_dev
         try:
-            post, out = graphs.capture_torch(self.torch_device, lambda: ds.post(buf, slot, pinned), keep=True)
+            post, out = graphs.capture_torch(self.torch_device, lambda: ds.post(buf, slot, pinned, mail), keep=True)
             raw = post.raw_cuda_graph()
         except (TypeError, AttributeError, RuntimeError):  # a Torch without keep_graph / raw_cuda_graph
-            post, out = graphs.capture_torch(self.torch_device, lambda: ds.post(buf, slot, pinned))
+            post, out = graphs.capture_torch(self.torch_device, lambda: ds.post(buf, slot, pinned, mail))
             raw = None
 
         def step():
             if self.mailed:
-                ds.pre(buf, checked, slot, pinned.mail_dev)
+                ds.pre(buf, checked, slot, pinned.mail_dev, self.mail_copy)
             ds.physics(True, checked, self.side_stream)
             return raw is not None and graphs.insert_child_graph(ds.device, raw)
 

@@ -564,8 +564,8 @@ def test_nan_actions_checked_on_the_device_are_taken_back(device):
 
 def test_mailed_env_kernels_match_plain_ones():
     """The step graph's mailed kernels (env_kernels, run here on the CPU with host pointers): the
-    check reads the caller's batch by the pointer in its mail slot (left unchanged) and clips it
-    into the graph's buffer, and the finish writes the outputs packed into the buffer mailed in its
+    check reads the caller's batch by the pointer in its mail slot (left unchanged), clips it
+    into the graph's buffer and copies the slot to device memory, and the finish writes the outputs packed into the buffer mailed in its
     slot and the rows done and bad into its slot of the host flags: the same values the plain
     kernels write to their own arrays."""
     import warp as wp
@@ -589,12 +589,17 @@ def test_mailed_env_kernels_match_plain_ones():
         if mailed:
             mail.numpy()[slot, 0] = user.ctypes.data
         wp.launch(env_kernels.check_actions(wp.float32, True, mailed), dim=n,
-                  inputs=[a, effort, 1.0, bad, go, controls, mail if mailed else None, slot], device="cpu")  # fmt: skip
+                  inputs=[a, effort, 1.0, bad, go, controls, mail if mailed else None, slot,
+                          copy if mailed else None], device="cpu")  # fmt: skip
         return [x.numpy().copy() for x in (a, bad, go, controls)]
 
+    copy = wp.zeros((2, 2), dtype=wp.uint64, device="cpu")
+    mail.numpy()[slot, 1] = 12345
     for x, y in zip(check(True), check(False)):
         np.testing.assert_array_equal(x, y)
     np.testing.assert_array_equal(user, kept)
+    np.testing.assert_array_equal(copy.numpy()[slot], mail.numpy()[slot])  # the mailbox copied for finish_step
+    assert not copy.numpy()[1 - slot].any()
 
     obs = rng.normal(size=(n, d)).astype(np.float32)
     obs[2, 0] = np.inf
@@ -604,7 +609,9 @@ def test_mailed_env_kernels_match_plain_ones():
     out = np.zeros(4 * n * (d + 2) + 3 * n, dtype=np.uint8)
 
     def finish(mailed):
-        arrays = {k: wp.array(v, device="cpu") for k, v in ins.items()}
+        packed = np.concatenate([ins["obs"], ins["reward"][:, None], ins["term"][:, None].astype(np.float32)], 1)
+        arrays = {"outcome": wp.array(packed, device="cpu")}
+        arrays |= {k: wp.array(v, device="cpu") for k, v in ins.items() if k not in ("obs", "reward", "term")}
         o, r = wp.zeros((n, d), dtype=wp.float32, device="cpu"), wp.zeros(n, dtype=wp.float32, device="cpu")
         status = wp.full(n, -1, dtype=wp.int32, device="cpu")
         flags = wp.array(np.eye(5, n, dtype=bool), device="cpu")  # row 4 (bad): the check's
