@@ -15,7 +15,7 @@ between two graphs: the host reads step t's flags while step t + 1 (the other sl
 kernel's read of host memory lasts a PCIe round trip (on an H200, 2.7 µs for a kernel of 1,024
 threads that reads a pointer there against 1.3 µs for one that reads it from device memory;
 writes there cost nothing measurable): the check, the step's first kernel, reads the mailbox
-and copies the output buffer's pointer to device memory for the step's last.
+and copies its slot to device memory, where the step's last kernel reads the output's pointer.
 """
 import functools
 
@@ -74,8 +74,8 @@ def finish_step(mailed: bool = False):
                flags: wp.array2d(dtype=wp.bool),
                mail: wp.array2d(dtype=wp.uint64), slot: int, host_flags: wp.array3d(dtype=wp.bool)):  # fmt: skip
         """World w's outcome from the task's, ``outcome[w]``: the observation (d columns), the reward
-        and the termination (1 or 0; the three packed in one array, which torch.compile writes in
-        one kernel where three arrays of two sizes took three): failed where its
+        and the termination (1 or 0), packed in one array so that torch.compile can write them in
+        one kernel (arrays of two sizes are a kernel each): failed where its
         solve failed or an observation is not finite (zero observation and reward, terminated); a
         world reset in this step (pending, when the step ran) has reward 0 and neither flag;
         truncated at ``max_steps`` env steps (none when negative).  flags rows: terminated,

@@ -565,9 +565,9 @@ def test_nan_actions_checked_on_the_device_are_taken_back(device):
 def test_mailed_env_kernels_match_plain_ones():
     """The step graph's mailed kernels (env_kernels, run here on the CPU with host pointers): the
     check reads the caller's batch by the pointer in its mail slot (left unchanged), clips it
-    into the graph's buffer and copies the slot to device memory, and the finish writes the outputs packed into the buffer mailed in its
-    slot and the rows done and bad into its slot of the host flags: the same values the plain
-    kernels write to their own arrays."""
+    into the graph's buffer and copies the slot to device memory, and the finish writes the
+    outputs packed into the buffer mailed in its slot and the rows done and bad into its slot of
+    the host flags: the same values the plain kernels write to their own arrays."""
     import warp as wp
 
     from abd_gym import env_kernels
