@@ -9,8 +9,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .config import algorithm_class, algorithm_kwargs, normalize_kwargs, policy_kwargs
-from .sb3_vec_env import make_vec_env
+from abd_gym.agents.config import algorithm_class, algorithm_kwargs, normalize_kwargs, policy_kwargs
+from abd_gym.agents.sb3_vec_env import make_vec_env
 
 MODEL_FILE = "model.zip"
 VECNORM_FILE = "vecnormalize.pkl"
@@ -133,11 +133,11 @@ def build_model(
     a GPU, SB3's own elsewhere)."""
     algo_cls = algorithm_class(cfg["algo"])
     if rollout == "device":
-        from .device_rollout import DevicePPO
+        from abd_gym.agents.device_rollout import DevicePPO
 
         algo_cls = DevicePPO
     elif cfg["algo"].lower() == "ppo":
-        from .graphed_update import GraphedPPO
+        from abd_gym.agents.graphed_update import GraphedPPO
 
         algo_cls = GraphedPPO
     kwargs = algorithm_kwargs(cfg)
@@ -168,7 +168,7 @@ def evaluates_on_device(env_id: str, device: str) -> bool:
     """Whether evaluation runs on the device (:class:`~.device_eval.DeviceEvaluator`): on a GPU, for
     an env with the Torch backend.  On the CPU SB3's ``evaluate_policy`` runs: NumPy is the
     device there."""
-    from .device_rollout import _takes_torch_backend
+    from abd_gym.agents.device_rollout import _takes_torch_backend
 
     return str(device).startswith("cuda") and _takes_torch_backend(env_id)
 
@@ -177,7 +177,7 @@ def episode_evaluator(env) -> Callable[..., tuple[list[float], list[int]]]:
     """``(model, episodes, deterministic=...) -> (returns, lengths)`` for ``env``: a
     :class:`~.device_eval.DeviceEvaluator` where the env was built for one, else SB3's
     ``evaluate_policy``."""
-    from .device_eval import DeviceEvaluator
+    from abd_gym.agents.device_eval import DeviceEvaluator
 
     if DeviceEvaluator.refusal(env) is None:
         return DeviceEvaluator(env)
@@ -194,7 +194,7 @@ def episode_evaluator(env) -> Callable[..., tuple[list[float], list[int]]]:
 def evaluate(model, env, episodes: int, *, deterministic: bool = True) -> dict[str, Any]:
     """Mean and std of the (raw) return over ``episodes`` episodes (:func:`episode_evaluator`);
     ``evaluator``: "device" (:class:`~.device_eval.DeviceEvaluator`) or "sb3" (``evaluate_policy``)."""
-    from .device_eval import DeviceEvaluator
+    from abd_gym.agents.device_eval import DeviceEvaluator
 
     evaluator = episode_evaluator(env)
     returns, lengths = evaluator(model, episodes, deterministic=deterministic)

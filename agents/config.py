@@ -39,7 +39,7 @@ from typing import Any
 
 import yaml
 
-from .. import configs as _configs
+from abd_gym import configs as _configs
 
 __all__ = [
     "ALGOS",

@@ -40,9 +40,9 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
-from .cuda_graph import GraphedCall
-from .device_normalize import find_vecnormalize
-from .graphed_update import unchecked_distributions
+from abd_gym.agents.cuda_graph import GraphedCall
+from abd_gym.agents.device_normalize import find_vecnormalize
+from abd_gym.agents.graphed_update import unchecked_distributions
 
 __all__ = ["DeviceEvaluator"]
 
@@ -63,7 +63,7 @@ class DeviceEvaluator:
         refusal = self.refusal(env)
         if refusal is not None:
             raise ValueError(f"DeviceEvaluator cannot evaluate on this env: {refusal}")
-        from .device_rollout import find_adapter
+        from abd_gym.agents.device_rollout import find_adapter
 
         self.adapter = find_adapter(env)
         self.vecnormalize = find_vecnormalize(env)
@@ -75,7 +75,7 @@ class DeviceEvaluator:
     @staticmethod
     def refusal(env: Any) -> str | None:
         """Why ``env`` cannot be evaluated on the device (in words), or None where it can."""
-        from .device_rollout import find_adapter
+        from abd_gym.agents.device_rollout import find_adapter
 
         adapter = find_adapter(env)
         if adapter is None:

@@ -64,11 +64,11 @@ from stable_baselines3.common.buffers import BaseBuffer, RolloutBuffer
 from stable_baselines3.common.type_aliases import RolloutBufferSamples
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 
-from .device_normalize import DeviceNormalize, find_vecnormalize
-from .graphed_rollout import RolloutStep
-from .graphed_update import SAMPLED, GraphedPPO, unchecked_distributions
-from .rollout_kernels import gae_kernel, warp_on_torch_stream
-from .sb3_vec_env import GymnasiumVecEnv, _accepts
+from abd_gym.agents.device_normalize import DeviceNormalize, find_vecnormalize
+from abd_gym.agents.graphed_rollout import RolloutStep
+from abd_gym.agents.graphed_update import SAMPLED, GraphedPPO, unchecked_distributions
+from abd_gym.agents.rollout_kernels import gae_kernel, warp_on_torch_stream
+from abd_gym.agents.sb3_vec_env import GymnasiumVecEnv, _accepts
 
 __all__ = ["DEVICE_PATH", "SB3_PATH", "DevicePPO", "TensorRolloutBuffer", "rollout_path", "find_adapter"]
 

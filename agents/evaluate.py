@@ -18,21 +18,10 @@ from typing import Any
 
 import numpy as np
 
-from .common import (
-    BEST_MODEL_FILE,
-    BEST_VECNORM_FILE,
-    CONFIG_FILE,
-    EVAL_SEED_OFFSET,
-    MODEL_FILE,
-    VECNORM_FILE,
-    build_eval_env,
-    eval_env_count,
-    evaluate,
-    reward_threshold,
-    write_json,
-)
-from .config import algorithm_class, validate_config, yaml_load
-from ..devices import resolve_device
+from abd_gym.agents.common import (BEST_MODEL_FILE, BEST_VECNORM_FILE, CONFIG_FILE, EVAL_SEED_OFFSET, MODEL_FILE,
+    VECNORM_FILE, build_eval_env, eval_env_count, evaluate, reward_threshold, write_json)
+from abd_gym.agents.config import algorithm_class, validate_config, yaml_load
+from abd_gym.core.devices import resolve_device
 
 __all__ = ["load_run", "vecnormalize_for", "evaluate_run", "record_video", "main"]
 
@@ -44,7 +33,7 @@ def load_run(run_dir: str | Path, *, device: str | None = None, model_path: str 
     if device is not None:
         cfg["device"] = device
     algo_cls = algorithm_class(cfg["algo"])
-    from .common import model_device
+    from abd_gym.agents.common import model_device
 
     model = algo_cls.load(str(model_path or run_dir / MODEL_FILE), device=model_device(cfg["device"]))
     return cfg, model, vecnormalize_for(run_dir, model_path)

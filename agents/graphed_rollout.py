@@ -40,9 +40,9 @@ import torch as th
 import warp as wp
 from gymnasium import spaces
 
-from .cuda_graph import GraphedCall
-from .device_normalize import DeviceNormalize
-from .rollout_kernels import record_kernel, warp_on_torch_stream
+from abd_gym.agents.cuda_graph import GraphedCall
+from abd_gym.agents.device_normalize import DeviceNormalize
+from abd_gym.agents.rollout_kernels import record_kernel, warp_on_torch_stream
 
 __all__ = ["RolloutStep"]
 

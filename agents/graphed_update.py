@@ -43,7 +43,7 @@ from stable_baselines3.common.type_aliases import RolloutBufferSamples
 from stable_baselines3.common.utils import explained_variance
 from torch.nn import functional as F
 
-from .cuda_graph import GraphedCall
+from abd_gym.agents.cuda_graph import GraphedCall
 
 __all__ = ["GraphedMinibatchStep", "GraphedPPO", "SAMPLED", "STATS", "ppo_loss", "unchecked_distributions"]
 

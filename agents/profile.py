@@ -46,10 +46,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .common import build_model, build_train_env, device_description, train_autoreset_mode, versions, write_json
-from .config import validate_config
-from .device_rollout import DEVICE_PATH, SB3_PATH, device_path_refusal, find_adapter, rollout_path
-from .train import raw_config_from_args
+from abd_gym.agents.common import (build_model, build_train_env, device_description, train_autoreset_mode, versions,
+    write_json)
+from abd_gym.agents.config import validate_config
+from abd_gym.agents.device_rollout import DEVICE_PATH, SB3_PATH, device_path_refusal, find_adapter, rollout_path
+from abd_gym.agents.train import raw_config_from_args
 
 __all__ = ["profile", "main", "SECTIONS"]
 

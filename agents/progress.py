@@ -102,7 +102,7 @@ class ThresholdEval(EvalCallback):
 
     def __init__(self, eval_env, *, threshold: float | None, name: str = "",
                  write: Callable[[str], None] | None = None, **kwargs: Any):
-        from .common import episode_evaluator
+        from abd_gym.agents.common import episode_evaluator
 
         super().__init__(eval_env, **kwargs)
         self.evaluate = episode_evaluator(self.eval_env)

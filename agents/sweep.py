@@ -29,7 +29,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .config import ConfigError, apply_overrides, validate_config, yaml_load
+from abd_gym.agents.config import ConfigError, apply_overrides, validate_config, yaml_load
 
 __all__ = ["main", "parse_args", "parse_grid", "parse_space", "parse_seeds", "aggregate", "sweep"]
 
@@ -177,7 +177,7 @@ def point_name(point: dict[str, Any], default: str) -> str:
 
 def plan(args: argparse.Namespace) -> dict[str, Any]:
     """Everything the sweep needs, checked before Ray starts: a bad value fails here, named."""
-    from .train import raw_config_from_args  # the config as abd-gym-train reads it, before point and seed
+    from abd_gym.agents.train import raw_config_from_args  # the config as abd-gym-train reads it, before point and seed
 
     raw, name = raw_config_from_args(args)
     seeds = parse_seeds(args.seeds) if args.seeds else [int(validate_config(raw)["seed"])]
@@ -224,7 +224,7 @@ def run_trial(params: dict[str, Any], *, raw: dict[str, Any], name: str, out: st
     """One training: the point's and the seed's overrides on ``raw``; reports the summary to Tune."""
     from ray import tune
 
-    from .train import train
+    from abd_gym.agents.train import train
 
     point = {k: v for k, v in params.items() if k != SEED_KEY}
     seed = int(params[SEED_KEY])

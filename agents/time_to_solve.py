@@ -24,8 +24,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from . import sweep
-from .config import CONFIG_DIR, ConfigError
+from abd_gym.agents import sweep
+from abd_gym.agents.config import CONFIG_DIR, ConfigError
 
 __all__ = ["main", "gpu_configs", "collect", "markdown"]
 

@@ -43,29 +43,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from .common import (
-    BEST_VECNORM_FILE,
-    CONFIG_FILE,
-    EVAL_SEED_OFFSET,
-    MODEL_FILE,
-    SUMMARY_FILE,
-    VECNORM_FILE,
-    build_eval_env,
-    build_model,
-    build_train_env,
-    device_description,
-    eval_env_count,
-    evaluate,
-    reward_threshold,
-    train_autoreset_mode,
-    versions,
-    write_json,
-)
-from .config import apply_overrides, config_name, find_config, validate_config, yaml_load
-from ..devices import resolve_device
+from abd_gym.agents.common import (BEST_VECNORM_FILE, CONFIG_FILE, EVAL_SEED_OFFSET, MODEL_FILE, SUMMARY_FILE,
+    VECNORM_FILE, build_eval_env, build_model, build_train_env, device_description, eval_env_count, evaluate,
+    reward_threshold, train_autoreset_mode, versions, write_json)
+from abd_gym.agents.config import apply_overrides, config_name, find_config, validate_config, yaml_load
+from abd_gym.core.devices import resolve_device
 
 if TYPE_CHECKING:  # progress imports SB3, which training loads only when it runs
-    from .progress import ThresholdEval
+    from abd_gym.agents.progress import ThresholdEval
 
 __all__ = ["train", "main", "parse_args", "config_from_args"]
 
@@ -103,7 +88,7 @@ def train(
     from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from .progress import ProgressLines, stdout_is_terminal
+    from abd_gym.agents.progress import ProgressLines, stdout_is_terminal
 
     cfg = validate_config(cfg)
     resolve_device(cfg["device"])  # ValueError naming the devices there are, before the run folder is made
@@ -112,7 +97,7 @@ def train(
     (run_dir / CONFIG_FILE).write_text(yaml.safe_dump(cfg, sort_keys=False))
     print(f"run directory: {run_dir}", flush=True)
 
-    from .device_rollout import rollout_path
+    from abd_gym.agents.device_rollout import rollout_path
 
     rollout, rollout_reason = rollout_path(cfg)
     autoreset = train_autoreset_mode(rollout).name
@@ -219,7 +204,7 @@ def _periodic_eval(cfg: dict[str, Any], env, run_dir: Path, threshold: float | N
     """EvalCallback every ``eval_freq`` total env steps on worlds built like the final evaluation's."""
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from .progress import SaveVecNormalize, ThresholdEval
+    from abd_gym.agents.progress import SaveVecNormalize, ThresholdEval
 
     vecnorm = env if isinstance(env, VecNormalize) else None
     episodes = cfg["eval_episodes"]

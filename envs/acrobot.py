@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 import abd_gym as ag
-from abd_gym.vector_env import ABDEnv, ABDVectorEnv
+from abd_gym.vector.vector_env import ABDEnv, ABDVectorEnv
 
 
 REWARD_RANGE = (-1.0, 0.0)  # per step

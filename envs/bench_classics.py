@@ -28,7 +28,7 @@ import gymnasium as gym
 import numpy as np
 import warp as wp
 
-from .bench_envs import env_steps_per_second
+from abd_gym.envs.bench_envs import env_steps_per_second
 
 TASKS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5", "Reacher-v5")
 

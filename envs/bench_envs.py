@@ -38,7 +38,7 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
     - physics time: a second, identically seeded env run with the time of each of its physics
       steps summed: the same states and resets as the env run, but the physics' device time only,
       so an upper bound on the simulator's rate.  With the env's step graph (Torch on a GPU), by
-      device timestamps around the physics inside that graph (abd_gym.timestamps); else each
+      device timestamps around the physics inside that graph (abd_gym.core.timestamps); else each
       ``sim.step`` call between CUDA events on a GPU (which also time the device's waits for the
       host's launches: on an H100, 119–127 µs against 102 µs inside the graph for 1,024
       CartPole-v0 worlds), or by the host clock on the CPU.
@@ -58,7 +58,7 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
         if timed and cuda and u.device_step.use_graph:
             # the step graph holds the physics as sim.launch_step: stamped before and after it in
             # the graph (captured at the second step, so wrapped before the first)
-            from abd_gym.timestamps import Stamps
+            from abd_gym.core.timestamps import Stamps
 
             stamps, launch = Stamps(u.device, 2 * steps), sim.launch_step
 
@@ -146,8 +146,8 @@ def main(argv=None):
     import json
     import os
 
-    from abd_gym.plan import SCRATCHES, ExecutionPlan
-    from abd_gym.registration import TASKS
+    from abd_gym.solver.plan import SCRATCHES, ExecutionPlan
+    from abd_gym.vector.registration import TASKS
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--tasks", default=",".join(TASKS))

@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from abd_gym.vector_env import ABDEnv, ABDVectorEnv
+from abd_gym.vector.vector_env import ABDEnv, ABDVectorEnv
 from abd_gym.envs.cartpole import build_cart_scene, draw_track
 
 REWARD_RANGE = (0.0, 1.0)  # per step

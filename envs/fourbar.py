@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 import abd_gym as ag
-from abd_gym.vector_env import ABDEnv, ABDVectorEnv
+from abd_gym.vector.vector_env import ABDEnv, ABDVectorEnv
 
 AXIS = (0.0, -1.0, 0.0)  # counter-clockwise in the x–z view
 

@@ -16,7 +16,7 @@ import gymnasium
 import numpy as np
 
 import abd_gym as ag
-from abd_gym.vector_env import ABDVectorEnv
+from abd_gym.vector.vector_env import ABDVectorEnv
 
 
 def asset_path(name: str) -> Path:

@@ -34,10 +34,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from abd_gym.vector_env import ABDEnv
+from abd_gym.vector.vector_env import ABDEnv
 
-from .gymnasium_mjcf import GymnasiumMjcfEnv
-from .inverted_pendulum import draw_rail
+from abd_gym.envs.gymnasium_mjcf import GymnasiumMjcfEnv
+from abd_gym.envs.inverted_pendulum import draw_rail
 
 REWARD_RANGE = (-12.0, 9.36)  # per step
 

@@ -22,7 +22,7 @@ import math
 import numpy as np
 
 import abd_gym as ag
-from abd_gym.vector_env import ABDEnv, ABDVectorEnv
+from abd_gym.vector.vector_env import ABDEnv, ABDVectorEnv
 
 MAX_SPEED = 8.0  # rad/s, where the velocity cost saturates
 REWARD_RANGE = (-(math.pi**2 + 0.1 * MAX_SPEED**2 + 0.001 * 2.0**2), 0.0)  # per step

@@ -27,7 +27,7 @@ import math
 import numpy as np
 
 import abd_gym as ag
-from abd_gym.vector_env import ABDEnv, ABDVectorEnv
+from abd_gym.vector.vector_env import ABDEnv, ABDVectorEnv
 
 
 REWARD_RANGE = (-0.61, 0.0)  # per step

@@ -33,9 +33,9 @@ import math
 
 import numpy as np
 
-from abd_gym.vector_env import ABDEnv
+from abd_gym.vector.vector_env import ABDEnv
 
-from .gymnasium_mjcf import GymnasiumMjcfEnv
+from abd_gym.envs.gymnasium_mjcf import GymnasiumMjcfEnv
 
 REWARD_RANGE = (-2.41, 0.0)  # per step
 

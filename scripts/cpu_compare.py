@@ -25,9 +25,9 @@ import time
 
 import numpy as np
 
-from abd_gym.bench_accuracy import _mujoco_starts
-from abd_gym.bench_compare import ours_steps_per_second
-from abd_gym.peer_cases import CASES, with_integrator
+from abd_gym.bench.accuracy import _mujoco_starts
+from abd_gym.bench.compare import ours_steps_per_second
+from abd_gym.bench.cases import CASES, with_integrator
 
 DT = 0.01
 TASK_CASES = ("pendulum", "cartpole_task", "double_pendulum", "acrobot", "reacher", "inverted_pendulum_v5",

@@ -7,7 +7,7 @@ that world's solve: the shared step at 16,384 worlds).
     python3 scripts/newton_tail.py [--cases cartpole,fourbar,...] [--worlds 256] [--steps 60] [--device cpu]
         [--reuse-factor 0,1] [--limit-secant auto,0,1] [--threads 12672]
 
-Each case (``abd_gym.peer_cases``) starts from its random states, steps 3 times, then records each
+Each case (``abd_gym.bench.cases``) starts from its random states, steps 3 times, then records each
 world's Newton iterations and factorisations for ``--steps`` steps, once per ``--reuse-factor``
 setting (0: the simulator's default, a fresh factor every iteration) and ``--limit-secant``
 setting (ExecutionPlan.limit_secant; auto: the plan's default, which the CPU's is off).
@@ -44,8 +44,8 @@ def queue_length(its: np.ndarray, threads: int) -> float:
 
 def tail(case: str, worlds: int, steps: int, device: str, reuse_factor: bool = False,
          limit_secant: bool | None = None, threads: int = 0) -> dict[str, float]:
-    from abd_gym.peer_cases import CASES as PEER
-    from abd_gym.simulator import Simulator
+    from abd_gym.bench.cases import CASES as PEER
+    from abd_gym.sim.simulator import Simulator
 
     c = PEER[case]
     sim = Simulator(c.scene(), num_worlds=worlds, dt=0.01, device=device, reuse_factor=reuse_factor,

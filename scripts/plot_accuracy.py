@@ -4,7 +4,7 @@ file such as ``results/accuracy_own_reference.json``).
 
     python scripts/plot_accuracy.py RESULT.json OUT.png [--key own_error_max|error_max] [--title TEXT]
 
-One log-log panel per mechanism (:func:`abd_gym.bench_accuracy.plot`): for each setting of each
+One log-log panel per mechanism (:func:`abd_gym.bench.accuracy.plot`): for each setting of each
 engine, the error over 1 s [rad] against simulated world-seconds per wall second, over dt.  The
 title names the device and batch of the rates: the result's own, or ``--title`` for a merged file
 whose rates come from another run.
@@ -15,7 +15,7 @@ import argparse
 import json
 import sys
 
-from abd_gym.bench_accuracy import plot
+from abd_gym.bench.accuracy import plot
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,7 +5,7 @@ makes the host wait for the device (``torch.cuda.set_sync_debug_mode``).
     python scripts/profile_env.py [--task CartPole-v0] [--envs 1024] [--steps 200] [--device cuda:0]
 
 A phase that waits for the device shows the device's time in its row: with the step graph, only
-``pending.fetch`` should (it waits for the last step while this one runs; see abd_gym/pending.py).
+``pending.fetch`` should (it waits for the last step while this one runs; see abd_gym/vector/pending.py).
 With the step graph, the device's time per step is split too, by CUDA events: the replay (the step
 graph, and the actions' copy and the graphs before and after it where the step needs them), the
 info copies after it, and the gap to the next step (where the device waits for the host); and each
@@ -21,7 +21,8 @@ import numpy as np
 import warp as wp
 
 import abd_gym  # noqa: F401 -- registers the ids
-from abd_gym import graphs, outcome, step_graph, vector_env
+from abd_gym.core import graphs
+from abd_gym.vector import outcome, step_graph, vector_env
 
 # the env's hooks and the public calls of its layers, each timed where it is looked up
 ENV_PHASES = ("controls", "observation", "reward", "terminated", "info")

@@ -17,16 +17,16 @@ import time
 
 import warp as wp
 
-from abd_gym.bench_compare import random_states
-from abd_gym.peer_cases import CASES
-from abd_gym.plan import ExecutionPlan
-from abd_gym.simulator import Simulator
+from abd_gym.bench.compare import random_states
+from abd_gym.bench.cases import CASES
+from abd_gym.solver.plan import ExecutionPlan
+from abd_gym.sim.simulator import Simulator
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cuda:0")
-    ap.add_argument("--case", default="cartpole", choices=list(CASES), help="a mechanism of abd_gym.peer_cases")
+    ap.add_argument("--case", default="cartpole", choices=list(CASES), help="a mechanism of abd_gym.bench.cases")
     ap.add_argument("--worlds", type=int, default=16384)
     ap.add_argument("--scratch", default="auto", help="auto (the simulator's default), global, shared or lanes")
     ap.add_argument("--warmup", type=int, default=3)
@@ -61,7 +61,7 @@ def main():
     sim.step(args.steps)
     wp.synchronize_device(sim.device)
     if args.phases:
-        from abd_gym.fused import PHASES
+        from abd_gym.solver.fused import PHASES
 
         ms = (time.perf_counter() - t0) / args.steps * 1e3
         c = sim.solver.phase_cycles.numpy().sum(0) / (args.worlds * args.steps)
@@ -71,7 +71,7 @@ def main():
               f"(with the phase clock), cycles per world-step: " + ", ".join(f"{p} {v:,.0f}" for p, v in zip(PHASES, c)))
     if args.phases:
         # a launch lasts as long as its slowest world: the busiest world's cycles a step
-        from abd_gym.fused import WORLD_PHASES
+        from abd_gym.solver.fused import WORLD_PHASES
 
         per_world = sim.solver.phase_cycles.numpy()[:, list(WORLD_PHASES)].sum(1) / args.steps
         print(f"cycles a step per world (open, zero … step, close): mean {per_world.mean():,.0f}, "

@@ -29,11 +29,11 @@ def build(case: str, lanes: int = 32, lineinfo: bool = False, groups: int = 1, o
     if lineinfo:
         wp.config.lineinfo = True
         wp.config.line_directives = False
-    from abd_gym.bench import CASES
-    from abd_gym.fused import fused_kernel
-    from abd_gym.model import Model
-    from abd_gym.solver import SolverSettings
-    from abd_gym.terms import fused_flags
+    from abd_gym.bench.speed import CASES
+    from abd_gym.solver.fused import fused_kernel
+    from abd_gym.sim.model import Model
+    from abd_gym.solver.solver import SolverSettings
+    from abd_gym.solver.terms import fused_flags
 
     if case in CASES:
         scene = CASES[case]["scene"]()

@@ -5,7 +5,7 @@ float64 step, per factor-reuse setting and quadratic_stop.
     python3 scripts/solve_error.py [--cases reacher,fourbar,chain5] [--worlds 256] [--steps 30] [--reuse-factor 0,1]
         [--quadratic-stop 100,0]
 
-Each case (``abd_gym.peer_cases``) starts from its random states; a float64 simulator steps them
+Each case (``abd_gym.bench.cases``) starts from its random states; a float64 simulator steps them
 with implicit Euler (no history, so a step depends on the state alone).  Before each of its steps,
 its whole state is copied into a float32 simulator per setting (SolverSettings.reuse_factor and
 quadratic_stop), which takes the same step.  Prints
@@ -21,8 +21,8 @@ import warp as wp
 
 
 def solve_error(case: str, worlds: int, steps: int, settings: list[tuple[bool, float]]) -> dict[tuple, tuple]:
-    from abd_gym.peer_cases import CASES
-    from abd_gym.simulator import Simulator
+    from abd_gym.bench.cases import CASES
+    from abd_gym.sim.simulator import Simulator
 
     c = CASES[case]
     make = lambda **kw: Simulator(c.scene(), num_worlds=worlds, dt=0.01, device="cpu",  # noqa: E731

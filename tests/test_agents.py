@@ -122,7 +122,7 @@ def test_gpu_configs_validate(path):
 
 
 def test_every_task_has_a_gpu_config():
-    from abd_gym.registration import env_ids
+    from abd_gym.vector.registration import env_ids
 
     tasks = {load_config(p)["env_id"] for p in (CONFIG_DIR / "gpu").glob("*.yaml")}
     assert set(env_ids()) <= tasks

@@ -1,4 +1,4 @@
-"""Joint coordinates in float64 NumPy (``abd_gym.angles``): the seed's atan2 revolute angle
+"""Joint coordinates in float64 NumPy (``abd_gym.core.angles``): the seed's atan2 revolute angle
 (sign convention, principal branch plus one increment through ±π, derivatives) and the
 prismatic displacement.  Frames come from ``scene.axis_frame`` (rows t̂, n̂, b̂ in world); with both
 bodies created at identity rotation the local frames equal the world frames."""
@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from abd_gym import angles
-from abd_gym.scene import axis_frame
+from abd_gym.core import angles
+from abd_gym.sim.scene import axis_frame
 
 AXES = [(0.0, 0.0, 1.0), (1.0, 2.0, 2.0), (-0.3, 0.9, -0.1)]
 

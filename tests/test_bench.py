@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from abd_gym import bench
+from abd_gym.bench import speed as bench
 
 SIM_FIELDS = {"case", "num_worlds", "steps", "dt", "dtype", "device", "seconds", "steps_per_second",
               "world_steps_per_second", "newton_iterations", "newton_factorizations", "joint_residual",
@@ -104,7 +104,7 @@ def test_bench_accuracy(tmp_path):
     assert r["complete"] and len(r["summary_own"]) == len(summary)
     # the plot: written where matplotlib is installed (accuracy.png by the run, a saved result by
     # scripts/plot_accuracy.py), nothing and False without it
-    from abd_gym.bench_accuracy import plot
+    from abd_gym.bench.accuracy import plot
 
     has_mpl = importlib.util.find_spec("matplotlib") is not None
     assert (tmp_path / "accuracy.png").is_file() == has_mpl
@@ -116,7 +116,7 @@ def test_equal_error_summary_interpolates_in_simulated_time():
     """At each error level: each curve's world-seconds/s interpolated log-log between its dt points,
     "not reached" below its smallest error, its fastest point as a lower bound above its largest;
     the fastest setting of each engine compared."""
-    from abd_gym.bench_accuracy import equal_error_summary, rate_at
+    from abd_gym.bench.accuracy import equal_error_summary, rate_at
 
     def row(engine, integrator, dt, err, sps):
         return dict(engine=engine, case="cartpole", integrator=integrator, dt=dt, dtype="float32", tol=1e-5,
@@ -146,8 +146,8 @@ def test_memory_counts_each_allocation_once():
     memory as g, H and Δq) add nothing."""
     import warp as wp
 
-    from abd_gym import mechanisms
-    from abd_gym.simulator import Simulator
+    from abd_gym.sim import mechanisms
+    from abd_gym.sim.simulator import Simulator
 
     sim = Simulator(mechanisms.double_pendulum(), num_worlds=4)
     s = sim.solver
@@ -167,12 +167,12 @@ def test_env_rate_keeps_the_fastest_window():
 
 
 def test_timestamps_fill_their_ring_in_order():
-    """abd_gym.timestamps: each mark takes the ring's next slot (the GPU's global timer, in ns; 0
+    """abd_gym.core.timestamps: each mark takes the ring's next slot (the GPU's global timer, in ns; 0
     on the CPU), clear empties it, and a ring that overflowed says so."""
     import numpy as np
     import warp as wp
 
-    from abd_gym.timestamps import Stamps
+    from abd_gym.core.timestamps import Stamps
 
     device = "cuda:0" if wp.is_cuda_available() else "cpu"
     st = Stamps(device, 3)

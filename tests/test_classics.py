@@ -14,7 +14,7 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 import abd_gym  # noqa: F401 -- registers the ids
-from abd_gym.registration import TASKS
+from abd_gym.vector.registration import TASKS
 
 pytest.importorskip("mujoco")
 

@@ -13,11 +13,12 @@ import pytest
 import warp as wp
 
 import abd_gym as ag
-from abd_gym import WorldStatus, affine, angles
+from abd_gym import WorldStatus
+from abd_gym.core import affine, angles
 from abd_gym.constitutions import affine_body, drive, prismatic_joint, prismatic_limit, revolute_limit
 from abd_gym.constitutions._point_joint import point_joint_np
-from abd_gym.scene import axis_frame
-from abd_gym.warp_ops import GRADIENT, HESSIAN
+from abd_gym.sim.scene import axis_frame
+from abd_gym.core.warp_ops import GRADIENT, HESSIAN
 
 H_FD = 1e-6  # central-difference step
 RTOL_G = 1e-6  # relative (norm-wise) tolerance on gradients from energies
@@ -873,7 +874,7 @@ def test_lane_split_assembly_matches_staged(scene, ref, lanes, groups, band):
         sim.solver.fused_system(sim.state)  # builds the kernel and the groups' shares
         if groups > 1:
             kinds, _, counts = sim.solver.work
-            from abd_gym import fused
+            from abd_gym.solver import fused
 
             left = {int(k) for c in range(groups) for k in kinds[c, : counts[c]]}
             assert (counts[1:] > 0).all() and len(left) == 5 and fused.WORK_ANGLE in left

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-import abd_gym.vector_env as vector_env
-from abd_gym import conditioning, mechanisms
-from abd_gym.mechanisms import link_shape
-from abd_gym.registration import env_ids
-from abd_gym.scene import LOAD_STRENGTH_RATIO, STIFFNESS_PER_DENSITY
+import abd_gym.vector.vector_env as vector_env
+from abd_gym.sim import conditioning, mechanisms
+from abd_gym.sim.mechanisms import link_shape
+from abd_gym.vector.registration import env_ids
+from abd_gym.sim.scene import LOAD_STRENGTH_RATIO, STIFFNESS_PER_DENSITY
 
 
 def hanging_chain(masses, strength_ratio=None, stiffness=None, length=0.5):

@@ -3,8 +3,8 @@ import gymnasium as gym
 import pytest
 
 import abd_gym as ag
-from abd_gym import mechanisms
-from abd_gym.devices import available_devices, resolve_device
+from abd_gym.sim import mechanisms
+from abd_gym.core.devices import available_devices, resolve_device
 
 MISSING = "cuda:99"  # no machine here has a hundred GPUs
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym import mechanisms
+from abd_gym.sim import mechanisms
 
 
 def test_envelope_follows_the_joints():
@@ -48,7 +48,7 @@ def test_lane_split_band_gives_the_dense_trajectory():
     keep the band in lanes (plan.lanes_band)."""
     import warp as wp
 
-    from abd_gym.plan import lanes_band
+    from abd_gym.solver.plan import lanes_band
 
     assert not lanes_band(60, True) and lanes_band(108, True) and not lanes_band(108, False)
     before = wp.config.enable_cpu_blocks
@@ -71,7 +71,7 @@ def test_lane_split_band_gives_the_dense_trajectory():
 def _solve_kernel(dtype, envelope, packed=False):
     import warp as wp
 
-    from abd_gym import solver_kernels
+    from abd_gym.solver import kernels as solver_kernels
 
     cholesky_solve = solver_kernels.kernels(dtype, envelope, packed)["cholesky_solve"]
 
@@ -110,7 +110,7 @@ def test_factor_and_solves_match_numpy(dtype, envelope, packed):
     triangle; a matrix that is not positive definite reports 0."""
     import warp as wp
 
-    from abd_gym.solver_kernels import h_row_starts, h_words
+    from abd_gym.solver.kernels import h_row_starts, h_words
 
     wdt = getattr(wp, dtype)
     rng = np.random.default_rng(3)

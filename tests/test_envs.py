@@ -13,7 +13,7 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 import abd_gym  # noqa: F401 -- registers the ids
-from abd_gym.registration import TASKS
+from abd_gym.vector.registration import TASKS
 
 N = 4
 IDS = [f"abd_gym/{name}" for name in TASKS]

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym import mechanisms
-from abd_gym.registration import env_ids
+from abd_gym.sim import mechanisms
+from abd_gym.vector.registration import env_ids
 
 PATH = os.path.join(os.path.dirname(__file__), "data", "golden.npz")
 N, STEPS = 3, 30

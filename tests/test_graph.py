@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym import mechanisms
+from abd_gym.sim import mechanisms
 
 
 def _run(use_graph, fused=True, dtype="float32", threads=None, scratch="global", reuse_factor=False, cpu_workers=1,
@@ -94,7 +94,7 @@ def test_lane_split_step_matches_one_thread_per_world(lanes, groups, request):
         request.getfixturevalue("cpu_blocks")
     ref, sim0 = _run(True, dtype="float64")
     out, sim = _run(True, dtype="float64", scratch="lanes", block_dim=lanes, lane_groups=groups)
-    from abd_gym.plan import default_lane_groups
+    from abd_gym.solver.plan import default_lane_groups
 
     cpu = wp.get_device(sim.device).is_cpu
     # (narrow worlds, under 32 lanes, take one group unless told)
@@ -261,7 +261,7 @@ def test_default_lockstep_warps():
 
     import warp as wp
 
-    from abd_gym.plan import default_lockstep_warps, default_steps_per_launch
+    from abd_gym.solver.plan import default_lockstep_warps, default_steps_per_launch
 
     gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False)
     f32 = wp.float32
@@ -373,8 +373,8 @@ def test_default_lane_groups_fill_the_gpu_once():
     takes 3 groups); 1 on the CPU and for the other layouts."""
     from types import SimpleNamespace
 
-    from abd_gym.plan import default_lane_groups
-    from abd_gym.terms import joint_terms, term_counts
+    from abd_gym.solver.plan import default_lane_groups
+    from abd_gym.solver.terms import joint_terms, term_counts
 
     gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False)
     assert [default_lane_groups(gpu, "lanes", w) for w in (1, 264, 265, 528, 529, 1024)] == [4, 4, 2, 2, 1, 1]
@@ -394,8 +394,8 @@ def test_lane_scratch_bytes():
     120,288 B for that kernel, Warp's own 128 B included, and refused it)."""
     import warp as wp
 
-    from abd_gym.fused import lanes_scratch_words
-    from abd_gym.plan import lanes_scratch_bytes
+    from abd_gym.solver.fused import lanes_scratch_words
+    from abd_gym.solver.plan import lanes_scratch_bytes
 
     assert lanes_scratch_words(24, 1) == 300 + 24 + 2 + 24
     assert lanes_scratch_words(24, 3) == 3 * 300 + (2 * 300 + 24 + 2 + 3 + 1) + 24
@@ -513,7 +513,8 @@ def test_default_scratch_by_device_size_and_batch():
 
     import warp as wp
 
-    from abd_gym.plan import default_block_dim_shared, default_lane_width, default_scratch, resident_threads_shared
+    from abd_gym.solver.plan import (default_block_dim_shared, default_lane_width, default_scratch,
+        resident_threads_shared)
 
     gpu, cpu = SimpleNamespace(is_cuda=True, sm_count=132), SimpleNamespace(is_cuda=False, sm_count=0)
     assert default_scratch(cpu, 24, wp.float32, True, 16) == "global"

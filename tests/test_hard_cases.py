@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym import bench_robustness as rb
-from abd_gym import mechanisms
+from abd_gym.bench import robustness as rb
+from abd_gym.sim import mechanisms
 
 
 def _total_energy(sim):
@@ -155,7 +155,7 @@ def test_newton_follows_rotations(dtype, most):
 def _pendulums(dtype="float32", steps=60, **kw):
     """16 float32 double pendulums at dt 0.01 from the bench's random states: joint coordinates
     over ``steps`` steps, mean Newton iterations, and the simulator."""
-    from abd_gym.bench_compare import random_states
+    from abd_gym.bench.compare import random_states
 
     sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=16, dt=0.01, dtype=dtype, integrator="implicit_euler",
                        **kw)
@@ -204,7 +204,7 @@ def test_third_order_guess_only_under_a_steady_control():
     steps (State.calm, up to 2): smooth float32 cart-poles at dt 0.01 then take one Newton iteration
     a step.  A control that changes every step keeps calm at 0 (the second-order guess), and a
     reset starts a world with no past (order3 0, q̇ⁿ⁻² = q̇, calm 0 after its first step)."""
-    from abd_gym.bench_compare import random_states
+    from abd_gym.bench.compare import random_states
 
     sim = ag.Simulator(mechanisms.cartpole(), num_worlds=4, dt=0.01, integrator="implicit_euler")
     sim.set_joint_state(random_states("cartpole", 4))
@@ -238,7 +238,7 @@ def test_pendulum_dropped_onto_its_limit(integrator):
     with implicit Euler and 5 with BDF2, against 6 and 7 with halving alone), no world ends a step
     with more energy than it started with, and the overrun stays under 0.5 mrad (the seed's cubic
     at the impact's force)."""
-    from abd_gym.peer_cases import CASES
+    from abd_gym.bench.cases import CASES
 
     W = 256
     rng = np.random.default_rng(3)
@@ -319,7 +319,7 @@ def test_limit_secant_solves_the_same_steps(case):
     (revolute) agree to 1e-8 rad (measured 4e-10), SliderCrank-v0's piston from the bench's starts
     striking and leaving its slide's limits (prismatic) too (measured 2.5e-9).  With it every step
     converges within 4 Newton iterations (5 and 6 with Newton's direction), 4-5% fewer in all."""
-    from abd_gym.peer_cases import CASES
+    from abd_gym.bench.cases import CASES
 
     W = 16
     c = CASES[case]
@@ -352,7 +352,7 @@ def test_limit_line_search_lands_where_halving_does():
     (limit_step), and the staged step's, which only halves α, solve the same steps: 16
     InvertedPendulum-v5 poles dropped onto their limits, float64, BDF2, 0.6 s, agree to 1e-8 rad
     (measured 1e-10), and the fused solves take fewer Newton iterations in all."""
-    from abd_gym.peer_cases import CASES
+    from abd_gym.bench.cases import CASES
 
     W = 16
     rng = np.random.default_rng(3)

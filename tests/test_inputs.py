@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym import mechanisms
+from abd_gym.sim import mechanisms
 
 
 @pytest.fixture(scope="module")

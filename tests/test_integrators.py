@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym import mechanisms
+from abd_gym.sim import mechanisms
 
 
 def _swing(integrator, dt=0.01, steps=300, fused=True):

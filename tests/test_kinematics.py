@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym import mechanisms
-from abd_gym.scene import PRISMATIC, REVOLUTE
+from abd_gym.sim import mechanisms
+from abd_gym.sim.scene import PRISMATIC, REVOLUTE
 
 
 def _rot(t, x):

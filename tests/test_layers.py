@@ -1,20 +1,19 @@
 """The package's import graph: no cycle, and imports flow one way.
 
-Layers, lowest first: the physics (every module of abd_gym not named below: scene, model, state,
-constitutions, solver, fused step, plan, simulator and their helpers); the vector-env layer (the
-task base and the env machinery over one Simulator); the tasks and the training code
-(abd_gym.envs, abd_gym.agents); the benchmarks, which time all of them.  A module imports only from
-its own layer or lower ones, and the package itself (``abd_gym/__init__``) only from the physics
-and ``registration`` (whose entry points name the tasks by string).  Read from the source with
-``ast``: nothing is imported to check it.
+Layers, lowest first, one folder of abd_gym or more each: the physics (``core``, ``constitutions``,
+``sim``, ``solver``, ``mjcf``); the vector-env layer (``vector``: the task base and the env
+machinery over one Simulator); the tasks and the training code (abd_gym.envs, abd_gym.agents); the
+benchmarks (``bench``), which time all of them.  A module imports only from its own layer or lower
+ones, and the package itself (``abd_gym/__init__``) only from the physics and
+``vector.registration`` (whose entry points name the tasks by string).  Every module lives in a
+layer's folder.  Read from the source with ``ast``: nothing is imported to check it.
 """
 import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent / "abd_gym"
-ENV_LAYER = {"vector_env", "single_env", "task", "env_arrays", "env_spaces", "episodes", "outcome", "randomize", "pending",
-             "device_step", "step_graph", "autoreset", "env_kernels", "render", "registration"}  # fmt: skip
-BENCH = {"bench", "bench_compare", "bench_accuracy", "bench_robustness", "peer_cases"}
+LAYERS = {"core": 0, "constitutions": 0, "sim": 0, "solver": 0, "mjcf": 0, "vector": 1, "envs": 2, "agents": 2,
+          "configs": 2, "bench": 3}  # fmt: skip
 
 
 def modules() -> dict:
@@ -48,8 +47,7 @@ def imports(name: str, path: Path, known: dict) -> set:
 
 
 def layer(name: str) -> int:
-    top = name.split(".")[0]
-    return 3 if top in BENCH else 2 if top in ("envs", "agents", "configs") else 1 if top in ENV_LAYER else 0
+    return LAYERS[name.split(".")[0]]
 
 
 GRAPH = {name: imports(name, path, modules()) for name, path in modules().items()}
@@ -75,4 +73,9 @@ def test_imports_flow_one_way():
     upward = [(a, b) for a, targets in GRAPH.items() if a for b in targets if layer(b) > layer(a)]
     assert not upward, f"modules importing from a higher layer: {upward}"
     package = {b for b in GRAPH[""] if layer(b) > 0}
-    assert package <= {"registration"}, f"abd_gym/__init__ imports {sorted(package)}"
+    assert package <= {"vector.registration"}, f"abd_gym/__init__ imports {sorted(package)}"
+
+
+def test_every_module_lives_in_a_layer_folder():
+    loose = [name for name in GRAPH if name and name.split(".")[0] not in LAYERS]
+    assert not loose, f"modules outside the layers' folders: {loose}"

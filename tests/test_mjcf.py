@@ -15,7 +15,7 @@ mujoco = pytest.importorskip("mujoco")
 gym_mujoco = pytest.importorskip("gymnasium.envs.mujoco")
 
 import abd_gym as ag  # noqa: E402
-from abd_gym import mjcf  # noqa: E402
+from abd_gym.mjcf import importer as mjcf  # noqa: E402
 from mujoco_reference import rk4_qpos  # noqa: E402
 
 ASSETS = os.path.join(os.path.dirname(gym_mujoco.__file__), "assets")
@@ -132,7 +132,7 @@ def test_rotated_mass_data_reaches_the_model_without_rounding_noise():
     """The capsules' fromto leaves ~1e-17 kg·m² where a second moment is exactly 0; the model stores
     0 there (float32 products of such entries are denormal, slow on a CPU) and every other entry
     as it was."""
-    from abd_gym.model import Model, without_rounding_noise
+    from abd_gym.sim.model import Model, without_rounding_noise
 
     scene = ag.Scene.from_mjcf(asset("inverted_double_pendulum.xml"))
     S = np.array([b.moments.second_moment for b in scene.bodies])
@@ -152,8 +152,8 @@ def test_rotated_mass_data_reaches_the_model_without_rounding_noise():
 def test_joint_frames_in_rotated_bodies_reach_the_model_without_rounding_noise():
     """The four-bar's links are rotated by trigonometry: its joints' local frames and points carry
     ~1e-17 where they are 0 until the model stores them."""
-    from abd_gym.model import Model
-    from abd_gym.peer_cases import CASES
+    from abd_gym.sim.model import Model
+    from abd_gym.bench.cases import CASES
 
     scene = CASES["fourbar"].scene()
     assert any(((b.rotation != 0) & (np.abs(b.rotation) < 1e-15)).any() for b in scene.bodies)

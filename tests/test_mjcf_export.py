@@ -11,9 +11,9 @@ import pytest
 mujoco = pytest.importorskip("mujoco")
 
 import abd_gym as ag  # noqa: E402
-from abd_gym import mechanisms  # noqa: E402
-from abd_gym.mjcf_export import spanning_tree, to_mjcf  # noqa: E402
-from abd_gym.peer_cases import CASES, connect_gap, with_integrator  # noqa: E402
+from abd_gym.sim import mechanisms  # noqa: E402
+from abd_gym.mjcf.export import spanning_tree, to_mjcf  # noqa: E402
+from abd_gym.bench.cases import CASES, connect_gap, with_integrator  # noqa: E402
 from mujoco_reference import REFERENCE_DT, rk4_qpos  # noqa: E402
 
 DURATION = 0.5

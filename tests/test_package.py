@@ -41,7 +41,7 @@ def test_registered_entry_points_name_the_namespace():
     import gymnasium as gym
 
     import abd_gym  # noqa: F401
-    from abd_gym.registration import env_ids
+    from abd_gym.vector.registration import env_ids
 
     for env_id in env_ids():
         spec = gym.spec(env_id)

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym import angles
+from abd_gym.core import angles
 from abd_gym.constitutions import passive
-from abd_gym.shapes import Box
-from abd_gym.terms import joint_terms, term_counts
-from abd_gym.warp_ops import GRADIENT, HESSIAN
+from abd_gym.sim.shapes import Box
+from abd_gym.solver.terms import joint_terms, term_counts
+from abd_gym.core.warp_ops import GRADIENT, HESSIAN
 
 # every subsystem hangs on the fixed base: a link spinning about +z (gravity acts along the axis, so
 # only the passive terms act on its angle) with damping and armature, one with damping only, a

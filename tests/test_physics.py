@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym import mechanisms
+from abd_gym.sim import mechanisms
+from abd_gym.sim.scene import PRISMATIC
 
 
 def rot(axis, angle):
@@ -254,13 +255,13 @@ def test_parameter_setters_write_listed_worlds_and_reject_before_writing():
         np.testing.assert_array_equal(after[[0, 2]], b[[0, 2]], err_msg=n)
         assert n == "mc" or not np.array_equal(after[1], b[1]), n  # mc = m·com is 0 for these bodies
     np.testing.assert_allclose(m.mass.numpy()[1, 1:], [2.0, 0.3], rtol=1e-6)
-    limits = [a.numpy().copy() for a in m.limit_params[ag.scene.PRISMATIC]]
+    limits = [a.numpy().copy() for a in m.limit_params[PRISMATIC]]
     with pytest.raises(ValueError, match="must not exceed upper"):
         sim.set_limit(0, lower=[-0.5, 0.9], upper=[0.5, 0.1], worlds=[0, 2])
-    for a, b in zip(m.limit_params[ag.scene.PRISMATIC], limits):
+    for a, b in zip(m.limit_params[PRISMATIC], limits):
         np.testing.assert_array_equal(a.numpy(), b)  # world 0's valid half was not written either
     sim.set_limit(0, lower=-0.4, upper=0.3, worlds=[2])
-    lo, up, _ = (a.numpy()[:, 0] for a in m.limit_params[ag.scene.PRISMATIC])
+    lo, up, _ = (a.numpy()[:, 0] for a in m.limit_params[PRISMATIC])
     np.testing.assert_allclose([lo[2], up[2]], [-0.4, 0.3], rtol=1e-6)
     np.testing.assert_array_equal(lo[:2], limits[0][:2, 0])
 

@@ -11,7 +11,7 @@ import pytest
 from gymnasium.utils.env_checker import data_equivalence
 
 import abd_gym  # noqa: F401
-from abd_gym.registration import env_ids
+from abd_gym.vector.registration import env_ids
 
 
 def _numpy(data):

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym import mechanisms
-from abd_gym.plan import ExecutionPlan, resolve_plan
-from abd_gym.solver import SolverSettings
+from abd_gym.sim import mechanisms
+from abd_gym.solver.plan import ExecutionPlan, resolve_plan
+from abd_gym.solver.solver import SolverSettings
 
 
 def test_simulator_takes_the_physics_and_one_plan():
@@ -84,7 +84,7 @@ def test_limit_secant_where_a_thread_holds_few_worlds():
     1.0-2.6 worlds a thread, 0.78-0.92x at 3.1-10.3); never on the CPU or with lanes."""
     from types import SimpleNamespace
 
-    from abd_gym.plan import default_limit_secant
+    from abd_gym.solver.plan import default_limit_secant
 
     gpu, cpu = SimpleNamespace(is_cuda=True), SimpleNamespace(is_cuda=False)
     assert default_limit_secant(gpu, "shared", 16384, 12672) and default_limit_secant(gpu, "shared", 16384, 16384)

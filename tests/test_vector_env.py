@@ -1,4 +1,4 @@
-"""The native batched VectorEnv contract (abd_gym.vector_env), on CartPole-v0 and Pendulum-v0.
+"""The native batched VectorEnv contract (abd_gym.vector.vector_env), on CartPole-v0 and Pendulum-v0.
 
 Few worlds and short rollouts: every scene here shares its compiled kernels with test_envs.py.
 """
@@ -11,8 +11,8 @@ from gymnasium.vector import AutoresetMode
 
 import abd_gym  # noqa: F401 -- registers the ids
 from abd_gym import WorldStatus
-from abd_gym.registration import TASKS, env_ids
-from abd_gym.vector_env import ABDVectorEnv
+from abd_gym.vector.registration import TASKS, env_ids
+from abd_gym.vector.vector_env import ABDVectorEnv
 from abd_gym.envs.cartpole import CartPoleVectorEnv
 from abd_gym.envs.pendulum import PendulumVectorEnv
 
@@ -570,7 +570,7 @@ def test_mailed_env_kernels_match_plain_ones():
     the host flags: the same values the plain kernels write to their own arrays."""
     import warp as wp
 
-    from abd_gym import env_kernels
+    from abd_gym.vector import kernels as env_kernels
 
     if not wp.is_cpu_available():
         pytest.skip("device 'cpu' is not available: Warp has no CPU compiler here")

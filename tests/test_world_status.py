@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym import WorldStatus, mechanisms
+from abd_gym import WorldStatus
+from abd_gym.sim import mechanisms
 
 PLANS = {"default": None, "staged": dict(fused=False), "global": dict(scratch="global"), "lanes": dict(scratch="lanes")}
 

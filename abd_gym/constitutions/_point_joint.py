@@ -10,8 +10,8 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from .. import affine
-from ..warp_ops import HESSIAN, ops
+from ..core import affine
+from ..core.warp_ops import HESSIAN, ops
 
 
 def point_joint_np(q, points_i, points_j, K):

@@ -20,8 +20,8 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from ..angles import angle_ops
-from ..warp_ops import ops
+from ..core.angles import angle_ops
+from ..core.warp_ops import ops
 from .protocol import COORDINATE, Constitution
 
 NAME = "drive"

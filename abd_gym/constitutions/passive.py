@@ -21,8 +21,8 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from ..angles import angle_ops
-from ..warp_ops import ops
+from ..core.angles import angle_ops
+from ..core.warp_ops import ops
 from .protocol import COORDINATE, Constitution
 
 NAME = "passive"

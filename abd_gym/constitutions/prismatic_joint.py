@@ -16,8 +16,8 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from .. import affine
-from ..warp_ops import HESSIAN, ops
+from ..core import affine
+from ..core.warp_ops import HESSIAN, ops
 from .protocol import JOINT, Constitution
 
 UID = 20

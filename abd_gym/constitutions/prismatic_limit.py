@@ -15,8 +15,8 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from ..angles import angle_ops, prismatic_displacement_np
-from ..warp_ops import ops
+from ..core.angles import angle_ops, prismatic_displacement_np
+from ..core.warp_ops import ops
 from .protocol import COORDINATE, Constitution
 
 UID = 669

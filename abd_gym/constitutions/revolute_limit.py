@@ -16,8 +16,8 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from ..angles import angle_ops, revolute_angle_np
-from ..warp_ops import ops
+from ..core.angles import angle_ops, revolute_angle_np
+from ..core.warp_ops import ops
 from .protocol import COORDINATE, Constitution
 
 UID = 670

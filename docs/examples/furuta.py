@@ -12,7 +12,7 @@ import gymnasium as gym
 import numpy as np
 
 import abd_gym as ag
-from abd_gym.vector_env import ABDEnv, ABDVectorEnv
+from abd_gym.vector.vector_env import ABDEnv, ABDVectorEnv
 
 ENV_ID = "abd_gym_examples/Furuta-v0"
 

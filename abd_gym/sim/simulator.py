@@ -1,0 +1,503 @@
+"""Simulator: the public face of one scene stepped in ``num_worlds`` parallel worlds.
+
+Data flows one way: ``Scene`` → ``Model`` (static arrays) → ``State`` (per step) → ``Solver``.
+Getters return NumPy by default; ``backend="warp"`` gives the device array itself and
+``backend="torch"`` a zero-copy Torch view on the simulator's device.
+"""
+from __future__ import annotations
+
+import math
+import os
+import warnings
+
+import numpy as np
+import warp as wp
+
+from . import conditioning, kinematics
+from ..core import graphs, launches, rows
+from .coordinates import FIXED_CODE
+from .inputs import check_body_spin, check_joint_state
+from .inputs import finite_array as _finite_array
+from .model import Model
+from ..solver.plan import ExecutionPlan
+from .scene import REVOLUTE, Scene
+from ..solver.solver import Solver, SolverSettings
+from .state import State
+
+
+def _skew(w):
+    """[w]× (..., 3, 3) of vectors w (..., 3)."""
+    out = np.zeros(w.shape + (3,))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    return out
+
+
+class Simulator:
+    """Step ``num_worlds`` copies of ``scene`` by ``dt`` [s], each step a Newton solve of the
+    incremental potential (docs/design.md §2)
+
+        q^{n+1} = argmin_q ½(q − q̃)ᵀM(q − q̃) + h²(Σ V_orth + Σ E_drive) + Σ E_joint + Σ E_limit
+
+    with q̃ the inertial prediction and h = dt (implicit Euler) or 2dt/3 (BDF2).
+
+    The physics: ``integrator`` "bdf2" (the default: second order, far less numerical damping; a
+    world takes implicit Euler steps where its state was just set or a limit acts, so that no
+    impact gains energy) or "implicit_euler" (first order, dissipative: a free pendulum visibly
+    loses its swing); ``dtype`` "float32" or "float64";
+    ``device`` "cpu" or "cuda:N" (default: $ABD_GYM_DEVICE, else "cpu").  The Newton solve
+    (SolverSettings): it stops a world once ‖Δq‖∞/h < ``tol`` [m/s], after at most
+    ``max_iterations`` iterations of at most ``max_line_search`` Armijo trials each;
+    ``reuse_factor`` solves an iteration after a full step against the last Cholesky factor
+    (off by default: it stops short of the solution, SolverSettings); ``quadratic_stop``: a
+    Newton step from a fresh factor accepted whole (α = 1) under this many times q's rounding
+    floor 4·eps·(1 + ‖q‖∞) ends the solve (float32 only in effect; 0: off).
+
+    How the step runs on the device (kernels, memory layout, launches, graphs) is ``plan``, an
+    ExecutionPlan (or a dict of its fields) whose None fields are derived from the device, the
+    number of worlds and the scene by rules measured on an H100 (abd_gym.solver.plan); every plan gives
+    the same step to rounding.  ``Simulator.plan`` is the resolved plan.
+    """
+
+    def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "bdf2",
+                 dtype="float32", device=None, tol: float = 1e-5, max_iterations: int = 50,
+                 max_line_search: int = 12, reuse_factor: bool = False, quadratic_stop: float = 100.0,
+                 plan: ExecutionPlan | dict | None = None):  # fmt: skip
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be a positive finite number, got {dt!r}")
+        settings = SolverSettings(tol=float(tol), max_iterations=int(max_iterations),
+                                  max_line_search=int(max_line_search), integrator=integrator,
+                                  reuse_factor=reuse_factor, quadratic_stop=quadratic_stop)  # fmt: skip
+        self.scene = scene
+        device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
+        self.model = Model(scene, num_worlds, dtype=dtype, device=device)
+        for message in conditioning.unsolvable(scene, float(dt), "float32" if self.model.np_dtype == np.float32 else "float64"):
+            warnings.warn(message, RuntimeWarning, stacklevel=2)
+        self.state = State(self.model)
+        self.solver = Solver(self.model, dt, settings, plan)
+        self.dt = float(dt)
+        self.num_worlds = self.model.num_worlds
+        self.device = self.model.device
+        m = self.model
+        self._ratio = np.broadcast_to(scene.strength_ratios(), (self.num_worlds, m.num_joints)).copy()
+        self._mass = np.broadcast_to(m.base_mass, (self.num_worlds, m.num_bodies)).copy()
+        self._joint_bodies = (m.body_a.numpy()[: m.num_joints].copy(), m.body_b.numpy()[: m.num_joints].copy())
+        # joint kind -> host copies of the limits' (lower, upper, strength), (W, limits)
+        self._limits = {kind: [np.broadcast_to([scene.joints[k].attributes[f"limit/{a}"] for k in ids], (self.num_worlds, len(ids))).copy()
+                               for a in ("lower", "upper", "strength")] for kind, ids in m.limit_joints.items()}  # fmt: skip
+        self._set_mask = None
+        self._tree_plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
+        self._torch_views = {}
+        self._host_views = {}
+        self._cmds = {}  # recorded launches of the reset path, replayed with changed arguments (_replay)
+        self._stage = rows.Staging(self.device)  # host rows to the device without waiting for the device
+        self._graph = {}  # steps a launch -> the captured step: [(phase, graph or None)]
+        self._warm = False
+        self.reset()
+
+    @property
+    def plan(self) -> ExecutionPlan:
+        """The execution plan the step runs (every field resolved)."""
+        return self.solver.plan
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, num_steps: int = 1):
+        """Advance every world ``num_steps`` steps of ``dt`` (where a step is one launch, up to the
+        solver's ``steps_per_launch`` a launch)."""
+        for k in self.solver.launch_chunks(num_steps):
+            if self.plan.use_graph and self._warm:
+                if k not in self._graph:
+                    # capture after one plain step, so every kernel is compiled and loaded; with the
+                    # CPU's concurrent Newton launches (which a graph cannot hold), the phases around them
+                    self._graph[k] = [(phase, self._capture(phase) if capturable else None)
+                                      for phase, capturable in self.solver.step_phases(k)]  # fmt: skip
+                for phase, graph in self._graph[k]:
+                    if graph is None:
+                        phase(self.state)
+                    else:
+                        wp.capture_launch(graph)
+            else:
+                self.solver.step(self.state, k)
+                self._warm = True
+            self.state.time += k * self.dt
+
+    def launch_step(self, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
+        """``num_steps`` steps as direct launches of the step's kernels, without the simulator's own
+        graphs and without advancing the host clock ``state.time``: for a caller that captures the
+        step in a graph of its own (the vector env's), and advances the clock (``tick``) at each
+        replay.  The same step as ``step``.  ``hold`` (device int32 (num_worlds,)) and ``go``
+        (device int32 (1,)), where the step is one launch (``solver.holds``): the worlds with
+        hold[w] != 0, and every world while go[0] == 0, are not stepped, and none of their rows is
+        read or written, so that other launches may rewrite them at the same time."""
+        self.solver.step(self.state, num_steps, hold=hold, go=go)
+
+    def tick(self, num_steps: int = 1):
+        """Advance the host clock ``state.time`` by ``num_steps`` steps (see ``launch_step``)."""
+        self.state.time += int(num_steps) * self.dt
+
+    def _capture(self, phase):
+        """A graph of ``phase`` (a solver step's part)."""
+        return graphs.capture(self.device, lambda: phase(self.state))[0]
+
+    # ------------------------------------------------------------------ output
+    def view(self, array: wp.array, backend: str = "numpy"):
+        """``array`` (one of the simulator's device arrays, or a caller's array on its device) as
+        ``backend``: "numpy" a host copy (float64, int32 for int32 arrays), "warp" the array itself,
+        "torch" a zero-copy Torch view on the device (made once per array: the simulator's arrays
+        are never reallocated, so the view stays valid and writes through it reach the array)."""
+        if backend == "numpy":  # a copy: on the CPU .numpy() is a view of memory the next step overwrites
+            src = self.host_view(array) if self.device.is_cpu else array.numpy()
+            return np.array(src, dtype=np.float64 if array.dtype != wp.int32 else np.int32)
+        if backend == "warp":
+            return array
+        if backend == "torch":  # zero-copy views, made once: the state's arrays are never reallocated
+            view = self._torch_views.get(id(array))
+            if view is None:
+                view = self._torch_views[id(array)] = wp.to_torch(array)
+            return view
+        raise ValueError(f"backend must be 'numpy', 'warp' or 'torch', got {backend!r}")
+
+    def joint_coordinates(self, backend="numpy"):
+        """(num_worlds, num_joints): revolute angle [rad] (the seed's x = θ0 + δ), slider displacement [m]."""
+        return self.view(self.state.coord, backend)[:, : self.model.num_joints]
+
+    def joint_velocities(self, backend="numpy"):
+        """(num_worlds, num_joints): rates of the coordinates over the last step [rad/s, m/s]."""
+        return self.view(self.state.coord_vel, backend)[:, : self.model.num_joints]
+
+    def joint_angles_unwrapped(self, backend="numpy"):
+        """(num_worlds, num_joints): multi-turn revolute angle [rad] (displacement for sliders)."""
+        return self.view(self.state.unwrapped, backend)[:, : self.model.num_joints]
+
+    def body_q(self, backend="numpy"):
+        """(num_worlds, num_bodies, 12): affine coordinates (p, a1, a2, a3)."""
+        if backend == "numpy":
+            return self.state.q.numpy().astype(np.float64)
+        return self.view(self.state.q, backend)
+
+    def body_positions(self, backend="numpy"):
+        """(num_worlds, num_bodies, 3): p of each body [m]."""
+        return self.body_q(backend)[..., :3]
+
+    def body_rotations(self, backend="numpy"):
+        """(num_worlds, num_bodies, 3, 3): A of each body (rows a_k)."""
+        q = self.body_q(backend)
+        return q[..., 3:].reshape(q.shape[:-1] + (3, 3))
+
+    def body_velocities(self):
+        """(num_worlds, num_bodies, 12): q̇ over the last step."""
+        return self.state.qd.numpy().astype(np.float64)
+
+    def energies(self) -> dict:
+        """Each term's own energy [J] per world: "kinetic" (the joints' armature's ½aẋ² included),
+        "gravity", "orthogonality" and the joint, limit and drive terms the scene has (K/2 Σ‖C‖² for
+        joints, the seed's E(x) for limits)."""
+        return self.solver.energies(self.state)
+
+    def joint_violation(self, joints=None) -> np.ndarray:
+        """(num_worlds,) largest joint position residual [m] over all joints, or over the indices
+        ``joints`` (a loop's closing joints: how far the loop is open): ‖x_i(P) − x_j(P)‖ of revolute
+        and fixed joint points, ‖C0‖ and ‖C1‖ of prismatic joints."""
+        m = self.model
+        out = np.zeros(self.num_worlds)
+        if not m.num_joints or (joints is not None and not len(joints)):
+            return out
+        q = self.body_q()
+        p, A = q[..., :3], q[..., 3:].reshape(q.shape[:-1] + (3, 3))
+        ia, ib = m.body_a.numpy()[: m.num_joints], m.body_b.numpy()[: m.num_joints]
+        pa, Aa, pb, Ab = p[:, ia], A[:, ia], p[:, ib], A[:, ib]
+        pts_a, pts_b = m.pts_a.numpy().astype(np.float64), m.pts_b.numpy().astype(np.float64)
+        xa = pa[:, :, None] + np.einsum("wjkl,wjpl->wjpk", Aa, pts_a[:, : m.num_joints])
+        xb = pb[:, :, None] + np.einsum("wjkl,wjpl->wjpk", Ab, pts_b[:, : m.num_joints])
+        res = np.linalg.norm(xa - xb, axis=-1)  # (W, nj, 4)
+        kind = m.joint_kind_np
+        res[:, kind == 0, 2:] = 0.0  # revolute joints use two points
+        viol = res.max(axis=-1)
+        pris = kind == 1
+        if pris.any():
+            f = {n: getattr(m, n).numpy().astype(np.float64)[:, : m.num_joints] for n in ("c_a", "c_b", "t_a", "t_b")}
+            ca = pa + np.einsum("wjkl,wjl->wjk", Aa, f["c_a"])
+            cb = pb + np.einsum("wjkl,wjl->wjk", Ab, f["c_b"])
+            ta, tb = np.einsum("wjkl,wjl->wjk", Aa, f["t_a"]), np.einsum("wjkl,wjl->wjk", Ab, f["t_b"])
+            c0 = np.linalg.norm(np.cross(cb - ca, ta), axis=-1)
+            c1 = np.linalg.norm(np.cross(ca - cb, tb), axis=-1)
+            viol[:, pris] = np.maximum(c0, c1)[:, pris]
+        return (viol if joints is None else viol[:, list(joints)]).max(axis=1)
+
+    def memory_bytes(self) -> dict:
+        """Device memory [bytes] of the simulator's own arrays: "model", "state", "solver" and
+        "total" (kernels' code and a captured graph not included)."""
+        def size(obj):  # arrays that own their memory (views, such as the solver's flat scratch, do not)
+            return sum(a.capacity for a in vars(obj).values() if isinstance(a, wp.array) and a.deleter is not None)
+
+        out = {"model": size(self.model), "state": size(self.state), "solver": size(self.solver)}
+        out["total"] = sum(out.values())
+        return out
+
+    def world_status(self) -> np.ndarray:
+        """(num_worlds,) int32 copy of each world's status code (abd_gym.WorldStatus: OK, NONFINITE,
+        BREAKDOWN, UNCONVERGED).  A world not OK kept the state it had before the step that set the
+        code and is not stepped until reset, set_joint_state or set_body_states writes it."""
+        return np.array(self.view(self.state.status, "numpy"), dtype=np.int32)
+
+    def failed_worlds(self) -> np.ndarray:
+        """Indices of the worlds whose status is not OK (world_status): their state went non-finite,
+        their system broke down or their solve did not converge; reset or set them."""
+        return np.flatnonzero(self.view(self.state.status, "numpy") != 0)
+
+    def converged(self) -> np.ndarray:
+        """(num_worlds,) bool: the last step's Newton solve met the tolerance (False for a world not
+        OK)."""
+        return self.state.converged.numpy().astype(bool)
+
+    def newton_iterations(self) -> np.ndarray:
+        """(num_worlds,) Newton iterations used in the last step."""
+        return self.state.iterations.numpy().copy()
+
+    def newton_retried(self) -> np.ndarray:
+        """(num_worlds,) bool: the last step's solve, which reused the factor, did not converge within
+        its budget and was started again from the prediction q̃ with a fresh factor at every
+        iteration (``newton_iterations`` counts both)."""
+        return self.state.retried.numpy().astype(bool)
+
+    def newton_factorizations(self) -> np.ndarray:
+        """(num_worlds,) Cholesky factorisations in the last step: the iterations less those that
+        reused a factor (``reuse_factor``)."""
+        return self.state.factorizations.numpy().copy()
+
+    # ------------------------------------------------------------------ input
+    def _worlds(self, worlds):
+        if worlds is None:
+            return np.arange(self.num_worlds)
+        w = np.asarray(worlds)
+        if w.dtype == bool:
+            if w.shape != (self.num_worlds,):
+                raise ValueError(f"a world mask must have shape ({self.num_worlds},), got {w.shape}")
+            return np.flatnonzero(w)
+        w = w.astype(np.int64).reshape(-1)
+        if w.size and (w.min() < 0 or w.max() >= self.num_worlds):
+            raise ValueError(f"world indices must lie in [0, {self.num_worlds}), got {w.tolist()}")
+        return w
+
+    def _replay(self, key, kernel, dim, inputs):
+        """Launch ``kernel`` as a command recorded on the first call and replayed after, with only the
+        arguments that changed (by identity; Python scalars by value) and the dim set again: packing
+        a reset's ~40 unchanged arguments cost more than its kernels on the CPU."""
+        launches.replay(self._cmds, key, kernel, dim, inputs, self.device)
+
+    def _mask(self, idx_dev, n=None):
+        """A device int32 mask (W,) of the worlds idx_dev[:n] (reused: valid until the next call)."""
+        n = idx_dev.shape[0] if n is None else n
+        if self._set_mask is None:
+            self._set_mask = wp.zeros(self.num_worlds, dtype=wp.int32, device=self.device)
+        self._set_mask.zero_()
+        if n:
+            self._replay("mask", rows.fill_int, n, [self._set_mask, idx_dev, 1])
+        return self._set_mask
+
+    def host_view(self, array: wp.array) -> np.ndarray:
+        """A NumPy view of a CPU array's own memory (no copy; writes reach the array), cached per
+        array.  CPU devices only: a GPU array's memory is not the host's."""
+        view = self._host_views.get(id(array))
+        if view is None or view[0] is not array:
+            view = self._host_views[id(array)] = (array, array.numpy())
+        return view[1]
+
+    def _write_rows(self, array, idx, values):
+        """array[idx] = values for a (W, C) device array; only those rows travel (rows.py)."""
+        idx_dev = idx if isinstance(idx, wp.array) else rows.indices(idx, self._stage)
+        rows.write(array, idx_dev, values, self.model.np_dtype, self._stage)
+
+    def set_controls(self, values, worlds=None):
+        """Drive inputs (num_worlds or len(worlds), num_drives): torque/force [N·m, N] of effort drives,
+        target position [rad, m] of position drives, target velocity of velocity drives."""
+        nd = self.model.num_drives
+        if nd == 0:
+            raise ValueError("the scene has no drives")
+        idx = self._worlds(worlds)
+        if worlds is None and type(values).__module__.startswith("torch"):
+            if tuple(values.shape) != (self.num_worlds, nd):
+                raise ValueError(f"controls must have shape ({self.num_worlds}, {nd}), got {tuple(values.shape)}")
+            self.view(self.state.control, "torch").copy_(values)  # on the device, converting dtype
+            return
+        vals = _finite_array("controls", values, (len(idx), nd))
+        if worlds is None and self.device.is_cpu:
+            self.host_view(self.state.control)[...] = vals  # the array's own memory: no temporary array
+        elif worlds is None:
+            self.state.control.assign(vals.astype(self.model.np_dtype))
+        else:
+            self._write_rows(self.state.control, idx, vals)
+
+    def set_body_states(self, positions, rotations, linear_velocities=None, angular_velocities=None, worlds=None):
+        """Set poses (N, bodies, 3) and (N, bodies, 3, 3) [and velocities] of the worlds listed (default all).
+
+        Fixed bodies keep their scene pose.  The joint-angle history restarts: q^{t−1} = q.
+        Refused with a ValueError naming the world and body (nothing is written): a non-finite value,
+        or an angular velocity that turns a body by π or more in one step (|ω|·dt ≥ π), which
+        neither a joint's incremental angle nor the step's rotation of A can represent.
+        """
+        idx = self._worlds(worlds)
+        nb = self.model.num_bodies
+        at = dict(worlds=idx, items=[b.name for b in self.scene.bodies], item="body")
+        p = _finite_array("positions", positions, (len(idx), nb, 3), **at)
+        R = _finite_array("rotations", rotations, (len(idx), nb, 3, 3), **at)
+        v = _finite_array("linear_velocities", 0.0 if linear_velocities is None else linear_velocities, (len(idx), nb, 3), **at)
+        w = _finite_array("angular_velocities", 0.0 if angular_velocities is None else angular_velocities, (len(idx), nb, 3), **at)
+        check_body_spin(self.scene, w, idx, self.dt)
+        q = np.concatenate([p, R.reshape(len(idx), nb, 9)], axis=-1)
+        qd = np.concatenate([v, (_skew(w) @ R).reshape(len(idx), nb, 9)], axis=-1)
+        fixed = np.array([b.fixed for b in self.scene.bodies])
+        q[:, fixed] = self.model.q0[fixed]
+        qd[:, fixed] = 0.0
+        self._set_q(idx, q, qd)
+
+    def _set_q(self, idx, q, qd):
+        """Restart the worlds idx at body states q, q̇ (N, bodies, 12)."""
+        if len(idx):
+            idx_dev = rows.indices(idx, self._stage)
+            # q, q̇, q_prev and the BDF2 history (a set state has no past: as if the velocity had
+            # been constant), and status OK, in one launch
+            rows.restart(self.state, idx_dev, q, qd, self.dt, self.model, self._stage)
+            self._restarted(idx, idx_dev)
+
+    def _restarted(self, idx, idx_dev):
+        """After the worlds idx got new body states: their clocks, joint histories, coordinates and
+        (principal) multi-turn angles.  idx_dev: the indices on the device (its first len(idx) rows)."""
+        st, m = self.state, self.model
+        N = len(idx)
+        st.time[idx] = 0.0
+        self.solver.restart_joints(st, self._mask(idx_dev, N))
+        if m.num_joints:
+            self._replay("unwrapped", rows.kernels(m.dtype)["restart_unwrapped"], (N, m.num_joints),
+                         [idx_dev, st.coord, st.coord_vel, float(self.dt), st.unwrapped, st.x_hist])  # fmt: skip
+
+    def set_joint_state(self, coordinates, velocities=None, worlds=None):
+        """Forward kinematics for tree mechanisms (kinematics.py, on the device): joint coordinates
+        (N, num_joints) [rad, m] and rates, from the scene's zero pose.  Joints that close a loop
+        are left to the solver.
+
+        Refused with a ValueError naming the joint, the world and the value (nothing is written): a
+        non-finite value, a limited joint outside its limit's
+        [lower, upper], a revolute rate that turns the joint by π or more in one step."""
+        idx = self._worlds(worlds)
+        m = self.model
+        nj, N = m.num_joints, len(idx)
+        at = dict(worlds=idx, items=[j.name for j in self.scene.joints], item="joint")
+        x = _finite_array("coordinates", coordinates, (N, nj), **at)
+        xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj), **at)
+        if N == 0:
+            return
+        check_joint_state(self.scene, x, xd, idx, self.dt, self._limit_bounds())
+        idx_dev = rows.indices(idx, self._stage)
+        # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
+        # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
+        xx = np.stack([np.where(m.joint_kind_np[None, :] == FIXED_CODE, 0.0, x), xd], axis=1) if nj else np.zeros((N, 2, 1))
+        xx = self._stage("xx", xx, m.dtype)
+        self._replay("restart", *kinematics.restart_launch(*self._tree(), self.state, m, self.solver, idx_dev, xx, N,
+                                                           self.dt))  # fmt: skip
+        self.state.time[idx] = 0.0
+
+    def _limit_bounds(self):
+        """{joint index: (lower (W,), upper (W,))} of the limited joints, from the host copies."""
+        m = self.model
+        return {j: (self._limits[kind][0][:, c], self._limits[kind][1][:, c])
+                for kind, ids in m.limit_joints.items() for c, j in enumerate(ids)}  # fmt: skip
+
+    def _tree(self):
+        """(forward kinematics' plan, its per-world angular-velocity scratch), made on first use."""
+        if self._tree_plan is None:
+            m = self.model
+            self._tree_plan = kinematics.tree_plan(self.scene, m)
+            self._omega = wp.zeros((self.num_worlds, m.num_bodies), dtype=m.vec3, device=self.device)
+        return self._tree_plan, self._omega
+
+    def set_joint_state_where(self, mask: wp.array, xx: wp.array):
+        """``set_joint_state`` of the worlds w with mask[w] != 0 (a device int32 (num_worlds,) array)
+        from xx[w, 0] (coordinates) and xx[w, 1] (rates) (a device (num_worlds, 2, max(joints, 1))
+        array of the model's dtype), with no host work on the worlds: one launch on device arrays
+        that a graph can hold (the vector env's autoreset).  The host clock
+        (``state.time``) of those worlds is left to the caller, who learns which they are later."""
+        m, W = self.model, self.num_worlds
+        if tuple(mask.shape) != (W,) or mask.dtype != wp.int32:
+            raise ValueError(f"mask must be an int32 array of shape ({W},), got {mask.dtype} {tuple(mask.shape)}")
+        if tuple(xx.shape) != (W, 2, max(m.num_joints, 1)) or xx.dtype != m.dtype:
+            raise ValueError(f"xx must have shape ({W}, 2, {max(m.num_joints, 1)}) and the model's dtype, "
+                             f"got {xx.dtype} {tuple(xx.shape)}")  # fmt: skip
+        self._replay("restart_where", *kinematics.restart_launch(*self._tree(), self.state, m, self.solver, mask, xx, W,
+                                                                 self.dt, mask=mask))  # fmt: skip
+
+    def reset(self, worlds=None):
+        """Back to the scene's initial state (all worlds, or those listed); clears failure flags
+        and controls."""
+        idx = self._worlds(worlds)
+        N = len(idx)
+        q = np.broadcast_to(self.model.q0, (N,) + self.model.q0.shape)
+        qd = np.broadcast_to(self.model.qd0, (N,) + self.model.qd0.shape)
+        if self.model.num_drives:
+            self._write_rows(self.state.control, idx, 0.0)
+        self._set_q(idx, q, qd)
+
+    # ------------------------------------------------------------------ per-world parameters
+    def _update_K(self, idx):
+        """Joint strengths K = strength_ratio·(m_i + m_j) of the worlds idx, written to their rows."""
+        m = self.model
+        if not m.num_joints:
+            return
+        ia, ib = self._joint_bodies
+        mass = self._mass[idx]
+        self._write_rows(m.K, idx, self._ratio[idx] * (mass[:, ia] + mass[:, ib]))
+
+    def set_body_mass(self, mass, bodies=None, worlds=None):
+        """Per-world body masses [kg] (N, len(bodies)); every mass moment scales with it, and joint
+        strengths K = strength_ratio·(m_i + m_j) follow."""
+        m = self.model
+        idx = self._worlds(worlds)
+        bi = np.arange(m.num_bodies) if bodies is None else np.array([self.scene.body_index(b) for b in np.atleast_1d(bodies)])
+        vals = _finite_array("mass", mass, (len(idx), len(bi)))
+        if (vals <= 0).any():
+            raise ValueError(f"mass must be positive, got {vals[vals <= 0][0]}")
+        self._mass[np.ix_(idx, bi)] = vals
+        scale = self._mass[idx] / m.base_mass  # only the listed worlds' rows travel to the device
+        idx_dev = rows.indices(idx, self._stage)
+        self._write_rows(m.mass, idx_dev, m.base_mass * scale)
+        self._write_rows(m.mc, idx_dev, m.base_mc[None] * scale[..., None])
+        self._write_rows(m.S, idx_dev, m.base_S[None] * scale[..., None, None])
+        self._update_K(idx)
+
+    def set_joint_strength(self, strength_ratio, joints=None, worlds=None):
+        """Per-world joint strength ratios (N, len(joints)): K = strength_ratio·(m_i + m_j)."""
+        idx = self._worlds(worlds)
+        ji = np.arange(self.model.num_joints) if joints is None else np.array([self.scene.joint_index(j) for j in np.atleast_1d(joints)])
+        vals = _finite_array("strength_ratio", strength_ratio, (len(idx), len(ji)))
+        if (vals <= 0).any():
+            raise ValueError(f"strength_ratio must be positive, got {vals[vals <= 0][0]}")
+        self._ratio[np.ix_(idx, ji)] = vals
+        self._update_K(idx)
+
+    def set_limit(self, joint, lower=None, upper=None, strength=None, worlds=None):
+        """Per-world bounds [rad or m] and strength [J] of a joint's limit (each (N,) or scalar).
+        Checked before anything is written: a bad value changes no world."""
+        m = self.model
+        j = self.scene.joint_index(joint)
+        kind = self.scene.joints[j].kind
+        if kind not in m.limit_joints or j not in m.limit_joints[kind]:
+            raise ValueError(f"joint {joint!r} has no limit")
+        col = m.limit_joints[kind].index(j)
+        idx = self._worlds(worlds)
+        host = self._limits[kind]
+        new = [h[idx, col].copy() for h in host]
+        for k, (val, name) in enumerate(zip((lower, upper, strength), ("lower", "upper", "strength"))):
+            if val is not None:
+                new[k] = _finite_array(name, val, (len(idx),)).copy()
+        lo, up, st = new
+        if (lo > up).any():
+            k = int(np.argmax(lo > up))
+            raise ValueError(f"limit lower ({lo[k]}) must not exceed upper ({up[k]})")
+        if (st <= 0).any():
+            raise ValueError(f"limit strength must be positive, got {st[st <= 0][0]}")
+        if kind == REVOLUTE and (lo < -math.pi).any() | (up > math.pi).any():
+            raise ValueError("revolute limits must lie in [-pi, pi]")
+        idx_dev = rows.indices(idx, self._stage)
+        for h, v, dev_a in zip(host, new, m.limit_params[kind]):
+            h[idx, col] = v
+            self._write_rows(dev_a, idx_dev, h[idx])

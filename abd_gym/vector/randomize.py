@@ -1,0 +1,143 @@
+"""Domain randomisation: per-world physical parameters drawn at each reset of a world.
+
+A spec (the vector env's ``randomize``) maps each key to a range ``(lo, hi)`` for every body or
+joint it concerns, or to ``{body or joint name: (lo, hi)}`` for some of them::
+
+    {"mass_scale": (lo, hi),              # every free body's mass × U(lo, hi) (per body)
+     "strength_ratio": (lo, hi),          # every joint's strength ratio ~ U(lo, hi)
+     "limit_scale": (lo, hi),             # every limit's lower and upper × U(lo, hi)
+     "limit_strength_scale": (lo, hi)}    # every limit's strength × U(lo, hi)
+
+:class:`Parameters` keeps host copies of the values in force and writes them to the simulator.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..sim.scene import REVOLUTE
+
+RANDOMIZE_KEYS = ("mass_scale", "strength_ratio", "limit_scale", "limit_strength_scale")
+
+
+def _range(name, value):
+    lo, hi = (float(v) for v in value)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        raise ValueError(f"randomize[{name!r}] must be a (low, high) pair with low <= high, got {value!r}")
+    return lo, hi
+
+
+class Parameters:
+    """The per-world physical parameters of a simulator's worlds: ``body_mass`` (W, bodies) [kg],
+    ``strength_ratio`` (W, joints) and ``limits`` ({limited joint index: (W, 3) lower, upper
+    [rad or m], strength [J]}) as host arrays; ``spec`` the parsed randomisation in force (None:
+    the nominal values); ``randomized``: whether any world's values were ever drawn (from then on
+    every reset writes them, nominal ones included)."""
+
+    def __init__(self, scene, sim):
+        W = sim.num_worlds
+        self.scene, self.sim = scene, sim
+        self.free_bodies = [k for k, b in enumerate(scene.bodies) if not b.fixed]
+        self.nominal_mass = np.array([b.mass for b in scene.bodies])
+        self.nominal_ratio = scene.strength_ratios()
+        self.limited = [k for k, j in enumerate(scene.joints) if j.has_limit]
+        self.body_mass = np.broadcast_to(self.nominal_mass, (W, scene.num_bodies)).copy()
+        self.strength_ratio = np.broadcast_to(self.nominal_ratio, (W, scene.num_joints)).copy()
+        attrs = ("limit/lower", "limit/upper", "limit/strength")
+        self.limits = {k: np.broadcast_to([scene.joints[k].attributes[a] for a in attrs], (W, 3)).copy()
+                       for k in self.limited}  # fmt: skip
+        self.spec = None
+        self.randomized = False
+
+    @property
+    def active(self) -> bool:
+        """Whether resets write parameters (a spec is in force, or one was)."""
+        return self.spec is not None or self.randomized
+
+    def set_spec(self, spec):
+        """Parse and check a randomisation spec (module docstring); None or {}: nominal values."""
+        if spec is None or spec == {}:
+            self.spec = None
+            return
+        if not isinstance(spec, dict):
+            raise ValueError(f"randomize must be a dict or None, got {spec!r}")
+        unknown = set(spec) - set(RANDOMIZE_KEYS)
+        if unknown:
+            raise ValueError(f"unknown randomize keys {sorted(unknown)}; known: {list(RANDOMIZE_KEYS)}")
+        self.spec = {key: self._ranges(key, value) for key, value in spec.items()}
+
+    def _ranges(self, key, value) -> dict:
+        """{body or joint index: (lo, hi)} of one spec entry."""
+        scene = self.scene
+        if key == "mass_scale":
+            names, to_index = self.free_bodies, scene.body_index
+        elif key == "strength_ratio":
+            names, to_index = list(range(scene.num_joints)), scene.joint_index
+        else:
+            names, to_index = self.limited, scene.joint_index
+        if isinstance(value, dict):
+            ranges = {}
+            for name, r in value.items():
+                k = to_index(name)
+                if k not in names:
+                    raise ValueError(f"randomize[{key!r}]: {name!r} cannot be randomised (fixed body or no limit)")
+                ranges[k] = _range(key, r)
+        else:
+            r = _range(key, value)
+            ranges = {k: r for k in names}
+        if key != "limit_scale" and any(lo <= 0 for lo, _ in ranges.values()):
+            raise ValueError(f"randomize[{key!r}] ranges must be positive, got {value!r}")
+        return ranges
+
+    def apply(self, idx: np.ndarray, rng: np.random.Generator):
+        """Draw (or restore) the parameters of the worlds ``idx`` and write them to the simulator."""
+        spec = self.spec
+        if spec is None and not self.randomized:
+            return
+        self.randomized = True
+        spec = spec or {}
+        n, sim, scene = len(idx), self.sim, self.scene
+
+        def draw(key, k, nominal):
+            r = spec.get(key, {}).get(k)
+            return np.full(n, nominal) if r is None else rng.uniform(r[0], r[1], size=n)
+
+        free = self.free_bodies
+        mass = np.stack([self.nominal_mass[k] * draw("mass_scale", k, 1.0) for k in free], axis=1)
+        self.body_mass[np.ix_(idx, free)] = mass
+        sim.set_body_mass(mass, bodies=free, worlds=idx)
+        if scene.num_joints:
+            ratio = np.stack([draw("strength_ratio", k, r) for k, r in enumerate(self.nominal_ratio)], axis=1)
+            self.strength_ratio[idx] = ratio
+            sim.set_joint_strength(ratio, worlds=idx)
+        for k in self.limited:
+            j = scene.joints[k]
+            lo, up, st = (j.attributes[f"limit/{a}"] for a in ("lower", "upper", "strength"))
+            f = draw("limit_scale", k, 1.0)
+            lo_k, up_k = np.minimum(lo * f, up * f), np.maximum(lo * f, up * f)
+            if j.kind == REVOLUTE:
+                lo_k, up_k = np.clip(lo_k, -math.pi, math.pi), np.clip(up_k, -math.pi, math.pi)
+            st_k = st * draw("limit_strength_scale", k, 1.0)
+            self.limits[k][idx] = np.stack([lo_k, up_k, st_k], axis=1)
+            sim.set_limit(k, lower=lo_k, upper=up_k, strength=st_k, worlds=idx)
+
+    def snapshot(self) -> dict:
+        """The values in force and the spec, as host values."""
+        return {"spec": self.spec, "randomized": self.randomized, "body_mass": self.body_mass.copy(),
+                "strength_ratio": self.strength_ratio.copy(), "limits": {k: v.copy() for k, v in self.limits.items()}}
+
+    def restore(self, snap: dict):
+        """``snapshot``'s values back, and into the simulator, every world at once, where they were
+        ever drawn (the setters compute from the nominal values, so the model arrays come out as
+        the original's)."""
+        self.spec, self.randomized = snap["spec"], snap["randomized"]
+        self.body_mass, self.strength_ratio, self.limits = snap["body_mass"], snap["strength_ratio"], snap["limits"]
+        if not self.randomized:
+            return
+        sim, free = self.sim, self.free_bodies
+        sim.set_body_mass(self.body_mass[:, free], bodies=free)
+        if self.scene.num_joints:
+            sim.set_joint_strength(self.strength_ratio)
+        for k, values in self.limits.items():
+            sim.set_limit(k, lower=values[:, 0], upper=values[:, 1], strength=values[:, 2])

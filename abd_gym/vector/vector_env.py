@@ -1,0 +1,508 @@
+"""Native batched Gymnasium environments: ``num_envs`` worlds of one task in one ``Simulator``.
+
+:class:`ABDVectorEnv` is a ``gymnasium.vector.VectorEnv`` (not N single envs behind a loop): one
+scene stepped in ``num_envs`` worlds, batched observation / reward / termination arrays computed
+from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
+
+* spaces: ``single_observation_space`` / ``single_action_space`` (``Box``, float32) and their
+  batched versions ``observation_space`` / ``action_space`` (leading ``num_envs`` axis).  Actions
+  are normalised to ``[-1, 1]`` per drive (``[-b, b]`` for a task's ``action_bound`` b) and
+  scaled by the drive's ``max_effort`` / b.
+* ``reset(seed=None, options=None)`` -> ``(obs, info)``; ``step(actions)`` ->
+  ``(obs, reward, terminated, truncated, info)``, all batched (reward float32, flags bool).
+* autoreset (``metadata["autoreset_mode"]``, set by the ``autoreset_mode`` argument):
+
+  - ``AutoresetMode.NEXT_STEP`` (default): a world that ends in step t is reset in step t+1;
+    that step ignores its action and returns its first observation with reward 0 and both flags
+    False.
+  - ``AutoresetMode.SAME_STEP``: a world that ends is reset within the step; ``obs`` holds its
+    first observation of the next episode, ``info["final_obs"]`` the last one of the finished
+    episode and ``info["final_info"]`` that step's info.  ``info["final_obs"]`` is a batch of the
+    same type and shape as ``obs`` whose rows are valid where the bool mask
+    ``info["_final_obs"]`` is True (other rows equal ``obs``); ``final_info`` holds per-world
+    arrays with their own ``"_key"`` masks, as Gymnasium's ``SyncVectorEnv`` reports them, and the
+    top-level entries of the reset worlds are masked out (their reset info is empty).
+  - ``AutoresetMode.DISABLED``: nothing is reset automatically; call
+    ``reset(options={"reset_mask": mask})`` with a NumPy bool mask of shape ``(num_envs,)``.
+    Worlds outside the mask are left untouched (their state, step count and parameters).
+
+  ``reset_mask`` works in every mode.
+* time limit: ``max_episode_steps`` (set by ``gym.make_vec`` from the registration) truncates a
+  world after that many steps of its episode; ``None`` disables truncation.
+* seeding: ``reset(seed=s)`` seeds one NumPy generator from which every initial state, target and
+  randomised parameter is drawn (in world order), so the same seed and the same actions give the
+  same trajectories.  The physics itself is deterministic.
+* backends: ``backend="numpy"`` (default) returns NumPy arrays; ``backend="torch"`` returns Torch
+  tensors on the simulator's device, computed from zero-copy views of the simulator's arrays, and
+  takes actions as tensors (or arrays).  Only the NaN check (one bool), the done mask and, when
+  worlds are done, their reset states cross between host and device.  The done mask reaches the
+  host by an asynchronous copy that the next step reads after queuing its own physics, so the
+  host's work on a step's results runs while the device steps (SAME_STEP resets must wait for it).
+  Op by op on a GPU, a step waits for the device once more, at the NaN check, before its physics
+  is queued; the step graph (below) checks on the device and never waits for the step it queues.
+* autoresets on the device and the step as one graph: in NEXT_STEP mode, for a task whose
+  episodes start from ``initial_state`` and its ``task_state`` values (``draw_task``: a
+  Reacher's target) alone (no ``reset_task`` of its own) and while no parameters are
+  randomised, each world's next initial states and task values are drawn ahead into a queue on
+  the device
+  (:mod:`abd_gym.vector.autoreset`; from a generator spawned from ``np_random`` at each full reset, so
+  the same seed gives the same episodes on every backend and device) and the autoreset is device
+  work only.  With the Torch backend on a GPU the whole step (action check, controls, physics,
+  autoreset, observation, reward, flags) is then captured once as one CUDA graph (the Warp part,
+  with the Torch graph of what follows nested in it as a child graph) and replayed, two such
+  graphs in turn.  Where the simulator's step is one launch (``Solver.holds``: the lane-split
+  step, by default up to ~4,000 worlds), the physics and the autoreset run at once on two streams
+  of the graph: the step holds (does not touch) the worlds whose autoreset restarts them, and
+  both skip a refused batch themselves; elsewhere they run in turn inside a conditional node on
+  the check's go flag.  (On an H100 this took 1,024 CartPole-v0 worlds' step graph from 142 to
+  118 µs of device time, about 102 of them physics.)  The graph reads the
+  caller's action batch and writes the step's outputs to a fresh buffer (the caller's to keep) by
+  pointers the host leaves in page-locked memory, and writes the done mask there for the host,
+  so a step is one graph launch and no copy.  The env's own bookkeeping runs there as a few Warp kernels
+  (:mod:`abd_gym.vector.kernels`) after the task's Torch code, which torch.compile fuses into a few
+  kernels where Triton is installed (``compile_outcome``, default on with the step graph; the
+  first step then takes seconds more).
+  The graphs hold the task's Python constants (thresholds, ``max_episode_steps``, reward weights)
+  as they were when captured, at the env's second step: set them before stepping.
+  ``graph=False`` launches the same work op by op (the default elsewhere); ``graph=True`` where it
+  cannot apply raises ``ValueError``.
+* bad actions: actions are clipped to the action space (so out-of-range values and ±inf act as
+  ±1).  An action batch containing NaN raises ``ValueError`` naming the worlds, and no world
+  changes state.  With the step graph (Torch on a GPU) the check runs on the device, so it is
+  reported one call late: the call given the batch returns (its outputs are those of worlds that
+  did not move), the device refuses that step and every step after it, and the next ``step`` or
+  ``reset`` raises, having taken back the host's bookkeeping of both calls (clocks, autoreset
+  queues); the env then goes on as if the batch had never been passed.  Elsewhere the call given
+  the batch raises before anything is stepped.  A world whose step was rejected
+  (``Simulator.failed_worlds``, or a non-finite observation) is terminated, reported in
+  ``info["sim_failed"]`` (a bool per world, in every step's info) with the simulator's cause in
+  ``info["sim_status"]`` (an int32 ``abd_gym.WorldStatus`` code per world) and gets a zero
+  observation and reward; the autoreset (or your masked reset) brings it back.
+* observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
+  and chosen above what the task reaches (rates: ``velocity_bound`` = 100 rad/s or m/s).
+* per-world physical parameters: ``randomize={...}`` (constructor or ``reset`` option, sticky:
+  it applies to every later reset of a world, autoresets included, until a reset passes a new
+  ``"randomize"``; ``None`` restores the nominal values)::
+
+      {"mass_scale": (lo, hi),              # every free body's mass × U(lo, hi) (per body)
+       "strength_ratio": (lo, hi),          # every joint's strength ratio ~ U(lo, hi)
+       "limit_scale": (lo, hi),             # every limit's lower and upper × U(lo, hi)
+       "limit_strength_scale": (lo, hi)}    # every limit's strength × U(lo, hi)
+
+  Each value may also be a dict ``{body or joint name: (lo, hi)}`` to randomise only some of them.
+  The values in force are in ``body_mass``, ``strength_ratio`` and ``limits`` (host arrays).
+* rendering: ``render_mode="rgb_array"``; ``render()`` returns a tuple of uint8 ``(H, W, 3)``
+  frames, one per world in ``render_worlds`` (default: every world when ``num_envs <= 16``,
+  else the first 16), drawn headless by :mod:`abd_gym.vector.render`.
+
+Simulator options: ``device`` ("cpu", "cuda:0"; default ``$ABD_GYM_DEVICE`` or "cpu"), ``dtype``
+("float32" or "float64") and ``integrator`` (the simulator's default, BDF2, unless given);
+the tasks' rewards and thresholds are calibrated with the defaults.  ``simulator_options``: more
+Simulator keyword arguments, e.g. ``{"tol": 1e-4}``, or ``{"plan": {"scratch": "global"}}`` (an
+``ExecutionPlan`` or a dict of its fields: how the step runs on the device); an unknown name or a
+bad value is the Simulator's error.
+
+A task subclasses :class:`ABDVectorEnv` and fills in its hooks (listed, with shapes and units, in
+the class docstring; docs/custom_task.md walks through a new task from scene to training).
+:class:`ABDEnv` turns a task into a single-world ``gymnasium.Env``.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+
+from .autoreset import NextEpisodes
+from .device_step import DeviceStep
+from .arrays import BACKENDS, Backend, to_numpy
+from .spaces import autoreset_mode as autoreset_mode_of, make_spaces, prepare_actions
+from .episodes import Episodes
+from .outcome import batch_info, outcome
+from .pending import PendingMask
+from .randomize import RANDOMIZE_KEYS, Parameters  # noqa: F401 (RANDOMIZE_KEYS: the randomize option's keys)
+from ..sim.simulator import Simulator
+from .single_env import ABDEnv  # noqa: F401 (re-exported: a task module imports both classes from here)
+from .task import Task
+
+__all__ = ["ABDVectorEnv", "ABDEnv", "AutoresetMode"]
+
+MAX_DEFAULT_RENDER_WORLDS = 16
+
+
+def _render_worlds(render_worlds, num_envs: int) -> list:
+    """The worlds ``render()`` draws: default every world up to MAX_DEFAULT_RENDER_WORLDS, an int
+    the first that many, else the indices given."""
+    if render_worlds is None:
+        render_worlds = range(min(num_envs, MAX_DEFAULT_RENDER_WORLDS))
+    elif isinstance(render_worlds, (int, np.integer)):
+        render_worlds = range(min(num_envs, int(render_worlds)))
+    worlds = [int(w) for w in render_worlds]
+    if any(not 0 <= w < num_envs for w in worlds):
+        raise ValueError(f"render_worlds must index worlds in [0, {num_envs}), got {worlds}")
+    return worlds
+
+
+class ABDVectorEnv(Task, VectorEnv):
+    """Batched task base: a task is a subclass that fills in the hooks below (the module docstring
+    describes the env API they serve).  N is ``num_envs``; "backend array" means a NumPy array, or
+    a Torch tensor on the simulator's device with ``backend="torch"`` (write hooks with ``self.xp``,
+    ``numpy`` or ``torch``, and both work); coordinates are radians for revolute joints and metres
+    for sliders, rates rad/s or m/s.
+
+    Class attributes: ``dt`` (simulator step [s]), ``frame_skip`` (simulator steps per env step),
+    ``action_bound`` (actions lie in [−b, b], 1 by default),
+    ``task_state`` ((attribute, width) pairs of per-episode task values, see ``draw_task``),
+    ``reset_option_keys`` (the task's own ``reset(options=...)`` keys), ``velocity_bound``
+    (observation bound for rates) and ``render_plane`` / ``render_center`` / ``render_width`` /
+    ``render_size``.  A task's own constructor arguments are attributes set before
+    ``super().__init__(num_envs, **kwargs)``, which calls ``build_scene``.
+
+    Hooks (required first):
+
+    * ``build_scene() -> Scene``: the mechanism in its zero pose (bodies [kg, m], joints, limits,
+      drives, each drive with a finite ``max_effort`` [N or N·m]).
+    * ``observation_high() -> (obs_dim,)``: positive finite bounds of one observation; the space is
+      ``Box(-high, high)`` (float32) and observations are clipped to it.
+    * ``observe() -> (N, obs_dim)``: the observation of every world (backend array).
+    * ``reward(obs, actions) -> (N,)``: the reward of the step that led to ``obs`` (N, obs_dim),
+      with the clipped actions (N, action_dim) in [-1, 1] (``[-b, b]`` for ``action_bound`` b).
+    * ``terminated(obs) -> (N,) bool``: default never (failed worlds are terminated by the env).
+    * ``action_dim`` (property): default one action per drive of the scene.
+    * ``controls(actions) -> (N, num_drives)``: drive inputs from clipped actions; default
+      ``actions * max_effort / action_bound`` (efforts [N or N·m]); override it when
+      ``action_dim`` differs.
+    * ``initial_state(n, rng, options) -> (coordinates, rates)``: host NumPy arrays (n, num_joints)
+      of n fresh episodes drawn from ``rng`` (``options``: the reset options); default all zero.
+    * ``draw_task(n, rng, options) -> {attribute: (n,) or (n, width)}``: the ``task_state`` values
+      of n new episodes (host NumPy; e.g. a target [m]).  The env keeps them in backend arrays
+      named by the attributes ((N,) for width 1, else (N, width)); they are drawn ahead on the
+      device's autoreset path too.
+    * ``reset_task(idx, rng, options)``: task state of the worlds ``idx`` (host int array) at a
+      reset; default: write ``draw_task``'s values.  A task that overrides it resets on the host.
+    * ``info(obs) -> {key: (N,) array}``: per-step info values; default none.
+    * ``render_extras(canvas, world)``: marks (targets, end stops) drawn over the bodies.
+
+    What hooks read: ``coords()`` / ``velocities()`` (N, num_joints) joint coordinates and rates,
+    ``unwrapped_coords()`` (multi-turn angles [rad]), ``body_positions()`` (N, num_bodies, 3) [m],
+    ``body_rotations()`` (N, num_bodies, 3, 3), ``episode_time()`` (N,) [s], ``max_effort``
+    (num_drives,) [N or N·m], ``xp`` (``numpy`` or ``torch``), ``num_envs``, ``step_dt`` [s] and
+    the array helpers ``asarray(values, dtype)``, ``zeros(*shape, dtype)``, ``put(array, idx,
+    values)`` and ``f32(x)`` (dtype "float" float32, "int" int64, "bool").
+    """
+
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 50,
+                                "autoreset_mode": AutoresetMode.NEXT_STEP}  # fmt: skip
+
+    # ---- what a task sets
+    dt: float = 0.02  # simulator time step [s]
+    frame_skip: int = 1  # simulator steps per env step
+    reset_option_keys: tuple = ()  # task-specific reset options (besides reset_mask and randomize)
+    # per-episode task values that each new episode draws (``draw_task``): (attribute, width)
+    # pairs.  The env keeps them in one float32 array (N, total width) whose columns the
+    # attributes view ((N,) for width 1, else (N, width)), so that an autoreset on the device
+    # writes them with the episode's initial state (autoreset.py)
+    task_state: tuple = ()
+    # rendering: plane of the view ("xz": x right, z up; "xy": x right, y up), centre [m], width [m]
+    render_plane: str = "xz"
+    render_center: tuple = (0.0, 0.0)
+    render_width: float = 2.0
+    render_size: tuple = (480, 360)  # (width, height) [px]
+    velocity_bound: float = 100.0  # bound of velocity entries of observations [rad/s or m/s]
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        cls.metadata = dict(cls.metadata, render_fps=int(round(1.0 / (cls.dt * cls.frame_skip))))
+
+    def __init__(self, num_envs: int = 1, *, device=None, backend: str = "numpy",
+                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, max_episode_steps: int | None = None,
+                 render_mode: str | None = None, render_worlds=None, randomize: dict | None = None,
+                 dtype: str = "float32", integrator: str | None = None, graph: bool | None = None,
+                 compile_outcome: bool | None = None, simulator_options: dict | None = None):  # fmt: skip
+        self._check_arguments(num_envs, backend, render_mode, max_episode_steps)
+        self.autoreset_mode = autoreset_mode_of(autoreset_mode)
+        self.metadata = dict(type(self).metadata, autoreset_mode=self.autoreset_mode)
+        self.num_envs = N = int(num_envs)
+        self.backend = backend
+        self.render_mode = render_mode
+        self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
+
+        self.scene = self.build_scene()
+        extra = {} if integrator is None else {"integrator": integrator}  # None: the simulator's default
+        options = dict(simulator_options or {})
+        fixed = {"scene", "num_worlds", "dt", "device", "dtype", "integrator"} & set(options)
+        if fixed:
+            raise ValueError(f"simulator_options may not set {sorted(fixed)}: the task sets dt and the number of "
+                             "worlds; device, dtype and integrator are arguments of the env")  # fmt: skip
+        self.sim = Simulator(self.scene, num_worlds=N, dt=self.dt, device=device, dtype=dtype, **extra, **options)
+        self.device = self.sim.device
+        self.step_dt = self.dt * self.frame_skip  # env step [s]
+        self.arrays = Backend(backend, self.device)  # the backend's array helpers
+        self.xp = self.arrays.xp
+
+        # ---- spaces
+        (self.single_action_space, self.single_observation_space,
+         self.action_space, self.observation_space) = make_spaces(self.action_dim, self.observation_high(), N,
+                                                                     self.action_bound)
+        self._init_task_arrays(self.single_observation_space.high)
+        # the controls hook is the default (actions × action_scale), which the device's check applies
+        self.default_controls = type(self).controls is ABDVectorEnv.controls
+
+        # ---- per-world bookkeeping: episode clocks and task values, the pending autoresets
+        self.episodes = Episodes(self.arrays, N, self.task_state)
+        for name, view in self.episodes.task_views().items():
+            setattr(self, name, view)
+        self.pending = PendingMask(N, backend == "torch" and self.device.is_cuda)
+        self._has_reset = False
+        self._next_rng = None  # the generator of the next episodes' draws (spawned at each full reset)
+        # NEXT_STEP autoresets on the device (autoreset.py), for tasks whose episodes start from
+        # initial_state and draw_task alone (no reset_task of their own); not while parameters
+        # are randomised
+        own_reset = type(self).reset_task is not ABDVectorEnv.reset_task
+        self.next_episodes = None
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP and not own_reset:
+            self.next_episodes = NextEpisodes(self.sim, self._draw_episodes, task_width=self.episodes.task_width,
+                                              host_task=backend == "numpy")  # fmt: skip
+        self.device_step = DeviceStep(self, graph, compile_outcome)
+
+        # ---- per-world physical parameters (host copies of what the simulator holds)
+        self.parameters = Parameters(self.scene, self.sim)
+        self.parameters.set_spec(randomize)
+
+        # ---- rendering
+        self.render_worlds = _render_worlds(render_worlds, N)
+        self._renderer = None
+
+    def _check_arguments(self, num_envs, backend, render_mode, max_episode_steps):
+        if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        if max_episode_steps is not None and int(max_episode_steps) < 1:
+            raise ValueError(f"max_episode_steps must be a positive integer or None, got {max_episode_steps!r}")
+
+    # ---- the per-world physical parameters in force (host arrays; randomize.Parameters)
+    @property
+    def body_mass(self) -> np.ndarray:
+        """(N, num_bodies) body masses [kg]."""
+        return self.parameters.body_mass
+
+    @property
+    def strength_ratio(self) -> np.ndarray:
+        """(N, num_joints) joint strength ratios."""
+        return self.parameters.strength_ratio
+
+    @property
+    def limits(self) -> dict:
+        """{limited joint index: (N, 3) lower, upper [rad or m], strength [J]}."""
+        return self.parameters.limits
+
+    # ================================================================== pickle / deepcopy
+    def __new__(cls, *args, **kwargs):
+        env = super().__new__(cls)
+        env._init_args = (args, kwargs)  # what a copy is rebuilt from (__getstate__)
+        return env
+
+    def __getstate__(self):
+        """The constructor arguments (the device as resolved) and the env's state (``_snapshot``):
+        a copy is built anew from them (a fresh simulator, kernels from Warp's cache) and then
+        steps as this env does, bit for bit.  Device-side machinery (captured graphs, pinned
+        buffers, compiled outcome) is rebuilt on use: on a GPU with Torch the copy's first steps
+        run before its step graph is captured, with the task's outcome eager where this env's is
+        compiled, so observations and rewards may then differ from this env's by float32 rounding
+        (the physics does not)."""
+        args, kwargs = self._init_args
+        return {"args": args, "kwargs": dict(kwargs, device=str(self.device)), "snapshot": self._snapshot()}
+
+    def __setstate__(self, state):
+        self._init_args = (state["args"], state["kwargs"])
+        self.__init__(*state["args"], **state["kwargs"])
+        self._restore(state["snapshot"])
+
+    def _snapshot(self) -> dict:
+        """Host values of the simulator's state, the episodes, the parameters in force, the
+        autoreset queues, the pending mask and the random generators."""
+        if self.pending.unread or self.pending.in_flight:
+            self._pending_now()  # the last GPU step's done mask on the host (raises if it refused NaN actions)
+        snap = {"sim": self.sim.state.snapshot(), "episodes": self.episodes.snapshot(),
+                "parameters": self.parameters.snapshot(), "pending": self.pending.mask,
+                "rng": (self._np_random, self._np_random_seed, self._next_rng),
+                "has_reset": self._has_reset}  # fmt: skip
+        if self.next_episodes is not None:
+            snap["queue"] = self.next_episodes.snapshot()
+        return snap
+
+    def _restore(self, snap: dict):
+        """``_snapshot``'s values put back into this env, freshly built with the same arguments."""
+        self.sim.state.restore(snap["sim"])
+        self.episodes.restore(snap["episodes"])
+        self.pending.mask = snap["pending"]
+        self._np_random, self._np_random_seed, self._next_rng = snap["rng"]
+        self._has_reset = snap["has_reset"]
+        self.parameters.restore(snap["parameters"])
+        if "queue" in snap:
+            self.next_episodes.restore(snap["queue"])
+
+    # ================================================================== reset
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Reset every world, or those in ``options["reset_mask"]``; returns ``(obs, info)``.
+
+        ``options``: ``reset_mask`` (bool array (num_envs,)), ``randomize`` (see the module
+        docstring) and the task's own keys (``reset_option_keys``).
+        """
+        if self.pending.unread:
+            self._pending_now()  # raises, having taken it back, if the device refused the last step
+        super().reset(seed=seed)
+        options = dict(options or {})
+        mask = options.pop("reset_mask", None)
+        if "randomize" in options:
+            self.parameters.set_spec(options.pop("randomize"))
+        unknown = set(options) - set(self.reset_option_keys)
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; this task takes "
+                             f"{['reset_mask', 'randomize', *self.reset_option_keys]}")  # fmt: skip
+        if mask is None:
+            idx = np.arange(self.num_envs)
+        else:
+            mask = to_numpy(mask)
+            if mask.dtype != np.bool_ or mask.shape != (self.num_envs,):
+                raise ValueError(f"options['reset_mask'] must be a bool array of shape ({self.num_envs},), "
+                                 f"got {mask.dtype} {mask.shape}")  # fmt: skip
+            idx = np.flatnonzero(mask)
+        if len(idx):
+            self._reset_worlds(idx, options)
+            if self.next_episodes is not None:
+                self.next_episodes.clear(idx)
+                if mask is None:
+                    # every world's next episodes: the same seed gives the same resets in every mode
+                    self._restart_next_episodes()
+        self._has_reset = True
+        return self.observation(), {}
+
+    def _reset_worlds(self, idx: np.ndarray, options: dict | None = None):
+        """Reset the worlds idx; returns idx as a backend index array (uploaded once, for the
+        caller's own fills)."""
+        options = options or {}
+        rng = self.np_random
+        self.parameters.apply(idx, rng)
+        coords, vels = self.initial_state(len(idx), rng, options)
+        self.sim.set_joint_state(coords, vels, worlds=idx)
+        idx_b = self.arrays.index(idx)
+        self.arrays.fill(self.episodes.elapsed, idx_b, 0)  # no value array
+        self.reset_task(idx, rng, options)
+        self._pending_now()[idx] = False
+        return idx_b
+
+    def _restart_next_episodes(self):
+        """Fresh autoreset queues from a generator spawned from np_random (which a spawn does not
+        advance: explicit resets draw what they would without autoresets)."""
+        self._next_rng = np.random.Generator(self.np_random.bit_generator.spawn(1)[0])
+        self.next_episodes.restart()
+
+    def _draw_episodes(self, n: int):
+        """n next episodes for the autoreset queues (autoreset.py), from the generator spawned at
+        the last full reset: initial coordinates, rates and (with ``task_state``) task values."""
+        x, xd = self.initial_state(n, self._next_rng, {})
+        if not self.episodes.task_width:
+            return x, xd
+        return x, xd, self.episodes.task_matrix(self.draw_task(n, self._next_rng, {}), n)
+
+    def fixed_outputs(self):
+        """Views (obs, reward, terminated, truncated) of one buffer that every later ``step`` on the
+        device (NEXT_STEP autoresets with the Torch backend; :mod:`abd_gym.vector.device_step`) writes its
+        outputs into and returns, instead of fresh tensors each step (its info values are then not
+        copied either); None where this env's steps do not run there.  For a caller that reads
+        each step's outputs before it calls ``step`` again (a training rollout on the same CUDA
+        stream): it saves a copy of each output a step.
+        A caller that keeps outputs across steps must copy them."""
+        if self.next_episodes is None or self.xp is np:
+            return None
+        return self.device_step.fixed_outputs()
+
+    def _pending_now(self) -> np.ndarray:
+        """NEXT_STEP: the worlds that ended in the last step (host bool mask; pending.py), after the
+        verdict of a step checked on the device (raises if the device refused it)."""
+        return self.device_step.pending_now()
+
+    # ================================================================== step
+    def step(self, actions):
+        """One env step of every world: ``(obs, reward, terminated, truncated, info)`` (module docstring)."""
+        if not self._has_reset:
+            raise RuntimeError("call reset() before step()")
+        # autoresets on the device (device_step.py) while nothing needs the host's resets
+        on_device = self.next_episodes is not None and not self.parameters.active
+        if self.pending.unread and not on_device:
+            self._pending_now()  # the verdict of the last step, checked on the device, before this one
+        check = not (on_device and self.device_step.check_on_device)
+        a = prepare_actions(actions, self.arrays, self.num_envs, self.action_dim, check, self.action_bound)
+        if on_device:
+            if self._next_rng is None:  # no full reset yet (only masked ones): the queues start now
+                self._restart_next_episodes()
+            return self.device_step.step(a)
+
+        self.sim.set_controls(self.controls(a))
+        self.sim.step(self.frame_skip)  # on a GPU: queued; the host goes on while it runs
+        self.episodes.elapsed += 1
+        # NEXT_STEP: the worlds that ended last step; this step only resets them (read after the
+        # physics launch: on a GPU that read waits for the last step's flags, not for this step)
+        pend, has_info = self._reset_pending()
+        obs, reward, terminated, truncated, failed, info_values = outcome(self, a, pend)
+        info_values = dict(info_values, sim_failed=failed)
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            done = to_numpy(terminated | truncated)  # the host resets now: it waits for the step here
+            return self._reset_done(obs, reward, terminated, truncated, info_values, has_info, done)
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            self.pending.defer(terminated | truncated, device=self.device, stream=self.device_step.torch_stream)
+            if self.next_episodes is not None:  # kept for a later step on the device path
+                self.next_episodes.set_pending(terminated | truncated)
+        return obs, reward, terminated, truncated, batch_info(info_values, has_info)
+
+    def _reset_pending(self):
+        """NEXT_STEP: reset the worlds that ended in the last step.  Returns (a backend bool mask of
+        them, or None where none is; the host bool mask of the worlds whose info entries are this
+        step's, not a reset's)."""
+        has_info = np.ones(self.num_envs, dtype=bool)
+        if self.autoreset_mode != AutoresetMode.NEXT_STEP:
+            return None, has_info
+        pending = np.flatnonzero(self._pending_now())
+        if not len(pending):
+            return None, has_info
+        pend = self.episodes.all_false()
+        self.arrays.fill(pend, self._reset_worlds(pending), True)
+        has_info[pending] = False
+        return pend, has_info
+
+    def _reset_done(self, obs, reward, terminated, truncated, info_values, has_info, done):
+        """SAME_STEP: the worlds ``done`` (host bool mask; the host waits for the step to read it)
+        reset now, as SyncVectorEnv does: the finished episode's last obs and info under final_obs
+        / final_info, the new episode's first obs in obs (and its reset info, empty here, at the
+        top level)."""
+        if not done.any():
+            return obs, reward, terminated, truncated, batch_info(info_values, has_info)
+        final_info = batch_info(info_values, done)
+        final_obs = obs
+        self._reset_worlds(np.flatnonzero(done))
+        obs = self.observation()
+        info = batch_info(info_values, has_info & ~done)
+        info.update(final_obs=final_obs, _final_obs=done.copy(), final_info=final_info, _final_info=done.copy())
+        return obs, reward, terminated, truncated, info
+
+    # ================================================================== render / close
+    def render(self):
+        """One uint8 (H, W, 3) frame per world in ``render_worlds`` (a tuple), or None without a render mode."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; create the env with render_mode='rgb_array'")
+            return None
+        from .render import Renderer
+
+        if self._renderer is None:
+            self._renderer = Renderer(self.scene, plane=self.render_plane, center=self.render_center,
+                                      width=self.render_width, size=self.render_size)  # fmt: skip
+        return self._renderer.frames(self.sim.body_positions(), self.sim.body_rotations(), self.render_worlds,
+                                     self.render_extras)  # fmt: skip
+
+    def close_extras(self, **kwargs):
+        self._renderer = None
