@@ -5,7 +5,7 @@
 steps its worlds through the batched path with the default plan (five launches a step).  Both
 are compared here bit for bit: observations, rewards, flags and info, over random actions
 (out-of-range ones included), past terminations, for a task with the default controls, one with
-its own controls hook (Reacher-v0), float64 physics and failed worlds.
+its own controls hook (TwoLinkReacher-v0), float64 physics and failed worlds.
 """
 import gymnasium as gym
 import numpy as np
@@ -48,7 +48,7 @@ def _compare(single, vector, steps=STEPS, seed=0):
     return infos
 
 
-@pytest.mark.parametrize("task,kwargs", [("CartPole-v0", {}), ("InvertedPendulum-v5", {}), ("Reacher-v0", {}),
+@pytest.mark.parametrize("task,kwargs", [("CartPole-v0", {}), ("InvertedPendulum-v5", {}), ("TwoLinkReacher-v0", {}),
                                          ("CartPole-v0", {"dtype": "float64"})])  # fmt: skip
 def test_single_env_steps_as_the_vector_envs_world_bit_for_bit(task, kwargs):
     single, vector = _pair(task, **kwargs)
