@@ -45,6 +45,17 @@ class ABDEnv(gym.Env):
         self.render_mode = render_mode
         self._host_step = HostStep(self.vector_env) if self.vector_env.device.is_cpu else None
 
+    def __getstate__(self):
+        """The env without its HostStep, which holds views of the simulator's memory; the vector
+        env pickles itself (ABDVectorEnv.__getstate__) and a copy builds its own HostStep."""
+        state = dict(self.__dict__)
+        state.pop("_host_step")
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._host_step = HostStep(self.vector_env) if self.vector_env.device.is_cpu else None
+
     @property
     def sim(self):
         """The one-world env's ``Simulator``."""
