@@ -53,8 +53,8 @@ class HostStep:
         if a.size != self.action.size:
             raise ValueError(f"action must have {self.action.size} entries, got shape {a.shape}")
         row = self.action
-        row[0] = a.reshape(-1)
-        if math.isnan(float(row.sum())):  # NaN (an infinite entry clips to the bound below)
+        row.flat = a
+        if np.isnan(row).any():
             raise ValueError(f"action contains NaN: {a.tolist()}; nothing was stepped")
         np.maximum(row, -self.bound, out=row)  # np.clip's arithmetic without its Python wrapper
         np.minimum(row, self.bound, out=row)
