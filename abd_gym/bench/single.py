@@ -1,6 +1,7 @@
 """Benchmark: one ``gym.make`` env on the CPU against Gymnasium's own env of the same task.
 
-    python -m abd_gym.bench single [--steps 5000] [--rounds 3] [--ids CartPole-v0,...] [--out DIR]
+    python -m abd_gym.bench single [--steps 5000] [--rounds 3] [--ids CartPole-v0,...] [--clock wall|process]
+                                   [--out DIR]
 
 What a ``gym.make`` user, a tutorial or SB3's ``DummyVecEnv`` gets: a single env, Gymnasium's
 wrappers included (``TimeLimit``, ``OrderEnforcing``, ``PassiveEnvChecker``), stepped with random
@@ -9,7 +10,8 @@ as they do in use.  Each abd_gym task is paired with Gymnasium's env of the same
 is one (CartPole-v1, Pendulum-v1, Acrobot-v1, and Gymnasium's MuJoCo InvertedPendulum-v5,
 InvertedDoublePendulum-v5 and Reacher-v5, whose model files the ``-v5`` tasks are built from).
 The two envs run in alternating rounds of ``--steps`` steps in this one process, so a busy
-machine slows both alike; each keeps its fastest round.  Columns: steps/s of the abd_gym env,
+machine slows both alike; each keeps its fastest round (``--clock process`` times this process's
+CPU time instead of wall time, for a machine that other work shares).  Columns: steps/s of the abd_gym env,
 of its unwrapped env (the wrappers' share), of Gymnasium's env, their ratio, and the episodes
 each ended in a round.  Prints a table and writes ``single.json`` to ``--out``.
 """
@@ -49,8 +51,8 @@ def _make(env_id: str):
 class Runner:
     """An env stepped with a fixed sequence of random actions, reset when an episode ends."""
 
-    def __init__(self, env, steps: int, seed: int):
-        self.env = env
+    def __init__(self, env, steps: int, seed: int, clock=time.perf_counter):
+        self.env, self.clock = env, clock
         env.action_space.seed(seed)
         self.actions = [env.action_space.sample() for _ in range(steps)]
         env.reset(seed=seed)
@@ -63,25 +65,30 @@ class Runner:
         actions = self.actions[:steps]
         reset()
         episodes = 0
-        t0 = time.perf_counter()
+        t0 = self.clock()
         for a in actions:
             _, _, terminated, truncated, _ = step(a)
             if terminated or truncated:
                 reset()
                 episodes += 1
-        return len(actions) / (time.perf_counter() - t0), episodes
+        return len(actions) / (self.clock() - t0), episodes
 
 
-def time_pair(name: str, steps: int, rounds: int, seed: int = 0) -> dict | None:
-    """Best-of-``rounds`` steps/s of abd_gym's ``name`` (wrapped and unwrapped) and of its peer."""
+CLOCKS = {"wall": time.perf_counter, "process": time.process_time}
+
+
+def time_pair(name: str, steps: int, rounds: int, seed: int = 0, clock: str = "wall") -> dict | None:
+    """Best-of-``rounds`` steps/s of abd_gym's ``name`` (wrapped and unwrapped) and of its peer, by
+    ``clock`` ("wall", or "process": this process's CPU time, which time other work takes from a
+    busy machine's cores does not count)."""
     ours = _make(f"{NAMESPACE}/{name}")
     if ours is None:
         return None
     peer_id = PEERS.get(name)
     peer = _make(peer_id) if peer_id else None
-    runners = {"abd_gym": Runner(ours, steps, seed)}
+    runners = {"abd_gym": Runner(ours, steps, seed, CLOCKS[clock])}
     if peer is not None:
-        runners["gymnasium"] = Runner(peer, steps, seed)
+        runners["gymnasium"] = Runner(peer, steps, seed, CLOCKS[clock])
     for r in runners.values():
         r.round(steps=200)  # warm-up: kernels loaded, graphs captured, first-call checks done
     passes = [("abd_gym", runners["abd_gym"], None), ("unwrapped", runners["abd_gym"], ours.unwrapped)]
@@ -121,6 +128,8 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=5000, help="steps a round")
     ap.add_argument("--rounds", type=int, default=3, help="alternating rounds; each env keeps its fastest")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--clock", choices=sorted(CLOCKS), default="wall",
+                    help="wall time, or this process's CPU time (steadier on a machine that other work shares)")
     ap.add_argument("--out", default="bench_out")
     args = ap.parse_args(argv)
     import abd_gym  # noqa: F401 (registers the tasks)
@@ -129,11 +138,12 @@ def main(argv=None):
     unknown = [n for n in names if n not in TASKS]
     if unknown:
         raise SystemExit(f"unknown task(s) {unknown}; tasks: {list(TASKS)}")
-    rows = [row for name in names if (row := time_pair(name, args.steps, args.rounds, args.seed)) is not None]
+    rows = [row for name in names if (row := time_pair(name, args.steps, args.rounds, args.seed, args.clock)) is not None]
     print(_table(rows))
     os.makedirs(args.out, exist_ok=True)
     path = os.path.join(args.out, "single.json")
     meta = {"benchmark": "single", "device": "cpu", "steps": args.steps, "rounds": args.rounds, "seed": args.seed,
+            "clock": args.clock,
             "date": time.strftime("%Y-%m-%d"), "machine": platform.processor() or platform.machine(),
             "cores": os.cpu_count(), "python": platform.python_version(), "gymnasium": gym.__version__}  # fmt: skip
     with open(path, "w") as f:

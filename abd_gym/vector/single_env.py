@@ -64,6 +64,8 @@ class ABDEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self.vector_env.np_random = self.np_random  # one generator: seeding this env seeds its world
+        if self._host_step is not None and not options:
+            return self._host_step.reset()
         obs, info = self.vector_env.reset(options=options)
         return obs[0], world_info(info)
 

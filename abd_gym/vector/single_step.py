@@ -13,6 +13,7 @@ the vector env's world takes, bit for bit (tests/test_single_env.py):
   (the default ``controls`` hook; a task's own goes through ``Simulator.set_controls``); NaN
   raises ``ValueError`` before anything is written;
 * the physics: ``Simulator.step(frame_skip)``, then the episode clock;
+* a reset without options: the vector env's ``_reset_worlds`` of the world, then its observation;
 * the outcome: ``observation()`` (float32, clipped), the status and the NaN check of a failed
   world (zero observation and reward, terminated), the reward as a Python float and the flags as
   bools; ``info`` holds the task's values and ``sim_status`` / ``sim_failed``, as the vector
@@ -46,6 +47,7 @@ class HostStep:
         self.elapsed = env.episodes.elapsed
         self.frame_skip = env.frame_skip
         self.zero_obs = np.zeros(env.single_observation_space.shape, dtype=np.float32)
+        self.world = np.arange(1)  # the reset's world index
 
     def set_action(self, action):
         """The action as the clipped float32 row ``self.action`` (a NaN raises, nothing written)."""
@@ -69,6 +71,15 @@ class HostStep:
         else:
             np.multiply(a, self.scale, out=self.product)
             self.control[...] = self.product
+
+    def reset(self):
+        """``(obs, info)`` of a reset without options: the vector env's reset of its world
+        (``_reset_worlds``: parameters, initial state, clock, task values), without the parsing of
+        options and masks that this reset does not have."""
+        env = self.env
+        env._reset_worlds(self.world, {})
+        env._has_reset = True
+        return env.observation()[0], {}
 
     def step(self, action):
         """``(obs, reward, terminated, truncated, info)`` of one env step (module docstring)."""
