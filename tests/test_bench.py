@@ -239,3 +239,17 @@ def test_cpu_compare_script_times_both_engines(tmp_path, capsys, script):
     assert "| pendulum | 4 |" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         script.main(["--cases", "no_such_case"])
+
+
+def test_bench_single_against_gymnasium(tmp_path, capsys):
+    """``python -m abd_gym.bench single``: a row per task with finite rates, Gymnasium's env and the
+    ratio where the task has one, the table printed and the JSON written."""
+    rows = bench.main(["single", "--ids", "CartPole-v0,FourBar-v0", "--steps", "30", "--rounds", "1",
+                       "--out", str(tmp_path)])  # fmt: skip
+    cart, fourbar = rows
+    assert cart["peer"] == "CartPole-v1" and cart["ratio"] == cart["steps_per_s"] / cart["peer_steps_per_s"]
+    assert min(cart["steps_per_s"], cart["unwrapped_steps_per_s"], cart["peer_steps_per_s"]) > 0
+    assert fourbar["peer"] is None and fourbar["ratio"] is None and fourbar["steps_per_s"] > 0
+    saved = _load(tmp_path / "single.json")
+    assert saved["benchmark"] == "single" and saved["rows"] == rows and saved["steps"] == 30
+    assert "abd_gym/CartPole-v0" in capsys.readouterr().out

@@ -25,6 +25,10 @@ from ..solver.solver import Solver, SolverSettings
 from .state import State
 
 
+# step counts whose graphs ``step`` keeps in a list to replay (an env's frame skip; a few are enough)
+MAX_REPLAYS = 8
+
+
 def _skew(w):
     """[w]× (..., 3, 3) of vectors w (..., 3)."""
     out = np.zeros(w.shape + (3,))
@@ -92,6 +96,7 @@ class Simulator:
         self._cmds = {}  # recorded launches of the reset path, replayed with changed arguments (_replay)
         self._stage = rows.Staging(self.device)  # host rows to the device without waiting for the device
         self._graph = {}  # steps a launch -> the captured step: [(phase, graph or None)]
+        self._replays = {}  # steps a call -> its graphs, where every phase of it is captured (step)
         self._warm = False
         self.reset()
 
@@ -104,7 +109,15 @@ class Simulator:
     def step(self, num_steps: int = 1):
         """Advance every world ``num_steps`` steps of ``dt`` (where a step is one launch, up to the
         solver's ``steps_per_launch`` a launch)."""
-        for k in self.solver.launch_chunks(num_steps):
+        replay = self._replays.get(num_steps)
+        if replay is not None:  # every part captured: the graphs alone (a one-world step is a few us)
+            for graph in replay[0]:
+                wp.capture_launch(graph)
+            for k in replay[1]:
+                self.state.time += k * self.dt
+            return
+        chunks = self.solver.launch_chunks(num_steps)
+        for k in chunks:
             if self.plan.use_graph and self._warm:
                 if k not in self._graph:
                     # capture after one plain step, so every kernel is compiled and loaded; with the
@@ -120,6 +133,9 @@ class Simulator:
                 self.solver.step(self.state, k)
                 self._warm = True
             self.state.time += k * self.dt
+        graphs = [graph for k in chunks for _, graph in self._graph.get(k, [(None, None)])]
+        if graphs and all(g is not None for g in graphs) and len(self._replays) < MAX_REPLAYS:
+            self._replays[num_steps] = (tuple(graphs), chunks)
 
     def launch_step(self, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
         """``num_steps`` steps as direct launches of the step's kernels, without the simulator's own

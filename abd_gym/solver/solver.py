@@ -55,7 +55,7 @@ class SolverSettings:
     # iteration); False: factor at every iteration.  Off by default: a reused factor converges
     # linearly and stops short of the solution.  In float32, one implicit-Euler step from float64
     # states against the float64 step (CPU, 256 worlds × 30 steps): largest error 3.5e-6 m
-    # (Reacher-v0), 1.2e-5 (FourBar-v0), 2.0e-5 (5-link chain) with reuse, 3.5e-7, 3.2e-6, 1.6e-6
+    # (TwoLinkReacher-v0), 1.2e-5 (FourBar-v0), 2.0e-5 (5-link chain) with reuse, 3.5e-7, 3.2e-6, 1.6e-6
     # without; in float64 ~1e-10 m a step where Newton leaves ~1e-14 (tests/test_hard_cases.py).
     # Nor is it faster where it matters: its extra iterations fall on a warp's slowest world
     # (docs/performance.md, "Factor reuse": 1.1–1.8× faster without it on the loops and chains,
