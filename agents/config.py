@@ -394,7 +394,8 @@ def validate_config(raw: dict[str, Any]) -> dict[str, Any]:
         raise ConfigError(f"stop_when_solved: must be 0 (off) or at least 1, got {cfg['stop_when_solved']}")
     if cfg["stop_when_solved"] and not cfg["eval_freq"]:
         raise ConfigError(
-            f"stop_when_solved: {cfg['stop_when_solved']} needs periodic evaluations; set eval_freq (now 0)"
+            f"stop_when_solved: {cfg['stop_when_solved']} needs periodic evaluations; set eval_freq (now 0), "
+            "or stop_when_solved=0"
         )
     for key in ("n_eval_envs", "checkpoint_freq"):
         if cfg[key] is not None and cfg[key] < 1:
