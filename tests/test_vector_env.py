@@ -772,7 +772,7 @@ def test_compiled_outcome_matches_eager(task):
 # ----------------------------------------------------------------------------- registration
 def test_every_task_is_registered():
     ids = env_ids()
-    assert len(ids) == len(TASKS) == 11
+    assert len(ids) == len(TASKS) == 12
     for env_id in ids:
         spec = gym.spec(env_id)
         assert spec.namespace == "abd_gym" and spec.vector_entry_point is not None and spec.entry_point is not None
