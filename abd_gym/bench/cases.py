@@ -9,7 +9,8 @@ equality and it has no coordinate).  ``mujoco_qpos`` / ``ours_from_qpos`` conver
 The cases: ``cartpole`` and ``double_pendulum`` (hand-written MJCF); ``chain5``, ``chain10``,
 ``chain20`` (0.1 m, 1 kg links); every registered task's mechanism (``PeerCase.tasks`` names the
 tasks a case stands for: CartPole-v0 and CartPoleSwingUp-v0 share one), ``fourbar`` and
-``slider_crank`` being the closed-loop tasks'.  The abd_gym-built ones reach MuJoCo through
+``slider_crank`` being the closed-loop tasks' and ``pusher_arm`` the 7-joint 3-D arm of
+ArmReach-v0 (Gymnasium's ``pusher.xml``).  The abd_gym-built ones reach MuJoCo through
 :func:`abd_gym.mjcf.export.to_mjcf`; the ``-v5`` tasks' MuJoCo side is Gymnasium's own model file
 (contacts disabled, bodies the task keeps out of its scene deleted), their abd_gym side the scene
 the task imports from it.  ``CASES`` builds a case when it is first looked up.
@@ -213,6 +214,8 @@ _BUILDERS = {
     "inverted_pendulum_v5": lambda: gymnasium_case("inverted_pendulum_v5", "InvertedPendulum-v5"),
     "inverted_double_pendulum_v5": lambda: gymnasium_case("inverted_double_pendulum_v5", "InvertedDoublePendulum-v5"),
     "reacher_v5": lambda: gymnasium_case("reacher_v5", "Reacher-v5"),
+    # the 7-joint arm of Gymnasium's pusher.xml (object and goal deleted), ArmReach-v0's mechanism
+    "pusher_arm": lambda: gymnasium_case("pusher_arm", "ArmReach-v0"),
 }  # fmt: skip
 
 

@@ -63,3 +63,42 @@ def unsolvable(scene, dt: float, dtype: str) -> list[str]:
                        f"above the {body_max:.0e} that {dtype} solves: lower stiffness below {b.stiffness * body_max / n:.3g} Pa "
                        "(or leave it to the default), or dt")  # fmt: skip
     return out
+
+
+def unsolvable_worlds(scene, dt: float, dtype: str, ratios: np.ndarray, masses: np.ndarray, worlds) -> list[str]:
+    """``unsolvable`` for per-world parameters: ``ratios`` (N, num_joints) strength ratios and
+    ``masses`` (N, num_bodies) body masses [kg] of the worlds ``worlds`` (N,) (every mass moment
+    scales with its mass, the orthogonality stiffness κ does not).  One message per joint or body
+    that exceeds what ``dtype`` solves in any of them, naming those worlds and the largest number."""
+    joint_max, body_max = SOLVABLE[dtype]
+    out = []
+    worlds = np.asarray(worlds)
+    if scene.num_joints:
+        ia = np.array([j.body_a for j in scene.joints])
+        ib = np.array([j.body_b for j in scene.joints])
+        fixed = np.array([b.fixed for b in scene.bodies])
+        free_mass = np.where(fixed[None], np.inf, masses)
+        lightest = np.minimum(free_mass[:, ia], free_mass[:, ib])
+        numbers = ratios * (masses[:, ia] + masses[:, ib]) / lightest
+        for k in np.flatnonzero((numbers > joint_max).any(axis=0)):
+            over = numbers[:, k] > joint_max
+            i = int(np.argmax(np.where(over, numbers[:, k], -np.inf)))
+            out.append(f"joint {scene.joints[k].name!r} in worlds {_list(worlds[over])}: K/m up to {numbers[i, k]:.3g} "
+                       f"(world {int(worlds[i])}: strength ratio {ratios[i, k]:.3g}) against its lighter body, above "
+                       f"the {joint_max:.0e} that {dtype} solves reliably: lower the strength ratio or the mass ratio"
+                       + (" or use float64" if dtype == "float32" else ""))  # fmt: skip
+    base = np.array([b.mass for b in scene.bodies])
+    numbers = body_numbers(scene, dt)[None] * base[None] / masses
+    for k in np.flatnonzero((numbers > body_max).any(axis=0)):
+        over = numbers[:, k] > body_max
+        i = int(np.argmax(np.where(over, numbers[:, k], -np.inf)))
+        out.append(f"body {scene.bodies[k].name!r} in worlds {_list(worlds[over])}: mass {masses[i, k]:.3g} kg (world "
+                   f"{int(worlds[i])}) gives 4κ·vol·dt²/λ_min(S) = {numbers[i, k]:.3g} at dt {dt} s, above the "
+                   f"{body_max:.0e} that {dtype} solves: raise the mass, or lower the stiffness or dt")  # fmt: skip
+    return out
+
+
+def _list(worlds, most=8) -> str:
+    """The first ``most`` world indices as a list, with how many more there are."""
+    head = [int(w) for w in worlds[:most]]
+    return str(head) if len(worlds) <= most else f"{head} and {len(worlds) - most} more"
