@@ -59,18 +59,22 @@ class Runner:
 
     def round(self, env=None, steps: int | None = None) -> tuple:
         """(steps/s, episodes ended) of one pass over the actions (``env``: another layer of the
-        same env, e.g. its unwrapped env; ``steps``: over the first that many only)."""
+        same env, e.g. its unwrapped env, which this then truncates where ``TimeLimit`` would, so
+        that both reset alike; ``steps``: over the first that many only)."""
         env = env or self.env
         step, reset = env.step, env.reset
+        limit = self.env.spec.max_episode_steps if env is not self.env and self.env.spec else None
         actions = self.actions[:steps]
         reset()
-        episodes = 0
+        episodes = length = 0
         t0 = self.clock()
         for a in actions:
             _, _, terminated, truncated, _ = step(a)
-            if terminated or truncated:
+            length += 1
+            if terminated or truncated or length == limit:
                 reset()
                 episodes += 1
+                length = 0
         return len(actions) / (self.clock() - t0), episodes
 
 
@@ -121,6 +125,18 @@ def _table(rows: list) -> str:
     return "\n".join(lines)
 
 
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo on Linux), else what ``platform`` says."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m abd_gym.bench single", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
@@ -144,7 +160,7 @@ def main(argv=None):
     path = os.path.join(args.out, "single.json")
     meta = {"benchmark": "single", "device": "cpu", "steps": args.steps, "rounds": args.rounds, "seed": args.seed,
             "clock": args.clock,
-            "date": time.strftime("%Y-%m-%d"), "machine": platform.processor() or platform.machine(),
+            "date": time.strftime("%Y-%m-%d"), "machine": cpu_model(),
             "cores": os.cpu_count(), "python": platform.python_version(), "gymnasium": gym.__version__}  # fmt: skip
     with open(path, "w") as f:
         json.dump({**meta, "rows": rows}, f, indent=1)
