@@ -71,6 +71,16 @@ def test_failed_world_is_reported_as_the_vector_env_does():
     assert failed and all(info["sim_status"] == int(abd_gym.WorldStatus.UNCONVERGED) for info in failed)
 
 
+def test_non_finite_observation_fails_the_world_as_the_vector_env_does():
+    """A NaN in the task's observation (an infinite entry clips to the bound): zero observation and
+    reward, terminated and sim_failed, with the world's status left OK."""
+    single, vector = _pair("CartPole-v0")
+    for env in (single.vector_env, vector):
+        env.observe = lambda env=env: np.array([[np.nan, np.inf, 0.1, 0.2]])
+    infos = _compare(single, vector, steps=2)
+    assert all(info["sim_failed"] and info["sim_status"] == 0 for info in infos)
+
+
 def test_nan_action_raises_and_steps_nothing():
     env = gym.make("abd_gym/CartPole-v0")
     env.reset(seed=0)

@@ -36,6 +36,7 @@ class HostStep:
         self.env, self.sim = env, env.sim
         state = env.sim.state
         self.action = np.zeros((1, env.action_dim), dtype=np.float32)  # the clipped action, reused
+        self.flat = self.action.reshape(-1)  # a view of it
         self.bound = float(env.action_bound)
         # the default controls hook writes a × action_scale straight into the simulator's array
         self.scale = env.action_scale if env.default_controls else None
@@ -56,7 +57,7 @@ class HostStep:
             raise ValueError(f"action must have {self.action.size} entries, got shape {a.shape}")
         row = self.action
         row.flat = a
-        if np.isnan(row).any():
+        if math.isnan(self.flat.dot(self.flat)):  # Σ a² is NaN where an entry is (inf² is not)
             raise ValueError(f"action contains NaN: {a.tolist()}; nothing was stepped")
         np.maximum(row, -self.bound, out=row)  # np.clip's arithmetic without its Python wrapper
         np.minimum(row, self.bound, out=row)
@@ -90,7 +91,8 @@ class HostStep:
         self.elapsed += 1
         obs = env.observation()
         status = int(self.status[0])
-        failed = status != 0 or math.isnan(float(obs.sum()))  # obs is clipped: a non-finite entry is NaN
+        row = obs[0]  # clipped: a non-finite entry is NaN, and Σ o² is NaN just where one is
+        failed = status != 0 or math.isnan(row.dot(row))
         reward = float(env.f32(env.reward(obs, a))[0])
         terminated = bool(env.terminated(obs)[0]) or failed
         info = world_info(env.info(obs))
@@ -98,7 +100,7 @@ class HostStep:
         info["sim_failed"] = failed
         if failed:
             return self.zero_obs.copy(), 0.0, True, False, info
-        return obs[0], reward, terminated, False, info
+        return row, reward, terminated, False, info
 
 
 def world_info(info: dict) -> dict:
