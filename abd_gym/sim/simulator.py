@@ -153,11 +153,14 @@ class Simulator:
         """``num_steps`` steps as direct launches of the step's kernels, without the simulator's own
         graphs and without advancing the host clock ``state.time``: for a caller that captures the
         step in a graph of its own (the vector env's), and advances the clock (``tick``) at each
-        replay.  The same step as ``step`` (``num_steps`` at least 1).  ``hold`` (device int32 (num_worlds,)) and ``go``
-        (device int32 (1,)), where the step is one launch (``solver.holds``): the worlds with
+        replay.  The same step as ``step`` (``num_steps`` at least 1).  ``hold`` (device int32
+        (num_worlds,)) and ``go`` (device int32 (1,)), where the step is one launch (``solver.holds``): the worlds with
         hold[w] != 0, and every world while go[0] == 0, are not stepped, and none of their rows is
-        read or written, so that other launches may rewrite them at the same time."""
-        self.solver.step(self.state, inputs.count("num_steps", num_steps, minimum=1), hold=hold, go=go)
+        read or written, so that other launches may rewrite them at the same time.  A failed step is
+        retried as in ``step`` on the CPU; on a GPU, where the caller's graph would hold the retry's
+        conditional branch, it is not (the world is reported)."""
+        self.solver.step(self.state, inputs.count("num_steps", num_steps, minimum=1), hold=hold, go=go,
+                         retry=self.device.is_cpu)  # fmt: skip
 
     def tick(self, num_steps: int = 1):
         """Advance the host clock ``state.time`` by ``num_steps`` steps (see ``launch_step``)."""

@@ -317,18 +317,20 @@ class Solver:
         return {t: e[:, i].astype(np.float64) for t, i in self.report_cols.items() if t != "scratch"}
 
     # ------------------------------------------------------------------ step
-    def step(self, state, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
+    def step(self, state, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None,
+             retry: bool = True):  # fmt: skip
         """``num_steps`` implicit Euler steps of every world.  No host synchronisation: the loops run
         as ``wp.capture_while`` on device flags, so the whole step can be captured in a CUDA graph.
         Where a step is one launch (``multi_step``), up to ``steps_per_launch`` steps a launch.
         ``hold`` (device int32 (W,)) and ``go`` (device int32 (1,)), where the step is one launch
         (``holds``): the worlds with hold[w] != 0, and every world if go[0] == 0, are not stepped,
         and none of their rows is read or written (fused.step_world).  A step taken alone (not one
-        of several in a launch) is followed by the retry of the worlds it failed (``retry``)."""
+        of several in a launch) is followed by the retry of the worlds it failed (``self.retry``;
+        ``retry`` False: not this time)."""
         if hold is not None or go is not None:
             self._check_hold(hold, go)
         for k in self.launch_chunks(num_steps):
-            for phase, _ in self.step_phases(k, hold, go):
+            for phase, _ in self.step_phases(k, hold, go, retry):
                 phase(state)
 
     @property
@@ -380,7 +382,8 @@ class Solver:
             return [(self._whole_step, True)]
         return [(self.open_step, True), (self.newton, False), (self.close_step, True)]
 
-    def step_phases(self, steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None) -> list:
+    def step_phases(self, steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None,
+                    retry: bool = True) -> list:  # fmt: skip
         """(part, capturable) pairs for ``steps`` steps: the one launch of multi_step (or of a step
         holding worlds: ``hold``, ``go``), else (steps 1) phases(); for one step, then the retry of
         its failed worlds (retry.Retry.check)."""
@@ -390,7 +393,7 @@ class Solver:
             raise ValueError(f"{steps} steps in one go need the one-launch step (multi_step)")
         else:
             phases = self.phases()
-        if self.retry is not None and steps == 1:
+        if retry and self.retry is not None and steps == 1:
             # a GPU's graph holds the retry's branch; the CPU runs it as it comes (retry.Retry.check)
             cuda = wp.get_device(self.model.device).is_cuda
             phases = phases + [(functools.partial(self.retry.check, hold=hold, go=go), cuda)]

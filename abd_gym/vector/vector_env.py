@@ -77,8 +77,9 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   ``info["sim_failed"]`` (a bool per world, in every step's info) with the simulator's cause in
   ``info["sim_status"]`` (an int32 ``abd_gym.WorldStatus`` code per world) and gets a zero
   observation and reward; the autoreset (or your masked reset) brings it back.  A step that
-  failed is first taken again as 2, then 4 substeps (``Simulator.substeps``): ``info["sim_substeps"]``
-  (int32 per world) is the substeps of the env step's last physics step.
+  failed is first taken again as 2, then 4 substeps (``Simulator.substeps``; not in a GPU's
+  device step): ``info["sim_substeps"]`` (int32 per world) is the substeps of the env step's last
+  physics step.
 * observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
   and chosen above what the task reaches (rates: ``velocity_bound`` = 100 rad/s or m/s).
 * per-world physical parameters: ``randomize={...}`` (constructor or ``reset`` option, sticky:
