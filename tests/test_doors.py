@@ -245,3 +245,10 @@ def test_per_world_parameters_rerun_the_conditioning_warnings():
         sim.set_body_mass([[1.0, 1e-6]], bodies=["link0", "link1"], worlds=[1])
     with pytest.warns(RuntimeWarning, match=r"joint 'revolute0' in worlds \[0, 2\]"):
         sim.set_joint_strength([[1e7, 100.0], [1e7, 100.0]], worlds=[0, 2])
+
+
+def test_torch_controls_of_a_non_real_dtype_are_refused(sim):
+    torch = pytest.importorskip("torch")
+    for dtype in (torch.complex64, torch.bool):
+        _refused(lambda: sim.set_controls(torch.zeros((W, 1), dtype=dtype)), "controls")
+    sim.set_controls(torch.zeros((W, 1), dtype=torch.float64))

@@ -347,7 +347,9 @@ class Simulator:
 
     def set_controls(self, values, worlds=None):
         """Drive inputs (num_worlds or len(worlds), num_drives): torque/force [N·m, N] of effort drives,
-        target position [rad, m] of position drives, target velocity of velocity drives."""
+        target position [rad, m] of position drives, target velocity of velocity drives.  A Torch
+        tensor of every world is copied on its device, its values unchecked (reading them would
+        make the host wait for the device); anything else is checked (inputs.finite_array)."""
         nd = self.model.num_drives
         if nd == 0:
             raise ValueError("the scene has no drives")
@@ -355,6 +357,8 @@ class Simulator:
         if worlds is None and type(values).__module__.startswith("torch"):
             if tuple(values.shape) != (self.num_worlds, nd):
                 raise ValueError(f"controls must have shape ({self.num_worlds}, {nd}), got {tuple(values.shape)}")
+            if values.is_complex() or str(values.dtype) == "torch.bool":
+                raise TypeError(f"controls must be real numbers (integer or float), got {values.dtype}")
             self.view(self.state.control, "torch").copy_(values)  # on the device, converting dtype
             return
         vals = _finite_array("controls", values, (len(idx), nd), idx, [d.name for d in self.scene.drives], "drive",
