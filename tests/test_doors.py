@@ -252,3 +252,13 @@ def test_torch_controls_of_a_non_real_dtype_are_refused(sim):
     for dtype in (torch.complex64, torch.bool):
         _refused(lambda: sim.set_controls(torch.zeros((W, 1), dtype=dtype)), "controls")
     sim.set_controls(torch.zeros((W, 1), dtype=torch.float64))
+
+
+def test_names_and_flags_of_the_wrong_type_are_refused():
+    box = shapes.Box((0.1, 0.1, 0.1))
+    _refused(lambda: Scene().add_body(box, fixed="no"), "fixed")
+    _refused(lambda: Scene().add_body(box, name=3), "name")
+    s = Scene()
+    s.add_body(box, fixed=True)
+    s.add_body(box)
+    _refused(lambda: s.add_revolute_joint(0, 1, (0, 0, 0), (0, 1, 0), name=["a"]), "name")
