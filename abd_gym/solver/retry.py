@@ -7,8 +7,8 @@ Only the retried worlds step again: the substeps are the one-launch fused step (
 dt/2 or dt/4 on the same model and state) holding every other world, whose rows it neither reads
 nor writes, so a batch whose worlds all converge steps exactly as without retries.  A step costs
 the healthy batch one launch (``mark``: which worlds failed, and a device flag) and a conditional
-branch (``wp.capture_if``) that a graph holds (on the CPU, a look at the status in host memory,
-and the launch only where a world is not OK); the substep solvers and the copy of the retried
+branch (``wp.capture_if``) that a graph holds (on the CPU, a look at the status and substeps in
+host memory, and the launch only where a world is not OK or the last step was retried); the substep solvers and the copy of the retried
 worlds' state they start from are made at the first retry on the CPU, at the first step on a GPU
 (so that the graphs captured after it hold the branch).
 
@@ -110,7 +110,7 @@ class Retry:
         self.all_idle = wp.ones(W, dtype=wp.int32, device=dev)  # (prepare's launch that changes no world)
         self._subs = None  # the substep solvers, SUBSTEPS[i] steps of dt/SUBSTEPS[i] each
         self._pairs = None  # [(state rows, saved rows)] of the arrays an attempt puts back
-        self._status = None  # CPU: (state.status, a NumPy view of its memory)
+        self._host = None  # CPU: (state, NumPy views of its status and substeps)
 
     @property
     def ready(self) -> bool:
@@ -146,10 +146,10 @@ class Retry:
         substep solvers are made at the first check, so that a graph captured later holds them."""
         s, m = self.solver, self.solver.model
         device = wp.get_device(m.device)
-        if device.is_cpu:  # the status in host memory: no launch while every world is OK
-            if self._status is None or self._status[0] is not state.status:
-                self._status = (state.status, state.status.numpy())
-            if not self._status[1].any():
+        if device.is_cpu:  # host memory: no launch while every world is OK after a step of 1 substep
+            if self._host is None or self._host[0] is not state:
+                self._host = (state, state.status.numpy(), state.substeps.numpy())
+            if not self._host[1].any() and (self._host[2] == 1).all():
                 return
         elif self._subs is None and not device.is_capturing:
             self.prepare(state)
