@@ -245,3 +245,20 @@ def test_per_world_parameters_rerun_the_conditioning_warnings():
         sim.set_body_mass([[1.0, 1e-6]], bodies=["link0", "link1"], worlds=[1])
     with pytest.warns(RuntimeWarning, match=r"joint 'revolute0' in worlds \[0, 2\]"):
         sim.set_joint_strength([[1e7, 100.0], [1e7, 100.0]], worlds=[0, 2])
+
+
+def test_torch_controls_of_a_non_real_dtype_are_refused(sim):
+    torch = pytest.importorskip("torch")
+    for dtype in (torch.complex64, torch.bool):
+        _refused(lambda: sim.set_controls(torch.zeros((W, 1), dtype=dtype)), "controls")
+    sim.set_controls(torch.zeros((W, 1), dtype=torch.float64))
+
+
+def test_names_and_flags_of_the_wrong_type_are_refused():
+    box = shapes.Box((0.1, 0.1, 0.1))
+    _refused(lambda: Scene().add_body(box, fixed="no"), "fixed")
+    _refused(lambda: Scene().add_body(box, name=3), "name")
+    s = Scene()
+    s.add_body(box, fixed=True)
+    s.add_body(box)
+    _refused(lambda: s.add_revolute_joint(0, 1, (0, 0, 0), (0, 1, 0), name=["a"]), "name")
