@@ -229,3 +229,14 @@ def test_render_shows_the_arm_and_the_target_from_above_and_the_side(env):
     scale, (cx, cy, cz) = 400 / env.render_width, env.render_center
     assert abs(cols[top].mean() - (200 + (t[0] - cx) * scale)) < 3 and abs(rows[top].mean() - (200 - (t[1] - cy) * scale)) < 3
     assert abs(rows[~top].mean() - (200 - (t[2] - cz) * scale)) < 3 and math.isfinite(cols[~top].mean())
+
+
+def test_kinematics_refuses_a_scene_that_is_not_one_chain():
+    from abd_gym.sim import mechanisms
+
+    scene = arm_reach.pusher_arm_scene()
+    scene.joints[3], scene.joints[4] = scene.joints[4], scene.joints[3]
+    with pytest.raises(ValueError, match="one serial chain"):
+        arm_reach.ArmKinematics(scene)
+    with pytest.raises(ValueError, match="no imported site 'fingertip'"):
+        arm_reach.ArmKinematics(mechanisms.chain(3, length=0.1))
