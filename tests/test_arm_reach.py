@@ -124,9 +124,10 @@ def test_jacobian_is_the_fingertips_derivative(scenes):
 
 # ---------------------------------------------------------------------------------- motion
 def test_free_motion_matches_mujoco(scenes):
-    """1 s unactuated from QPOS, QVEL (damping and armature act, no limit is reached): BDF2 at
-    0.01 s, the file's timestep, within 1e-4 rad of MuJoCo's RK4 (measured 4e-5)."""
-    assert np.abs(ours_run(scenes["effort"], 0.01) - mujoco_run("effort")).max() < 1e-4
+    """0.5 s unactuated from QPOS, QVEL (damping and armature act, no limit is reached): BDF2 at
+    0.01 s, the file's timestep, within 1e-4 rad of MuJoCo's RK4 (measured 2.6e-5)."""
+    ours = ours_run(scenes["effort"], 0.01, duration=0.5)
+    assert np.abs(ours - mujoco_run("effort", duration=0.5)).max() < 1e-4
 
 
 @pytest.mark.parametrize("drive, ctrl", [("effort", [1.0, -1.0, 0.5, 0.5, -0.5, 0.3, 0.2]),
@@ -203,14 +204,14 @@ def test_position_drive_actions_are_joint_targets():
         arm_reach.ArmReachVectorEnv(1, drive="torque")
 
 
-def test_position_drive_env_passes_the_checkers():
+def test_position_drive_env_passes_gymnasiums_checker():
+    """The default (effort) env passes both checkers in tests/test_envs.py; the position drives
+    change the scene and the controls, not the spaces."""
     from gymnasium.utils.env_checker import check_env
-    from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_env(gym.make("abd_gym/ArmReach-v0", drive="position").unwrapped)
-        sb3_check_env(gym.make("abd_gym/ArmReach-v0", drive="position").unwrapped)
 
 
 def test_render_shows_the_arm_and_the_target_from_above_and_the_side(env):
