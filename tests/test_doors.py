@@ -131,7 +131,7 @@ def test_limits_beyond_what_they_hold_are_refused(sim):
     _refused(lambda: sim.set_joint_state([[0.0, 2.5]] * W), "coordinates: joint 'revolute1' in world 0")
     _refused(lambda: sim.set_limit(0, lower=5.0, upper=6.0, worlds=[1]), "set_limit: joint 'prismatic0' in world 1")
     _refused(lambda: sim.set_limit(1, lower=0.5, upper=0.4), "lower (0.5) must not exceed upper")
-    _refused(lambda: sim.set_limit(0, lower=0.5, upper=0.5), "lower (0.5) must be below upper")
+    _refused(lambda: sim.set_limit(0, lower=0.6, upper=0.5), "lower (0.6) must not exceed upper")
     state = sim.get_state()
     state["coord"][0, 1] = 3.0
     _refused(lambda: sim.set_state(state), "state['coord']: joint 'revolute1' in world 0")

@@ -337,9 +337,8 @@ class Scene:
             raise ValueError(f"a {kind} limit needs a {kind} joint, but joint {j.name!r} is {j.kind}")
         lower = _finite("lower", lower)
         upper = _finite("upper", upper)
-        if lower > upper or (kind == PRISMATIC and lower == upper):
-            raise ValueError(f"limit lower ({lower}) must be below upper ({upper})" if kind == PRISMATIC else
-                             f"limit lower ({lower}) must not exceed upper ({upper})")  # fmt: skip
+        if lower > upper:
+            raise ValueError(f"limit lower ({lower}) must not exceed upper ({upper})")
         slack = float(inputs.limit_scale(kind == REVOLUTE, lower, upper))
         if not lower - slack <= 0.0 <= upper + slack:
             raise ValueError(f"limit [{lower}, {upper}] of joint {j.name!r} leaves its zero pose (coordinate 0, where the "

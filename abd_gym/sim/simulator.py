@@ -645,10 +645,8 @@ class Simulator:
             k = int(np.argmax(bad))
             return ValueError(f"limit of joint {self.scene.joints[j].name!r} in world {int(idx[k])}: {what(k)}")
 
-        if kind == REVOLUTE and (lo > up).any():
+        if (lo > up).any():
             raise refuse(lo > up, lambda k: f"lower ({lo[k]}) must not exceed upper ({up[k]})")
-        if kind != REVOLUTE and (lo >= up).any():  # its energy divides by the width u − l
-            raise refuse(lo >= up, lambda k: f"lower ({lo[k]}) must be below upper ({up[k]})")
         if (st <= 0).any():
             raise refuse(st <= 0, lambda k: f"strength must be positive, got {st[k]}")
         if kind == REVOLUTE and ((lo < -math.pi) | (up > math.pi)).any():
