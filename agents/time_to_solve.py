@@ -138,13 +138,14 @@ def markdown(rows: list[dict[str, Any]], command: str, date: str) -> str:
                      f"| {num(r.get('stopped_step'), ',')} | {r['wall_time_s']:.1f} "
                      f"| {r['mean_return']:.1f} ± {r['std_return']:.1f} | {best(r)} "
                      f"| {r['reward_threshold']:g} | {'yes' if r['solved'] else 'no'} |")  # fmt: skip
-    lines += ["", "| config | solved | slowest time to threshold [s] |", "|---|---:|---:|"]
+    lines += ["", "| config | solved | slowest time to threshold [s] | final below best |", "|---|---:|---:|---:|"]
     for config in dict.fromkeys(r["config"] for r in rows):
         mine = [r for r in rows if r["config"] == config]
         solved = [r for r in mine if not r["failed"] and r["solved"]]
         times = [r["threshold_time_s"] for r in mine if not r["failed"]]
         slowest = "—" if not times or None in times else f"{max(times):.1f}"
-        lines.append(f"| {config} | {len(solved)}/{len(mine)} | {slowest} |")
+        below = sum(bool(r.get("final_below_best")) for r in mine)
+        lines.append(f"| {config} | {len(solved)}/{len(mine)} | {slowest} | {below}/{len(mine)} |")
     return "\n".join(lines) + "\n"
 
 

@@ -163,7 +163,7 @@ def train(
     eval_env.close()
     if periodic is not None:
         periodic.eval_env.close()
-    best = _evaluate_best(cfg, run_dir, periodic, int(model.num_timesteps), normalised=vecnorm is not None)
+    best = _evaluate_best(cfg, run_dir, periodic, normalised=vecnorm is not None)
     below, use_model = compare_to_best(result, best)
     summary = {
         "config_name": config_name,
@@ -247,18 +247,21 @@ def _periodic_eval(cfg: dict[str, Any], env, run_dir: Path, threshold: float | N
     )
 
 
-def _evaluate_best(cfg: dict[str, Any], run_dir: Path, periodic: ThresholdEval | None, final_step: int, *,
+def _evaluate_best(cfg: dict[str, Any], run_dir: Path, periodic: ThresholdEval | None, *,
                    normalised: bool) -> dict[str, Any] | None:
     """``best_model.zip`` scored on the final evaluation's episodes (same seed, same count), or None
-    where the run kept no best model.  A best model saved at the final step is the final policy:
-    its score is the final evaluation's, so it is not evaluated again (``same_as_final``)."""
+    where the run kept no best model.  A best model saved by the evaluation that stopped training
+    (``stop_when_solved``) is the final policy: no update followed it, so its score is the final
+    evaluation's and it is not evaluated again (``same_as_final``).  One saved at the last step of
+    a run that was not stopped is not: the rollout's update came after it."""
     from abd_gym.agents.config import algorithm_class
 
     path = run_dir / BEST_MODEL_FILE
     if periodic is None or periodic.best_step is None or not path.is_file():
         return None
     best = {"file": BEST_MODEL_FILE, "step": periodic.best_step,
-            "periodic_return": _finite_or_none(periodic.best_mean_reward), "same_as_final": periodic.best_step == final_step}  # fmt: skip
+            "periodic_return": _finite_or_none(periodic.best_mean_reward),
+            "same_as_final": periodic.stopped_step is not None and periodic.best_step == periodic.stopped_step}  # fmt: skip
     if best["same_as_final"]:
         return best
     from abd_gym.agents.common import model_device

@@ -17,20 +17,26 @@ Drives (``drive``): ``"effort"`` (default): the file's seven motors (gear 1, ctr
 Coordinates: MuJoCo's qpos: the seven joint angles [rad] in the file's order.
 Action: Box(-1, 1, (7,)).
 Observation: Box(20,) float32 [q (7), q̇ (7), target (3), fingertip − target (3)] (rad, rad/s, m);
-  bounds ±(π, 100 rad/s, 2 m, 2 m): beyond every range, any rate the drives reach (2 N·m over
-  0.1 N·m·s/rad of damping is 20 rad/s), the targets (within 1.03 m of the shoulder) and the
-  tip–target distance.  The fingertip is the centre of mass of the file's body ``tips_arm``
-  (Gymnasium's Pusher reads ``get_body_com("tips_arm")``), 0.1 m beyond the wrist roll axis.
+  bounds ±(π, 100 rad/s, 2.5 m, 2.5 m): beyond every range, any rate the drives reach (2 N·m
+  over 0.1 N·m·s/rad of damping is 20 rad/s), the targets (within 1.03 m of the shoulder at
+  (0, −0.6, 0)) and the tip–target distance (at most 2.06 m).  The fingertip is the centre of
+  mass of the file's body ``tips_arm`` (Gymnasium's Pusher reads ``get_body_com("tips_arm")``),
+  0.1 m beyond the wrist roll axis.
 Reward (Reacher-v5's): r = −‖fingertip − target‖ − w·‖a‖² with w = ``reward_control_weight``
-  (default 0.1 with effort drives, Pusher-v5's; 0 with position drives, whose action is a pose,
-  not an effort): per step in [−2.76, 0].
-Termination: none (Reacher-v5's); truncation at 100 steps (2 s); ``reward_threshold`` −12.
+  (default 0.1 with effort drives: Pusher-v5's weight, on actions normalised to ±1, so 0.025 per
+  (N·m)² of torque; 0 with position drives, whose action is a pose, not an effort): per step in
+  [−2.76, 0].
+Termination: none (Reacher-v5's); truncation at 50 steps (2.5 s); ``reward_threshold`` −15 (a
+  policy there brings the fingertip within a few centimetres of the target by the episode's end;
+  zero torque scores about −45, random actions −52, the scripted Jacobian-transpose controller
+  below about −23).
 Reset (Reacher-v5's noise): q ~ U(−0.1, 0.1) within each joint's range (the elbow and wrist flex
   ranges end at 0), q̇ ~ U(−0.005, 0.005); the target is the fingertip of a pose drawn uniformly
   in the joint ranges, so it is reachable (reset option ``target`` = (x, y, z) fixes it).
-Step: dt = 0.02 s, one simulator step per env step (50 Hz).  The file's timestep is 0.01 s for
-  MuJoCo's explicit Euler; abd_gym's implicit BDF2 at 0.02 s follows MuJoCo's RK4 to 4e-3 rad
-  over 1 s (tests/test_arm_reach.py).
+Step: dt = 0.05 s, one simulator step per env step (20 Hz, Pusher-v5's control period, which
+  Gymnasium takes as 5 steps of the file's 0.01 s for MuJoCo's explicit Euler); abd_gym's implicit
+  BDF2 at 0.05 s follows MuJoCo's RK4 within 0.01 rad over 1 s under the drives
+  (tests/test_arm_reach.py).
 """
 from __future__ import annotations
 
@@ -98,16 +104,23 @@ def _rotations(axis, angle):
 class ArmKinematics:
     """Forward kinematics of a serial chain of hinges from its zero pose (the product of
     exponentials): joint k turns everything after it by q_k about its zero-pose axis through its
-    zero-pose anchor.  Host NumPy, float64."""
+    zero-pose anchor.  Host NumPy, float64: the task's targets are fingertips of random poses, and
+    the scripted policy needs the fingertip's Jacobian."""
 
     def __init__(self, scene: ag.Scene):
+        if scene.imported is None or "fingertip" not in scene.imported.sites:
+            raise ValueError("ArmKinematics: the scene has no imported site 'fingertip' (pusher_arm_scene adds it)")
         body, local = scene.imported.sites["fingertip"]
-        bodies = scene.bodies
-        self.anchors = np.array([j.anchor for j in scene.joints], dtype=np.float64)
-        self.axes = np.array([j.frame[0] for j in scene.joints], dtype=np.float64)
+        bodies, joints = scene.bodies, scene.joints
+        chain = [joints[0].body_a] + [j.body_b for j in joints]
+        if any(j.kind != "revolute" for j in joints) or [j.body_a for j in joints] != chain[:-1] or chain[-1] != body:
+            raise ValueError("ArmKinematics: the scene's joints must be hinges of one serial chain, each on the "
+                             "previous one's child, ending at the fingertip's body")  # fmt: skip
+        self.anchors = np.array([j.anchor for j in joints], dtype=np.float64)
+        self.axes = np.array([j.frame[0] for j in joints], dtype=np.float64)
         self.tip0 = bodies[body].position + bodies[body].rotation @ local
-        self.lower = np.array([j.attributes["limit/lower"] for j in scene.joints])
-        self.upper = np.array([j.attributes["limit/upper"] for j in scene.joints])
+        self.lower = np.array([j.attributes["limit/lower"] for j in joints])
+        self.upper = np.array([j.attributes["limit/upper"] for j in joints])
 
     def fingertip(self, q):
         """(n, 3) fingertip [m] at joint angles q (n, 7)."""
@@ -126,7 +139,8 @@ class ArmKinematics:
             axes[:, k] = rot @ self.axes[k]
             anchors[:, k] = rot @ self.anchors[k] + shift
             r = _rotations(self.axes[k], q[:, k])
-            shift = np.einsum("nij,nj->ni", rot, self.anchors[k] - r @ self.anchors[k]) + shift  # rot·(r(x − a) + a) + shift
+            # x ↦ rot·(r·(x − a) + a) + shift: the joints up to k
+            shift = np.einsum("nij,nj->ni", rot, self.anchors[k] - r @ self.anchors[k]) + shift
             rot = rot @ r
         tip = rot @ self.tip0 + shift
         return tip, np.cross(axes, tip[:, None, :] - anchors).transpose(0, 2, 1)
@@ -140,7 +154,7 @@ class ArmReachVectorEnv(GymnasiumMjcfEnv):
     reset_option_keys = ("target",)
     render_size = (800, 400)  # two views side by side: from above (x–y) and from the side (x–z)
     render_center, render_width = (0.1, -0.6, 0.0), 2.4  # (x, y, z) [m], each view's width [m]
-    target_bound = 2.0  # m: observation bound of the target and of fingertip − target
+    target_bound = 2.5  # m: observation bound of the target and of fingertip − target
     task_state = (("target", 3),)  # (N, 3) [m], drawn per episode (draw_task)
 
     def __init__(self, num_envs=1, *, drive="effort", reward_dist_weight=1.0, reward_control_weight=None,
@@ -228,7 +242,7 @@ class ArmReachEnv(ABDEnv):
     vector_class = ArmReachVectorEnv
 
 
-def scripted_policy(env, kp=20.0, kd=1.0, step=0.5):
+def scripted_policy(env, kp=100.0, kd=1.0, step=10.0):
     """Jacobian-transpose control of the fingertip towards the target, from the env's state (NumPy
     backend).  Effort drives: τ = Jᵀ·kp·(target − tip) − kd·q̇ [N·m] as actions τ / 2 clipped to
     ±1.  Position drives: the joint targets q + step·Jᵀ(target − tip)/‖J‖² [rad] (a damped

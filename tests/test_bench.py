@@ -196,7 +196,7 @@ def test_bench_robustness(tmp_path):
     rows = _load(tmp_path / "robustness.json")["rows"]
     assert [(r["case"], r["worlds"], r["steps"]) for r in rows] == [("prismatic_slam", 2, 3), ("strength_1e+08", 2, 3)]
     for r in rows:
-        assert {"reported", "silent", "gap_mm", "iterations_mean", "worst_gain"} <= set(r)
+        assert {"reported", "silent", "gap_mm", "iterations_mean", "worst_gain", "worst_step_gain", "substeps"} <= set(r)
         assert r["iterations_max"] >= 1 and r["gap_mm"] < 1.0
     assert "overshoot_over_bound" in rows[0] and "overshoot_over_bound" not in rows[1]
     assert "| prismatic_slam | 0.01 | implicit_euler | float64 | 2 × 3 |" in md.read_text()

@@ -131,7 +131,7 @@ def test_limits_beyond_what_they_hold_are_refused(sim):
     _refused(lambda: sim.set_joint_state([[0.0, 2.5]] * W), "coordinates: joint 'revolute1' in world 0")
     _refused(lambda: sim.set_limit(0, lower=5.0, upper=6.0, worlds=[1]), "set_limit: joint 'prismatic0' in world 1")
     _refused(lambda: sim.set_limit(1, lower=0.5, upper=0.4), "lower (0.5) must not exceed upper")
-    _refused(lambda: sim.set_limit(0, lower=0.5, upper=0.5), "lower (0.5) must be below upper")
+    _refused(lambda: sim.set_limit(0, lower=0.6, upper=0.5), "lower (0.6) must not exceed upper")
     state = sim.get_state()
     state["coord"][0, 1] = 3.0
     _refused(lambda: sim.set_state(state), "state['coord']: joint 'revolute1' in world 0")
@@ -245,3 +245,20 @@ def test_per_world_parameters_rerun_the_conditioning_warnings():
         sim.set_body_mass([[1.0, 1e-6]], bodies=["link0", "link1"], worlds=[1])
     with pytest.warns(RuntimeWarning, match=r"joint 'revolute0' in worlds \[0, 2\]"):
         sim.set_joint_strength([[1e7, 100.0], [1e7, 100.0]], worlds=[0, 2])
+
+
+def test_torch_controls_of_a_non_real_dtype_are_refused(sim):
+    torch = pytest.importorskip("torch")
+    for dtype in (torch.complex64, torch.bool):
+        _refused(lambda: sim.set_controls(torch.zeros((W, 1), dtype=dtype)), "controls")
+    sim.set_controls(torch.zeros((W, 1), dtype=torch.float64))
+
+
+def test_names_and_flags_of_the_wrong_type_are_refused():
+    box = shapes.Box((0.1, 0.1, 0.1))
+    _refused(lambda: Scene().add_body(box, fixed="no"), "fixed")
+    _refused(lambda: Scene().add_body(box, name=3), "name")
+    s = Scene()
+    s.add_body(box, fixed=True)
+    s.add_body(box)
+    _refused(lambda: s.add_revolute_joint(0, 1, (0, 0, 0), (0, 1, 0), name=["a"]), "name")

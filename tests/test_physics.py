@@ -258,7 +258,7 @@ def test_parameter_setters_write_listed_worlds_and_reject_before_writing():
         assert n == "mc" or not np.array_equal(after[1], b[1]), n  # mc = m·com is 0 for these bodies
     np.testing.assert_allclose(m.mass.numpy()[1, 1:], [2.0, 0.3], rtol=1e-6)
     limits = [a.numpy().copy() for a in m.limit_params[PRISMATIC]]
-    with pytest.raises(ValueError, match="must be below upper"):
+    with pytest.raises(ValueError, match="must not exceed upper"):
         sim.set_limit(0, lower=[-0.5, 0.9], upper=[0.5, 0.1], worlds=[0, 2])
     for a, b in zip(m.limit_params[PRISMATIC], limits):
         np.testing.assert_array_equal(a.numpy(), b)  # world 0's valid half was not written either

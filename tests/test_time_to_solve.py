@@ -58,6 +58,7 @@ def test_best_model_and_stop_columns(tmp_path):
     assert (row["stopped_step"], row["best_return"], row["best_step"], row["final_below_best"]) == (786_432, 480.0, 524_288, True)
     table = time_to_solve.markdown([row], "cmd", "2026-12-07")
     assert "| 786,432 | 9.5 | 243.0 ± 17.0 | 480.0 ± 20.0 (final below) | 475 |" in table
+    assert "| gpu/cartpole_ppo | 1/1 | 4.2 | 1/1 |" in table  # solved, slowest time, final below best
     # a best model that is the final policy scores what the final policy scores
     s.update(best_model=dict(file="best_model.zip", step=1_015_808, same_as_final=True), final_below_best=False)
     (folder / "summary.json").write_text(json.dumps(s))

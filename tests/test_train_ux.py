@@ -73,6 +73,11 @@ def test_periodic_evaluation_and_progress_lines(tmp_path, capsys, monkeypatch):
     assert on_disk["threshold_step"] == 128
     assert 0 < on_disk["threshold_time_s"] <= on_disk["wall_time_s"]
     assert on_disk["best_periodic_return"] == pytest.approx(ev["results"].mean(axis=1).max())
+    # not stopped: the last rollout's update followed every evaluation, so best_model.zip is scored
+    # on the final evaluation's episodes even where it was saved at the last step
+    best = on_disk["best_model"]
+    assert on_disk["stopped_step"] is None and not best["same_as_final"] and best["eval_episodes"] == 3
+    assert best["periodic_return"] == pytest.approx(on_disk["best_periodic_return"])
 
     # no terminal under capsys: the run directory first, then plain lines, no progress bar
     lines = out.splitlines()

@@ -106,7 +106,8 @@ def test_a_stalled_reused_factor_is_retried_as_a_fresh_factor_solve(plan):
 def test_factor_reuse_off_rejects_without_a_retry():
     """Without factor reuse (the default) there is no retry: a step that does not converge in
     max_iterations is rejected at once, and newton_retried stays False."""
-    sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, dt=0.01, dtype="float64", max_iterations=1)
+    sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, dt=0.01, dtype="float64", max_iterations=1,
+                       retry=False)
     sim.set_joint_state([[1.0, -0.5], [0.5, 0.0]], [[5.0, -5.0], [0.0, 3.0]])
     q0 = sim.body_q().copy()
     sim.step()

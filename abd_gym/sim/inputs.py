@@ -148,8 +148,12 @@ def check_rotations(name, R, worlds, items, item="body", movable=None):
 
 def limit_scale(revolute: bool, lower, upper):
     """The penetration of a limit at which its energy reaches its strength s: 1 rad for a revolute
-    limit (E = s·d³), the range width u − l for a prismatic one (E = s·(d/(u − l))³)."""
-    return np.ones_like(np.asarray(lower, dtype=np.float64)) if revolute else np.asarray(upper) - np.asarray(lower)
+    limit (E = s·d³), the range width u − l for a prismatic one (E = s·(d/(u − l))³), and 1 m for
+    a prismatic one with u = l (E = s·d³, libuipc's fallback)."""
+    lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    if revolute:
+        return np.ones_like(lower)
+    return np.where(upper > lower, upper - lower, 1.0)
 
 
 def check_within_limits(name, x, worlds, limits, names):

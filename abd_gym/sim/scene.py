@@ -50,6 +50,15 @@ def _finite(name, value, nonnegative=False, positive=False, allow_inf=False):
     return inputs.real_number(name, value, positive=positive, nonnegative=nonnegative, allow_inf=allow_inf)
 
 
+def _name(name, default: str) -> str:
+    """A body's, joint's or drive's name: a string, or ``default`` for None."""
+    if name is None:
+        return default
+    if not isinstance(name, str) or not name:
+        raise TypeError(f"name must be a non-empty string or None, got {name!r}")
+    return name
+
+
 def rotation_matrix(rotation) -> np.ndarray:
     """A 3x3 rotation from a 3x3 matrix or a unit quaternion (w, x, y, z)."""
     if rotation is None:
@@ -229,7 +238,9 @@ class Scene:
         _finite("density", density, positive=True)
         if stiffness is not None:
             _finite("stiffness", stiffness, positive=True)
-        name = name or f"body{len(self.bodies)}"
+        name = _name(name, f"body{len(self.bodies)}")
+        if not isinstance(fixed, (bool, np.bool_)):
+            raise TypeError(f"fixed must be True or False, got {fixed!r}")
         if any(b.name == name for b in self.bodies):
             raise ValueError(f"a body named {name!r} already exists")
         moments = shape.moments(mass=mass, density=density)
@@ -284,7 +295,7 @@ class Scene:
                 frame=frame,
                 strength_ratio=strength_ratio,
                 half_length=float(half_length),
-                name=name or f"{kind}{len(self.joints)}",
+                name=_name(name, f"{kind}{len(self.joints)}"),
                 meta={"constitution_uid": uid, "extra_constitution_uids": []},
             )
         )
@@ -326,9 +337,8 @@ class Scene:
             raise ValueError(f"a {kind} limit needs a {kind} joint, but joint {j.name!r} is {j.kind}")
         lower = _finite("lower", lower)
         upper = _finite("upper", upper)
-        if lower > upper or (kind == PRISMATIC and lower == upper):
-            raise ValueError(f"limit lower ({lower}) must be below upper ({upper})" if kind == PRISMATIC else
-                             f"limit lower ({lower}) must not exceed upper ({upper})")  # fmt: skip
+        if lower > upper:
+            raise ValueError(f"limit lower ({lower}) must not exceed upper ({upper})")
         slack = float(inputs.limit_scale(kind == REVOLUTE, lower, upper))
         if not lower - slack <= 0.0 <= upper + slack:
             raise ValueError(f"limit [{lower}, {upper}] of joint {j.name!r} leaves its zero pose (coordinate 0, where the "
@@ -397,7 +407,7 @@ class Scene:
             raise ValueError("a velocity drive needs damping > 0 and stiffness 0")
         if mode == "effort" and (stiffness or damping):
             raise ValueError("an effort drive takes no stiffness or damping")
-        self.drives.append(Drive(ji, mode, stiffness, damping, max_effort, name or f"drive{len(self.drives)}"))
+        self.drives.append(Drive(ji, mode, stiffness, damping, max_effort, _name(name, f"drive{len(self.drives)}")))
         return len(self.drives) - 1
 
     # ------------------------------------------------------------------ queries

@@ -67,23 +67,19 @@ class Simulator:
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "bdf2",
                  dtype="float32", device=None, tol: float = 1e-5, max_iterations: int = 50,
                  max_line_search: int = 12, reuse_factor: bool = False, quadratic_stop: float = 100.0,
-                 plan: ExecutionPlan | dict | None = None):  # fmt: skip
+                 retry: bool = True, plan: ExecutionPlan | dict | None = None):  # fmt: skip
         inputs.count("num_worlds", num_worlds, minimum=1)
         dt = inputs.real_number("dt", dt, positive=True)
         settings = SolverSettings(tol=inputs.real_number("tol", tol, positive=True),
                                   max_iterations=inputs.count("max_iterations", max_iterations, minimum=1),
                                   max_line_search=inputs.count("max_line_search", max_line_search, minimum=1),
-                                  integrator=integrator, reuse_factor=reuse_factor,
+                                  integrator=integrator, reuse_factor=reuse_factor, retry=retry,
                                   quadratic_stop=inputs.real_number("quadratic_stop", quadratic_stop, nonnegative=True))  # fmt: skip
         self.scene = scene
         device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
-        try:
-            wp.get_device(device)
-        except (RuntimeError, ValueError, TypeError, AttributeError) as e:
-            raise ValueError(f"device must be 'cpu' or an available 'cuda:N' (or a Warp device), got {device!r}: "
-                             f"{e}") from None
         self.model = Model(scene, num_worlds, dtype=dtype, device=device)
-        for message in conditioning.unsolvable(scene, float(dt), "float32" if self.model.np_dtype == np.float32 else "float64"):
+        dtype_name = "float32" if self.model.np_dtype == np.float32 else "float64"
+        for message in conditioning.unsolvable(scene, dt, dtype_name) + conditioning.step_too_large(scene, dt):
             warnings.warn(message, RuntimeWarning, stacklevel=2)
         self.state = State(self.model)
         self.solver = Solver(self.model, dt, settings, plan)
@@ -107,7 +103,7 @@ class Simulator:
         self._cmds = {}  # recorded launches of the reset path, replayed with changed arguments (_replay)
         self._stage = rows.Staging(self.device)  # host rows to the device without waiting for the device
         self._graph = {}  # steps a launch -> the captured step: [(phase, graph or None)]
-        self._replays = {}  # steps a call -> its graphs, where every phase of it is captured (step)
+        self._replays = {}  # steps a call -> its (phase, graph) pairs, once every launch of it is captured (step)
         self._warm = False
         self.reset()
 
@@ -119,12 +115,17 @@ class Simulator:
     # ------------------------------------------------------------------ stepping
     def step(self, num_steps: int = 1):
         """Advance every world ``num_steps`` steps of ``dt`` (where a step is one launch, up to the
-        solver's ``steps_per_launch`` a launch)."""
+        solver's ``steps_per_launch`` a launch).  With ``retry`` (the default), a world whose step
+        fails takes it again as 2, then 4 substeps (``substeps``) before it is rejected; a launch of
+        several steps is not retried."""
         num_steps = inputs.count("num_steps", num_steps)
         replay = self._replays.get(num_steps)
-        if replay is not None:  # every part captured: the graphs alone (a one-world step is a few us)
-            for graph in replay[0]:
-                wp.capture_launch(graph)
+        if replay is not None:  # every launch's phases captured: the graphs alone (a one-world step is a few us)
+            for phase, graph in replay[0]:
+                if graph is None:
+                    phase(self.state)  # a phase a graph cannot hold (the CPU's concurrent launches, its retry)
+                else:
+                    wp.capture_launch(graph)
             for k in replay[1]:
                 self.state.time += k * self.dt
             return
@@ -145,19 +146,21 @@ class Simulator:
                 self.solver.step(self.state, k)
                 self._warm = True
             self.state.time += k * self.dt
-        graphs = [graph for k in chunks for _, graph in self._graph.get(k, [(None, None)])]
-        if graphs and all(g is not None for g in graphs) and len(self._replays) < MAX_REPLAYS:
-            self._replays[num_steps] = (tuple(graphs), chunks)
+        if chunks and all(k in self._graph for k in chunks) and len(self._replays) < MAX_REPLAYS:
+            self._replays[num_steps] = (tuple(pg for k in chunks for pg in self._graph[k]), chunks)
 
     def launch_step(self, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
         """``num_steps`` steps as direct launches of the step's kernels, without the simulator's own
         graphs and without advancing the host clock ``state.time``: for a caller that captures the
         step in a graph of its own (the vector env's), and advances the clock (``tick``) at each
-        replay.  The same step as ``step`` (``num_steps`` at least 1).  ``hold`` (device int32 (num_worlds,)) and ``go``
-        (device int32 (1,)), where the step is one launch (``solver.holds``): the worlds with
+        replay.  The same step as ``step`` (``num_steps`` at least 1).  ``hold`` (device int32
+        (num_worlds,)) and ``go`` (device int32 (1,)), where the step is one launch (``solver.holds``): the worlds with
         hold[w] != 0, and every world while go[0] == 0, are not stepped, and none of their rows is
-        read or written, so that other launches may rewrite them at the same time."""
-        self.solver.step(self.state, inputs.count("num_steps", num_steps, minimum=1), hold=hold, go=go)
+        read or written, so that other launches may rewrite them at the same time.  A failed step is
+        retried as in ``step`` on the CPU; on a GPU, where the caller's graph would hold the retry's
+        conditional branch, it is not (the world is reported)."""
+        self.solver.step(self.state, inputs.count("num_steps", num_steps, minimum=1), hold=hold, go=go,
+                         retry=self.device.is_cpu)  # fmt: skip
 
     def tick(self, num_steps: int = 1):
         """Advance the host clock ``state.time`` by ``num_steps`` steps (see ``launch_step``)."""
@@ -297,6 +300,12 @@ class Simulator:
         iteration (``newton_iterations`` counts both)."""
         return self.state.retried.numpy().astype(bool)
 
+    def substeps(self) -> np.ndarray:
+        """(num_worlds,) int32: the substeps of each world's last step: 1, or 2 or 4 where the step
+        failed (did not converge, broke down) and was taken again as that many steps of dt/2 or
+        dt/4 (``retry``); a world that failed at 4 too is rejected (world_status)."""
+        return np.array(self.view(self.state.substeps, "numpy"), dtype=np.int32)
+
     def newton_factorizations(self) -> np.ndarray:
         """(num_worlds,) Cholesky factorisations in the last step: the iterations less those that
         reused a factor (``reuse_factor``)."""
@@ -338,7 +347,9 @@ class Simulator:
 
     def set_controls(self, values, worlds=None):
         """Drive inputs (num_worlds or len(worlds), num_drives): torque/force [N·m, N] of effort drives,
-        target position [rad, m] of position drives, target velocity of velocity drives."""
+        target position [rad, m] of position drives, target velocity of velocity drives.  A Torch
+        tensor of every world is copied on its device, its values unchecked (reading them would
+        make the host wait for the device); anything else is checked (inputs.finite_array)."""
         nd = self.model.num_drives
         if nd == 0:
             raise ValueError("the scene has no drives")
@@ -346,6 +357,8 @@ class Simulator:
         if worlds is None and type(values).__module__.startswith("torch"):
             if tuple(values.shape) != (self.num_worlds, nd):
                 raise ValueError(f"controls must have shape ({self.num_worlds}, {nd}), got {tuple(values.shape)}")
+            if values.is_complex() or str(values.dtype) == "torch.bool":
+                raise TypeError(f"controls must be real numbers (integer or float), got {values.dtype}")
             self.view(self.state.control, "torch").copy_(values)  # on the device, converting dtype
             return
         vals = _finite_array("controls", values, (len(idx), nd), idx, [d.name for d in self.scene.drives], "drive",
@@ -632,10 +645,8 @@ class Simulator:
             k = int(np.argmax(bad))
             return ValueError(f"limit of joint {self.scene.joints[j].name!r} in world {int(idx[k])}: {what(k)}")
 
-        if kind == REVOLUTE and (lo > up).any():
+        if (lo > up).any():
             raise refuse(lo > up, lambda k: f"lower ({lo[k]}) must not exceed upper ({up[k]})")
-        if kind != REVOLUTE and (lo >= up).any():  # its energy divides by the width u − l
-            raise refuse(lo >= up, lambda k: f"lower ({lo[k]}) must be below upper ({up[k]})")
         if (st <= 0).any():
             raise refuse(st <= 0, lambda k: f"strength must be positive, got {st[k]}")
         if kind == REVOLUTE and ((lo < -math.pi) | (up > math.pi)).any():
@@ -643,7 +654,8 @@ class Simulator:
         if check_state and len(idx):
             bounds = {j: (np.zeros(self.num_worlds), np.zeros(self.num_worlds), kind == REVOLUTE)}
             bounds[j][0][idx], bounds[j][1][idx] = lo, up
-            check_within_limits("set_limit", self.joint_coordinates()[idx], idx, bounds, [jt.name for jt in self.scene.joints])
+            names = [jt.name for jt in self.scene.joints]
+            check_within_limits("set_limit", self.joint_coordinates()[idx], idx, bounds, names)
         idx_dev = rows.indices(idx, self._stage)
         for h, v, dev_a in zip(host, new, m.limit_params[kind]):
             h[idx, col] = v

@@ -315,7 +315,8 @@ class DeviceStep:
             out = self.fixed_views if fixed else self.unpack(raw)
             if not fixed:  # else handed back in place, as the outputs
                 info_values = {k: v.clone() for k, v in info_values.items()}
-            info_values = dict(info_values, sim_status=self.fixed_status if fixed else self.status_of(raw))
+            info_values = dict(info_values, sim_status=self.fixed_status if fixed else self.status_of(raw),
+                               sim_substeps=self.sim.view(self.sim.state.substeps, "torch").clone())  # fmt: skip
         obs, reward, terminated, truncated, failed = out
         # the worlds the device just reset (last step's ended ones, known on the host now): their
         # info is a reset's (none), their clock restarts, they took a row of their queues; this

@@ -16,7 +16,7 @@ abd_gym/SliderCrank-v0             abd_gym.envs.slider_crank                    
 abd_gym/InvertedPendulum-v5        abd_gym.envs.inverted_pendulum               1000   950
 abd_gym/InvertedDoublePendulum-v5  abd_gym.envs.inverted_double_pendulum        1000   9100
 abd_gym/Reacher-v5                 abd_gym.envs.reacher_v5                      50     -3.75
-abd_gym/ArmReach-v0                abd_gym.envs.arm_reach                       50     -20
+abd_gym/ArmReach-v0                abd_gym.envs.arm_reach                       50     -15
 =================================  ===========================================  =====  =========
 
 The ``-v5`` tasks are Gymnasium's MuJoCo classics built from Gymnasium's own model files (they
@@ -58,7 +58,7 @@ TASKS = {
     "InvertedDoublePendulum-v5": ("abd_gym.envs.inverted_double_pendulum", "InvertedDoublePendulumEnv",
                                   "InvertedDoublePendulumVectorEnv", 1000, 9100.0),
     "Reacher-v5": ("abd_gym.envs.reacher_v5", "ReacherV5Env", "ReacherV5VectorEnv", 50, -3.75),
-    "ArmReach-v0": ("abd_gym.envs.arm_reach", "ArmReachEnv", "ArmReachVectorEnv", 50, -20.0),
+    "ArmReach-v0": ("abd_gym.envs.arm_reach", "ArmReachEnv", "ArmReachVectorEnv", 50, -15.0),
 }  # fmt: skip
 
 

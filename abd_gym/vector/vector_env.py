@@ -76,7 +76,10 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   (``Simulator.failed_worlds``, or a non-finite observation) is terminated, reported in
   ``info["sim_failed"]`` (a bool per world, in every step's info) with the simulator's cause in
   ``info["sim_status"]`` (an int32 ``abd_gym.WorldStatus`` code per world) and gets a zero
-  observation and reward; the autoreset (or your masked reset) brings it back.
+  observation and reward; the autoreset (or your masked reset) brings it back.  A step that
+  failed is first taken again as 2, then 4 substeps (``Simulator.substeps``; not in a GPU's
+  device step): ``info["sim_substeps"]`` (int32 per world) is the substeps of the env step's last
+  physics step.
 * observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
   and chosen above what the task reaches (rates: ``velocity_bound`` = 100 rad/s or m/s).
 * per-world physical parameters: ``randomize={...}`` (constructor or ``reset`` option, sticky:
@@ -334,7 +337,9 @@ class ABDVectorEnv(Task, VectorEnv):
         """Restore ``get_state``'s values (see there; the state can be restored again later).  The
         simulator's part is checked as Simulator.set_state checks it; where it is refused the env
         is left as it was."""
-        keys = {"sim", "episodes", "parameters", "pending", "rng", "has_reset"} | ({"queue"} if self.next_episodes else set())
+        keys = {"sim", "episodes", "parameters", "pending", "rng", "has_reset"}
+        if self.next_episodes is not None:
+            keys.add("queue")
         if not isinstance(state, dict) or set(state) != keys:
             raise ValueError(f"state must be a dict from this env's get_state, with entries {sorted(keys)}")
         if self.pending.unread or self.pending.in_flight:
