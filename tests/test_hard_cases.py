@@ -379,7 +379,9 @@ def test_limit_line_search_lands_where_halving_does():
 
 SUITE_WORLDS = 8
 SUITE_SECONDS = {"chain20": 2.0}  # shorter than the report's run, to keep the suite quick
-RUNS = [(c.name, dt) for c in rb.cases() for dt in c.dts]
+# the report's runs at its largest steps, which compare the retry of failed steps with none, are
+# tests/test_substeps.py's
+RUNS = [(c.name, dt) for c in rb.cases() for dt in c.dts if dt < rb.NO_RETRY_DT]
 GRID = [(name, dt, integrator, dtype) for name, dt in RUNS for integrator in rb.INTEGRATORS for dtype in rb.DTYPES]
 
 
@@ -439,7 +441,7 @@ def test_no_silent_energy_gain(name, dt, integrator, dtype):
 WORST_GAP_MM = {"light_under_heavy": 0.0396, "heavy_under_light": 0.0388, "chain20": 0.0270, "spin_into_limit": 0.188,
                 "prismatic_slam": 0.00285, "strength_1": 3.11, "strength_100": 0.0307, "strength_10000": 3.06e-4,
                 "strength_1e+06": 1.72e-4, "strength_1e+08": 1.13e-4, "large_dt": 0.488, "fourbar": 0.156,
-                "slider_crank": 0.0644}  # fmt: skip
+                "slider_crank": 0.0644, "mixed_chain": 0.0645}  # fmt: skip
 WORST_OVERSHOOT = {"spin_into_limit": 0.00343, "prismatic_slam": 0.00464, "slider_crank": 0.0304}
 MARGIN = 2.0
 GAP_GOAL_MM = 5.0

@@ -99,3 +99,18 @@ def test_the_vector_env_reports_substeps():
     env.reset(seed=0)
     info = env.step(np.zeros((2, 1), dtype=np.float32))[4]
     np.testing.assert_array_equal(info["sim_substeps"], [1, 1])
+
+
+@pytest.mark.parametrize("name", ["large_dt", "fourbar"])
+def test_rejections_at_dt_0_2_fall_tenfold(name):
+    """The robustness report's double pendulums and four-bar at dt 0.2 s (16 worlds, 1 s): the
+    worlds rejected with the retry are at most a tenth of those without."""
+    from abd_gym.bench import robustness as rb
+
+    case = rb.case(name)
+    scene = case.scene()
+    rows = {retry: rb.run_case(case, 0.2, "bdf2", "float32", worlds=16, steps=5, scene=scene, retry=retry)
+            for retry in (True, False)}  # fmt: skip
+    assert rows[False]["reported"] >= 5
+    assert 10 * rows[True]["reported"] <= rows[False]["reported"]
+    assert rows[True]["substeps"][2] + rows[True]["substeps"][4] >= rows[False]["reported"]
