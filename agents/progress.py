@@ -101,8 +101,8 @@ class ThresholdEval(EvalCallback):
     a policy that has been measured solved N times, each time by more than its evaluation's
     noise, is kept as it is rather than trained on at a learning rate that can still move it off
     the solution.  ``solved_streak``: such evaluations in a row so far; ``stopped_step``: the
-    env step at which training was ended (None while it goes on).  ``best_step``,
-    ``best_std``, ``best_episodes``: the evaluation that saved ``best_model.zip``.
+    env step at which training was ended (None while it goes on).  ``best_step``: the env step
+    of the evaluation that saved ``best_model.zip``.
 
     Each evaluation does what ``EvalCallback`` does (statistics synced, ``evaluations.npz``,
     ``eval/mean_reward`` and ``eval/mean_ep_length`` logged, ``best_model.zip`` and
@@ -125,8 +125,6 @@ class ThresholdEval(EvalCallback):
         self.solved_streak = 0
         self.stopped_step: int | None = None
         self.best_step: int | None = None
-        self.best_std: float | None = None
-        self.best_episodes = 0
         self.name = name
         self.write = write
         self.threshold_step: int | None = None
@@ -165,7 +163,7 @@ class ThresholdEval(EvalCallback):
             if self.best_model_save_path is not None:
                 self.model.save(os.path.join(self.best_model_save_path, "best_model"))
             self.best_mean_reward = mean
-            self.best_step, self.best_std, self.best_episodes = int(self.num_timesteps), float(np.std(returns)), len(returns)
+            self.best_step = int(self.num_timesteps)
             if self.callback_on_new_best is not None:
                 keep_going = self.callback_on_new_best.on_step()
         self._after_evaluation(returns)

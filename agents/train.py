@@ -52,9 +52,10 @@ import numpy as np
 import yaml
 
 from abd_gym.agents.common import (BEST_MODEL_FILE, BEST_VECNORM_FILE, CONFIG_FILE, EVAL_SEED_OFFSET, MODEL_FILE,
-    SUMMARY_FILE, VECNORM_FILE, build_eval_env, compare_to_best, build_model, build_train_env, device_description, eval_env_count, evaluate,
-    reward_threshold, train_autoreset_mode, versions, write_json)
-from abd_gym.agents.config import apply_overrides, config_name, find_config, validate_config, yaml_load
+    SUMMARY_FILE, VECNORM_FILE, build_eval_env, build_model, build_train_env, compare_to_best, device_description,
+    eval_env_count, evaluate, model_device, reward_threshold, train_autoreset_mode, versions, write_json)
+from abd_gym.agents.config import (algorithm_class, apply_overrides, config_name, find_config, validate_config,
+    yaml_load)
 from abd_gym.core.devices import resolve_device
 
 if TYPE_CHECKING:  # progress imports SB3, which training loads only when it runs
@@ -254,8 +255,6 @@ def _evaluate_best(cfg: dict[str, Any], run_dir: Path, periodic: ThresholdEval |
     (``stop_when_solved``) is the final policy: no update followed it, so its score is the final
     evaluation's and it is not evaluated again (``same_as_final``).  One saved at the last step of
     a run that was not stopped is not: the rollout's update came after it."""
-    from abd_gym.agents.config import algorithm_class
-
     path = run_dir / BEST_MODEL_FILE
     if periodic is None or periodic.best_step is None or not path.is_file():
         return None
@@ -264,8 +263,6 @@ def _evaluate_best(cfg: dict[str, Any], run_dir: Path, periodic: ThresholdEval |
             "same_as_final": periodic.stopped_step is not None and periodic.best_step == periodic.stopped_step}  # fmt: skip
     if best["same_as_final"]:
         return best
-    from abd_gym.agents.common import model_device
-
     model = algorithm_class(cfg["algo"]).load(str(path), device=model_device(cfg["device"]))
     episodes = cfg["eval_episodes"]
     env = build_eval_env(cfg, num_envs=eval_env_count(cfg, episodes), seed=cfg["seed"] + EVAL_SEED_OFFSET,

@@ -247,3 +247,16 @@ def test_a_misspelt_config_name_lists_the_configs_and_the_closest(capsys):
     err = capsys.readouterr().err
     assert "no config 'cartpol_ppo' (did you mean cartpole_ppo" in err
     assert "gpu/inverted_double_pendulum_ppo" in err and "reacher_v5_sac" in err  # the list of what exists
+
+
+def test_a_final_policy_below_its_best_is_named_in_the_last_line(tmp_path, capsys, monkeypatch):
+    # what the comparison decides is compare_to_best's (tested above); here: what the run says then
+    monkeypatch.setattr(agent_train, "reward_threshold", lambda env_id: 1.0)
+    monkeypatch.setattr(agent_train, "compare_to_best", lambda final, best: (True, "best_model.zip"))
+    run = tmp_path / "below"
+    assert agent_train.main([str(_config(tmp_path)), "--run-dir", str(run), "--eval-freq", "128", "--no-progress"]) == 0
+    last = capsys.readouterr().out.splitlines()[-1]
+    assert last.startswith("final policy worse than its best: model.zip ")
+    assert "best_model.zip (saved at " in last and last.endswith("use best_model.zip (abd-gym-evaluate evaluates it by default)")
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["final_below_best"] and summary["use_model"] == "best_model.zip"
