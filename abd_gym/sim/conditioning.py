@@ -113,24 +113,62 @@ STEP_TURN = 1.0
 
 
 def step_too_large(scene, dt: float) -> list[str]:
-    """One message per free body whose fastest mode turns more than STEP_TURN rad in a step of
-    ``dt`` [s]: a pendulum of its size under gravity, √(|g|/r) with r its bounding radius [m], or
-    a position drive's stiffness kp over the inertia m·r² it moves, √(kp/(m·r²))."""
+    """One message per body or drive whose mode turns more than STEP_TURN rad in a step of ``dt``
+    [s]: a free body as a pendulum of its size under gravity, √(|g|/r) with r its bounding radius
+    [m]; a position drive as the spring-damper of its stiffness kp and damping kv (the joint's
+    passive damping added) on what it moves, I the inertia of the bodies beyond the joint about
+    its axis (a slide: their mass): ω₀ = √(kp/I) where it oscillates (ζ = kv/(2√(kp·I)) < 1),
+    else its slow mode ω₀(ζ − √(ζ² − 1)) ≈ kp/kv (its fast mode only decays, which the implicit
+    step damps in any step)."""
     g = float(np.linalg.norm(scene.gravity))
-    rate = np.zeros(scene.num_bodies)
-    for k, b in enumerate(scene.bodies):
+    modes = []  # (rate [rad/s], what)
+    for b in scene.bodies:
         if not b.fixed:
-            rate[k] = np.sqrt(g / b.shape.bounding_radius())
+            modes.append((np.sqrt(g / b.shape.bounding_radius()), f"body {b.name!r} (gravity over its size)"))
     for d in scene.drives:
         if d.mode == "position":
-            k = scene.joints[d.joint].body_b
-            b = scene.bodies[k]
-            if not b.fixed:
-                rate[k] = max(rate[k], np.sqrt(d.stiffness / (b.mass * b.shape.bounding_radius() ** 2)))
+            inertia = driven_inertia(scene, d.joint)
+            if inertia > 0.0 and d.stiffness > 0.0:
+                w0 = np.sqrt(d.stiffness / inertia)
+                zeta = (d.damping + scene.joints[d.joint].damping) / (2.0 * np.sqrt(d.stiffness * inertia))
+                modes.append((w0 if zeta < 1.0 else w0 * (zeta - np.sqrt(zeta * zeta - 1.0)),
+                              f"the position drive of joint {scene.joints[d.joint].name!r} (its stiffness over "
+                              f"what it moves)"))  # fmt: skip
     out = []
-    for k in np.flatnonzero(rate * dt > STEP_TURN):
-        out.append(f"dt {dt} s is beyond what body {scene.bodies[k].name!r} can take: its fastest mode "
-                   f"({rate[k]:.3g} rad/s, gravity or a position drive over its size) turns {rate[k] * dt:.2g} rad a "
-                   f"step, above {STEP_TURN}; Newton then often fails to converge and steps are retried as substeps "
-                   f"(Simulator.substeps): take dt below {STEP_TURN / rate[k]:.3g} s")  # fmt: skip
+    for rate, what in modes:
+        if rate * dt > STEP_TURN:
+            out.append(f"dt {dt} s is beyond what {what} can take: its mode of {rate:.3g} rad/s turns {rate * dt:.2g} "
+                       f"rad a step, above {STEP_TURN}; Newton then often fails to converge and steps are retried as "
+                       f"substeps (Simulator.substeps): take dt below {STEP_TURN / rate:.3g} s")  # fmt: skip
     return out
+
+
+def driven_inertia(scene, joint: int) -> float:
+    """What a drive on ``joint`` moves: the free bodies reached from its second body without
+    crossing the joint, as their moment of inertia about its hinge axis [kg·m²] (revolute) or
+    their mass [kg] (prismatic), at the scene's pose."""
+    j = scene.joints[joint]
+    others = [k for k, jt in enumerate(scene.joints) if k != joint]
+    seen, todo = {j.body_b}, [j.body_b]
+    while todo:
+        b = todo.pop()
+        for k in others:
+            jt = scene.joints[k]
+            for here, there in ((jt.body_a, jt.body_b), (jt.body_b, jt.body_a)):
+                if here == b and there not in seen and not scene.bodies[there].fixed:
+                    seen.add(there)
+                    todo.append(there)
+    bodies = [scene.bodies[k] for k in seen if not scene.bodies[k].fixed]
+    if j.kind != "revolute":
+        return float(sum(b.mass for b in bodies))
+    u = j.frame[0] / np.linalg.norm(j.frame[0])
+    across = np.eye(3) - np.outer(u, u)  # projection onto the plane normal to the axis
+    total = 0.0
+    for b in bodies:
+        m, R = b.moments, b.rotation
+        d = b.position - j.anchor
+        first = R @ (m.mass * m.com)
+        # ∫ρ (x − a)(x − a)ᵀ dV in world axes, x = p + R x̄ over the body
+        second = R @ m.second_moment @ R.T + np.outer(first, d) + np.outer(d, first) + m.mass * np.outer(d, d)
+        total += float(np.trace(across @ second))
+    return total
