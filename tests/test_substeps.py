@@ -114,3 +114,19 @@ def test_rejections_at_dt_0_2_fall_tenfold(name):
     assert rows[False]["reported"] >= 5
     assert 10 * rows[True]["reported"] <= rows[False]["reported"]
     assert rows[True]["substeps"][2] + rows[True]["substeps"][4] >= rows[False]["reported"]
+
+
+def test_substeps_return_to_one_after_a_retried_step():
+    """The count is the last step's: after a retried step, a step every world takes whole reads 1
+    (on the CPU the check launches nothing while every world is OK and the last step took 1)."""
+    sim = _sim()
+    for _ in range(5):
+        sim.step()
+        if (sim.substeps() > 1).any():
+            break
+    assert (sim.substeps() > 1).any()
+    sim.set_joint_state(np.zeros((W, 2)))  # at rest, hanging: every world's step converges
+    sim.step()
+    np.testing.assert_array_equal(sim.substeps(), np.ones(W))
+    sim.step()
+    np.testing.assert_array_equal(sim.substeps(), np.ones(W))
