@@ -101,6 +101,24 @@ def test_the_vector_env_reports_substeps():
     np.testing.assert_array_equal(info["sim_substeps"], [1, 1])
 
 
+def test_the_vector_envs_step_retries_too():
+    """A budget of 2 Newton iterations, which CartPoleSwingUp-v0's steps outrun: the env's step (on
+    the device, with autoresets) retries world-steps as 2 and 4 substeps, and a world it reports
+    failed had failed at 4 too."""
+    from abd_gym.envs.cartpole_swingup import CartPoleSwingUpVectorEnv
+
+    env = CartPoleSwingUpVectorEnv(num_envs=4, dtype="float64", simulator_options=dict(max_iterations=2))
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    counts = np.zeros(5, dtype=int)
+    for _ in range(10):
+        info = env.step(rng.uniform(-1, 1, (4, 1)).astype(np.float32))[4]
+        n = info["sim_substeps"]
+        counts += np.bincount(n, minlength=5)
+        assert (n[info["sim_failed"]] == 4).all()
+    assert counts[2] > 0 and counts[4] > 0
+
+
 @pytest.mark.parametrize("name", ["large_dt", "fourbar"])
 def test_rejections_at_dt_0_2_fall_tenfold(name):
     """The robustness report's double pendulums and four-bar at dt 0.2 s (16 worlds, 1 s): the
@@ -114,3 +132,19 @@ def test_rejections_at_dt_0_2_fall_tenfold(name):
     assert rows[False]["reported"] >= 5
     assert 10 * rows[True]["reported"] <= rows[False]["reported"]
     assert rows[True]["substeps"][2] + rows[True]["substeps"][4] >= rows[False]["reported"]
+
+
+def test_substeps_return_to_one_after_a_retried_step():
+    """The count is the last step's: after a retried step, a step every world takes whole reads 1
+    (on the CPU the check launches nothing while every world is OK and the last step took 1)."""
+    sim = _sim()
+    for _ in range(5):
+        sim.step()
+        if (sim.substeps() > 1).any():
+            break
+    assert (sim.substeps() > 1).any()
+    sim.set_joint_state(np.zeros((W, 2)))  # at rest, hanging: every world's step converges
+    sim.step()
+    np.testing.assert_array_equal(sim.substeps(), np.ones(W))
+    sim.step()
+    np.testing.assert_array_equal(sim.substeps(), np.ones(W))

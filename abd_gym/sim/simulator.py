@@ -56,7 +56,9 @@ class Simulator:
     ``reuse_factor`` solves an iteration after a full step against the last Cholesky factor
     (off by default: it stops short of the solution, SolverSettings); ``quadratic_stop``: a
     Newton step from a fresh factor accepted whole (α = 1) under this many times q's rounding
-    floor 4·eps·(1 + ‖q‖∞) ends the solve (float32 only in effect; 0: off).
+    floor 4·eps·(1 + ‖q‖∞) ends the solve (float32 only in effect; 0: off); ``retry``: a world whose
+    step fails (does not converge, breaks down) takes it again as 2, then 4 substeps before it is
+    rejected (``substeps``; solver/retry.py).
 
     How the step runs on the device (kernels, memory layout, launches, graphs) is ``plan``, an
     ExecutionPlan (or a dict of its fields) whose None fields are derived from the device, the

@@ -7,10 +7,11 @@ Only the retried worlds step again: the substeps are the one-launch fused step (
 dt/2 or dt/4 on the same model and state) holding every other world, whose rows it neither reads
 nor writes, so a batch whose worlds all converge steps exactly as without retries.  A step costs
 the healthy batch one launch (``mark``: which worlds failed, and a device flag) and a conditional
-branch (``wp.capture_if``) that a graph holds (on the CPU, a look at the status and substeps in
-host memory, and the launch only where a world is not OK or the last step was retried); the substep solvers and the copy of the retried
-worlds' state they start from are made at the first retry on the CPU, at the first step on a GPU
-(so that the graphs captured after it hold the branch).
+branch (``wp.capture_if``) that a graph holds; on the CPU, a look at the status and substeps in
+host memory, with the launch only where a world is not OK or the last step was retried.  The
+substep solvers and the copy of the retried worlds' state they start from are made at the first
+retry on the CPU, at the first step on a GPU (so that the graphs captured after it hold the
+branch); their kernel is the one-launch step built to hold worlds, compiled once per scene.
 
 A retried world's next step is an implicit Euler step (fresh RESET): its BDF2 history spans a
 substep, not dt.  ``state.substeps[w]``: the substeps of world w's last step (1, 2 or 4).
