@@ -1,7 +1,7 @@
 """Evaluate a saved run, and optionally record a video of it.
 
     python -m abd_gym.agents.evaluate RUN_DIR [--episodes N] [--device cpu|cuda:0] [--seed S]
-        [--stochastic] [--model PATH] [--json PATH] [--video out.gif|out.mp4] [--video-episodes K]
+        [--stochastic] [--model PATH | --final] [--json PATH] [--video out.gif|out.mp4] [--video-episodes K]
 
 (also ``abd-gym-evaluate``).  Loads ``RUN_DIR/config.yaml``, the model and the observation
 statistics it was saved with (if the run normalised observations), prints which model it
@@ -74,7 +74,7 @@ def default_model(run_dir: str | Path) -> tuple[Path, str]:
             summary = {}
     best = summary.get("best_model") or {}
     if summary.get("use_model") == BEST_MODEL_FILE and (run_dir / BEST_MODEL_FILE).is_file():
-        why = (f"the final {MODEL_FILE} scored {summary['mean_return']:.2f}, below {BEST_MODEL_FILE}'s "
+        why = (f"the final {MODEL_FILE} scored {summary.get('mean_return', float('nan')):.2f}, below {BEST_MODEL_FILE}'s "
                f"{best.get('mean_return', float('nan')):.2f} after training; --final evaluates {MODEL_FILE}")  # fmt: skip
         return run_dir / BEST_MODEL_FILE, why
     return run_dir / MODEL_FILE, "the final policy"
