@@ -211,6 +211,19 @@ def evaluate(model, env, episodes: int, *, deterministic: bool = True) -> dict[s
     }
 
 
+def compare_to_best(final: dict[str, Any], best: dict[str, Any] | None) -> tuple[bool, str]:
+    """(whether the final policy's mean return is below the best model's by more than the final
+    evaluation's standard error, std / sqrt(episodes); the model file to use).  ``final`` and
+    ``best`` hold ``mean_return``, ``std_return`` and ``eval_episodes`` of evaluations on the
+    same episodes; a best model without its own evaluation (None, or the final policy itself)
+    is never better."""
+    if best is None or "mean_return" not in best:
+        return False, MODEL_FILE
+    standard_error = final["std_return"] / np.sqrt(max(final["eval_episodes"], 1))
+    below = bool(best["mean_return"] - final["mean_return"] > standard_error)
+    return below, (best["file"] if below else MODEL_FILE)
+
+
 def reward_threshold(env_id: str) -> float | None:
     import gymnasium as gym
 

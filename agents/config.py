@@ -22,14 +22,18 @@ Optional keys: ``env_kwargs`` (passed to the env), ``n_eval_envs``, ``checkpoint
 total steps), ``eval_freq`` (a periodic evaluation every that many total steps; 0, the default,
 is off), ``rollout`` (PPO's rollout: ``auto``, the default, keeps it on the policy's device where
 the env and config allow, see ``abd_gym.agents.device_rollout``; ``sb3`` forces SB3's NumPy
-rollout; ``device`` requires the device one), ``notes``.  Unknown keys, unknown algorithms or policies, unregistered ids and values
-of the wrong type fail at load time with a ``ValueError`` that names the key.  ``1e-3`` reads as
+rollout; ``device`` requires the device one), ``stop_when_solved`` (stop training once that
+many periodic evaluations in a row are solved with a standard error to spare, see
+``abd_gym.agents.progress.ThresholdEval``; 0, the default, trains for ``n_timesteps``; needs
+``eval_freq``), ``notes``.  Unknown keys, unknown algorithms or policies, unregistered ids and
+values of the wrong type fail at load time with a ``ValueError`` that names the key.  ``1e-3`` reads as
 a number (PyYAML alone would read it as a string).
 """
 from __future__ import annotations
 
 import collections.abc
 import copy
+import difflib
 import inspect
 import re
 import types
@@ -55,6 +59,7 @@ __all__ = [
     "resolve_class",
     "yaml_load",
     "find_config",
+    "config_names",
     "CONFIG_DIR",
 ]
 
@@ -293,6 +298,7 @@ _TOP_LEVEL: dict[str, tuple[Any, Any]] = {
     "n_eval_envs": ((int, type(None)), None),
     "checkpoint_freq": ((int, type(None)), None),
     "eval_freq": (int, 0),
+    "stop_when_solved": (int, 0),
     "hyperparams": (dict, {}),
     "policy_kwargs": (dict, {}),
     "env_kwargs": (dict, {}),
@@ -384,6 +390,13 @@ def validate_config(raw: dict[str, Any]) -> dict[str, Any]:
         raise ConfigError(f"rollout: one of {', '.join(ROLLOUTS)}, got {cfg['rollout']!r}")
     if cfg["eval_freq"] < 0:
         raise ConfigError(f"eval_freq: must be 0 (off) or at least 1, got {cfg['eval_freq']}")
+    if cfg["stop_when_solved"] < 0:
+        raise ConfigError(f"stop_when_solved: must be 0 (off) or at least 1, got {cfg['stop_when_solved']}")
+    if cfg["stop_when_solved"] and not cfg["eval_freq"]:
+        raise ConfigError(
+            f"stop_when_solved: {cfg['stop_when_solved']} needs periodic evaluations; set eval_freq (now 0), "
+            "or stop_when_solved=0"
+        )
     for key in ("n_eval_envs", "checkpoint_freq"):
         if cfg[key] is not None and cfg[key] < 1:
             raise ConfigError(f"{key}: must be at least 1, got {cfg[key]}")
@@ -468,7 +481,25 @@ def find_config(name: str | Path) -> Path:
         for cand in (base / path, base / f"{path}.yaml", base / f"{path}.yml"):
             if cand.is_file():
                 return cand
-    raise FileNotFoundError(f"no config {str(name)!r} (looked for the file, in ./configs/ and in {CONFIG_DIR})")
+    known = config_names()
+    close = difflib.get_close_matches(str(path.with_suffix("")) if path.suffix in (".yaml", ".yml") else str(path),
+                                      known, n=3, cutoff=0.6)  # fmt: skip
+    hint = f" (did you mean {', '.join(close)}?)" if close else ""
+    raise FileNotFoundError(
+        f"no config {str(name)!r}{hint}: no such file, and none of that name in ./configs/ or {CONFIG_DIR}, "
+        f"which hold: {', '.join(known)}"
+    )
+
+
+def config_names() -> list[str]:
+    """The names :func:`find_config` resolves in ``./configs/`` and in the shipped configs
+    (``cartpole_ppo``, ``gpu/cartpole_ppo``), sorted, each once."""
+    names = set()
+    for base in (Path.cwd() / "configs", CONFIG_DIR):
+        if base.is_dir():
+            for p in (*base.rglob("*.yaml"), *base.rglob("*.yml")):
+                names.add(p.relative_to(base).with_suffix("").as_posix())
+    return sorted(names)
 
 
 def config_name(path: str | Path) -> str:

@@ -3,15 +3,20 @@
     python -m abd_gym.agents.evaluate RUN_DIR [--episodes N] [--device cpu|cuda:0] [--seed S]
         [--stochastic] [--model PATH] [--json PATH] [--video out.gif|out.mp4] [--video-episodes K]
 
-(also ``abd-gym-evaluate``).  Loads ``RUN_DIR/config.yaml``, ``model.zip`` (or ``--model``, e.g.
-a checkpoint) and ``vecnormalize.pkl`` (if the run normalised observations), prints the mean and
-std return of the deterministic policy, and with ``--video`` records ``--video-episodes``
-episodes of one world through the env's ``rgb_array`` renderer: a GIF (Pillow) or, for
-``.mp4``, an MP4 (needs ``imageio[ffmpeg]``).
+(also ``abd-gym-evaluate``).  Loads ``RUN_DIR/config.yaml``, the model and the observation
+statistics it was saved with (if the run normalised observations), prints which model it
+evaluates and the mean and std return of the deterministic policy, and with ``--video`` records
+``--video-episodes`` episodes of one world through the env's ``rgb_array`` renderer: a GIF
+(Pillow) or, for ``.mp4``, an MP4 (needs ``imageio[ffmpeg]``; checked before the evaluation runs).
+
+The model: ``--model PATH`` (e.g. a checkpoint); ``--final`` for ``model.zip``; by default the
+one the run's ``summary.json`` names in ``use_model``: ``best_model.zip`` where training found the
+final policy worse than its best, else ``model.zip`` (see :func:`default_model`).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -19,11 +24,11 @@ from typing import Any
 import numpy as np
 
 from abd_gym.agents.common import (BEST_MODEL_FILE, BEST_VECNORM_FILE, CONFIG_FILE, EVAL_SEED_OFFSET, MODEL_FILE,
-    VECNORM_FILE, build_eval_env, eval_env_count, evaluate, reward_threshold, write_json)
+    SUMMARY_FILE, VECNORM_FILE, build_eval_env, eval_env_count, evaluate, reward_threshold, write_json)
 from abd_gym.agents.config import algorithm_class, validate_config, yaml_load
 from abd_gym.core.devices import resolve_device
 
-__all__ = ["load_run", "vecnormalize_for", "evaluate_run", "record_video", "main"]
+__all__ = ["load_run", "vecnormalize_for", "default_model", "video_backend_error", "evaluate_run", "record_video", "main"]
 
 
 def load_run(run_dir: str | Path, *, device: str | None = None, model_path: str | Path | None = None):
@@ -54,6 +59,55 @@ def vecnormalize_for(run_dir: str | Path, model_path: str | Path | None = None) 
     return next((c for c in candidates if c.is_file()), None)
 
 
+def default_model(run_dir: str | Path) -> tuple[Path, str]:
+    """(the model ``abd-gym-evaluate`` evaluates without ``--model``, why in words).
+
+    ``best_model.zip`` where the run's ``summary.json`` says the final policy scored below it
+    (``use_model``) and the file is there; else ``model.zip``."""
+    run_dir = Path(run_dir)
+    summary_path = run_dir / SUMMARY_FILE
+    summary = {}
+    if summary_path.is_file():
+        try:
+            summary = json.loads(summary_path.read_text())
+        except (OSError, ValueError):
+            summary = {}
+    best = summary.get("best_model") or {}
+    if summary.get("use_model") == BEST_MODEL_FILE and (run_dir / BEST_MODEL_FILE).is_file():
+        why = (f"the final {MODEL_FILE} scored {summary['mean_return']:.2f}, below {BEST_MODEL_FILE}'s "
+               f"{best.get('mean_return', float('nan')):.2f} after training; --final evaluates {MODEL_FILE}")  # fmt: skip
+        return run_dir / BEST_MODEL_FILE, why
+    return run_dir / MODEL_FILE, "the final policy"
+
+
+def video_backend_error(path: str | Path) -> str | None:
+    """Why a video cannot be written to ``path`` (its format, or a missing writer), or None.
+
+    ``.gif`` needs Pillow; ``.mp4`` needs imageio with a backend that writes it: PyAV, or
+    imageio-ffmpeg with its ffmpeg binary."""
+    import importlib.util
+
+    suffix = Path(path).suffix.lower()
+    if suffix == ".gif":
+        return None if importlib.util.find_spec("PIL") else "writing GIF needs Pillow (pip install pillow)"
+    if suffix != ".mp4":
+        return f"--video {path}: unsupported video format {suffix or '(none)'!r}; use .gif or .mp4"
+    fix = "pip install 'imageio[ffmpeg]', or write a .gif"
+    if importlib.util.find_spec("imageio") is None:
+        return f"writing MP4 needs imageio with ffmpeg: {fix}"
+    if importlib.util.find_spec("av") is not None:
+        return None
+    try:
+        import imageio_ffmpeg
+
+        imageio_ffmpeg.get_ffmpeg_exe()
+    except ImportError:
+        return f"writing MP4 needs ffmpeg for imageio (imageio is installed, imageio-ffmpeg is not): {fix}"
+    except RuntimeError as exc:  # imageio-ffmpeg without its binary
+        return f"writing MP4 needs an ffmpeg binary ({exc}): {fix}"
+    return None
+
+
 def evaluate_run(
     run_dir: str | Path,
     *,
@@ -63,8 +117,10 @@ def evaluate_run(
     deterministic: bool = True,
     model_path: str | Path | None = None,
 ) -> dict[str, Any]:
+    if episodes is not None and episodes < 1:
+        raise ValueError(f"episodes must be at least 1, got {episodes}")
     cfg, model, vecnorm = load_run(run_dir, device=device, model_path=model_path)
-    episodes = episodes or cfg["eval_episodes"]
+    episodes = cfg["eval_episodes"] if episodes is None else episodes
     env = build_eval_env(
         cfg,
         num_envs=eval_env_count(cfg, episodes),
@@ -83,6 +139,7 @@ def evaluate_run(
         reward_threshold=threshold,
         solved=bool(threshold is not None and result["mean_return"] >= threshold),
         run_dir=str(run_dir),
+        model=str(model_path or Path(run_dir) / MODEL_FILE),
     )
     return result
 
@@ -99,7 +156,13 @@ def record_video(
     fps: float | None = None,
     model_path: str | Path | None = None,
 ) -> dict[str, Any]:
-    """Roll out ``episodes`` episodes of one world and write the rgb_array frames to ``path``."""
+    """Roll out ``episodes`` episodes of one world and write the rgb_array frames to ``path``.
+
+    A format other than .gif/.mp4 (ValueError) or a missing writer for it (RuntimeError) fails
+    before anything is loaded or rolled out."""
+    problem = video_backend_error(path)
+    if problem is not None:
+        raise (ValueError if Path(path).suffix.lower() not in (".gif", ".mp4") else RuntimeError)(problem)
     cfg, model, vecnorm = load_run(run_dir, device=device, model_path=model_path)
     env = build_eval_env(
         cfg,
@@ -178,17 +241,42 @@ def write_frames(path: str | Path, frames: list[np.ndarray], fps: float) -> None
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="abd-gym-evaluate", description=__doc__.split("\n\n")[0])
     p.add_argument("run_dir")
-    p.add_argument("--episodes", type=int, help="evaluation episodes (default: the config's eval_episodes)")
+    p.add_argument("--episodes", type=int, help="evaluation episodes, at least 1 (default: the config's eval_episodes)")
     p.add_argument("--device")
     p.add_argument("--seed", type=int)
     p.add_argument("--stochastic", action="store_true", help="sample actions instead of the deterministic policy")
-    p.add_argument("--model", help="model file to load instead of RUN_DIR/model.zip (e.g. a checkpoint)")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--model", help="model file to evaluate (e.g. a checkpoint; default: see --final)")
+    which.add_argument("--final", action="store_true",
+                       help="evaluate RUN_DIR/model.zip even where the run found best_model.zip better (the default then)")
     p.add_argument("--json", help="write the evaluation result to this JSON file")
     p.add_argument("--video", help="record a video (.gif or .mp4)")
     p.add_argument("--video-episodes", type=int, default=3)
     p.add_argument("--video-max-steps", type=int, default=2000, help="cut a recorded episode after this many steps")
     p.add_argument("--fps", type=float)
     return p.parse_args(argv)
+
+
+def _argument_error(args: argparse.Namespace) -> str | None:
+    """What is wrong with the arguments, found before anything is loaded or run, or None."""
+    if args.episodes is not None and args.episodes < 1:
+        return f"--episodes {args.episodes}: must be at least 1"
+    if args.video_episodes < 1:
+        return f"--video-episodes {args.video_episodes}: must be at least 1"
+    if args.model is not None and not Path(args.model).is_file():
+        return f"--model {args.model}: no such file"
+    if args.final and not (Path(args.run_dir) / MODEL_FILE).is_file():
+        return f"--final: {args.run_dir} has no {MODEL_FILE}"
+    if args.video:
+        problem = video_backend_error(args.video)
+        if problem is not None:
+            return problem
+    if args.device is not None:
+        try:
+            resolve_device(args.device)
+        except ValueError as exc:
+            return str(exc)
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -199,23 +287,28 @@ def main(argv: list[str] | None = None) -> int:
     if not (Path(args.run_dir) / CONFIG_FILE).is_file():
         print(f"abd-gym-evaluate: error: {args.run_dir} has no {CONFIG_FILE} (not a run directory)", file=sys.stderr)
         return 2
-    if args.device is not None:
-        try:
-            resolve_device(args.device)
-        except ValueError as exc:
-            print(f"abd-gym-evaluate: error: {exc}", file=sys.stderr)
-            return 2
+    problem = _argument_error(args)
+    if problem is not None:
+        print(f"abd-gym-evaluate: error: {problem}", file=sys.stderr)
+        return 2
+    if args.model is not None:
+        model_path, why = Path(args.model), "--model"
+    elif args.final:
+        model_path, why = Path(args.run_dir) / MODEL_FILE, "--final"
+    else:
+        model_path, why = default_model(args.run_dir)
+    print(f"model: {model_path} ({why})", flush=True)
     result = evaluate_run(
         args.run_dir,
         episodes=args.episodes,
         device=args.device,
         seed=args.seed,
         deterministic=not args.stochastic,
-        model_path=args.model,
+        model_path=model_path,
     )
     thr = result["reward_threshold"]
     print(
-        f"{result['env_id']} ({result['algo']}): return {result['mean_return']:.2f} ± {result['std_return']:.2f} "
+        f"{result['env_id']} ({result['algo']}, {model_path.name}): return {result['mean_return']:.2f} ± {result['std_return']:.2f} "
         f"over {result['eval_episodes']} episodes"
         + (f" (threshold {thr:g}: {'solved' if result['solved'] else 'not solved'})" if thr is not None else "")
     )
@@ -228,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
             seed=args.seed,
             deterministic=not args.stochastic,
             fps=args.fps,
-            model_path=args.model,
+            model_path=model_path,
             max_steps_per_episode=args.video_max_steps,
         )
         result["video"] = video

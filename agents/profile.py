@@ -58,16 +58,19 @@ SECTIONS = ("env step", "host<->device", "policy", "buffer add", "GAE", "rollout
 
 
 class _Clock:
-    """Exclusive wall time per section: a section's time excludes the sections timed inside it."""
+    """Exclusive wall time per section (a section's time excludes the sections timed inside it)
+    and how many times each section was entered."""
 
     def __init__(self, sync: Callable[[], None]):
         self.sync = sync
         self.seconds: dict[str, float] = defaultdict(float)
+        self.calls: dict[str, int] = defaultdict(int)
         self._stack: list[list[Any]] = []  # [name, start, time of children]
 
     @contextlib.contextmanager
     def section(self, name: str):
         self.sync()
+        self.calls[name] += 1
         self._stack.append([name, time.perf_counter(), 0.0])
         try:
             yield
@@ -173,7 +176,8 @@ def profile_path(cfg: dict[str, Any], rollout: str, k: int) -> dict[str, Any]:
     fine_wall = _iterations(model, k, fine, fine=True)
     total = sum(fine.seconds.values())
     sections = {
-        name: {"s_per_iteration": fine.seconds[name] / k, "share": fine.seconds[name] / total if total else 0.0}
+        name: {"s_per_iteration": fine.seconds[name] / k, "share": fine.seconds[name] / total if total else 0.0,
+               "calls_per_iteration": fine.calls[name] / k}
         for name in SECTIONS
     }
     env.close()

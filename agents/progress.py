@@ -8,7 +8,9 @@ one line every tenth of the run instead::
 ``steps/s`` is env steps (all worlds) per second of wall time since training started; the return
 is the mean raw return of the last episodes SB3 keeps (``ep_info_buffer``, up to 100).
 Periodic evaluations (``eval_freq``) print one line each and record the first env step and wall
-time at which the evaluation's mean return reached the task's reward threshold.
+time at which the evaluation's mean return reached the task's reward threshold; with
+``stop_after`` they end training once that many evaluations in a row are solved with a standard
+error to spare (see :class:`ThresholdEval`).
 """
 from __future__ import annotations
 
@@ -94,6 +96,14 @@ class ThresholdEval(EvalCallback):
     Both stay None while it has not happened, or when ``threshold`` is None.  ``eval_time_s``: the
     evaluations' wall time so far.  ``write`` (if given) receives one line per evaluation.
 
+    ``stop_after`` N > 0 ends training (``_on_step`` returns False) after N evaluations in a row
+    whose mean return minus its standard error (std / sqrt(episodes)) is at least ``threshold``:
+    a policy that has been measured solved N times, each time by more than its evaluation's
+    noise, is kept as it is rather than trained on at a learning rate that can still move it off
+    the solution.  ``solved_streak``: such evaluations in a row so far; ``stopped_step``: the
+    env step at which training was ended (None while it goes on).  ``best_step``: the env step
+    of the evaluation that saved ``best_model.zip``.
+
     Each evaluation does what ``EvalCallback`` does (statistics synced, ``evaluations.npz``,
     ``eval/mean_reward`` and ``eval/mean_ep_length`` logged, ``best_model.zip`` and
     ``callback_on_new_best`` on a new best, ``callback`` after each) but neither renders nor
@@ -101,12 +111,20 @@ class ThresholdEval(EvalCallback):
     """
 
     def __init__(self, eval_env, *, threshold: float | None, name: str = "",
-                 write: Callable[[str], None] | None = None, **kwargs: Any):
+                 write: Callable[[str], None] | None = None, stop_after: int = 0, **kwargs: Any):
         from abd_gym.agents.common import episode_evaluator
 
+        if stop_after < 0:
+            raise ValueError(f"stop_after must be 0 (off) or at least 1, got {stop_after}")
+        if stop_after and threshold is None:
+            raise ValueError("stop_after needs a threshold: the task has no reward_threshold")
         super().__init__(eval_env, **kwargs)
         self.evaluate = episode_evaluator(self.eval_env)
         self.threshold = threshold
+        self.stop_after = int(stop_after)
+        self.solved_streak = 0
+        self.stopped_step: int | None = None
+        self.best_step: int | None = None
         self.name = name
         self.write = write
         self.threshold_step: int | None = None
@@ -145,12 +163,26 @@ class ThresholdEval(EvalCallback):
             if self.best_model_save_path is not None:
                 self.model.save(os.path.join(self.best_model_save_path, "best_model"))
             self.best_mean_reward = mean
+            self.best_step = int(self.num_timesteps)
             if self.callback_on_new_best is not None:
                 keep_going = self.callback_on_new_best.on_step()
         self._after_evaluation(returns)
         if self.callback is not None:
             keep_going = keep_going and self._on_event()
+        if self.stop_after and self.solved_streak >= self.stop_after:
+            self.stopped_step = int(self.num_timesteps)
+            if self.write is not None:
+                prefix = f"{self.name}: " if self.name else ""
+                self.write(f"{prefix}stopping at {self.num_timesteps:,} steps: solved in {self.solved_streak} "
+                           "evaluations in a row (stop_when_solved)")  # fmt: skip
+            keep_going = False
         return keep_going
+
+    def solved_with_margin(self, returns: list[float]) -> bool:
+        """Whether the mean of ``returns`` minus its standard error reaches the threshold."""
+        if self.threshold is None or len(returns) == 0:
+            return False
+        return float(np.mean(returns)) - float(np.std(returns)) / np.sqrt(len(returns)) >= self.threshold
 
     def _after_evaluation(self, returns: list[float]) -> None:
         mean = self.last_mean_reward
@@ -158,6 +190,7 @@ class ThresholdEval(EvalCallback):
         if reached and self.threshold_step is None:
             self.threshold_step = int(self.num_timesteps)
             self.threshold_time_s = round(time.perf_counter() - self.t0, 2)
+        self.solved_streak = self.solved_streak + 1 if self.solved_with_margin(returns) else 0
         if self.write is not None:
             thr = ""
             if self.threshold is not None:

@@ -20,7 +20,15 @@ total env steps on ``eval_episodes`` episodes of separate worlds (observation st
 from training), writes ``evaluations.npz`` and ``best_model.zip`` (with
 ``best_vecnormalize.pkl`` when normalising) into the run directory, and the summary's
 ``threshold_step`` / ``threshold_time_s`` give the first env step and wall time at which an
-evaluation reached the task's threshold (null if none did).
+evaluation reached the task's threshold (null if none did).  With ``stop_when_solved`` N,
+training ends once N evaluations in a row are solved with a standard error to spare
+(``stopped_step`` in the summary; see ``abd_gym.agents.progress.ThresholdEval``).
+
+After training, ``best_model.zip`` (when there is one and it is not the final policy) is scored
+on the final evaluation's episodes too (``best_model`` in the summary).  A final policy whose
+mean return falls below the best model's by more than the final evaluation's standard error is
+named in the summary (``final_below_best``, ``use_model: best_model.zip``) and in the run's last
+line; ``abd-gym-evaluate`` then evaluates ``best_model.zip`` by default.
 
 PPO's rollout stays on the policy's device where it can (``abd_gym.agents.device_rollout``);
 the path taken is printed after the run directory and recorded in the summary (``rollout``,
@@ -43,10 +51,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from abd_gym.agents.common import (BEST_VECNORM_FILE, CONFIG_FILE, EVAL_SEED_OFFSET, MODEL_FILE, SUMMARY_FILE,
-    VECNORM_FILE, build_eval_env, build_model, build_train_env, device_description, eval_env_count, evaluate,
-    reward_threshold, train_autoreset_mode, versions, write_json)
-from abd_gym.agents.config import apply_overrides, config_name, find_config, validate_config, yaml_load
+from abd_gym.agents.common import (BEST_MODEL_FILE, BEST_VECNORM_FILE, CONFIG_FILE, EVAL_SEED_OFFSET, MODEL_FILE,
+    SUMMARY_FILE, VECNORM_FILE, build_eval_env, build_model, build_train_env, compare_to_best, device_description,
+    eval_env_count, evaluate, model_device, reward_threshold, train_autoreset_mode, versions, write_json)
+from abd_gym.agents.config import (algorithm_class, apply_overrides, config_name, find_config, validate_config,
+    yaml_load)
 from abd_gym.core.devices import resolve_device
 
 if TYPE_CHECKING:  # progress imports SB3, which training loads only when it runs
@@ -155,6 +164,8 @@ def train(
     eval_env.close()
     if periodic is not None:
         periodic.eval_env.close()
+    best = _evaluate_best(cfg, run_dir, periodic, normalised=vecnorm is not None)
+    below, use_model = compare_to_best(result, best)
     summary = {
         "config_name": config_name,
         "env_id": cfg["env_id"],
@@ -182,6 +193,11 @@ def train(
         "best_periodic_return": _finite_or_none(periodic.best_mean_reward) if periodic is not None else None,
         "threshold_step": periodic.threshold_step if periodic is not None else None,
         "threshold_time_s": periodic.threshold_time_s if periodic is not None else None,
+        "stop_when_solved": cfg["stop_when_solved"],
+        "stopped_step": periodic.stopped_step if periodic is not None else None,
+        "best_model": best,
+        "final_below_best": below,
+        "use_model": use_model,
         "started": started,
         "run_dir": str(run_dir),
         "command": command,
@@ -226,9 +242,37 @@ def _periodic_eval(cfg: dict[str, Any], env, run_dir: Path, threshold: float | N
         best_model_save_path=str(run_dir),
         log_path=str(run_dir),
         callback_on_new_best=on_new_best,
+        stop_after=cfg["stop_when_solved"],
         warn=False,
         verbose=0,  # ThresholdEval writes its own line per evaluation
     )
+
+
+def _evaluate_best(cfg: dict[str, Any], run_dir: Path, periodic: ThresholdEval | None, *,
+                   normalised: bool) -> dict[str, Any] | None:
+    """``best_model.zip`` scored on the final evaluation's episodes (same seed, same count), or None
+    where the run kept no best model.  A best model saved by the evaluation that stopped training
+    (``stop_when_solved``) is the final policy: no update followed it, so its score is the final
+    evaluation's and it is not evaluated again (``same_as_final``).  One saved at the last step of
+    a run that was not stopped is not: the rollout's update came after it."""
+    path = run_dir / BEST_MODEL_FILE
+    if periodic is None or periodic.best_step is None or not path.is_file():
+        return None
+    best = {"file": BEST_MODEL_FILE, "step": periodic.best_step,
+            "periodic_return": _finite_or_none(periodic.best_mean_reward),
+            "same_as_final": periodic.stopped_step is not None and periodic.best_step == periodic.stopped_step}  # fmt: skip
+    if best["same_as_final"]:
+        return best
+    model = algorithm_class(cfg["algo"]).load(str(path), device=model_device(cfg["device"]))
+    episodes = cfg["eval_episodes"]
+    env = build_eval_env(cfg, num_envs=eval_env_count(cfg, episodes), seed=cfg["seed"] + EVAL_SEED_OFFSET,
+                         vecnormalize=(run_dir / BEST_VECNORM_FILE) if normalised else None)  # fmt: skip
+    try:
+        result = evaluate(model, env, episodes)
+    finally:
+        env.close()
+    best.update({k: result[k] for k in ("mean_return", "std_return", "eval_episodes")})
+    return best
 
 
 def _finite_or_none(x: float) -> float | None:
@@ -304,7 +348,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     if summary["threshold_step"] is not None:
         print(f"threshold first reached at {summary['threshold_step']:,} steps, {summary['threshold_time_s']:.1f} s")
+    if summary["stopped_step"] is not None:
+        print(f"stopped at {summary['stopped_step']:,} steps: solved in {cfg['stop_when_solved']} evaluations in a row")
     print(f"run directory: {summary['run_dir']}")
+    if summary["final_below_best"]:
+        best = summary["best_model"]
+        print(
+            f"final policy worse than its best: {MODEL_FILE} {summary['mean_return']:.2f} ± {summary['std_return']:.2f}, "
+            f"{best['file']} (saved at {best['step']:,} steps) {best['mean_return']:.2f} ± {best['std_return']:.2f} "
+            f"on the same episodes; use {best['file']} (abd-gym-evaluate evaluates it by default)"
+        )
     return 0
 
 

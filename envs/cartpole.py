@@ -82,7 +82,7 @@ class CartPoleVectorEnv(ABDVectorEnv):
 
     def observe(self):
         q, v = self.coords(), self.velocities()
-        return self.xp.stack([q[:, 0], v[:, 0], q[:, 1], v[:, 1]], axis=1)
+        return self.xp.concatenate([q, v], axis=1)[:, [0, 2, 1, 3]]  # x, ẋ, θ, θ̇
 
     def reward(self, obs, actions):
         return self.xp.ones_like(obs[:, 0])

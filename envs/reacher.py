@@ -1,4 +1,4 @@
-"""Reacher-v0: move the tip of a two-link planar arm to a random target (as MuJoCo's Reacher).
+"""TwoLinkReacher-v0: move the tip of a two-link planar arm to a random target (as MuJoCo's Reacher).
 
 Scene (x–y plane, no gravity: a table-top arm seen from above; zero pose = arm straight along
   +x): a fixed base; link 1 (0.1 kg, 0.1 m) on the shoulder hinge about +z, with a revolute limit
@@ -54,7 +54,7 @@ def build_reacher_scene(lengths=(0.1, 0.11), masses=(0.1, 0.1), max_torque=0.2, 
 
 
 class ReacherVectorEnv(ABDVectorEnv):
-    """Batched Reacher-v0 (see the module docstring)."""
+    """Batched TwoLinkReacher-v0 (see the module docstring)."""
 
     dt, frame_skip = 0.01, 2
     reset_option_keys = ("target",)
@@ -116,7 +116,7 @@ class ReacherVectorEnv(ABDVectorEnv):
 
 
 class ReacherEnv(ABDEnv):
-    """Single-world Reacher-v0."""
+    """Single-world TwoLinkReacher-v0."""
 
     vector_class = ReacherVectorEnv
 

@@ -16,6 +16,8 @@ synchronised pieces do (``python -m abd_gym.agents.profile``).  Per rollout it p
 * GPU [ms]: the interval between the events that bracket each piece, which holds the piece's
   kernels, or the GPU's idle wait for the host where the host is behind.
 
+The JSON also gives how many times each piece was entered a rollout (``calls``).
+
 The marks cost a few µs of host time each, so the wall time is longer than the profiler's
 untimed rollout phase.
 """
@@ -94,7 +96,7 @@ def rollout_times(cfg: dict, rollouts: int) -> dict:
     callback.init_callback(model)
     marks.bracket(callback, "update_locals", "callbacks")
     marks.bracket(callback, "on_step", "callbacks")
-    host, gpu, wall = defaultdict(float), defaultdict(float), 0.0
+    host, gpu, calls, wall = defaultdict(float), defaultdict(float), defaultdict(int), 0.0
     for k in range(rollouts + 2):  # two more first, untimed
         marks.marks.clear()
         sync()
@@ -105,6 +107,9 @@ def rollout_times(cfg: dict, rollouts: int) -> dict:
         if k < 2:
             continue
         wall += marks.marks[-1][1] - marks.marks[0][1]
+        for name, _, _ in marks.marks:
+            if name.startswith("<"):
+                calls[name[1:]] += 1
         for owner, h, g in marks.intervals():
             host[owner] += h
             if g is not None:
@@ -116,7 +121,8 @@ def rollout_times(cfg: dict, rollouts: int) -> dict:
 
     return dict(env_id=cfg["env_id"], n_envs=n_envs, n_steps=n_steps, device=str(cfg["device"]), rollouts=rollouts,
                 wall_ms=1e3 * wall / rollouts, rollout_steps_per_s=rollouts * n_envs * n_steps / wall,
-                host_ms=per_rollout(host), gpu_ms=per_rollout(gpu) if cuda else None)  # fmt: skip
+                host_ms=per_rollout(host), gpu_ms=per_rollout(gpu) if cuda else None,
+                calls={k: v / rollouts for k, v in sorted(calls.items())})  # fmt: skip
 
 
 def format_times(r: dict) -> str:

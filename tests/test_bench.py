@@ -196,7 +196,7 @@ def test_bench_robustness(tmp_path):
     rows = _load(tmp_path / "robustness.json")["rows"]
     assert [(r["case"], r["worlds"], r["steps"]) for r in rows] == [("prismatic_slam", 2, 3), ("strength_1e+08", 2, 3)]
     for r in rows:
-        assert {"reported", "silent", "gap_mm", "iterations_mean", "worst_gain"} <= set(r)
+        assert {"reported", "silent", "gap_mm", "iterations_mean", "worst_gain", "worst_step_gain", "substeps"} <= set(r)
         assert r["iterations_max"] >= 1 and r["gap_mm"] < 1.0
     assert "overshoot_over_bound" in rows[0] and "overshoot_over_bound" not in rows[1]
     assert "| prismatic_slam | 0.01 | implicit_euler | float64 | 2 × 3 |" in md.read_text()
@@ -239,3 +239,17 @@ def test_cpu_compare_script_times_both_engines(tmp_path, capsys, script):
     assert "| pendulum | 4 |" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         script.main(["--cases", "no_such_case"])
+
+
+def test_bench_single_against_gymnasium(tmp_path, capsys):
+    """``python -m abd_gym.bench single``: a row per task with finite rates, Gymnasium's env and the
+    ratio where the task has one, the table printed and the JSON written."""
+    rows = bench.main(["single", "--ids", "CartPole-v0,FourBar-v0", "--steps", "30", "--rounds", "1",
+                       "--out", str(tmp_path)])  # fmt: skip
+    cart, fourbar = rows
+    assert cart["peer"] == "CartPole-v1" and cart["ratio"] == cart["steps_per_s"] / cart["peer_steps_per_s"]
+    assert min(cart["steps_per_s"], cart["unwrapped_steps_per_s"], cart["peer_steps_per_s"]) > 0
+    assert fourbar["peer"] is None and fourbar["ratio"] is None and fourbar["steps_per_s"] > 0
+    saved = _load(tmp_path / "single.json")
+    assert saved["benchmark"] == "single" and saved["rows"] == rows and saved["steps"] == 30
+    assert "abd_gym/CartPole-v0" in capsys.readouterr().out

@@ -726,7 +726,7 @@ def load(sim, case):
     sim.solver.q_tilde.assign(case["q_tilde"].astype(npd))
     for k in case["limits"][0]:
         lo, up, s = (np.array([lim[k][i] for lim in case["limits"]]) for i in range(3))
-        sim.set_limit(k, lower=lo, upper=up, strength=s)
+        sim.set_limit(k, lower=lo, upper=up, strength=s, check_state=False)  # the case sets the state
 
 
 def assemble(sim, parts=None, derivs=HESSIAN):

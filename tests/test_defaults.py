@@ -144,6 +144,7 @@ def test_no_warning_on_shipped_tasks(env_id):
     for dtype in ("float32", "float64"):
         for step in (dt, 0.05):
             assert conditioning.unsolvable(scene, step, dtype) == []
+    assert conditioning.step_too_large(scene, dt) == []
 
 
 def test_no_warning_on_mechanisms():
@@ -151,3 +152,35 @@ def test_no_warning_on_mechanisms():
     for scene in scenes:
         for dtype in ("float32", "float64"):
             assert conditioning.unsolvable(scene, 0.05, dtype) == []
+
+
+def test_a_step_beyond_the_fastest_mode_warns_at_build():
+    """0.5 m links (√(g/r) = 6.2 rad/s): dt 0.2 turns them 1.25 rad a step, dt 0.1 0.62."""
+    with pytest.warns(RuntimeWarning, match=r"dt 0\.2 s is beyond what body 'link0' \(gravity over its size\) can take"):
+        ag.Simulator(mechanisms.double_pendulum(), num_worlds=1, dt=0.2)
+    assert conditioning.step_too_large(mechanisms.double_pendulum(), 0.1) == []
+
+
+def test_a_drive_moves_the_inertia_beyond_its_joint():
+    """A hinge drive moves every body beyond its joint about the hinge axis: a 0.5 m, 1 kg link
+    about its end m·L²/3, the second link of a double pendulum as well (m·L²/12 + m·(1.5 L)²); a
+    slide moves its bodies' mass (the cart-pole's cart and pole)."""
+    scene = mechanisms.double_pendulum()
+    L = 0.5
+    assert conditioning.driven_inertia(scene, 1) == pytest.approx(L * L / 3, rel=0.02)
+    assert conditioning.driven_inertia(scene, 0) == pytest.approx(L * L / 3 + L * L / 12 + (1.5 * L) ** 2, rel=0.02)
+    assert conditioning.driven_inertia(mechanisms.cartpole(), 0) == pytest.approx(1.1)
+
+
+def test_a_stiff_position_drive_warns_unless_damped_past_critical():
+    """kp 400 N·m/rad on a link of I = 1/12 kg·m² oscillates at 69 rad/s: 0.69 rad a 0.01 s step
+    undamped, over 1 rad at 0.02; kv 40 (ζ ≈ 3.5) leaves a slow mode of kp/kv ≈ 10 rad/s, which
+    any of these steps resolves."""
+    for damping, warns in ((0.0, True), (40.0, False)):
+        scene = mechanisms.pendulum(gravity=(0, 0, 0))
+        scene.add_drive(0, mode="position", stiffness=400.0, damping=damping)
+        messages = conditioning.step_too_large(scene, 0.02)
+        assert bool(messages) == warns, messages
+        if warns:
+            assert "position drive of joint" in messages[0]
+        assert conditioning.step_too_large(scene, 0.01) == []

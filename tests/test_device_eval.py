@@ -115,7 +115,7 @@ def test_eval_times_script_times_both_paths(tmp_path, capsys, script):
 
     from abd_gym.agents.train import train
 
-    cfg = load_config("cartpole_ppo", ["n_timesteps=256", "eval_freq=0", f"eval_episodes={N}"])
+    cfg = load_config("cartpole_ppo", ["n_timesteps=256", "eval_freq=0", "stop_when_solved=0", f"eval_episodes={N}"])
     train(cfg, config_name="cartpole_ppo", run_dir=tmp_path / "run", progress_bar=False)
     script = script("eval_times")
     out = tmp_path / "t.json"

@@ -18,7 +18,7 @@ from abd_gym.vector.registration import TASKS
 N = 4
 IDS = [f"abd_gym/{name}" for name in TASKS]
 # env steps of the shared rollouts (long enough for the scripted controllers to show)
-ROLLOUT_STEPS = {"Pendulum-v0": 100, "Acrobot-v0": 300, "Reacher-v0": 50}  # Acrobot: the scripted swing-up takes 60-231 steps
+ROLLOUT_STEPS = {"Pendulum-v0": 100, "Acrobot-v0": 300, "TwoLinkReacher-v0": 50}  # Acrobot: the scripted swing-up takes 60-231 steps
 
 
 def module_of(env_id):
@@ -232,7 +232,7 @@ def test_acrobot_elbow_limit_holds_and_can_be_randomised():
 
 
 def test_reacher_target_reset_option_and_mask():
-    """Reacher-v0's target (its task_state): the reset option ``target`` fixes it for the worlds
+    """TwoLinkReacher-v0's target (its task_state): the reset option ``target`` fixes it for the worlds
     reset, a masked reset redraws only the masked worlds' targets, and the observation carries
     the target as held."""
     from abd_gym.envs.reacher import ReacherVectorEnv

@@ -379,7 +379,9 @@ def test_limit_line_search_lands_where_halving_does():
 
 SUITE_WORLDS = 8
 SUITE_SECONDS = {"chain20": 2.0}  # shorter than the report's run, to keep the suite quick
-RUNS = [(c.name, dt) for c in rb.cases() for dt in c.dts]
+# the report's runs at its largest steps, which compare the retry of failed steps with none, are
+# tests/test_substeps.py's
+RUNS = [(c.name, dt) for c in rb.cases() for dt in c.dts if dt < rb.NO_RETRY_DT]
 GRID = [(name, dt, integrator, dtype) for name, dt in RUNS for integrator in rb.INTEGRATORS for dtype in rb.DTYPES]
 
 
@@ -431,27 +433,41 @@ def test_no_silent_energy_gain(name, dt, integrator, dtype):
     assert r["refused"] or r["gain_worlds"] == 0, _describe(r)
 
 
-# dt 0.03 under a 1000:1 load and absurd rates are left out: the 5 mm goal is set for the
-# load at dt 0.01, and absurd rates must be refused or reported (below).
-GAP_CASES = [n for n in rb.CASE_NAMES if n != "absurd_rates"]
+# The largest joint gap [mm] and limit overshoot (over its bound) each case reaches over the
+# suite's runs (8 worlds, every dt, integrator and dtype, CPU), as measured.  The tests allow
+# twice that (and never more than the 5 mm goal), so that a case whose worst run gets 3x worse
+# fails.  dt 0.03 under a 1000:1 load and absurd rates are left out of the gaps: the 5 mm goal is
+# set for the load at dt 0.01, and absurd rates must be refused or reported (below).
+WORST_GAP_MM = {"light_under_heavy": 0.0396, "heavy_under_light": 0.0388, "chain20": 0.0270, "spin_into_limit": 0.188,
+                "prismatic_slam": 0.00285, "strength_1": 3.11, "strength_100": 0.0307, "strength_10000": 3.06e-4,
+                "strength_1e+06": 1.72e-4, "strength_1e+08": 1.13e-4, "large_dt": 0.488, "fourbar": 0.156,
+                "slider_crank": 0.0644, "mixed_chain": 0.0645}  # fmt: skip
+WORST_OVERSHOOT = {"spin_into_limit": 0.00343, "prismatic_slam": 0.00464, "slider_crank": 0.0304}
+MARGIN = 2.0
+GAP_GOAL_MM = 5.0
 
 
-@suite(GAP_CASES, exclude=[("heavy_under_light", 0.03)])
-def test_joint_gaps_stay_under_5_mm(name, dt, integrator, dtype):
+def test_every_gap_case_has_a_measured_bound():
+    assert set(WORST_GAP_MM) == {n for n in rb.CASE_NAMES if n != "absurd_rates"}
+
+
+@suite(list(WORST_GAP_MM), exclude=[("heavy_under_light", 0.03)])
+def test_joint_gaps_stay_near_their_measured_worst(name, dt, integrator, dtype):
     """Joints hold to millimetres in every hard case with default strengths, including a 1000 kg
-    link hanging under a 1 kg one at dt 0.01 (the goal: ≤ 5 mm) and strength ratios down
-    to 1."""
+    link hanging under a 1 kg one at dt 0.01 (the goal: ≤ 5 mm) and strength ratios down to 1;
+    each case within twice its measured worst gap."""
     r = _row(name, dt, integrator, dtype)
-    assert r["refused"] or r["gap_mm"] <= 5.0, _describe(r)
+    assert r["refused"] or r["gap_mm"] <= min(GAP_GOAL_MM, MARGIN * WORST_GAP_MM[name]), _describe(r)
 
 
-@suite(["spin_into_limit", "prismatic_slam", "slider_crank"])
+@suite(list(WORST_OVERSHOOT))
 def test_limits_hold(name, dt, integrator, dtype):
-    """A joint that reaches its limit stops within the overshoot estimate of docs/design.md §3.3
-    with the world's whole swing energy S arriving there: (S/s)^(1/3) rad for a revolute limit,
-    w·(S/s)^(1/3) m for a prismatic one (a link spun at 50 rad/s must not pass through ±3.1 rad)."""
+    """A joint that reaches its limit stops well within the overshoot estimate of docs/design.md
+    §3.3 with the world's whole swing energy S arriving there: (S/s)^(1/3) rad for a revolute
+    limit, w·(S/s)^(1/3) m for a prismatic one (a link spun at 50 rad/s must not pass through
+    ±3.1 rad); each case within twice its measured worst fraction of that estimate."""
     r = _row(name, dt, integrator, dtype)
-    assert r["refused"] or r["overshoot_over_bound"] <= 1.0, _describe(r)
+    assert r["refused"] or r["overshoot_over_bound"] <= MARGIN * WORST_OVERSHOOT[name], _describe(r)
 
 
 @suite(["light_under_heavy", "heavy_under_light"], dtypes=("float32",))

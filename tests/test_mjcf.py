@@ -15,7 +15,7 @@ mujoco = pytest.importorskip("mujoco")
 gym_mujoco = pytest.importorskip("gymnasium.envs.mujoco")
 
 import abd_gym as ag  # noqa: E402
-from abd_gym.mjcf import importer as mjcf  # noqa: E402
+from abd_gym.mjcf import compare_with_mujoco, importer as mjcf  # noqa: E402
 from mujoco_reference import rk4_qpos  # noqa: E402
 
 ASSETS = os.path.join(os.path.dirname(gym_mujoco.__file__), "assets")
@@ -77,9 +77,8 @@ def abd_qpos(scene, qpos, qvel, dt, controls=None, duration=1.0):
 
 
 def motion_error(m, qpos, qvel, dt, ctrl=None):
-    scene = ag.Scene.from_mjcf(m)
-    u = None if ctrl is None else scene.imported.ctrl_scale * np.asarray(ctrl)
-    return np.abs(abd_qpos(scene, qpos, qvel, dt, u) - mujoco_qpos(m, qpos, qvel, ctrl)).max()
+    """The largest qpos difference after 1 s (abd_gym.mjcf.compare_with_mujoco)."""
+    return compare_with_mujoco(m, (qpos, qvel), 1.0, dt, ctrl=ctrl).final_error
 
 
 @pytest.fixture(scope="module")
@@ -308,6 +307,33 @@ def test_passive_motion_matches_mujoco(name, dt):
     """The files as they are: joint damping (all three) and armature (reacher) act."""
     qpos, qvel = STATES[name]
     assert motion_error(model(name), qpos, qvel, dt) < BOUND
+
+
+def test_compare_with_mujoco_steps_both_engines_in_lockstep():
+    """The public helper: per step and world the qpos difference, its last row the difference of
+    the two engines run on their own (abd_gym's 500 steps in one call, MuJoCo's RK4 states), the
+    same from a path, a compiled model or the imported scene; bad arguments are refused."""
+    name = "inverted_double_pendulum.xml"
+    qpos, qvel = STATES[name]
+    m = model(name)
+    result = compare_with_mujoco(asset(name), (qpos, qvel), 1.0, 0.002, ctrl=[0.02])
+    assert result.errors.shape == (500, 3) and result.joint_names == ["slider", "hinge", "hinge2"]
+    np.testing.assert_allclose(result.times[[0, -1]], [0.002, 1.0])
+    scene = ag.Scene.from_mjcf(m)
+    alone = np.abs(abd_qpos(scene, qpos, qvel, 0.002, scene.imported.ctrl_scale * 0.02)
+                   - mujoco_qpos(model(name), qpos, qvel, [0.02]))  # fmt: skip
+    np.testing.assert_array_equal(result.errors[-1], alone.max(axis=1))
+    assert result.final_error == alone.max() and result.max_error >= result.final_error > 0
+    np.testing.assert_array_equal(compare_with_mujoco(scene, (qpos, qvel), 1.0, 0.002, ctrl=[0.02]).errors,
+                                  result.errors)  # fmt: skip
+    one = compare_with_mujoco(m, (qpos[1], qvel[1]), 0.1, 0.002)  # one state, unactuated, a compiled model
+    assert one.errors.shape == (50, 1) and one.qpos.shape == (1, 3)
+    with pytest.raises(ValueError, match="states must be qpos"):
+        compare_with_mujoco(m, ([0.0, 0.0], [0.0, 0.0]), 0.1, 0.002)
+    with pytest.raises(ValueError, match="must divide dt"):
+        compare_with_mujoco(m, (qpos, qvel), 0.1, 0.002, reference_dt=3e-4)
+    with pytest.raises(ValueError, match="made by Scene.from_mjcf"):
+        compare_with_mujoco(ag.Scene(), (qpos, qvel), 0.1, 0.002)
 
 
 def test_driven_motion_matches_mujoco():

@@ -57,6 +57,34 @@ def test_import_abd_gym_imports_no_task_or_training_module(tmp_path):
     assert out.stdout.strip() == "[]"
 
 
+def _venv_seeing_these_packages(venv: Path) -> Path:
+    """A virtual environment at ``venv`` that sees the packages this interpreter sees (its python).
+
+    ``venv --system-site-packages`` sees the base interpreter's packages only: run from inside a
+    virtual environment it would not see that environment's (warp, gymnasium, torch, ...).  So
+    this interpreter's site-packages folders, its own virtual environment's among them, go after
+    the new environment's own in a .pth file there; the repository (an editable install's path) is
+    not among them, so ``import abd_gym`` finds what is installed in the new environment."""
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    py = venv / "bin" / "python"
+    own = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                         capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
+    seen = [p for p in sys.path if Path(p).name in ("site-packages", "dist-packages") and Path(p).is_dir()]
+    (Path(own) / "parent_site_packages.pth").write_text("".join(f"{p}\n" for p in seen))
+    return py
+
+
+def test_venv_seeing_these_packages_finds_them(tmp_path):
+    """The helper's environment imports what this interpreter imports from its site-packages (here
+    Gymnasium, a dependency), from inside a virtual environment as well."""
+    import gymnasium
+
+    py = _venv_seeing_these_packages(tmp_path / "venv")
+    where = subprocess.run([str(py), "-c", "import gymnasium; print(gymnasium.__file__)"], capture_output=True,
+                           text=True, check=True, cwd=tmp_path).stdout.strip()  # fmt: skip
+    assert Path(where).resolve() == Path(gymnasium.__file__).resolve()
+
+
 @pytest.mark.slow
 def test_the_wheel_holds_only_the_abd_gym_namespace_and_trains_from_any_directory(tmp_path):
     """``pip wheel .``: every file of the wheel under abd_gym/ (or its dist-info), the configs among
@@ -91,8 +119,7 @@ def test_the_wheel_holds_only_the_abd_gym_namespace_and_trains_from_any_director
         assert f"abd-gym-{script} = abd_gym.agents.{script}:main" in text, script
 
     venv, work = tmp_path / "venv", tmp_path / "elsewhere"
-    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], check=True)
-    py = venv / "bin" / "python"
+    py = _venv_seeing_these_packages(venv)
     subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", str(wheel)], check=True)
     work.mkdir()
     where = subprocess.run([str(py), "-c", "import abd_gym.envs; print(abd_gym.envs.__file__)"], cwd=work,

@@ -66,7 +66,7 @@ def test_single_env_copies_mid_episode_step_alike():
 @pytest.mark.parametrize("mode", ["NEXT_STEP", "SAME_STEP", "DISABLED"])
 def test_vector_env_copies_step_alike(mode):
     """Autoresets (pending worlds, queues), task values and randomised parameters carry over."""
-    env = gym.make_vec("abd_gym/Reacher-v0", num_envs=4, vectorization_mode="vector_entry_point",
+    env = gym.make_vec("abd_gym/TwoLinkReacher-v0", num_envs=4, vectorization_mode="vector_entry_point",
                        autoreset_mode=mode, randomize={"mass_scale": (0.5, 2.0), "limit_scale": (0.8, 1.0)})  # fmt: skip
     env.reset(seed=1)
     _same_future(env, [], 47, seed=4)  # some worlds end in the next steps

@@ -210,7 +210,7 @@ _BUILDERS = {
     "cartpole_task": lambda: task_case("cartpole_task", "CartPole-v0", "CartPoleSwingUp-v0"),
     "double_pendulum_cart": lambda: task_case("double_pendulum_cart", "DoublePendulumCart-v0"),
     "acrobot": lambda: task_case("acrobot", "Acrobot-v0"),
-    "reacher": lambda: task_case("reacher", "Reacher-v0"),
+    "reacher": lambda: task_case("reacher", "TwoLinkReacher-v0"),
     "inverted_pendulum_v5": lambda: gymnasium_case("inverted_pendulum_v5", "InvertedPendulum-v5"),
     "inverted_double_pendulum_v5": lambda: gymnasium_case("inverted_double_pendulum_v5", "InvertedDoublePendulum-v5"),
     "reacher_v5": lambda: gymnasium_case("reacher_v5", "Reacher-v5"),

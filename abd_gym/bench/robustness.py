@@ -5,15 +5,18 @@ fixed seed, run for a fixed number of steps under each integrator and dtype with
 default settings (only the scene and dt are chosen).  Per run it reports:
 
 - ``reported``: worlds whose ``world_status()`` left OK at any step (with the causes, by
-  ``WorldStatus`` name); a reported world's later steps are left out of every other column;
+  ``WorldStatus`` name); a reported world's later steps are left out of every other column; at
+  dt NO_RETRY_DT and above, also without the retry of failed steps (``retry=False``);
+- ``substeps``: world-steps retried as 2, or 4, substeps (``Simulator.substeps``);
 - ``silent``: world-steps whose Newton solve ended unconverged (``converged()`` False) on a world
   that was not reported: a step committed with nothing said;
 - ``gain > 5%`` and ``worst gain`` (conservative cases only: no drive acts): the energy gain
   max_t E(t) − E(0) of each world's total energy E (the sum of ``energies()``: kinetic, gravity,
   orthogonality, joints, limits), relative to the world's swing energy S = E(0) − min_t V_g(t),
   its energy above the lowest gravity potential it visits (for a conservative world, its largest
-  kinetic plus elastic energy; T(0) where gravity does no work), and ``ΔE at end``, the mean
-  (E(end) − E(0)) / S (the energy a run kept);
+  kinetic plus elastic energy; T(0) where gravity does no work), ``step gain``, the largest rise
+  of E in one OK step over S, and ``ΔE at end``, the mean (E(end) − E(0)) / S (the energy a run
+  kept);
 - ``gap``: the largest joint residual ``joint_violation()`` [mm];
 - ``overshoot``: the largest excursion of a limited joint past its bound (multi-turn angle [rad],
   displacement [m]), and its ratio to the estimate of docs/design.md §3.3 with the world's whole
@@ -48,6 +51,7 @@ from ..sim.status import WorldStatus
 INTEGRATORS = ("implicit_euler", "bdf2")
 DTYPES = ("float32", "float64")
 GAIN_LIMIT = 0.05  # relative energy gain counted as a gain
+NO_RETRY_DT = 0.1  # runs at this dt and above are repeated with the retry of failed steps off
 DOC = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "docs", "robustness.md")
 
 
@@ -139,10 +143,12 @@ def cases():
     out += [
         Case("absurd_rates", mechanisms.double_pendulum, _angles(-1.0, 1.0, 2, rates=1e9), (0.01,), 0.1,
              "double pendulum started at joint rates up to ±1e9 rad/s: to be refused or reported"),
-        Case("large_dt", mechanisms.double_pendulum, _angles(-2.5, 2.5, 2), (0.03, 0.05), 2.0,
+        Case("large_dt", mechanisms.double_pendulum, _angles(-2.5, 2.5, 2), (0.03, 0.05, 0.1, 0.2), 2.0,
              "double pendulum released from ±2.5 rad"),
-        Case("fourbar", lambda: _loop("fourbar")[0], lambda rng, n: _loop("fourbar")[1](rng, n), (0.03, 0.05), 2.0,
-             "FourBar-v0's linkage (closed loop) from its reset distribution, no torque"),
+        Case("fourbar", lambda: _loop("fourbar")[0], lambda rng, n: _loop("fourbar")[1](rng, n),
+             (0.03, 0.05, 0.1, 0.2), 2.0, "FourBar-v0's linkage (closed loop) from its reset distribution, no torque"),
+        Case("mixed_chain", lambda: mechanisms.chain(10, length=0.1, masses=[1.0, 0.01] * 5), _angles(-0.5, 0.5, 10),
+             (0.01,), 2.0, "10 links of 0.1 m alternating 1 kg and 0.01 kg, released from ±0.5 rad a joint"),
         Case("slider_crank", lambda: _loop("slider_crank")[0], lambda rng, n: _loop("slider_crank")[1](rng, n),
              (0.03, 0.05),
              2.0, "SliderCrank-v0's linkage (closed loop, stroke limit) from its reset distribution, no torque"),
@@ -183,10 +189,11 @@ def _limits(scene):
 
 
 def run_case(c: Case, dt, integrator="implicit_euler", dtype="float32", worlds=64, steps=None, device="cpu",
-             seed=0, scene=None) -> dict:
+             seed=0, scene=None, retry=True) -> dict:
     """Step ``worlds`` worlds of case ``c`` at ``dt`` for ``steps`` steps (default: ``c.seconds``)
-    with default settings; the row of measurements described in the module docstring.
-    ``scene``: a prebuilt scene of the case (building one per run is the same scene)."""
+    with default settings (``retry``: False turns the retry of failed steps off); the row of
+    measurements described in the module docstring.  ``scene``: a prebuilt scene of the case
+    (building one per run is the same scene)."""
     steps = steps or int(round(c.seconds / dt))
     row = dict(case=c.name, dt=dt, integrator=integrator, dtype=dtype, worlds=worlds, steps=steps,
                conservative=c.conservative, refused=None, warnings=[])  # fmt: skip
@@ -194,7 +201,8 @@ def run_case(c: Case, dt, integrator="implicit_euler", dtype="float32", worlds=6
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            sim = Simulator(scene, num_worlds=worlds, dt=dt, integrator=integrator, dtype=dtype, device=device)
+            sim = Simulator(scene, num_worlds=worlds, dt=dt, integrator=integrator, dtype=dtype, device=device,
+                            retry=retry)  # fmt: skip
             x0, v0 = c.state(np.random.default_rng(seed), worlds)
             sim.set_joint_state(x0, v0)
         except (ValueError, RuntimeError) as e:
@@ -217,10 +225,14 @@ def _measure(sim, scene, steps, row):
     gap = np.zeros(W)
     over = np.zeros((W, len(limits)))
     iters = []
+    step_gain = np.full(W, -np.inf)  # largest energy change of one OK step
+    substeps = np.zeros(5, dtype=int)  # world-steps taken as 1, 2 or 4 substeps
+    E_prev = E0
     t0 = time.perf_counter()
     for k in range(steps):
         sim.step()
         status = sim.world_status()
+        substeps += np.bincount(np.where(alive & (status == WorldStatus.OK), sim.substeps(), 0), minlength=5)
         failed = status != WorldStatus.OK
         new = failed & alive
         if new.any():
@@ -234,6 +246,8 @@ def _measure(sim, scene, steps, row):
         e = sim.energies()
         E = sum(e.values())
         Emax = np.where(alive, np.maximum(Emax, E), Emax)
+        step_gain = np.where(alive, np.maximum(step_gain, E - E_prev), step_gain)
+        E_prev = E
         Vmin = np.where(alive, np.minimum(Vmin, e["gravity"]), Vmin)
         gap = np.where(alive, np.maximum(gap, np.nan_to_num(sim.joint_violation(), nan=np.inf)), gap)
         if limits:
@@ -250,12 +264,14 @@ def _measure(sim, scene, steps, row):
         bound[:, i] = (swing / s) ** (1 / 3) * (1.0 if width is None else width)
     row.update(reported=int((reported_at >= 0).sum()), first_report_step=int(reported_at[reported_at >= 0].min())
                if (reported_at >= 0).any() else None, causes={str(k): v for k, v in sorted(causes.items())},
-               silent=silent, seconds=seconds,
+               silent=silent, seconds=seconds, substeps={n: int(substeps[n]) for n in (2, 4)},
                iterations_mean=float(it.mean()) if it.size else None, iterations_max=int(it.max()) if it.size else None,
                gap_mm=float(gap.max() * 1e3))  # fmt: skip
     if row["conservative"]:
         kept = gain[alive & np.isfinite(gain)]
         final = ((E - E0) / swing)[alive & np.isfinite(E)]
+        step = (step_gain / swing)[alive & np.isfinite(gain)]
+        row.update(step_gain_worlds=int((step > GAIN_LIMIT).sum()), worst_step_gain=float(step.max()) if step.size else None)
         row.update(gain_worlds=int((kept > GAIN_LIMIT).sum()), worst_gain=float(kept.max()) if kept.size else None,
                    final_change=float(final.mean()) if final.size else None,
                    swing_J=[float(swing.min()), float(swing.max())])  # fmt: skip
@@ -277,6 +293,9 @@ def run(names=None, worlds=64, integrators=INTEGRATORS, dtypes=DTYPES, device="c
             for integrator in integrators:
                 for dtype in dtypes:
                     rows.append(run_case(c, dt, integrator, dtype, worlds, steps, device, seed, scene))
+                    if dt >= NO_RETRY_DT and not rows[-1]["refused"]:
+                        plain = run_case(c, dt, integrator, dtype, worlds, steps, device, seed, scene, retry=False)
+                        rows[-1]["reported_without_retry"] = plain["reported"]
                     if progress:
                         progress(line(rows[-1]))
     return rows
@@ -286,11 +305,13 @@ def line(r) -> str:
     """One run's row as a line of text."""
     if r["refused"]:
         return f"{r['case']:18s} dt {r['dt']:<6g} {r['integrator']:15s} {r['dtype']:8s} refused: {r['refused']}"
-    gain = "" if r.get("worst_gain") is None else f" gain>5% {r['gain_worlds']:3d} worst {r['worst_gain']:+.1%}"
+    gain = "" if r.get("worst_gain") is None else (f" gain>5% {r['gain_worlds']:3d} worst {r['worst_gain']:+.1%}"
+                                                   f" step gain>5% {r['step_gain_worlds']:3d}")  # fmt: skip
     over = "" if "overshoot" not in r else \
         f" overshoot {r['overshoot']:.3g} {r['overshoot_unit']} ({r['overshoot_over_bound']:.2f} of bound)"
     return (f"{r['case']:18s} dt {r['dt']:<6g} {r['integrator']:15s} {r['dtype']:8s} reported {r['reported']:3d} "
-            f"silent {r['silent']:5d}{gain} gap {r['gap_mm']:.3g} mm{over} iters {_its(r)} ({r['seconds']:.1f} s)")
+            f"substeps 2/4 {r['substeps'][2]}/{r['substeps'][4]} silent {r['silent']:5d}{gain} gap {r['gap_mm']:.3g} mm"
+            f"{over} iters {_its(r)} ({r['seconds']:.1f} s)")
 
 
 def _its(r):
@@ -306,20 +327,26 @@ def _cell_reported(r):
 
 def table(rows) -> str:
     """A Markdown table of the rows."""
-    lines = ["| case | dt [s] | integrator | dtype | worlds × steps | reported | silent | gain > 5% | worst gain | "
-             "ΔE at end | gap [mm] | overshoot (of bound) | iterations mean / max | build |",
-             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]  # fmt: skip
+    lines = ["| case | dt [s] | integrator | dtype | worlds × steps | reported | without retry | substeps 2 / 4 | silent | "
+             "gain > 5% | worst gain | step gain > 5% | worst step gain | ΔE at end | gap [mm] | overshoot (of bound) | "
+             "iterations mean / max | build |",
+             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]  # fmt: skip
     for r in rows:
         head = f"| {r['case']} | {r['dt']:g} | {r['integrator']} | {r['dtype']} | {r['worlds']} × {r['steps']} |"
         if r["refused"]:
-            lines.append(head + f" – | – | – | – | – | – | – | – | refused: {r['refused']} |")
+            lines.append(head + f" – | – | – | – | – | – | – | – | – | – | – | – | refused: {r['refused']} |")
             continue
         gain = ("–", "–") if r.get("worst_gain") is None else (str(r["gain_worlds"]), f"{r['worst_gain']:+.2%}")
+        step = ("–", "–") if r.get("worst_step_gain") is None else (str(r["step_gain_worlds"]),
+                                                                    f"{r['worst_step_gain']:+.2%}")  # fmt: skip
+        plain = str(r.get("reported_without_retry", "–"))
+        subs = f"{r['substeps'][2]} / {r['substeps'][4]}"
         final = "–" if r.get("final_change") is None else f"{r['final_change']:+.1%}"
         over = "–" if "overshoot" not in r else \
             f"{r['overshoot']:.3g} {r['overshoot_unit']} ({r['overshoot_over_bound']:.2f})"
         build = "warned: " + "; ".join(r["warnings"]) if r["warnings"] else "ok"
-        lines.append(head + f" {_cell_reported(r)} | {r['silent']} | {gain[0]} | {gain[1]} | {final} | "
+        lines.append(head + f" {_cell_reported(r)} | {plain} | {subs} | {r['silent']} | {gain[0]} | {gain[1]} | "
+                     f"{step[0]} | {step[1]} | {final} | "
                      f"{r['gap_mm']:.3g} | "
                      f"{over} | {_its(r)} | {build} |")  # fmt: skip
     return "\n".join(lines)
@@ -335,7 +362,8 @@ Generated by `{result['command']}` on {result['device_name']} ({result['device']
 warp {result['warp']}; {result['seconds']:.0f} s. Do not edit: re-run the command.
 
 Every run uses the simulator's default settings (tolerance, iteration cap, factor reuse, joint
-strength, stiffness, plan); only the scene, dt, integrator and dtype are chosen. Each case
+strength, stiffness, plan, the retry of a failed step as 2, then 4 substeps); only the scene, dt,
+integrator and dtype are chosen. Each case
 steps {result['worlds']} worlds from random initial states (seed {result['seed']}).
 
 ## Cases
@@ -347,6 +375,11 @@ steps {result['worlds']} worlds from random initial states (seed {result['seed']
 - **reported**: worlds whose `world_status()` left `OK` at any step (the step of the first, and
   the causes, `abd_gym.WorldStatus` names, with their counts). A reported world's later steps are
   left out of the other columns.
+- **without retry**: at dt {NO_RETRY_DT:g} s and above, **reported** of the same run with the
+  retry of failed steps off (`Simulator(retry=False)`).
+- **substeps 2 / 4**: world-steps that failed (Newton did not converge or broke down) and were
+  taken again as 2, or 4, substeps (`Simulator.substeps`); a world that fails at 4 too is
+  reported.
 - **silent**: world-steps whose Newton solve ended unconverged (`converged()` False) in a world
   that was not reported: steps committed with nothing said. The goal is 0.
 - **gain > 5%** and **worst gain** (conservative cases, where no drive acts): the gain
@@ -355,6 +388,10 @@ steps {result['worlds']} worlds from random initial states (seed {result['seed']
   above the lowest gravity potential the world visits (its largest kinetic plus elastic energy
   when energy is conserved; its initial kinetic energy where gravity does no work). Worst gain is
   the largest over the worlds (negative: every world lost energy). The goal is 0 worlds above 5%.
+- **step gain > 5%** and **worst step gain** (conservative cases): the largest rise of E in one
+  step of a world not reported, relative to S: worlds with a step above 5%, and the largest.
+  BDF2's energy is not monotone from step to step (its two-step history carries energy between
+  steps), so a step's rise can exceed the run's.
 - **ΔE at end**: (E(end) − E(0)) / S, the mean over worlds: the energy a run kept (the numerical
   damping of a dissipative integrator shows here).
 - **gap**: the largest joint residual `joint_violation()` over worlds and steps [mm].

@@ -5,6 +5,7 @@
     python -m abd_gym.bench accuracy ...   (speed against error: bench_accuracy.py)
     python -m abd_gym.bench threads ...    (fused step's thread count and block size: sweep_threads)
     python -m abd_gym.bench robustness ... (hard cases with default settings: bench_robustness.py)
+    python -m abd_gym.bench single ...     (one gym.make env against Gymnasium's own: single.py)
 
 For a double pendulum and a cart-pole it times ``Simulator.step`` (after warm-up, synchronised)
 and reports world-steps per second, steps per second, mean Newton iterations, the largest joint
@@ -139,6 +140,10 @@ def main(argv=None):
         from .accuracy import main as accuracy
 
         return accuracy(argv[1:])
+    if argv and argv[0] == "single":
+        from .single import main as single
+
+        return single(argv[1:])
     if argv and argv[0] == "robustness":
         from .robustness import main as robustness
 

@@ -137,7 +137,7 @@ def kernels(dtype):
         """R⁺: symmetric R with its negative eigenvalues set to 0.  Eigenvalues in closed form
         (the trigonometric solution of the characteristic cubic), then R less its one negative
         eigen-part, or the one positive eigen-part alone; the eigenvector from cross products of
-        rows of R − λI (a few hundred operations: wp.eig3's iterations cost 27-40% of a CPU step)."""
+        rows of R − λI (a few hundred operations, without wp.eig3's iterations)."""
         z = dtype(0.0)
         if is_psd3(R):
             return R
@@ -301,8 +301,8 @@ def kernels(dtype):
         M = D * wp.transpose(A)
         k1 = half * vec3(M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1])
         if rigid == 0 and wp.dot(k1, k1) > dtype(0.01):
-            # a Newton step that turns A by over 0.1 rad stays straight: on a double pendulum at dt
-            # 0.05, bent steps of 0.1-0.5 rad converged linearly (50 iterations where lines took 27)
+            # a Newton step that turns A by over 0.1 rad stays straight: along so bent a path the
+            # trial points leave Newton's model, and the solve converges only linearly
             return qb + alpha * d
         k = alpha * k1
         X = wp.skew(k)

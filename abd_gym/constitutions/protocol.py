@@ -35,7 +35,7 @@ class Constitution:
     for a model (none where the scene has no instance, so it gets no launch); ``launch(model,
     state, ctx, q, E, g, H, active, derivs, cols, physical=False)``: the staged kernel; ``work``:
     the cost of one fused term of its own in a lane group's share (thousands of cycles a
-    world-step, the phase clock on an H100; Solver.lane_work).
+    world-step, as the phase clock counts them; Solver.lane_work).
 
     JOINT: ``joint``, the joint kind it constrains.
 

@@ -88,8 +88,7 @@ class Staging:
 
     On a GPU through pinned host memory and an asynchronous copy, into buffers kept from one upload
     to the next: ``wp.array(numpy_array)`` allocated device memory and copied from pageable memory
-    each time, which can make the host wait for the work already queued (measured on an H100: a
-    1,024-env CartPole-v0 reset's host time 462 → 414 µs a step; the rest is Python).  Each name has two slots (a
+    each time, which can make the host wait for the work already queued.  Each name has two slots (a
     pinned buffer, a device buffer and an event recorded after the copy): the host writes a slot
     only after the copy that last read it has run, and a kernel that reads a device buffer is
     queued before the copy that overwrites it two uploads later.  On the CPU: rows of a

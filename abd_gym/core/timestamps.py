@@ -1,9 +1,8 @@
 """Device timestamps that a CUDA graph can hold: for timing a part of a captured step.
 
 CUDA events cannot be recorded inside a graph that is replayed, and events around a part launched
-op by op also time the gaps in which the device waits for the host's next launch (measured on an
-H100: 1,024 CartPole-v0 worlds' physics took 102 µs inside the env's step graph, 119–127 µs
-between events around the same step launched op by op).  Here a one-thread kernel writes the
+op by op also time the gaps in which the device waits for the host's next launch.  Here a
+one-thread kernel writes the
 GPU's global timer (``%globaltimer``, ns) to the next slot of a ring; a captured launch writes the
 next slot at each replay.  On the CPU the stamp is 0: time the host there.
 """

@@ -87,7 +87,9 @@ class MjcfInfo:
     then the joints that close loops); ``gear``, ``ctrl_scale`` (u = ctrl_scale·ctrl) and
     ``ctrlrange`` (num_drives, 2) (±inf where not ctrl-limited) in drive order (MuJoCo's actuator
     order).  ``frames``: MuJoCo body name → (abd body index, position (3,), rotation (3, 3)) of that
-    body's frame in the abd body's frame; ``sites``: site name → (abd body index, position (3,)).
+    body's frame in the abd body's frame; ``sites``: site name → (abd body index, position (3,));
+    ``model``: the compiled ``mujoco.MjModel`` (the one passed, if one was), which
+    ``compare_with_mujoco`` steps beside the scene.
     """
 
     model_name: str
@@ -101,6 +103,7 @@ class MjcfInfo:
     frames: dict = field(default_factory=dict)
     sites: dict = field(default_factory=dict)
     skipped: list = field(default_factory=list)
+    model: object = None  # the compiled mujoco.MjModel the scene was built from (compare_with_mujoco)
 
 
 def load(source):
@@ -543,4 +546,5 @@ class _Importer:
             frames=self.frames,
             sites=sites,
             skipped=self.skipped,
+            model=m,
         )

@@ -63,3 +63,112 @@ def unsolvable(scene, dt: float, dtype: str) -> list[str]:
                        f"above the {body_max:.0e} that {dtype} solves: lower stiffness below {b.stiffness * body_max / n:.3g} Pa "
                        "(or leave it to the default), or dt")  # fmt: skip
     return out
+
+
+def unsolvable_worlds(scene, dt: float, dtype: str, ratios: np.ndarray, masses: np.ndarray, worlds) -> list[str]:
+    """``unsolvable`` for per-world parameters: ``ratios`` (N, num_joints) strength ratios and
+    ``masses`` (N, num_bodies) body masses [kg] of the worlds ``worlds`` (N,) (every mass moment
+    scales with its mass, the orthogonality stiffness κ does not).  One message per joint or body
+    that exceeds what ``dtype`` solves in any of them, naming those worlds and the largest number."""
+    joint_max, body_max = SOLVABLE[dtype]
+    out = []
+    worlds = np.asarray(worlds)
+    if scene.num_joints:
+        ia = np.array([j.body_a for j in scene.joints])
+        ib = np.array([j.body_b for j in scene.joints])
+        fixed = np.array([b.fixed for b in scene.bodies])
+        free_mass = np.where(fixed[None], np.inf, masses)
+        lightest = np.minimum(free_mass[:, ia], free_mass[:, ib])
+        numbers = ratios * (masses[:, ia] + masses[:, ib]) / lightest
+        for k in np.flatnonzero((numbers > joint_max).any(axis=0)):
+            over = numbers[:, k] > joint_max
+            i = int(np.argmax(np.where(over, numbers[:, k], -np.inf)))
+            out.append(f"joint {scene.joints[k].name!r} in worlds {_list(worlds[over])}: K/m up to {numbers[i, k]:.3g} "
+                       f"(world {int(worlds[i])}: strength ratio {ratios[i, k]:.3g}) against its lighter body, above "
+                       f"the {joint_max:.0e} that {dtype} solves reliably: lower the strength ratio or the mass ratio"
+                       + (" or use float64" if dtype == "float32" else ""))  # fmt: skip
+    base = np.array([b.mass for b in scene.bodies])
+    numbers = body_numbers(scene, dt)[None] * base[None] / masses
+    for k in np.flatnonzero((numbers > body_max).any(axis=0)):
+        over = numbers[:, k] > body_max
+        i = int(np.argmax(np.where(over, numbers[:, k], -np.inf)))
+        out.append(f"body {scene.bodies[k].name!r} in worlds {_list(worlds[over])}: mass {masses[i, k]:.3g} kg (world "
+                   f"{int(worlds[i])}) gives 4κ·vol·dt²/λ_min(S) = {numbers[i, k]:.3g} at dt {dt} s, above the "
+                   f"{body_max:.0e} that {dtype} solves: raise the mass, or lower the stiffness or dt")  # fmt: skip
+    return out
+
+
+def _list(worlds, most=8) -> str:
+    """The first ``most`` world indices as a list, with how many more there are."""
+    head = [int(w) for w in worlds[:most]]
+    return str(head) if len(worlds) <= most else f"{head} and {len(worlds) - most} more"
+
+
+# the most a step may turn the scene's fastest pendulum mode [rad]: beyond it the step's motion is
+# far from the prediction Newton starts from.  Measured (float64, 50 iterations, no retries):
+# double pendulums of 0.5 m links (√(g/r) = 6.2 rad/s) released from ±2.5 rad at ±3 rad/s, 2 of
+# 16 failed within 5 steps at dt 0.1 (0.62 rad a step), 10 at dt 0.2 (1.25); FourBar-v0's linkage
+# (13.7 rad/s) from its reset distribution, 44 of 64 at its first step at dt 0.1 (1.37), 54 at 0.2
+STEP_TURN = 1.0
+
+
+def step_too_large(scene, dt: float) -> list[str]:
+    """One message per body or drive whose mode turns more than STEP_TURN rad in a step of ``dt``
+    [s]: a free body as a pendulum of its size under gravity, √(|g|/r) with r its bounding radius
+    [m]; a position drive as the spring-damper of its stiffness kp and damping kv (the joint's
+    passive damping added) on what it moves, I the inertia of the bodies beyond the joint about
+    its axis (a slide: their mass): ω₀ = √(kp/I) where it oscillates (ζ = kv/(2√(kp·I)) < 1),
+    else its slow mode ω₀(ζ − √(ζ² − 1)) ≈ kp/kv (its fast mode only decays, which the implicit
+    step damps in any step)."""
+    g = float(np.linalg.norm(scene.gravity))
+    modes = []  # (rate [rad/s], what)
+    for b in scene.bodies:
+        if not b.fixed:
+            modes.append((np.sqrt(g / b.shape.bounding_radius()), f"body {b.name!r} (gravity over its size)"))
+    for d in scene.drives:
+        if d.mode == "position":
+            inertia = driven_inertia(scene, d.joint)
+            if inertia > 0.0 and d.stiffness > 0.0:
+                w0 = np.sqrt(d.stiffness / inertia)
+                zeta = (d.damping + scene.joints[d.joint].damping) / (2.0 * np.sqrt(d.stiffness * inertia))
+                modes.append((w0 if zeta < 1.0 else w0 * (zeta - np.sqrt(zeta * zeta - 1.0)),
+                              f"the position drive of joint {scene.joints[d.joint].name!r} (its stiffness over "
+                              f"what it moves)"))  # fmt: skip
+    out = []
+    for rate, what in modes:
+        if rate * dt > STEP_TURN:
+            out.append(f"dt {dt} s is beyond what {what} can take: its mode of {rate:.3g} rad/s turns {rate * dt:.2g} "
+                       f"rad a step, above {STEP_TURN}; Newton then often fails to converge and steps are retried as "
+                       f"substeps (Simulator.substeps): take dt below {STEP_TURN / rate:.3g} s")  # fmt: skip
+    return out
+
+
+def driven_inertia(scene, joint: int) -> float:
+    """What a drive on ``joint`` moves: the free bodies reached from its second body without
+    crossing the joint, as their moment of inertia about its hinge axis [kg·m²] (revolute) or
+    their mass [kg] (prismatic), at the scene's pose."""
+    j = scene.joints[joint]
+    others = [k for k, jt in enumerate(scene.joints) if k != joint]
+    seen, todo = {j.body_b}, [j.body_b]
+    while todo:
+        b = todo.pop()
+        for k in others:
+            jt = scene.joints[k]
+            for here, there in ((jt.body_a, jt.body_b), (jt.body_b, jt.body_a)):
+                if here == b and there not in seen and not scene.bodies[there].fixed:
+                    seen.add(there)
+                    todo.append(there)
+    bodies = [scene.bodies[k] for k in seen if not scene.bodies[k].fixed]
+    if j.kind != "revolute":
+        return float(sum(b.mass for b in bodies))
+    u = j.frame[0] / np.linalg.norm(j.frame[0])
+    across = np.eye(3) - np.outer(u, u)  # projection onto the plane normal to the axis
+    total = 0.0
+    for b in bodies:
+        m, R = b.moments, b.rotation
+        d = b.position - j.anchor
+        first = R @ (m.mass * m.com)
+        # ∫ρ (x − a)(x − a)ᵀ dV in world axes, x = p + R x̄ over the body
+        second = R @ m.second_moment @ R.T + np.outer(first, d) + np.outer(d, first) + m.mass * np.outer(d, d)
+        total += float(np.trace(across @ second))
+    return total

@@ -1,64 +1,201 @@
-"""Checks of the states a user sets: every error names the argument, the world, the joint or body
-and the value, and nothing is written when one fails."""
+"""The checks every door applies to what a user passes in: the scene's builders, the simulator's
+constructor and setters, ``step``.  Every error names the argument (and, for per-world values, the
+world and the joint or body) and the value, and a caller checks before it writes anything.
+
+The rules, one for every door:
+
+- numbers are real: NumPy's integer and floating types (np.float32, np.int64, 0-d arrays) count
+  as numbers; complex, object, string and bool values are a TypeError;
+- values are finite; states no larger than ``state_bound(dtype)`` (1/eps: a larger one has no
+  digit left below the metre), parameters no larger than ``magnitude_bound(dtype)`` (their energies
+  overflow beyond it);
+- counts (worlds, steps, iterations) are integers of an integer type, at least their minimum;
+- world indices are integers in [0, num_worlds), each listed once, or a bool mask of every world;
+- a rotation part is a rotation: ‖AAᵀ − I‖_F ≤ ROTATION_TOL and det A > 0;
+- a limited joint lies within its bounds widened by the limit's own scale (``limit_scale``): the
+  penetration at which the limit's energy reaches its strength, as much as it can hold.  A state a
+  step produced lies inside that (a limit's penetration grows as (S/s)^(1/3) of that scale with
+  the swing energy S that reaches a limit of strength s, docs/design.md §3.3).
+"""
 from __future__ import annotations
 
 import math
+import numbers
 
 import numpy as np
 
-from .scene import REVOLUTE
+# ‖AAᵀ − I‖_F a rotation part may have: a step's A is orthonormal only up to the orthogonality
+# penalty's strain (under 1e-3 in the bench mechanisms); a zero, scaled or sheared matrix is far
+# beyond it, a reflection has det −1
+ROTATION_TOL = 0.05
+# NumPy dtype kinds accepted as numbers: signed and unsigned integers, floats
+REAL_KINDS = "iuf"
 
 
-def finite_array(name, values, shape, worlds=None, items=None, item="index"):
-    """``values`` broadcast to ``shape`` as float64; a non-finite entry raises a ValueError naming
-    ``name``, its world (``worlds[i]`` of row i) and its item (``items[j]`` of column j)."""
-    a = np.asarray(values, dtype=np.float64)
+def real_values(name, values) -> np.ndarray:
+    """``values`` as a NumPy array of a real number kind (unconverted), else a TypeError."""
+    try:
+        a = np.asarray(values)
+    except (TypeError, ValueError) as e:  # ragged nesting, objects NumPy cannot hold
+        raise TypeError(f"{name} must be an array of real numbers, got {type(values).__name__} ({e})") from None
+    if a.dtype.kind not in REAL_KINDS:
+        raise TypeError(f"{name} must be real numbers (integer or float), got dtype {a.dtype}")
+    return a
+
+
+def magnitude_bound(np_dtype) -> float:
+    """The largest |value| of a parameter (mass, strength, control) in ``np_dtype``: its fourth
+    power, as far as the energies raise a value, stays finite."""
+    return float(np.finfo(np_dtype).max) ** 0.25
+
+
+def state_bound(np_dtype) -> float:
+    """The largest |value| of a state (position [m], velocity [m/s], coordinate, rate, a bound) in
+    ``np_dtype``: 1/eps, beyond which the value's rounding exceeds 1 m (or 1 m/s), so that a step's
+    increment below it is lost."""
+    return 1.0 / float(np.finfo(np_dtype).eps)
+
+
+def finite_array(name, values, shape, worlds=None, items=None, item="index", bound=math.inf):
+    """``values`` broadcast to ``shape`` as float64.  A TypeError for non-real values; a ValueError
+    for a wrong shape, or a non-finite entry or one above ``bound`` in magnitude, naming ``name``,
+    its world (``worlds[i]`` of row i) and its item (``items[j]`` of column j)."""
+    a = real_values(name, values).astype(np.float64, copy=False)
     try:
         a = np.broadcast_to(a, shape)
     except ValueError:
         raise ValueError(f"{name} must have shape {shape}, got {np.shape(values)}") from None
-    if np.isfinite(a).all():  # the common case, without argwhere's cost
+    bad = ~np.isfinite(a)
+    if bound < math.inf:
+        bad |= np.abs(a) > bound
+    if not bad.any():  # the common case, without argwhere's cost
         return a
-    at = tuple(np.argwhere(~np.isfinite(a))[0].tolist())
+    at = tuple(np.argwhere(bad)[0].tolist())
+    what = f"a non-finite value {a[at]}" if not np.isfinite(a[at]) else f"a value {a[at]} beyond ±{bound:.3g}"
+    raise ValueError(f"{name} has {what}{_where(at, worlds, items, item)}")
+
+
+def _where(at, worlds, items, item) -> str:
+    """" in world w, item 'name'" of an index tuple (row: world, column: item), or " at index at"."""
     if worlds is None or items is None or len(at) < 2:
-        raise ValueError(f"{name} has a non-finite value {a[at]} at index {at}")
-    raise ValueError(f"{name} has a non-finite value {a[at]} in world {int(worlds[at[0]])}, {item} {items[at[1]]!r}"
-                     + (f" (index {at})" if len(at) > 2 else ""))  # fmt: skip
+        return f" at index {at}"
+    return f" in world {int(worlds[at[0]])}, {item} {items[at[1]]!r}" + (f" (index {at})" if len(at) > 2 else "")
 
 
-def check_joint_state(scene, x, xd, worlds, dt, limits):
+def real_number(name, value, positive=False, nonnegative=False, allow_inf=False) -> float:
+    """A real scalar (Python or NumPy int or float, or a 0-d array of one) as a float; a TypeError
+    for anything else (bool, complex, str), a ValueError for NaN, an infinity (unless
+    ``allow_inf``: +inf), or a value not positive / negative where asked."""
+    a = real_values(name, value)
+    if a.ndim != 0 or isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be a real number, got {value!r}")
+    v = float(a)
+    if math.isnan(v) or (math.isinf(v) and not (allow_inf and v > 0)):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    if positive and not v > 0.0:
+        raise ValueError(f"{name} must be positive, got {value!r}")
+    if nonnegative and v < 0.0:
+        raise ValueError(f"{name} must be non-negative, got {value!r}")
+    return v
+
+
+def count(name, value, minimum=0) -> int:
+    """An integer count (Python or NumPy integer, not bool) of at least ``minimum``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def world_indices(worlds, num_worlds) -> np.ndarray:
+    """``worlds`` (None: every world; an integer or integer array; a bool mask (num_worlds,)) as
+    int64 indices, each in [0, num_worlds) and listed once."""
+    if worlds is None:
+        return np.arange(num_worlds)
+    try:
+        w = np.asarray(worlds)
+    except (TypeError, ValueError):
+        raise TypeError(f"worlds must be integer world indices or a bool mask, got {worlds!r}") from None
+    if w.dtype == np.bool_:
+        if w.shape != (num_worlds,):
+            raise ValueError(f"a world mask must have shape ({num_worlds},), got {w.shape}")
+        return np.flatnonzero(w)
+    if w.dtype.kind not in "iu" and not (w.size == 0 and w.dtype.kind == "f"):  # [] is float64
+        raise TypeError(f"worlds must be integer world indices or a bool mask, got dtype {w.dtype}: {worlds!r}")
+    w = w.astype(np.int64).reshape(-1)
+    if w.size and (w.min() < 0 or w.max() >= num_worlds):
+        raise ValueError(f"world indices must lie in [0, {num_worlds}), got {w.tolist()}")
+    if w.size > 1 and np.unique(w).size != w.size:
+        raise ValueError(f"world indices must be listed once each, got {w.tolist()}")
+    return w
+
+
+def check_rotations(name, R, worlds, items, item="body", movable=None):
+    """Raise a ValueError where a rotation part R (N, items, 3, 3) is not a rotation: ‖RRᵀ − I‖_F
+    above ROTATION_TOL, or det R ≤ 0 (a reflection).  ``movable`` (items,) bool: the items checked."""
+    strain = np.linalg.norm(R @ np.swapaxes(R, -1, -2) - np.eye(3), axis=(-2, -1))
+    bad = (strain > ROTATION_TOL) | (np.linalg.det(R) <= 0.0)
+    if movable is not None:
+        bad &= movable
+    if bad.any():
+        i, b = np.argwhere(bad)[0]
+        det = float(np.linalg.det(R[i, b]))
+        why = f"det R = {det:.3g} <= 0" if det <= 0.0 else f"|R R^T - I| = {float(strain[i, b]):.3g} > {ROTATION_TOL}"
+        raise ValueError(f"{name}: {item} {items[b]!r} in world {int(worlds[i])} is not a rotation ({why}): "
+                         f"{R[i, b].tolist()}")  # fmt: skip
+
+
+def limit_scale(revolute: bool, lower, upper):
+    """The penetration of a limit at which its energy reaches its strength s: 1 rad for a revolute
+    limit (E = s·d³), the range width u − l for a prismatic one (E = s·(d/(u − l))³), and 1 m for
+    a prismatic one with u = l (E = s·d³, libuipc's fallback)."""
+    lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    if revolute:
+        return np.ones_like(lower)
+    return np.where(upper > lower, upper - lower, 1.0)
+
+
+def check_within_limits(name, x, worlds, limits, names):
+    """Raise a ValueError where a limited joint's coordinate x[:, k] (N, joints) lies beyond its
+    bounds by more than the limit's scale.  limits: {joint index: (lower (W,), upper (W,),
+    revolute)}, per world (indexed by ``worlds``)."""
+    for k, (lower, upper, revolute) in limits.items():
+        lo, up = lower[worlds], upper[worlds]
+        slack = limit_scale(revolute, lo, up)
+        bad = (x[:, k] < lo - slack) | (x[:, k] > up + slack)
+        if bad.any():
+            i = int(np.argmax(bad))
+            unit = "rad" if revolute else "m"
+            raise ValueError(f"{name}: joint {names[k]!r} in world {int(worlds[i])} is at {float(x[i, k])!r}, outside its "
+                             f"limit [{float(lo[i])!r}, {float(up[i])!r}] by more than the limit holds "
+                             f"({float(slack[i]):.4g} {unit}, where its energy reaches its strength)")  # fmt: skip
+
+
+def check_joint_state(names, revolute, x, xd, worlds, dt, limits):
     """Raise a ValueError for a joint state the step cannot start from.
 
-    x, xd: (N, joints) coordinates [rad, m] and rates [rad/s, m/s] of the worlds ``worlds``;
-    limits: {joint index: (lower (W,), upper (W,))} of the limited joints, per world.
+    names, revolute: (joints,) the joints' names and whether each is revolute; x, xd: (N, joints)
+    coordinates [rad, m] and rates [rad/s, m/s] of the worlds ``worlds``; limits as for
+    ``check_within_limits``.
 
     An unlimited revolute angle may lie outside [−π, π]: it is kept as the multi-turn angle.
 
-    - A limited joint must start inside [lower, upper]: a limit's cubic starts from zero at its
-      bound, and a state far beyond it starts the solve from an energy of any size.
+    - A limited joint must lie within its bounds widened by the limit's scale
+      (``check_within_limits``): beyond, the limit's cubic starts the solve from an energy above
+      its strength, which no state a step produced has.
     - A revolute rate must turn the joint less than π in one step (|ẋ|·dt < π): the step's
       incremental angle δ ∈ (−π, π] cannot tell a larger turn from one the other way.
     """
-    names = [j.name for j in scene.joints]
-    rev = np.array([j.kind == REVOLUTE for j in scene.joints], dtype=bool)
+    rev = np.asarray(revolute, dtype=bool)
     if not rev.size:
         return
-
-    def fail(mask, what):
-        w, k = np.argwhere(mask)[0]
-        return ValueError(what(int(worlds[w]), names[k], w, k))
-
     fast = rev & (np.abs(xd) * dt >= math.pi)
     if fast.any():
-        raise fail(fast, lambda w, n, i, k: f"velocities: revolute joint {n!r} in world {w} has rate {float(xd[i, k])!r} rad/s, "
-                                            f"which turns it by pi or more in one step of {dt} s (|rate| < {math.pi / dt:.4g})")  # fmt: skip
-    for k, (lower, upper) in limits.items():
-        lo, up = lower[worlds], upper[worlds]
-        bad = (x[:, k] < lo) | (x[:, k] > up)
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise ValueError(f"coordinates: joint {names[k]!r} in world {int(worlds[i])} is at {float(x[i, k])!r}, outside its "
-                             f"limit [{float(lo[i])!r}, {float(up[i])!r}]")  # fmt: skip
+        i, k = np.argwhere(fast)[0]
+        raise ValueError(f"velocities: revolute joint {names[k]!r} in world {int(worlds[i])} has rate {float(xd[i, k])!r} rad/s, "
+                         f"which turns it by pi or more in one step of {dt} s (|rate| < {math.pi / dt:.4g})")  # fmt: skip
+    check_within_limits("coordinates", x, worlds, limits, names)
 
 
 def check_body_spin(scene, omega, worlds, dt):

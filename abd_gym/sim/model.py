@@ -24,7 +24,10 @@ _DTYPES = {"float32": wp.float32, "float64": wp.float64, np.float32: wp.float32,
 def resolve_dtype(dtype):
     if dtype in (wp.float32, wp.float64):
         return dtype
-    key = dtype if dtype in _DTYPES else getattr(np.dtype(dtype), "name", None) if dtype is not None else None
+    try:
+        key = dtype if dtype in _DTYPES else getattr(np.dtype(dtype), "name", None) if dtype is not None else None
+    except TypeError:  # a value NumPy does not know as a dtype
+        key = None
     if key not in _DTYPES:
         raise ValueError(f"dtype must be float32 or float64, got {dtype!r}")
     return _DTYPES[key]

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import inputs
 from .shapes import MassMoments, Shape
 
 # libuipc constitution UIDs (docs/specification/constitutions)
@@ -33,7 +34,7 @@ LOAD_STRENGTH_RATIO = 100.0
 
 
 def _vec3(name, value, unit=False):
-    v = np.asarray(value, dtype=np.float64).reshape(-1)
+    v = inputs.real_values(name, value).astype(np.float64).reshape(-1)
     if v.shape != (3,) or not np.all(np.isfinite(v)):
         raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
     if unit:
@@ -44,22 +45,25 @@ def _vec3(name, value, unit=False):
     return v
 
 
-def _finite(name, value, nonnegative=False, positive=False):
-    value = float(value)
-    if math.isnan(value) or (math.isinf(value) and not nonnegative):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    if positive and not value > 0.0:
-        raise ValueError(f"{name} must be positive, got {value!r}")
-    if nonnegative and value < 0.0:
-        raise ValueError(f"{name} must be non-negative, got {value!r}")
-    return value
+def _finite(name, value, nonnegative=False, positive=False, allow_inf=False):
+    """A real number (inputs.real_number); +inf only with ``allow_inf`` (an unbounded effort)."""
+    return inputs.real_number(name, value, positive=positive, nonnegative=nonnegative, allow_inf=allow_inf)
+
+
+def _name(name, default: str) -> str:
+    """A body's, joint's or drive's name: a string, or ``default`` for None."""
+    if name is None:
+        return default
+    if not isinstance(name, str) or not name:
+        raise TypeError(f"name must be a non-empty string or None, got {name!r}")
+    return name
 
 
 def rotation_matrix(rotation) -> np.ndarray:
     """A 3x3 rotation from a 3x3 matrix or a unit quaternion (w, x, y, z)."""
     if rotation is None:
         return np.eye(3)
-    r = np.asarray(rotation, dtype=np.float64)
+    r = inputs.real_values("rotation", rotation).astype(np.float64)
     if r.shape == (4,):
         n = np.linalg.norm(r)
         if not np.isfinite(n) or n < 1e-12:
@@ -234,7 +238,9 @@ class Scene:
         _finite("density", density, positive=True)
         if stiffness is not None:
             _finite("stiffness", stiffness, positive=True)
-        name = name or f"body{len(self.bodies)}"
+        name = _name(name, f"body{len(self.bodies)}")
+        if not isinstance(fixed, (bool, np.bool_)):
+            raise TypeError(f"fixed must be True or False, got {fixed!r}")
         if any(b.name == name for b in self.bodies):
             raise ValueError(f"a body named {name!r} already exists")
         moments = shape.moments(mass=mass, density=density)
@@ -289,7 +295,7 @@ class Scene:
                 frame=frame,
                 strength_ratio=strength_ratio,
                 half_length=float(half_length),
-                name=name or f"{kind}{len(self.joints)}",
+                name=_name(name, f"{kind}{len(self.joints)}"),
                 meta={"constitution_uid": uid, "extra_constitution_uids": []},
             )
         )
@@ -333,6 +339,11 @@ class Scene:
         upper = _finite("upper", upper)
         if lower > upper:
             raise ValueError(f"limit lower ({lower}) must not exceed upper ({upper})")
+        slack = float(inputs.limit_scale(kind == REVOLUTE, lower, upper))
+        if not lower - slack <= 0.0 <= upper + slack:
+            raise ValueError(f"limit [{lower}, {upper}] of joint {j.name!r} leaves its zero pose (coordinate 0, where the "
+                             f"scene starts) outside by more than the limit holds ({slack:.4g}, where its energy "
+                             "reaches its strength)")  # fmt: skip
         strength = _finite("strength", strength, positive=True)
         if j.has_limit:
             raise ValueError(f"joint {j.name!r} already has a limit")
@@ -341,7 +352,8 @@ class Scene:
 
     def add_revolute_limit(self, joint, lower, upper, strength=1e3):
         """Revolute joint limit (UID 670): ``E = s(x−u)³`` above, ``s(l−x)³`` below [J], x in rad."""
-        if not (-math.pi <= float(lower) and float(upper) <= math.pi):
+        lower, upper = _finite("lower", lower), _finite("upper", upper)
+        if not (-math.pi <= lower and upper <= math.pi):
             raise ValueError(f"revolute limits must lie in [-pi, pi], got lower={lower}, upper={upper}")
         self._add_limit(joint, REVOLUTE, UID_REVOLUTE_LIMIT, lower, upper, strength)
 
@@ -386,7 +398,7 @@ class Scene:
             raise ValueError(f"drive mode must be one of {DRIVE_MODES}, got {mode!r}")
         stiffness = _finite("stiffness", stiffness, nonnegative=True)
         damping = _finite("damping", damping, nonnegative=True)
-        max_effort = _finite("max_effort", max_effort, nonnegative=True)
+        max_effort = _finite("max_effort", max_effort, nonnegative=True, allow_inf=True)
         if max_effort == 0.0:
             raise ValueError("max_effort must be positive")
         if mode == "position" and stiffness == 0.0:
@@ -395,7 +407,7 @@ class Scene:
             raise ValueError("a velocity drive needs damping > 0 and stiffness 0")
         if mode == "effort" and (stiffness or damping):
             raise ValueError("an effort drive takes no stiffness or damping")
-        self.drives.append(Drive(ji, mode, stiffness, damping, max_effort, name or f"drive{len(self.drives)}"))
+        self.drives.append(Drive(ji, mode, stiffness, damping, max_effort, _name(name, f"drive{len(self.drives)}")))
         return len(self.drives) - 1
 
     # ------------------------------------------------------------------ queries

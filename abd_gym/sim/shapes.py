@@ -11,12 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import inputs
+
 
 def _positive(name: str, value: float) -> float:
-    value = float(value)
-    if not np.isfinite(value) or value <= 0.0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    return value
+    """A positive finite real number (inputs.real_number)."""
+    return inputs.real_number(name, value, positive=True)
 
 
 @dataclass(frozen=True)
@@ -77,7 +77,7 @@ class Box(Shape):
     half_extents: tuple
 
     def __post_init__(self):
-        h = np.asarray(self.half_extents, dtype=np.float64).reshape(3)
+        h = np.array(inputs.finite_array("Box half_extents", self.half_extents, (3,)))
         for k, v in enumerate(h):
             _positive(f"Box half_extents[{k}]", v)
         object.__setattr__(self, "half_extents", tuple(h))
@@ -182,12 +182,8 @@ class Inertia(Shape):
     def __post_init__(self):
         _positive("Inertia mass", self.mass)
         _positive("Inertia size", self.size)
-        c = np.asarray(self.com, dtype=np.float64).reshape(3)
-        if not np.all(np.isfinite(c)):
-            raise ValueError(f"Inertia com must be finite, got {c.tolist()}")
-        i = np.asarray(self.inertia, dtype=np.float64).reshape(3, 3)
-        if not np.all(np.isfinite(i)):
-            raise ValueError(f"Inertia tensor must be finite, got {i.tolist()}")
+        inputs.finite_array("Inertia com", self.com, (3,))
+        inputs.finite_array("Inertia inertia", self.inertia, (3, 3))
 
     def volume(self):
         # used only to scale the orthogonality potential: a sphere of the same size

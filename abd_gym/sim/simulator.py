@@ -13,16 +13,21 @@ import warnings
 import numpy as np
 import warp as wp
 
-from . import conditioning, kinematics
+from . import conditioning, inputs, kinematics
 from ..core import graphs, launches, rows
 from .coordinates import FIXED_CODE
-from .inputs import check_body_spin, check_joint_state
+from .inputs import check_body_spin, check_joint_state, check_within_limits
 from .inputs import finite_array as _finite_array
 from .model import Model
 from ..solver.plan import ExecutionPlan
 from .scene import REVOLUTE, Scene
 from ..solver.solver import Solver, SolverSettings
 from .state import State
+from .status import WorldStatus
+
+
+# step counts whose graphs ``step`` keeps in a list to replay (an env's frame skip; a few are enough)
+MAX_REPLAYS = 8
 
 
 def _skew(w):
@@ -62,20 +67,26 @@ class Simulator:
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "bdf2",
                  dtype="float32", device=None, tol: float = 1e-5, max_iterations: int = 50,
                  max_line_search: int = 12, reuse_factor: bool = False, quadratic_stop: float = 100.0,
-                 plan: ExecutionPlan | dict | None = None):  # fmt: skip
-        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt must be a positive finite number, got {dt!r}")
-        settings = SolverSettings(tol=float(tol), max_iterations=int(max_iterations),
-                                  max_line_search=int(max_line_search), integrator=integrator,
-                                  reuse_factor=reuse_factor, quadratic_stop=quadratic_stop)  # fmt: skip
+                 retry: bool = True, plan: ExecutionPlan | dict | None = None):  # fmt: skip
+        inputs.count("num_worlds", num_worlds, minimum=1)
+        dt = inputs.real_number("dt", dt, positive=True)
+        settings = SolverSettings(tol=inputs.real_number("tol", tol, positive=True),
+                                  max_iterations=inputs.count("max_iterations", max_iterations, minimum=1),
+                                  max_line_search=inputs.count("max_line_search", max_line_search, minimum=1),
+                                  integrator=integrator, reuse_factor=reuse_factor, retry=retry,
+                                  quadratic_stop=inputs.real_number("quadratic_stop", quadratic_stop, nonnegative=True))  # fmt: skip
         self.scene = scene
         device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
         self.model = Model(scene, num_worlds, dtype=dtype, device=device)
-        for message in conditioning.unsolvable(scene, float(dt), "float32" if self.model.np_dtype == np.float32 else "float64"):
+        dtype_name = "float32" if self.model.np_dtype == np.float32 else "float64"
+        for message in conditioning.unsolvable(scene, dt, dtype_name) + conditioning.step_too_large(scene, dt):
             warnings.warn(message, RuntimeWarning, stacklevel=2)
         self.state = State(self.model)
         self.solver = Solver(self.model, dt, settings, plan)
         self.dt = float(dt)
+        # the largest |value| the setters take: of a parameter, of a state (inputs)
+        self._bound = inputs.magnitude_bound(self.model.np_dtype)
+        self._state_bound = inputs.state_bound(self.model.np_dtype)
         self.num_worlds = self.model.num_worlds
         self.device = self.model.device
         m = self.model
@@ -92,6 +103,7 @@ class Simulator:
         self._cmds = {}  # recorded launches of the reset path, replayed with changed arguments (_replay)
         self._stage = rows.Staging(self.device)  # host rows to the device without waiting for the device
         self._graph = {}  # steps a launch -> the captured step: [(phase, graph or None)]
+        self._replays = {}  # steps a call -> its (phase, graph) pairs, once every launch of it is captured (step)
         self._warm = False
         self.reset()
 
@@ -103,8 +115,22 @@ class Simulator:
     # ------------------------------------------------------------------ stepping
     def step(self, num_steps: int = 1):
         """Advance every world ``num_steps`` steps of ``dt`` (where a step is one launch, up to the
-        solver's ``steps_per_launch`` a launch)."""
-        for k in self.solver.launch_chunks(num_steps):
+        solver's ``steps_per_launch`` a launch).  With ``retry`` (the default), a world whose step
+        fails takes it again as 2, then 4 substeps (``substeps``) before it is rejected; a launch of
+        several steps is not retried."""
+        num_steps = inputs.count("num_steps", num_steps)
+        replay = self._replays.get(num_steps)
+        if replay is not None:  # every launch's phases captured: the graphs alone (a one-world step is a few us)
+            for phase, graph in replay[0]:
+                if graph is None:
+                    phase(self.state)  # a phase a graph cannot hold (the CPU's concurrent launches, its retry)
+                else:
+                    wp.capture_launch(graph)
+            for k in replay[1]:
+                self.state.time += k * self.dt
+            return
+        chunks = self.solver.launch_chunks(num_steps)
+        for k in chunks:
             if self.plan.use_graph and self._warm:
                 if k not in self._graph:
                     # capture after one plain step, so every kernel is compiled and loaded; with the
@@ -120,20 +146,25 @@ class Simulator:
                 self.solver.step(self.state, k)
                 self._warm = True
             self.state.time += k * self.dt
+        if chunks and all(k in self._graph for k in chunks) and len(self._replays) < MAX_REPLAYS:
+            self._replays[num_steps] = (tuple(pg for k in chunks for pg in self._graph[k]), chunks)
 
     def launch_step(self, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
         """``num_steps`` steps as direct launches of the step's kernels, without the simulator's own
         graphs and without advancing the host clock ``state.time``: for a caller that captures the
         step in a graph of its own (the vector env's), and advances the clock (``tick``) at each
-        replay.  The same step as ``step``.  ``hold`` (device int32 (num_worlds,)) and ``go``
-        (device int32 (1,)), where the step is one launch (``solver.holds``): the worlds with
+        replay.  The same step as ``step`` (``num_steps`` at least 1).  ``hold`` (device int32
+        (num_worlds,)) and ``go`` (device int32 (1,)), where the step is one launch (``solver.holds``): the worlds with
         hold[w] != 0, and every world while go[0] == 0, are not stepped, and none of their rows is
-        read or written, so that other launches may rewrite them at the same time."""
-        self.solver.step(self.state, num_steps, hold=hold, go=go)
+        read or written, so that other launches may rewrite them at the same time.  A failed step is
+        retried as in ``step`` on the CPU; on a GPU, where the caller's graph would hold the retry's
+        conditional branch, it is not (the world is reported)."""
+        self.solver.step(self.state, inputs.count("num_steps", num_steps, minimum=1), hold=hold, go=go,
+                         retry=self.device.is_cpu)  # fmt: skip
 
     def tick(self, num_steps: int = 1):
         """Advance the host clock ``state.time`` by ``num_steps`` steps (see ``launch_step``)."""
-        self.state.time += int(num_steps) * self.dt
+        self.state.time += inputs.count("num_steps", num_steps) * self.dt
 
     def _capture(self, phase):
         """A graph of ``phase`` (a solver step's part)."""
@@ -187,6 +218,15 @@ class Simulator:
     def body_velocities(self):
         """(num_worlds, num_bodies, 12): q̇ over the last step."""
         return self.state.qd.numpy().astype(np.float64)
+
+    def body_angular_velocities(self):
+        """(num_worlds, num_bodies, 3): ω of each body [rad/s], the axial vector of the skew part of
+        Ȧ Aᵀ (Ȧ = [ω]× A for a rotation A): what set_body_states takes as angular_velocities."""
+        q, qd = self.body_q(), self.body_velocities()
+        A, Ad = q[..., 3:].reshape(q.shape[:-1] + (3, 3)), qd[..., 3:].reshape(q.shape[:-1] + (3, 3))
+        Wx = Ad @ np.swapaxes(A, -1, -2)
+        Wx = 0.5 * (Wx - np.swapaxes(Wx, -1, -2))
+        return np.stack([Wx[..., 2, 1], Wx[..., 0, 2], Wx[..., 1, 0]], axis=-1)
 
     def energies(self) -> dict:
         """Each term's own energy [J] per world: "kinetic" (the joints' armature's ½aẋ² included),
@@ -260,6 +300,12 @@ class Simulator:
         iteration (``newton_iterations`` counts both)."""
         return self.state.retried.numpy().astype(bool)
 
+    def substeps(self) -> np.ndarray:
+        """(num_worlds,) int32: the substeps of each world's last step: 1, or 2 or 4 where the step
+        failed (did not converge, broke down) and was taken again as that many steps of dt/2 or
+        dt/4 (``retry``); a world that failed at 4 too is rejected (world_status)."""
+        return np.array(self.view(self.state.substeps, "numpy"), dtype=np.int32)
+
     def newton_factorizations(self) -> np.ndarray:
         """(num_worlds,) Cholesky factorisations in the last step: the iterations less those that
         reused a factor (``reuse_factor``)."""
@@ -267,17 +313,8 @@ class Simulator:
 
     # ------------------------------------------------------------------ input
     def _worlds(self, worlds):
-        if worlds is None:
-            return np.arange(self.num_worlds)
-        w = np.asarray(worlds)
-        if w.dtype == bool:
-            if w.shape != (self.num_worlds,):
-                raise ValueError(f"a world mask must have shape ({self.num_worlds},), got {w.shape}")
-            return np.flatnonzero(w)
-        w = w.astype(np.int64).reshape(-1)
-        if w.size and (w.min() < 0 or w.max() >= self.num_worlds):
-            raise ValueError(f"world indices must lie in [0, {self.num_worlds}), got {w.tolist()}")
-        return w
+        """``worlds`` as checked indices (inputs.world_indices)."""
+        return inputs.world_indices(worlds, self.num_worlds)
 
     def _replay(self, key, kernel, dim, inputs):
         """Launch ``kernel`` as a command recorded on the first call and replayed after, with only the
@@ -310,7 +347,9 @@ class Simulator:
 
     def set_controls(self, values, worlds=None):
         """Drive inputs (num_worlds or len(worlds), num_drives): torque/force [N·m, N] of effort drives,
-        target position [rad, m] of position drives, target velocity of velocity drives."""
+        target position [rad, m] of position drives, target velocity of velocity drives.  A Torch
+        tensor of every world is copied on its device, its values unchecked (reading them would
+        make the host wait for the device); anything else is checked (inputs.finite_array)."""
         nd = self.model.num_drives
         if nd == 0:
             raise ValueError("the scene has no drives")
@@ -318,9 +357,12 @@ class Simulator:
         if worlds is None and type(values).__module__.startswith("torch"):
             if tuple(values.shape) != (self.num_worlds, nd):
                 raise ValueError(f"controls must have shape ({self.num_worlds}, {nd}), got {tuple(values.shape)}")
+            if values.is_complex() or str(values.dtype) == "torch.bool":
+                raise TypeError(f"controls must be real numbers (integer or float), got {values.dtype}")
             self.view(self.state.control, "torch").copy_(values)  # on the device, converting dtype
             return
-        vals = _finite_array("controls", values, (len(idx), nd))
+        vals = _finite_array("controls", values, (len(idx), nd), idx, [d.name for d in self.scene.drives], "drive",
+                             bound=self._bound)  # fmt: skip
         if worlds is None and self.device.is_cpu:
             self.host_view(self.state.control)[...] = vals  # the array's own memory: no temporary array
         elif worlds is None:
@@ -332,24 +374,38 @@ class Simulator:
         """Set poses (N, bodies, 3) and (N, bodies, 3, 3) [and velocities] of the worlds listed (default all).
 
         Fixed bodies keep their scene pose.  The joint-angle history restarts: q^{t−1} = q.
-        Refused with a ValueError naming the world and body (nothing is written): a non-finite value,
-        or an angular velocity that turns a body by π or more in one step (|ω|·dt ≥ π), which
-        neither a joint's incremental angle nor the step's rotation of A can represent.
+        Refused with a ValueError naming the world and body (nothing is written): a non-finite or
+        overflowing value (inputs.finite_array), a rotation part that is not a rotation
+        (inputs.check_rotations), an angular velocity that turns a body by π or more in one step
+        (|ω|·dt ≥ π), which neither a joint's incremental angle nor the step's rotation of A can
+        represent, or a pose that puts a limited joint beyond its bounds by more than the limit
+        holds (inputs.check_within_limits; the worlds are then put back as they were).
         """
         idx = self._worlds(worlds)
         nb = self.model.num_bodies
-        at = dict(worlds=idx, items=[b.name for b in self.scene.bodies], item="body")
+        names = [b.name for b in self.scene.bodies]
+        at = dict(worlds=idx, items=names, item="body", bound=self._state_bound)
         p = _finite_array("positions", positions, (len(idx), nb, 3), **at)
         R = _finite_array("rotations", rotations, (len(idx), nb, 3, 3), **at)
         v = _finite_array("linear_velocities", 0.0 if linear_velocities is None else linear_velocities, (len(idx), nb, 3), **at)
         w = _finite_array("angular_velocities", 0.0 if angular_velocities is None else angular_velocities, (len(idx), nb, 3), **at)
+        fixed = np.array([b.fixed for b in self.scene.bodies])
+        inputs.check_rotations("rotations", R, idx, names, movable=~fixed)
         check_body_spin(self.scene, w, idx, self.dt)
         q = np.concatenate([p, R.reshape(len(idx), nb, 9)], axis=-1)
         qd = np.concatenate([v, (_skew(w) @ R).reshape(len(idx), nb, 9)], axis=-1)
-        fixed = np.array([b.fixed for b in self.scene.bodies])
         q[:, fixed] = self.model.q0[fixed]
         qd[:, fixed] = 0.0
+        limits = self._limit_bounds()
+        before = self.get_state(idx) if limits and len(idx) else None
         self._set_q(idx, q, qd)
+        if before is not None:  # the joints' coordinates follow from the poses on the device
+            try:
+                check_within_limits("positions", self.joint_coordinates()[idx], idx, limits,
+                                    [j.name for j in self.scene.joints])  # fmt: skip
+            except ValueError:
+                self._write_state(before, idx)
+                raise
 
     def _set_q(self, idx, q, qd):
         """Restart the worlds idx at body states q, q̇ (N, bodies, 12)."""
@@ -377,17 +433,20 @@ class Simulator:
         are left to the solver.
 
         Refused with a ValueError naming the joint, the world and the value (nothing is written): a
-        non-finite value, a limited joint outside its limit's
-        [lower, upper], a revolute rate that turns the joint by π or more in one step."""
+        non-finite or overflowing value, a limited joint beyond its limit's [lower, upper] by more
+        than the limit holds (a penetration a step produced is accepted: inputs.check_within_limits),
+        a revolute rate that turns the joint by π or more in one step."""
         idx = self._worlds(worlds)
         m = self.model
         nj, N = m.num_joints, len(idx)
-        at = dict(worlds=idx, items=[j.name for j in self.scene.joints], item="joint")
+        names = [j.name for j in self.scene.joints]
+        at = dict(worlds=idx, items=names, item="joint", bound=self._state_bound)
         x = _finite_array("coordinates", coordinates, (N, nj), **at)
         xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj), **at)
         if N == 0:
             return
-        check_joint_state(self.scene, x, xd, idx, self.dt, self._limit_bounds())
+        revolute = [j.kind == REVOLUTE for j in self.scene.joints]
+        check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds())
         idx_dev = rows.indices(idx, self._stage)
         # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
         # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
@@ -398,9 +457,9 @@ class Simulator:
         self.state.time[idx] = 0.0
 
     def _limit_bounds(self):
-        """{joint index: (lower (W,), upper (W,))} of the limited joints, from the host copies."""
+        """{joint index: (lower (W,), upper (W,), revolute)} of the limited joints, from the host copies."""
         m = self.model
-        return {j: (self._limits[kind][0][:, c], self._limits[kind][1][:, c])
+        return {j: (self._limits[kind][0][:, c], self._limits[kind][1][:, c], kind == REVOLUTE)
                 for kind, ids in m.limit_joints.items() for c, j in enumerate(ids)}  # fmt: skip
 
     def _tree(self):
@@ -437,6 +496,77 @@ class Simulator:
             self._write_rows(self.state.control, idx, 0.0)
         self._set_q(idx, q, qd)
 
+    # ------------------------------------------------------------------ whole state
+    def _state_arrays(self) -> dict:
+        """{name: device array} of every per-world array of the state (State)."""
+        return {name: a for name, a in vars(self.state).items() if isinstance(a, wp.array)}
+
+    def get_state(self, worlds=None) -> dict:
+        """Host copies of the whole state of the worlds listed (default all), by name: every array
+        of State, (N, ...) in the model's dtype (int32 for flags and counts), and ``"time"`` (N,):
+        poses, velocities, the joints' histories, BDF2's past step, controls, status and the last
+        step's solver counts.  ``set_state`` writes them back, and the worlds then step exactly as
+        they would have from here (the model's parameters, set_body_mass, set_limit..., are not
+        part of it)."""
+        idx = self._worlds(worlds)
+        out = {name: (self.host_view(a) if self.device.is_cpu else a.numpy())[idx]
+               for name, a in self._state_arrays().items()}  # fmt: skip
+        out["time"] = self.state.time[idx].copy()
+        return out
+
+    def set_state(self, state: dict, worlds=None):
+        """Restore ``get_state``'s values into the worlds listed (default all; as many as the
+        state holds), bit for bit.  Refused with a TypeError or ValueError naming the entry, the
+        world and the body or joint (nothing is written): a missing or unknown entry, a shape or
+        dtype other than this simulator's, a non-finite or overflowing pose or velocity, a rotation
+        part that is not a rotation, a limited joint beyond what its limit holds, an unknown
+        status code."""
+        idx = self._worlds(worlds)
+        arrays = self._state_arrays()
+        if not isinstance(state, dict):
+            raise TypeError(f"state must be a dict from get_state, got {type(state).__name__}")
+        missing, unknown = (set(arrays) | {"time"}) - set(state), set(state) - set(arrays) - {"time"}
+        if missing or unknown:
+            raise ValueError(f"state must hold exactly get_state's entries: missing {sorted(missing)}, "
+                             f"unknown {sorted(unknown)}")
+        vals = {}
+        for name, a in list(arrays.items()) + [("time", None)]:
+            v = inputs.real_values(f"state[{name!r}]", state[name])
+            scalar = None if a is None else getattr(a.dtype, "_wp_scalar_type_", a.dtype)
+            dtype = np.float64 if a is None else np.dtype(wp.dtype_to_numpy(scalar))
+            shape = (len(idx),) + (() if a is None else rows._row_shape(a))
+            if v.dtype != dtype or v.shape != shape:
+                raise ValueError(f"state[{name!r}] must be {np.dtype(dtype).name} of shape {shape} (this simulator's, "
+                                 f"for {len(idx)} worlds), got {v.dtype} {v.shape}")  # fmt: skip
+            vals[name] = v
+        bodies, joints = [b.name for b in self.scene.bodies], [j.name for j in self.scene.joints]
+        at = dict(worlds=idx, items=bodies, item="body", bound=self._state_bound)
+        for name in ("q", "qd", "q_prev", "q_hist", "qd_hist", "qd_hist2"):
+            _finite_array(f"state[{name!r}]", vals[name], vals[name].shape, **at)
+        fixed = np.array([b.fixed for b in self.scene.bodies])
+        inputs.check_rotations("state['q']", vals["q"][..., 3:].reshape(len(idx), -1, 3, 3).astype(np.float64), idx,
+                               bodies, movable=~fixed)  # fmt: skip
+        if self.model.num_joints:
+            coord = _finite_array("state['coord']", vals["coord"], vals["coord"].shape, idx, joints, "joint",
+                                  self._state_bound)
+            check_within_limits("state['coord']", coord, idx, self._limit_bounds(), joints)
+        bad = ~np.isin(vals["status"], [int(s) for s in WorldStatus])
+        if bad.any():
+            raise ValueError(f"state['status'] has an unknown code {vals['status'][bad][0]} in world "
+                             f"{int(idx[np.argmax(bad)])}")
+        self._write_state(vals, idx)
+
+    def _write_state(self, vals: dict, idx):
+        """Write get_state's values (unchecked) into the worlds idx."""
+        for name, a in self._state_arrays().items():
+            if self.device.is_cpu:
+                self.host_view(a)[idx] = vals[name]
+            else:
+                full = a.numpy()
+                full[idx] = vals[name]
+                a.assign(full)
+        self.state.time[idx] = vals["time"]
+
     # ------------------------------------------------------------------ per-world parameters
     def _update_K(self, idx):
         """Joint strengths K = strength_ratio·(m_i + m_j) of the worlds idx, written to their rows."""
@@ -453,9 +583,12 @@ class Simulator:
         m = self.model
         idx = self._worlds(worlds)
         bi = np.arange(m.num_bodies) if bodies is None else np.array([self.scene.body_index(b) for b in np.atleast_1d(bodies)])
-        vals = _finite_array("mass", mass, (len(idx), len(bi)))
+        vals = _finite_array("mass", mass, (len(idx), len(bi)), idx, [self.scene.bodies[b].name for b in bi], "body",
+                             bound=self._bound)  # fmt: skip
         if (vals <= 0).any():
-            raise ValueError(f"mass must be positive, got {vals[vals <= 0][0]}")
+            i, k = np.argwhere(vals <= 0)[0]
+            raise ValueError(f"mass must be positive, got {vals[i, k]} in world {int(idx[i])}, "
+                             f"body {self.scene.bodies[bi[k]].name!r}")  # fmt: skip
         self._mass[np.ix_(idx, bi)] = vals
         scale = self._mass[idx] / m.base_mass  # only the listed worlds' rows travel to the device
         idx_dev = rows.indices(idx, self._stage)
@@ -463,20 +596,36 @@ class Simulator:
         self._write_rows(m.mc, idx_dev, m.base_mc[None] * scale[..., None])
         self._write_rows(m.S, idx_dev, m.base_S[None] * scale[..., None, None])
         self._update_K(idx)
+        self._warn_conditioning(idx)
 
     def set_joint_strength(self, strength_ratio, joints=None, worlds=None):
         """Per-world joint strength ratios (N, len(joints)): K = strength_ratio·(m_i + m_j)."""
         idx = self._worlds(worlds)
         ji = np.arange(self.model.num_joints) if joints is None else np.array([self.scene.joint_index(j) for j in np.atleast_1d(joints)])
-        vals = _finite_array("strength_ratio", strength_ratio, (len(idx), len(ji)))
+        vals = _finite_array("strength_ratio", strength_ratio, (len(idx), len(ji)), idx,
+                             [self.scene.joints[j].name for j in ji], "joint", bound=self._bound)  # fmt: skip
         if (vals <= 0).any():
-            raise ValueError(f"strength_ratio must be positive, got {vals[vals <= 0][0]}")
+            i, k = np.argwhere(vals <= 0)[0]
+            raise ValueError(f"strength_ratio must be positive, got {vals[i, k]} in world {int(idx[i])}, "
+                             f"joint {self.scene.joints[ji[k]].name!r}")  # fmt: skip
         self._ratio[np.ix_(idx, ji)] = vals
         self._update_K(idx)
+        self._warn_conditioning(idx)
 
-    def set_limit(self, joint, lower=None, upper=None, strength=None, worlds=None):
+    def _warn_conditioning(self, idx):
+        """The build's conditioning warnings (conditioning.unsolvable_worlds) for the worlds idx,
+        after their masses or strength ratios changed."""
+        dtype = "float32" if self.model.np_dtype == np.float32 else "float64"
+        messages = conditioning.unsolvable_worlds(self.scene, self.dt, dtype, self._ratio[idx], self._mass[idx], idx)
+        for message in messages:
+            warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+    def set_limit(self, joint, lower=None, upper=None, strength=None, worlds=None, check_state=True):
         """Per-world bounds [rad or m] and strength [J] of a joint's limit (each (N,) or scalar).
-        Checked before anything is written: a bad value changes no world."""
+        Checked before anything is written: a bad value changes no world.  With ``check_state``
+        (the default), bounds that leave a world's current coordinate beyond them by more than the
+        limit holds (inputs.check_within_limits) are refused; a caller that sets every such world's
+        state right after (a reset) passes False."""
         m = self.model
         j = self.scene.joint_index(joint)
         kind = self.scene.joints[j].kind
@@ -488,15 +637,25 @@ class Simulator:
         new = [h[idx, col].copy() for h in host]
         for k, (val, name) in enumerate(zip((lower, upper, strength), ("lower", "upper", "strength"))):
             if val is not None:
-                new[k] = _finite_array(name, val, (len(idx),)).copy()
+                bound = self._bound if name == "strength" else self._state_bound
+                new[k] = _finite_array(name, val, (len(idx),), bound=bound).copy()
         lo, up, st = new
+
+        def refuse(bad, what):
+            k = int(np.argmax(bad))
+            return ValueError(f"limit of joint {self.scene.joints[j].name!r} in world {int(idx[k])}: {what(k)}")
+
         if (lo > up).any():
-            k = int(np.argmax(lo > up))
-            raise ValueError(f"limit lower ({lo[k]}) must not exceed upper ({up[k]})")
+            raise refuse(lo > up, lambda k: f"lower ({lo[k]}) must not exceed upper ({up[k]})")
         if (st <= 0).any():
-            raise ValueError(f"limit strength must be positive, got {st[st <= 0][0]}")
-        if kind == REVOLUTE and (lo < -math.pi).any() | (up > math.pi).any():
-            raise ValueError("revolute limits must lie in [-pi, pi]")
+            raise refuse(st <= 0, lambda k: f"strength must be positive, got {st[k]}")
+        if kind == REVOLUTE and ((lo < -math.pi) | (up > math.pi)).any():
+            raise refuse((lo < -math.pi) | (up > math.pi), lambda k: f"bounds [{lo[k]}, {up[k]}] must lie in [-pi, pi]")
+        if check_state and len(idx):
+            bounds = {j: (np.zeros(self.num_worlds), np.zeros(self.num_worlds), kind == REVOLUTE)}
+            bounds[j][0][idx], bounds[j][1][idx] = lo, up
+            names = [jt.name for jt in self.scene.joints]
+            check_within_limits("set_limit", self.joint_coordinates()[idx], idx, bounds, names)
         idx_dev = rows.indices(idx, self._stage)
         for h, v, dev_a in zip(host, new, m.limit_params[kind]):
             h[idx, col] = v

@@ -44,6 +44,8 @@ class State:
         self.converged = wp.ones(W, dtype=wp.int32, device=dev)
         # 1: the last step's solve was started again from a fresh factor (Solver: a retry)
         self.retried = wp.zeros(W, dtype=wp.int32, device=dev)
+        # the substeps the last step took: 1, or 2 or 4 where it failed and was retried (solver.retry)
+        self.substeps = wp.ones(W, dtype=wp.int32, device=dev)
         self.time = np.zeros(W)  # seconds since the world's last reset (host bookkeeping)
 
     def snapshot(self) -> dict:

@@ -207,7 +207,7 @@ def _predict_funcs(dtype):
         (float32 cart-poles at dt 0.01: 1.87 -> 1.02 Newton iterations a step; before a BDF2 step
         qⁿ + (qⁿ − qⁿ⁻¹) + h(3q̇ⁿ − 4q̇ⁿ⁻¹ + q̇ⁿ⁻²)/2, exact on cubic motion); across a change of
         control its jerk is the change's, and guessed 1.05-1.3x more iterations on CartPole-v0,
-        Reacher-v0 and DoublePendulumCart-v0 under random actions.  After
+        TwoLinkReacher-v0 and DoublePendulumCart-v0 under random actions.  After
         a reset q̇ⁿ⁻² = q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ.  A world whose limits act or
         are in reach takes the fraction ``beta`` of that step (limit_reach; 1 elsewhere).  A retry
         from a fresh factor starts from q̃ instead (fused.solve_world, converge)."""

@@ -30,6 +30,7 @@ from .fused import PHASES, fused_kernel
 from .plan import ExecutionPlan, plan_band, resolve_plan, worlds_per_block
 from ..sim.scene import FIXED, PRISMATIC, REVOLUTE
 from .kernels import h_row_first, h_row_starts, h_words, kernels as solver_kernels
+from .retry import Retry
 from .terms import fused_flags, joint_terms, term_counts
 from ..core.warp_ops import HESSIAN
 
@@ -55,7 +56,7 @@ class SolverSettings:
     # iteration); False: factor at every iteration.  Off by default: a reused factor converges
     # linearly and stops short of the solution.  In float32, one implicit-Euler step from float64
     # states against the float64 step (CPU, 256 worlds × 30 steps): largest error 3.5e-6 m
-    # (Reacher-v0), 1.2e-5 (FourBar-v0), 2.0e-5 (5-link chain) with reuse, 3.5e-7, 3.2e-6, 1.6e-6
+    # (TwoLinkReacher-v0), 1.2e-5 (FourBar-v0), 2.0e-5 (5-link chain) with reuse, 3.5e-7, 3.2e-6, 1.6e-6
     # without; in float64 ~1e-10 m a step where Newton leaves ~1e-14 (tests/test_hard_cases.py).
     # Nor is it faster where it matters: its extra iterations fall on a warp's slowest world
     # (docs/performance.md, "Factor reuse": 1.1–1.8× faster without it on the loops and chains,
@@ -68,6 +69,9 @@ class SolverSettings:
     # for q ~ 1); in float64 the tolerance h·tol is far above the rounding and the stop stays the
     # step under the tolerance.  0: off.
     quadratic_stop: float = 100.0
+    # a world whose step does not converge or breaks down takes it again as 2, then 4 substeps before
+    # it is rejected (solver.retry; a step of several in one launch is not retried)
+    retry: bool = True
 
     def __post_init__(self):
         if not (self.tol > 0):
@@ -79,6 +83,9 @@ class SolverSettings:
         if not isinstance(self.reuse_factor, (bool, np.bool_)):
             raise ValueError(f"reuse_factor must be True or False, got {self.reuse_factor!r}")
         self.reuse_factor = bool(self.reuse_factor)
+        if not isinstance(self.retry, (bool, np.bool_)):
+            raise ValueError(f"retry must be True or False, got {self.retry!r}")
+        self.retry = bool(self.retry)
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be 'implicit_euler' or 'bdf2', got {self.integrator!r}")
 
@@ -133,7 +140,7 @@ class Solver:
     """Every world's implicit step of ``dt`` [s] with the numerical method ``settings``, laid out
     on the device as ``plan`` says (an ExecutionPlan, resolved here for ``model``: Solver.plan)."""
 
-    def __init__(self, model, dt: float, settings: SolverSettings, plan: ExecutionPlan | None = None):
+    def __init__(self, model, dt: float, settings: SolverSettings, plan: ExecutionPlan | None = None, retry=True):
         self.model, self.settings = model, settings
         self.plan = plan = resolve_plan(plan, model)
         self.h = float(dt)
@@ -222,6 +229,8 @@ class Solver:
         # BDF2 restarts a world's history where a limit is engaged (solver_kernels.open_body)
         self.restarts = bool(self.bdf2 and any(model.limit_joints.values()))
         self._restart_cmds = {}  # restart_joints' recorded launches
+        # the retry of failed worlds as substeps (retry.py; not in the substep solvers themselves)
+        self.retry = Retry(self, functools.partial(Solver, retry=False)) if retry and settings.retry else None
 
     @property
     def reuse_factor(self) -> bool:
@@ -308,17 +317,20 @@ class Solver:
         return {t: e[:, i].astype(np.float64) for t, i in self.report_cols.items() if t != "scratch"}
 
     # ------------------------------------------------------------------ step
-    def step(self, state, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
+    def step(self, state, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None,
+             retry: bool = True):  # fmt: skip
         """``num_steps`` implicit Euler steps of every world.  No host synchronisation: the loops run
         as ``wp.capture_while`` on device flags, so the whole step can be captured in a CUDA graph.
         Where a step is one launch (``multi_step``), up to ``steps_per_launch`` steps a launch.
         ``hold`` (device int32 (W,)) and ``go`` (device int32 (1,)), where the step is one launch
         (``holds``): the worlds with hold[w] != 0, and every world if go[0] == 0, are not stepped,
-        and none of their rows is read or written (fused.step_world)."""
+        and none of their rows is read or written (fused.step_world).  A step taken alone (not one
+        of several in a launch) is followed by the retry of the worlds it failed (``self.retry``;
+        ``retry`` False: not this time)."""
         if hold is not None or go is not None:
             self._check_hold(hold, go)
         for k in self.launch_chunks(num_steps):
-            for phase, _ in self.step_phases(k, hold, go):
+            for phase, _ in self.step_phases(k, hold, go, retry):
                 phase(state)
 
     @property
@@ -370,14 +382,22 @@ class Solver:
             return [(self._whole_step, True)]
         return [(self.open_step, True), (self.newton, False), (self.close_step, True)]
 
-    def step_phases(self, steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None) -> list:
+    def step_phases(self, steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None,
+                    retry: bool = True) -> list:  # fmt: skip
         """(part, capturable) pairs for ``steps`` steps: the one launch of multi_step (or of a step
-        holding worlds: ``hold``, ``go``), else (steps 1) phases()."""
+        holding worlds: ``hold``, ``go``), else (steps 1) phases(); for one step, then the retry of
+        its failed worlds (retry.Retry.check)."""
         if self.multi_step or hold is not None or go is not None:
-            return [(functools.partial(self._fused_newton, steps=int(steps), hold=hold, go=go), self.capturable)]
-        if steps != 1:
+            phases = [(functools.partial(self._fused_newton, steps=int(steps), hold=hold, go=go), self.capturable)]
+        elif steps != 1:
             raise ValueError(f"{steps} steps in one go need the one-launch step (multi_step)")
-        return self.phases()
+        else:
+            phases = self.phases()
+        if retry and self.retry is not None and steps == 1:
+            # a GPU's graph holds the retry's branch; the CPU runs it as it comes (retry.Retry.check)
+            cuda = wp.get_device(self.model.device).is_cuda
+            phases = phases + [(functools.partial(self.retry.check, hold=hold, go=go), cuda)]
+        return phases
 
     def _whole_step(self, state):
         self.open_step(state)

@@ -2,8 +2,7 @@
 
 A NEXT_STEP autoreset (a world that ended in step t starts its next episode in step t+1) needs
 the new episode's initial state in step t+1.  Drawn then on the host, it costs NumPy draws,
-uploads and a dozen launches per step (~400 µs of host time at 1,024 CartPole worlds on an H100,
-a third of the env step).  Here each world keeps a queue of its next ``depth`` initial states on
+uploads and a dozen launches per step, a large part of a small batch's env step.  Here each world keeps a queue of its next ``depth`` initial states on
 the device, and the autoreset is two launches on device arrays (the mask of last step's ended
 worlds, the queues, each world's count of episodes taken), which need nothing from the host and
 which a graph can hold.  The host follows the counts from the ended-world masks it
@@ -32,9 +31,8 @@ QUEUE_ROWS = 1 << 21  # the queues' rows in all (each 2·joints values) that a d
 def default_depth(num_worlds: int) -> int:
     """A queue's depth for ``num_worlds`` worlds: the largest power of two from 8 to 64 whose rows
     in all stay under QUEUE_ROWS (64 up to 32,768 worlds, 8 from 262,144).  Deep queues spare the
-    host top-ups, each of which costs it hundreds of µs (draws, uploads, a launch) in which a
-    small batch's device runs dry: on an H100, 1,024 CartPole-v0 worlds topped up every ~26 steps
-    at depth 8, ~15 µs a step averaged over a ~180 µs step."""
+    host top-ups, each of which costs it draws, uploads and a launch, in which a small batch's
+    device runs dry."""
     fit = QUEUE_ROWS // max(int(num_worlds), 1)
     return int(min(64, max(8, 1 << max(fit.bit_length() - 1, 0))))
 

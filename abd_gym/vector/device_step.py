@@ -22,8 +22,7 @@ from .outcome import batch_info, outcome
 # Inductor writes a value out once it is read more than realize_reads_threshold times (default 4);
 # a task's observation, read by its reward and termination column by column, is then a kernel of
 # its own.  Inlined into its readers instead, it fuses into the kernel that writes the packed
-# outcome: on an H200 at 1,024 envs CartPole-v0's outcome is 1 kernel, CartPoleSwingUp-v0's and
-# Pendulum-v0's 2 (with the default: 2, 3 and 2)
+# outcome, so that a task's outcome takes fewer kernels
 INDUCTOR_OPTIONS = {"realize_reads_threshold": 64, "realize_opcount_threshold": 1000}
 
 
@@ -31,9 +30,7 @@ def _own_code(method):
     """The bound ``method`` on a copy of its function's code object.  torch.compile keeps a
     function's compiled versions on its code object, which every env (every task, every size)
     would share, up to ``torch._dynamo.config.recompile_limit`` (8), after which new ones run
-    uncompiled: on an H100 a later env of one bench process, FourBar-v0 at 1,024 envs after the
-    cart-pole's and Reacher's, fell back to its eager outcome (0.71 of its physics against 0.95
-    with its own copy)."""
+    uncompiled: a later env of one process would fall back to its eager outcome."""
     f = method.__func__
     g = types.FunctionType(f.__code__.replace(), f.__globals__, f.__name__, f.__defaults__, f.__closure__)
     return types.MethodType(g, method.__self__)
@@ -137,8 +134,8 @@ class DeviceStep:
         """Views of the packed outputs ``raw`` (4-byte words, the buffer or a copy of its head, at
         storage offset 0): observations (N, d), rewards (N,), then the first ``rows`` flag rows
         (terminated, truncated, failed, done, bad: bytes after the rewards and the status), each
-        (N,).  Built by as_strided, one Torch call a view: slicing and retyping took 11 calls,
-        ~15 µs of host time a step on the H100's host at 1,024 envs."""
+        (N,).  Built by as_strided, one Torch call a view, where slicing and retyping would take
+        several calls a step."""
         torch = self.xp
         N, d = self.num_envs, self.env.single_observation_space.shape[0]
         F = 4 * N * (d + 2)
@@ -187,8 +184,7 @@ class DeviceStep:
             # the physics and the autoreset at once, on two streams of the graph: the step holds the
             # pending worlds (it neither reads nor writes their rows) while the autoreset restarts
             # them, and both leave a refused batch (go cleared) alone themselves, with no
-            # conditional node (on an H100 the node cost ~8 µs a step, and the autoreset's two
-            # launches ~19 µs, at 1,024 CartPole-v0 worlds' ~100 µs physics)
+            # conditional node: the node's cost and the autoreset's launches overlap the physics
             go = self.go if checked else None
             if side_stream is None:
                 raise RuntimeError("the step's side stream is made before its capture (StepGraph)")
@@ -319,7 +315,8 @@ class DeviceStep:
             out = self.fixed_views if fixed else self.unpack(raw)
             if not fixed:  # else handed back in place, as the outputs
                 info_values = {k: v.clone() for k, v in info_values.items()}
-            info_values = dict(info_values, sim_status=self.fixed_status if fixed else self.status_of(raw))
+            info_values = dict(info_values, sim_status=self.fixed_status if fixed else self.status_of(raw),
+                               sim_substeps=self.sim.view(self.sim.state.substeps, "torch").clone())  # fmt: skip
         obs, reward, terminated, truncated, failed = out
         # the worlds the device just reset (last step's ended ones, known on the host now): their
         # info is a reset's (none), their clock restarts, they took a row of their queues; this

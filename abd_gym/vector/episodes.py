@@ -22,8 +22,8 @@ def check_task_state(task_state) -> int:
 
 class Episodes:
     """``elapsed``, ``task`` (module docstring) and ``no_flags``, an all-False (N,) bool array made
-    once: building one each step was a host-to-device copy (on a GPU, from pageable memory, which
-    waits for the stream) in every step of every task without terminations."""
+    once: building one each step would be a host-to-device copy (on a GPU, from pageable memory,
+    which waits for the stream) in every step of every task without terminations."""
 
     def __init__(self, arrays, num_envs: int, task_state: tuple):
         self.arrays, self.task_state = arrays, tuple(task_state)

@@ -1,9 +1,8 @@
 """The vector env's per-step bookkeeping on the device as two Warp kernels (the device path of
 ``vector_env`` with Torch); the episode clocks tick in the autoreset's first launch (autoreset.py).
 
-Each replaces a run of one-line Torch operations whose launches, not their arithmetic, are what
-an env step costs beside the physics: on an H100 with 1,024 CartPole worlds, about 35 small
-kernels took ~100 µs of device time a step against ~260 µs of physics.  One thread per world.
+Each does the work of a run of one-line Torch operations in one launch: beside the physics, an
+env step's cost is its launches, not their arithmetic.  One thread per world.
 
 ``mailed`` variants serve the step graph, whose kernel arguments are fixed at capture: they find
 the caller's action batch and the step's fresh output buffer by pointers the host writes, before
@@ -12,10 +11,9 @@ CUDA's unified addressing), and write the done and bad rows straight to page-loc
 (``host_flags[slot]``), so that a step is the graph alone: no copy of the actions in, of the
 outputs out or of the flags to the host as stream operations of their own.  ``slot`` alternates
 between two graphs: the host reads step t's flags while step t + 1 (the other slot) runs.  A
-kernel's read of host memory lasts a PCIe round trip (on an H200, 2.7 µs for a kernel of 1,024
-threads that reads a pointer there against 1.3 µs for one that reads it from device memory;
-writes there cost nothing measurable): the check, the step's first kernel, reads the mailbox
-and copies its slot to device memory, where the step's last kernel reads the output's pointer.
+kernel's read of host memory lasts a PCIe round trip (a write there does not wait): so the
+check, the step's first kernel, reads the mailbox and copies its slot to device memory, where
+the step's last kernel reads the output's pointer.
 """
 import functools
 

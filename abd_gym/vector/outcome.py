@@ -35,6 +35,14 @@ def world_status(env):
     return env.sim.view(env.sim.state.status, "torch").clone()
 
 
+def substeps(env):
+    """(N,) int32 backend array (a copy): the substeps of each world's last physics step
+    (``Simulator.substeps``: 1, or 2 or 4 where a failed step was retried)."""
+    if env.xp is np:
+        return env.sim.substeps()
+    return env.sim.view(env.sim.state.substeps, "torch").clone()
+
+
 def outcome(env, a, pend=None):
     """Observation, reward, terminated, truncated, failed and info values of the step ``env`` just
     took with the clipped actions ``a``; ``pend``: a backend bool mask of the worlds reset in this
@@ -50,7 +58,7 @@ def outcome(env, a, pend=None):
         truncated = env.episodes.elapsed >= env.max_episode_steps
     else:
         truncated = env.episodes.all_false()
-    info_values = dict(env.info(obs), sim_status=world_status(env))
+    info_values = dict(env.info(obs), sim_status=world_status(env), sim_substeps=substeps(env))
     zero = failed
     if pend is not None:
         terminated, truncated, zero = terminated & ~pend, truncated & ~pend, failed | pend

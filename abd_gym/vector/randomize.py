@@ -120,7 +120,7 @@ class Parameters:
                 lo_k, up_k = np.clip(lo_k, -math.pi, math.pi), np.clip(up_k, -math.pi, math.pi)
             st_k = st * draw("limit_strength_scale", k, 1.0)
             self.limits[k][idx] = np.stack([lo_k, up_k, st_k], axis=1)
-            sim.set_limit(k, lower=lo_k, upper=up_k, strength=st_k, worlds=idx)
+            sim.set_limit(k, lower=lo_k, upper=up_k, strength=st_k, worlds=idx, check_state=False)  # states set next
 
     def snapshot(self) -> dict:
         """The values in force and the spec, as host values."""
@@ -140,4 +140,4 @@ class Parameters:
         if self.scene.num_joints:
             sim.set_joint_strength(self.strength_ratio)
         for k, values in self.limits.items():
-            sim.set_limit(k, lower=values[:, 0], upper=values[:, 1], strength=values[:, 2])
+            sim.set_limit(k, lower=values[:, 0], upper=values[:, 1], strength=values[:, 2], check_state=False)

@@ -10,7 +10,7 @@ abd_gym/CartPole-v0                abd_gym.envs.cartpole                        
 abd_gym/CartPoleSwingUp-v0         abd_gym.envs.cartpole_swingup                500    350
 abd_gym/DoublePendulumCart-v0      abd_gym.envs.double_pendulum_cart            500    450
 abd_gym/Acrobot-v0                 abd_gym.envs.acrobot                         500    -100
-abd_gym/Reacher-v0                 abd_gym.envs.reacher                         50     -5
+abd_gym/TwoLinkReacher-v0          abd_gym.envs.reacher                         50     -5
 abd_gym/FourBar-v0                 abd_gym.envs.fourbar                         200    150
 abd_gym/SliderCrank-v0             abd_gym.envs.slider_crank                    200    150
 abd_gym/InvertedPendulum-v5        abd_gym.envs.inverted_pendulum               1000   950
@@ -27,8 +27,16 @@ need the ``mujoco`` package); each module's docstring says what differs from Gym
                         vectorization_mode="vector_entry_point", device="cuda:0", backend="torch")
 
 Entry points are strings, so nothing under ``abd_gym.envs`` is imported until an env is made.
+
+Former ids (``RENAMED``) stay registered for one release: making one makes the task under its
+new id, with a one-line ``FutureWarning`` naming it.  ``abd_gym/Reacher-v0`` is now
+``abd_gym/TwoLinkReacher-v0``: beside ``abd_gym/Reacher-v5`` Gymnasium read it as an older
+version of that task, which it is not, and warned on every make that it was out of date.
 """
 from __future__ import annotations
+
+import importlib
+import warnings
 
 import gymnasium as gym
 
@@ -42,7 +50,7 @@ TASKS = {
     "DoublePendulumCart-v0": ("abd_gym.envs.double_pendulum_cart", "DoublePendulumCartEnv", "DoublePendulumCartVectorEnv",
                               500, 450.0),
     "Acrobot-v0": ("abd_gym.envs.acrobot", "AcrobotEnv", "AcrobotVectorEnv", 500, -100.0),
-    "Reacher-v0": ("abd_gym.envs.reacher", "ReacherEnv", "ReacherVectorEnv", 50, -5.0),
+    "TwoLinkReacher-v0": ("abd_gym.envs.reacher", "ReacherEnv", "ReacherVectorEnv", 50, -5.0),
     "FourBar-v0": ("abd_gym.envs.fourbar", "FourBarEnv", "FourBarVectorEnv", 200, 150.0),
     "SliderCrank-v0": ("abd_gym.envs.slider_crank", "SliderCrankEnv", "SliderCrankVectorEnv", 200, 150.0),
     "InvertedPendulum-v5": ("abd_gym.envs.inverted_pendulum", "InvertedPendulumEnv", "InvertedPendulumVectorEnv",
@@ -52,6 +60,24 @@ TASKS = {
     "Reacher-v5": ("abd_gym.envs.reacher_v5", "ReacherV5Env", "ReacherV5VectorEnv", 50, -3.75),
     "ArmReach-v0": ("abd_gym.envs.arm_reach", "ArmReachEnv", "ArmReachVectorEnv", 50, -15.0),
 }  # fmt: skip
+
+
+# former id: the task's id now (each former id registered for one more release)
+RENAMED = {"Reacher-v0": "TwoLinkReacher-v0"}
+
+
+class FormerId:
+    """Entry point (``vector``: vector entry point) of a former id: warns once in a line, then makes
+    the task under its new id."""
+
+    def __init__(self, old: str, new: str, vector: bool = False):
+        self.old, self.new, self.vector = old, new, vector
+
+    def __call__(self, **kwargs):
+        warnings.warn(f"{NAMESPACE}/{self.old} is now {NAMESPACE}/{self.new}; the former id goes in the next release",
+                      FutureWarning, stacklevel=2)  # fmt: skip
+        module, single, vector = TASKS[self.new][:3]
+        return getattr(importlib.import_module(module), vector if self.vector else single)(**kwargs)
 
 
 def env_ids() -> list[str]:
@@ -72,3 +98,12 @@ def register_envs() -> None:
             max_episode_steps=steps,
             reward_threshold=threshold,
         )
+    for old, new in RENAMED.items():
+        env_id = f"{NAMESPACE}/{old}"
+        # Gymnasium's "out of date, upgrade to v5" for a former id whose name a newer task shares
+        warnings.filterwarnings("ignore", message=rf".*The environment {env_id} is out of date")
+        if env_id in gym.registry:
+            continue
+        _, _, _, steps, threshold = TASKS[new]
+        gym.register(id=env_id, entry_point=FormerId(old, new), vector_entry_point=FormerId(old, new, vector=True),
+                     max_episode_steps=steps, reward_threshold=threshold)  # fmt: skip

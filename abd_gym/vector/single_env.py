@@ -5,6 +5,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
+from .single_step import HostStep, world_info
 
 
 class ABDEnv(gym.Env):
@@ -15,6 +16,10 @@ class ABDEnv(gym.Env):
     ``ValueError`` without stepping, ``reset(seed=...)`` seeds the initial-state draws,
     ``reset(options={"randomize": ...})`` randomises the physical parameters; ``env.sim`` is the
     simulator and ``env.vector_env`` the one-world batched env.
+
+    On the CPU a step is :class:`~abd_gym.vector.single_step.HostStep`: the vector env's world's
+    step, bit for bit, without its batching, and its physics one launch (the plan's
+    ``one_launch``, unless ``simulator_options`` gives a plan), replayed from a captured graph.
     """
 
     vector_class: type  # the task's ABDVectorEnv subclass, set by each task
@@ -26,42 +31,52 @@ class ABDEnv(gym.Env):
             raise TypeError(f"{cls.__name__} must set vector_class to its task's ABDVectorEnv subclass")
         cls.metadata = {"render_modes": ["rgb_array"], "render_fps": cls.vector_class.metadata["render_fps"]}
 
-    def __init__(self, render_mode: str | None = None, device="cpu", **kwargs):
+    def __init__(self, render_mode: str | None = None, device="cpu", simulator_options: dict | None = None, **kwargs):
+        options = dict(simulator_options or {})
+        if str(device).startswith("cpu"):
+            # one world: the fused kernel opens and closes the step itself, one launch instead of
+            # five (the same step bit for bit: tests/test_graph.py, test_single_env.py)
+            options.setdefault("plan", {"one_launch": True})
         self.vector_env = self.vector_class(num_envs=1, device=device, backend="numpy",
                                             autoreset_mode=AutoresetMode.DISABLED, max_episode_steps=None,
-                                            render_mode=render_mode, **kwargs)  # fmt: skip
+                                            render_mode=render_mode, simulator_options=options, **kwargs)  # fmt: skip
         self.observation_space = self.vector_env.single_observation_space
         self.action_space = self.vector_env.single_action_space
         self.render_mode = render_mode
+        self._host_step = HostStep(self.vector_env) if self.vector_env.device.is_cpu else None
+
+    def __getstate__(self):
+        """The env without its HostStep, which holds views of the simulator's memory; the vector
+        env pickles itself (ABDVectorEnv.__getstate__) and a copy builds its own HostStep."""
+        state = dict(self.__dict__)
+        state.pop("_host_step")
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._host_step = HostStep(self.vector_env) if self.vector_env.device.is_cpu else None
 
     @property
     def sim(self):
         """The one-world env's ``Simulator``."""
         return self.vector_env.sim
 
-    @staticmethod
-    def _unbatch(info: dict) -> dict:
-        out = {}
-        for key, value in info.items():
-            if key.startswith("_"):
-                continue
-            if isinstance(value, dict):
-                out[key] = ABDEnv._unbatch(value)
-            else:
-                v = np.asarray(value)[0]
-                out[key] = v.item() if v.ndim == 0 else v
-        return out
-
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self.vector_env.np_random = self.np_random  # one generator: seeding this env seeds its world
+        if self._host_step is not None and not options:
+            return self._host_step.reset()
         obs, info = self.vector_env.reset(options=options)
-        return obs[0], self._unbatch(info)
+        return obs[0], world_info(info)
 
     def step(self, action):
+        if self._host_step is not None:
+            if not self.vector_env._has_reset:
+                raise RuntimeError("call reset() before step()")
+            return self._host_step.step(action)
         a = np.asarray(action, dtype=np.float32).reshape(1, -1)
         obs, reward, terminated, truncated, info = self.vector_env.step(a)
-        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), self._unbatch(info)
+        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), world_info(info)
 
     def render(self):
         if self.render_mode is None:

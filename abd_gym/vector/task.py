@@ -147,4 +147,6 @@ class Task:
         """The observation as the env returns it: ``observe()`` as float32, clipped to the
         observation space."""
         obs = self.f32(self.observe())
+        if self.xp is np:  # np.clip's arithmetic (NaN kept) without its Python wrapper
+            return np.minimum(np.maximum(obs, self._obs_low), self._obs_high)
         return self.xp.clip(obs, self._obs_low, self._obs_high)

@@ -54,8 +54,7 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   step, by default up to ~4,000 worlds), the physics and the autoreset run at once on two streams
   of the graph: the step holds (does not touch) the worlds whose autoreset restarts them, and
   both skip a refused batch themselves; elsewhere they run in turn inside a conditional node on
-  the check's go flag.  (On an H100 this took 1,024 CartPole-v0 worlds' step graph from 142 to
-  118 µs of device time, about 102 of them physics.)  The graph reads the
+  the check's go flag.  The graph reads the
   caller's action batch and writes the step's outputs to a fresh buffer (the caller's to keep) by
   pointers the host leaves in page-locked memory, and writes the done mask there for the host,
   so a step is one graph launch and no copy.  The env's own bookkeeping runs there as a few Warp kernels
@@ -77,7 +76,10 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   (``Simulator.failed_worlds``, or a non-finite observation) is terminated, reported in
   ``info["sim_failed"]`` (a bool per world, in every step's info) with the simulator's cause in
   ``info["sim_status"]`` (an int32 ``abd_gym.WorldStatus`` code per world) and gets a zero
-  observation and reward; the autoreset (or your masked reset) brings it back.
+  observation and reward; the autoreset (or your masked reset) brings it back.  A step that
+  failed is first taken again as 2, then 4 substeps (``Simulator.substeps``; not in a GPU's
+  device step): ``info["sim_substeps"]`` (int32 per world) is the substeps of the env step's last
+  physics step.
 * observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
   and chosen above what the task reaches (rates: ``velocity_bound`` = 100 rad/s or m/s).
 * per-world physical parameters: ``randomize={...}`` (constructor or ``reset`` option, sticky:
@@ -108,6 +110,7 @@ the class docstring; docs/custom_task.md walks through a new task from scene to 
 """
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import gymnasium as gym
@@ -322,12 +325,38 @@ class ABDVectorEnv(Task, VectorEnv):
         self.__init__(*state["args"], **state["kwargs"])
         self._restore(state["snapshot"])
 
+    def get_state(self) -> dict:
+        """The whole env's state as host values: the simulator's (Simulator.get_state), each
+        world's episode clock and task values (``task_state``), the parameters in force, the
+        autoreset queues, the pending resets and copies of the random generators.  ``set_state``
+        puts it back into this env (or another built with the same arguments), which then steps
+        as this one did from here, bit for bit."""
+        return copy.deepcopy(self._snapshot())
+
+    def set_state(self, state: dict):
+        """Restore ``get_state``'s values (see there; the state can be restored again later).  The
+        simulator's part is checked as Simulator.set_state checks it; where it is refused the env
+        is left as it was."""
+        keys = {"sim", "episodes", "parameters", "pending", "rng", "has_reset"}
+        if self.next_episodes is not None:
+            keys.add("queue")
+        if not isinstance(state, dict) or set(state) != keys:
+            raise ValueError(f"state must be a dict from this env's get_state, with entries {sorted(keys)}")
+        if self.pending.unread or self.pending.in_flight:
+            self._pending_now()
+        params = self.parameters.snapshot()
+        try:
+            self._restore(copy.deepcopy(state))
+        except (TypeError, ValueError):
+            self.parameters.restore(params)  # the simulator refused its part before writing any
+            raise
+
     def _snapshot(self) -> dict:
         """Host values of the simulator's state, the episodes, the parameters in force, the
         autoreset queues, the pending mask and the random generators."""
         if self.pending.unread or self.pending.in_flight:
             self._pending_now()  # the last GPU step's done mask on the host (raises if it refused NaN actions)
-        snap = {"sim": self.sim.state.snapshot(), "episodes": self.episodes.snapshot(),
+        snap = {"sim": self.sim.get_state(), "episodes": self.episodes.snapshot(),
                 "parameters": self.parameters.snapshot(), "pending": self.pending.mask,
                 "rng": (self._np_random, self._np_random_seed, self._next_rng),
                 "has_reset": self._has_reset}  # fmt: skip
@@ -336,13 +365,13 @@ class ABDVectorEnv(Task, VectorEnv):
         return snap
 
     def _restore(self, snap: dict):
-        """``_snapshot``'s values put back into this env, freshly built with the same arguments."""
-        self.sim.state.restore(snap["sim"])
+        """``_snapshot``'s values put back into this env, built with the same arguments."""
+        self.parameters.restore(snap["parameters"])  # the limits in force, against which the state is checked
+        self.sim.set_state(snap["sim"])
         self.episodes.restore(snap["episodes"])
         self.pending.mask = snap["pending"]
         self._np_random, self._np_random_seed, self._next_rng = snap["rng"]
         self._has_reset = snap["has_reset"]
-        self.parameters.restore(snap["parameters"])
         if "queue" in snap:
             self.next_episodes.restore(snap["queue"])
 

@@ -15,6 +15,7 @@ import gymnasium as gym
 import numpy as np
 
 import abd_gym as ag
+from abd_gym import mjcf
 from abd_gym.vector.vector_env import ABDEnv, ABDVectorEnv
 
 ENV_ID = "abd_gym_examples/FurutaMJCF-v0"
@@ -73,20 +74,7 @@ def check():
 def compare_with_mujoco(qpos=(0.0, 0.3), qvel=(1.0, 0.0), seconds=1.0, dt=0.002):
     """Largest |qpos difference| [rad] over ``seconds`` of unactuated motion from (qpos, qvel):
     abd_gym (float64, step ``dt``) against MuJoCo itself (RK4 at a 1e-4 s step, the reference)."""
-    import mujoco
-
-    model = mujoco.MjModel.from_xml_path(str(MODEL))
-    model.opt.timestep, model.opt.integrator = 1e-4, mujoco.mjtIntegrator.mjINT_RK4
-    data = mujoco.MjData(model)
-    data.qpos[:], data.qvel[:] = qpos, qvel
-    sim = ag.Simulator(ag.Scene.from_mjcf(MODEL), dt=dt, dtype="float64")
-    sim.set_joint_state([qpos], [qvel])
-    error = 0.0
-    for _ in range(round(seconds / dt)):
-        sim.step()
-        mujoco.mj_step(model, data, nstep=round(dt / model.opt.timestep))
-        error = max(error, float(np.abs(sim.joint_angles_unwrapped()[0] - data.qpos).max()))
-    return error
+    return mjcf.compare_with_mujoco(MODEL, (qpos, qvel), seconds, dt).max_error
 
 
 CONFIG = {  # the keys of a configs/*.yaml file

@@ -1,0 +1,174 @@
+"""A failed step retried as substeps: a world whose step did not converge or broke down
+(status.UNCONVERGED, BREAKDOWN) takes that step again as 2 steps of dt/2, then, if one of those
+fails, as 4 of dt/4, from the state it had before the step; only then is it rejected (its status
+stays, its state is the one before the step).
+
+Only the retried worlds step again: the substeps are the one-launch fused step (a Solver of
+dt/2 or dt/4 on the same model and state) holding every other world, whose rows it neither reads
+nor writes, so a batch whose worlds all converge steps exactly as without retries.  A step costs
+the healthy batch one launch (``mark``: which worlds failed, and a device flag) and a conditional
+branch (``wp.capture_if``) that a graph holds (on the CPU, a look at the status and substeps in
+host memory, and the launch only where a world is not OK or the last step was retried); the substep solvers and the copy of the retried
+worlds' state they start from are made at the first retry on the CPU, at the first step on a GPU
+(so that the graphs captured after it hold the branch).
+
+A retried world's next step is an implicit Euler step (fresh RESET): its BDF2 history spans a
+substep, not dt.  ``state.substeps[w]``: the substeps of world w's last step (1, 2 or 4).
+"""
+
+import functools
+
+import numpy as np
+import warp as wp
+
+from ..sim.status import BREAKDOWN, OK, UNCONVERGED
+from .kernels import RESET, RESTART
+
+SUBSTEPS = (2, 4)
+# the state's arrays a retry leaves as its last attempt wrote them (the rest are put back to the
+# state before the step where an attempt fails): the status and the last solve's counters
+KEPT = ("status", "fresh", "substeps", "iterations", "factorizations", "converged", "retried")
+
+
+@wp.kernel
+def mark(status: wp.array(dtype=wp.int32), iterations: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32),
+         substeps: wp.array(dtype=wp.int32), hold: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32),
+         idle: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32)):  # fmt: skip
+    """After a step: a world this step solved (not held: hold[w] == 0 and go[0] != 0; iterations >
+    0) and rejected is to be retried (idle 0, status OK again, an implicit Euler start, 2
+    substeps; flag[0] = 1); every other world idles (1), and a world stepped OK took 1 step."""
+    w = wp.tid()
+    idle[w] = 1
+    if go[0] == 0 or hold[w] != 0:
+        return
+    s = status[w]
+    if s == OK:
+        substeps[w] = 1
+    elif (s == UNCONVERGED or s == BREAKDOWN) and iterations[w] > 0:
+        idle[w] = 0
+        status[w] = OK
+        fresh[w] = RESTART
+        substeps[w] = 2
+        flag[0] = 1
+
+
+@wp.kernel
+def settle(status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32), substeps: wp.array(dtype=wp.int32),
+           idle: wp.array(dtype=wp.int32), back: wp.array(dtype=wp.int32), n: int, next_n: int):  # fmt: skip
+    """After an attempt of ``n`` substeps: a retried world that came through idles from now on (its
+    next step an implicit Euler step: RESET); one that failed goes back to the state before the
+    step (back 1) and tries ``next_n`` substeps, or, with next_n 0, is rejected (status kept)."""
+    w = wp.tid()
+    back[w] = 0
+    if idle[w] != 0:
+        return
+    if status[w] == OK:
+        idle[w] = 1
+        fresh[w] = RESET
+        return
+    back[w] = 1
+    if next_n > 0:
+        status[w] = OK
+        fresh[w] = RESTART
+        substeps[w] = next_n
+    else:
+        idle[w] = 1
+        substeps[w] = n
+
+
+@functools.lru_cache(maxsize=None)
+def _copy_rows(scalar):
+    @wp.kernel
+    def copy_rows(dst: wp.array2d(dtype=scalar), src: wp.array2d(dtype=scalar), mask: wp.array(dtype=wp.int32),
+                  want: int):  # fmt: skip
+        """dst[w] = src[w] for the worlds with mask[w] == want."""
+        w, i = wp.tid()
+        if mask[w] == want:
+            dst[w, i] = src[w, i]
+
+    return copy_rows
+
+
+def _rows(a: wp.array) -> wp.array:
+    """A contiguous (W, ...) array as (W, k) of its scalars (a view)."""
+    scalar = getattr(a.dtype, "_wp_scalar_type_", a.dtype)
+    k = int(np.prod(a.shape[1:], dtype=np.int64)) * int(np.prod(getattr(a.dtype, "_shape_", ()), dtype=np.int64))
+    return wp.array(ptr=a.ptr, dtype=scalar, shape=(a.shape[0], k), device=a.device)
+
+
+class Retry:
+    """The retry of one Solver's failed worlds (module docstring)."""
+
+    def __init__(self, solver, make_solver):
+        """``make_solver(model, dt, settings, plan)``: a Solver of no retry of its own (the substeps')."""
+        self.solver, self.make_solver = solver, make_solver
+        m = solver.model
+        W, dev = m.num_worlds, m.device
+        self.flag = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.idle = wp.ones(W, dtype=wp.int32, device=dev)  # 0: the world is being retried
+        self.back = wp.zeros(W, dtype=wp.int32, device=dev)
+        self.all_idle = wp.ones(W, dtype=wp.int32, device=dev)  # (prepare's launch that changes no world)
+        self._subs = None  # the substep solvers, SUBSTEPS[i] steps of dt/SUBSTEPS[i] each
+        self._pairs = None  # [(state rows, saved rows)] of the arrays an attempt puts back
+        self._host = None  # CPU: (state, NumPy views of its status and substeps)
+
+    @property
+    def ready(self) -> bool:
+        """Whether the substep solvers and the saved state exist (a graph may hold a retry)."""
+        return self._subs is not None
+
+    def prepare(self, state):
+        """Make the substep solvers (the one-launch fused step, built to hold worlds) and the copy of
+        the state, and load their kernels with launches that change no world."""
+        if self._subs is not None:
+            return
+        s, m = self.solver, self.solver.model
+        plan = dict(fused=True, one_launch=True, use_graph=False)
+        if wp.get_device(m.device).is_cpu:
+            plan["cpu_workers"] = 1  # one launch
+        subs = [self.make_solver(m, s.h / n, s.settings, plan) for n in SUBSTEPS]
+        none = wp.zeros(1, dtype=wp.int32, device=m.device)  # go 0: no world is stepped
+        for sub in subs:
+            sub.enable_hold()
+            sub.step(state, 1, hold=self.idle, go=none)
+        live = [a for name, a in vars(state).items() if isinstance(a, wp.array) and name not in KEPT]
+        self._saved = [wp.empty_like(a) for a in live]  # (owns the memory the views below read)
+        self._pairs = [(_rows(a), _rows(b)) for a, b in zip(live, self._saved)]
+        for dst, src in self._pairs:  # (want 2 matches no world)
+            wp.launch(_copy_rows(dst.dtype), dim=dst.shape, inputs=[src, dst, self.back, 2], device=m.device)
+        wp.launch(settle, dim=m.num_worlds, inputs=[state.status, state.fresh, state.substeps, self.all_idle, self.back,
+                                                    1, 0], device=m.device)  # fmt: skip
+        self._subs = subs
+
+    def check(self, state, hold=None, go=None):
+        """After a step of the solver (holding the worlds ``hold`` and, while go[0] == 0, every
+        world, as Solver.step does): retry the worlds it failed (module docstring).  On a GPU the
+        substep solvers are made at the first check, so that a graph captured later holds them."""
+        s, m = self.solver, self.solver.model
+        device = wp.get_device(m.device)
+        if device.is_cpu:  # host memory: no launch while every world is OK after a step of 1 substep
+            if self._host is None or self._host[0] is not state:
+                self._host = (state, state.status.numpy(), state.substeps.numpy())
+            if not self._host[1].any() and (self._host[2] == 1).all():
+                return
+        elif self._subs is None and not device.is_capturing:
+            self.prepare(state)
+        hold = s._no_hold if hold is None else hold
+        go = s._go_all if go is None else go
+        wp.launch(mark, dim=m.num_worlds, inputs=[state.status, state.iterations, state.fresh, state.substeps, hold, go,
+                                                  self.idle, self.flag], device=m.device)  # fmt: skip
+        wp.capture_if(self.flag, on_true=self._retry, state=state)
+
+    def _retry(self, state):
+        self.prepare(state)
+        m = self.solver.model
+        for live, saved in self._pairs:  # the retried worlds' state before the step
+            wp.launch(_copy_rows(live.dtype), dim=live.shape, inputs=[saved, live, self.idle, 0], device=m.device)
+        for i, (n, sub) in enumerate(zip(SUBSTEPS, self._subs)):
+            sub.step(state, n, hold=self.idle)
+            next_n = SUBSTEPS[i + 1] if i + 1 < len(SUBSTEPS) else 0
+            wp.launch(settle, dim=m.num_worlds, inputs=[state.status, state.fresh, state.substeps, self.idle, self.back,
+                                                        n, next_n], device=m.device)  # fmt: skip
+            for live, saved in self._pairs:  # a failed attempt's worlds back to the state before the step
+                wp.launch(_copy_rows(live.dtype), dim=live.shape, inputs=[live, saved, self.back, 1], device=m.device)
+        self.flag.zero_()

@@ -1,0 +1,120 @@
+"""One world's env step on the CPU, as lean as the task's hooks allow (``ABDEnv.step``).
+
+The vector env's step serves any batch on any device: it converts and checks the action batch,
+writes the controls through ``Simulator.set_controls``, and packs the outcome into Gymnasium's
+batched info layout, which the single env then unpacks.  For one world on the CPU each of those
+is a few NumPy calls on arrays of one row, and together they cost more than the physics.  Here
+the same step reads and writes the simulator's arrays in place (the CPU's device memory is the
+host's), steps by replaying the simulator's captured graphs, and calls the task's own hooks
+(``observe``, ``reward``, ``terminated``, ``info``) once each, so that the world takes the steps
+the vector env's world takes, bit for bit (tests/test_single_env.py):
+
+* the action: float32, clipped to the action space, ``× action_scale`` into the drives' controls
+  (the default ``controls`` hook; a task's own goes through ``Simulator.set_controls``); NaN
+  raises ``ValueError`` before anything is written;
+* the physics: ``Simulator.step(frame_skip)``, then the episode clock;
+* a reset without options: the vector env's ``_reset_worlds`` of the world, then its observation;
+* the outcome: ``observation()`` (float32, clipped), the status and the NaN check of a failed
+  world (zero observation and reward, terminated), the reward as a Python float and the flags as
+  bools; ``info`` holds the task's values and ``sim_status`` / ``sim_substeps`` /
+  ``sim_failed``, as the vector env's world 0 has them.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+class HostStep:
+    """The env step of ``env`` (an ABDVectorEnv of one world, NumPy backend, on the CPU, no
+    autoreset and no time limit: ABDEnv's)."""
+
+    def __init__(self, env):
+        if env.num_envs != 1 or env.xp is not np or not env.device.is_cpu:
+            raise ValueError("HostStep steps one world with the NumPy backend on the CPU")
+        self.env, self.sim = env, env.sim
+        state = env.sim.state
+        self.action = np.zeros((1, env.action_dim), dtype=np.float32)  # the clipped action, reused
+        self.flat = self.action.reshape(-1)  # a view of it
+        self.bound = float(env.action_bound)
+        # the default controls hook writes a × action_scale straight into the simulator's array
+        self.scale = env.action_scale if env.default_controls else None
+        if self.scale is not None:
+            self.control = env.sim.host_view(state.control)  # (1, num_drives)
+            same = self.control.dtype == np.float32  # else the float32 product is converted on the write
+            self.product = self.control if same else np.zeros_like(self.action)
+        self.status = env.sim.host_view(state.status)
+        self.substeps = env.sim.host_view(state.substeps)
+        self.elapsed = env.episodes.elapsed
+        self.frame_skip = env.frame_skip
+        self.zero_obs = np.zeros(env.single_observation_space.shape, dtype=np.float32)
+        self.world = np.arange(1)  # the reset's world index
+
+    def set_action(self, action):
+        """The action as the clipped float32 row ``self.action`` (a NaN raises, nothing written)."""
+        a = np.asarray(action, dtype=np.float32)
+        if a.size != self.action.size:
+            raise ValueError(f"action must have {self.action.size} entries, got shape {a.shape}")
+        row = self.action
+        row.flat = a
+        if math.isnan(self.flat.dot(self.flat)):  # Σ a² is NaN where an entry is (inf² is not)
+            raise ValueError(f"action contains NaN: {a.tolist()}; nothing was stepped")
+        np.maximum(row, -self.bound, out=row)  # np.clip's arithmetic without its Python wrapper
+        np.minimum(row, self.bound, out=row)
+        return row
+
+    def write_controls(self, a):
+        """The drives' inputs from the clipped action row ``a``."""
+        if self.scale is None:
+            self.sim.set_controls(self.env.controls(a))
+        elif self.product is self.control:
+            np.multiply(a, self.scale, out=self.control)
+        else:
+            np.multiply(a, self.scale, out=self.product)
+            self.control[...] = self.product
+
+    def reset(self):
+        """``(obs, info)`` of a reset without options: the vector env's reset of its world
+        (``_reset_worlds``: parameters, initial state, clock, task values), without the parsing of
+        options and masks that this reset does not have."""
+        env = self.env
+        env._reset_worlds(self.world, {})
+        env._has_reset = True
+        return env.observation()[0], {}
+
+    def step(self, action):
+        """``(obs, reward, terminated, truncated, info)`` of one env step (module docstring)."""
+        env = self.env
+        a = self.set_action(action)
+        self.write_controls(a)
+        self.sim.step(self.frame_skip)
+        self.elapsed += 1
+        obs = env.observation()
+        status = int(self.status[0])
+        row = obs[0]  # clipped: a non-finite entry is NaN, and Σ o² is NaN just where one is
+        failed = status != 0 or math.isnan(row.dot(row))
+        reward = float(env.f32(env.reward(obs, a))[0])
+        terminated = bool(env.terminated(obs)[0]) or failed
+        info = world_info(env.info(obs))
+        info["sim_status"] = status
+        info["sim_substeps"] = int(self.substeps[0])
+        info["sim_failed"] = failed
+        if failed:
+            return self.zero_obs.copy(), 0.0, True, False, info
+        return row, reward, terminated, False, info
+
+
+def world_info(info: dict) -> dict:
+    """World 0's entries of a batched info dict: Python scalars or array rows, nested dicts alike;
+    Gymnasium's ``"_key"`` masks left out."""
+    out = {}
+    for key, value in info.items():
+        if key.startswith("_"):
+            continue
+        if isinstance(value, dict):
+            out[key] = world_info(value)
+        else:
+            v = np.asarray(value)[0]
+            out[key] = v.item() if v.ndim == 0 else v
+    return out

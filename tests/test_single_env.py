@@ -1,0 +1,102 @@
+"""The single env's lean CPU step (abd_gym.vector.single_step) is its vector env's world's step.
+
+``gym.make`` envs step one world on the CPU through HostStep, with the one-launch physics
+(ExecutionPlan.one_launch) replayed from a captured graph; the vector env of the same task
+steps its worlds through the batched path with the default plan (five launches a step).  Both
+are compared here bit for bit: observations, rewards, flags and info, over random actions
+(out-of-range ones included), past terminations, for a task with the default controls, one with
+its own controls hook (TwoLinkReacher-v0), float64 physics and failed worlds.
+"""
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.vector import AutoresetMode
+
+import abd_gym  # noqa: F401 -- registers the ids
+from abd_gym.vector.single_step import HostStep
+
+STEPS = 30
+
+
+def _pair(task, seed=3, **kwargs):
+    """(the gym.make env unwrapped, a 1-world vector env of its task with autoreset off), both reset with ``seed``."""
+    single = gym.make(f"abd_gym/{task}", **kwargs).unwrapped
+    vector = single.vector_class(num_envs=1, autoreset_mode=AutoresetMode.DISABLED, **kwargs)
+    obs_s, _ = single.reset(seed=seed)
+    obs_v, _ = vector.reset(seed=seed)
+    np.testing.assert_array_equal(obs_s, obs_v[0])
+    return single, vector
+
+
+def _compare(single, vector, steps=STEPS, seed=0):
+    """Step both with the same random actions (up to 1.5× the bound); returns the single env's infos."""
+    rng = np.random.default_rng(seed)
+    bound = float(single.action_space.high[0])
+    infos = []
+    for t in range(steps):
+        a = rng.uniform(-1.5, 1.5, size=single.action_space.shape).astype(np.float32) * bound
+        obs, reward, terminated, truncated, info = single.step(a)
+        v_obs, v_reward, v_term, v_trunc, v_info = vector.step(a[None])
+        assert obs.dtype == np.float32 and obs.shape == single.observation_space.shape
+        np.testing.assert_array_equal(obs, v_obs[0], err_msg=f"step {t}")
+        assert type(reward) is float and reward == float(v_reward[0]), t
+        assert (terminated, truncated) == (bool(v_term[0]), bool(v_trunc[0])), t
+        assert info.keys() == {k for k in v_info if not k.startswith("_")}, t
+        for key, value in info.items():
+            assert np.asarray(value).tolist() == np.asarray(v_info[key])[0].tolist(), (t, key)
+        infos.append(info)
+    return infos
+
+
+@pytest.mark.parametrize("task,kwargs", [("CartPole-v0", {}), ("InvertedPendulum-v5", {}), ("TwoLinkReacher-v0", {}),
+                                         ("CartPole-v0", {"dtype": "float64"})])  # fmt: skip
+def test_single_env_steps_as_the_vector_envs_world_bit_for_bit(task, kwargs):
+    single, vector = _pair(task, **kwargs)
+    assert isinstance(single._host_step, HostStep)
+    assert single.sim.plan.one_launch and not vector.sim.plan.one_launch  # two ways of launching one step
+    infos = _compare(single, vector)
+    assert type(infos[0]["sim_status"]) is int and type(infos[0]["sim_failed"]) is bool
+    single.reset(seed=5)
+    vector.reset(seed=5)
+    _compare(single, vector, steps=10, seed=1)  # after a reset as well
+
+
+def test_failed_world_is_reported_as_the_vector_env_does():
+    """An iteration budget of 1 leaves some steps unconverged: a rejected step gives a zero
+    observation and reward, terminated, sim_failed and the status code, in both envs alike."""
+    options = {"simulator_options": {"max_iterations": 1, "quadratic_stop": 0.0}}
+    single, vector = _pair("CartPole-v0", **options)
+    infos = _compare(single, vector)
+    failed = [info for info in infos if info["sim_failed"]]
+    assert failed and all(info["sim_status"] == int(abd_gym.WorldStatus.UNCONVERGED) for info in failed)
+
+
+def test_non_finite_observation_fails_the_world_as_the_vector_env_does():
+    """A NaN in the task's observation (an infinite entry clips to the bound): zero observation and
+    reward, terminated and sim_failed, with the world's status left OK."""
+    single, vector = _pair("CartPole-v0")
+    for env in (single.vector_env, vector):
+        env.observe = lambda env=env: np.array([[np.nan, np.inf, 0.1, 0.2]])
+    infos = _compare(single, vector, steps=2)
+    assert all(info["sim_failed"] and info["sim_status"] == 0 for info in infos)
+
+
+def test_nan_action_raises_and_steps_nothing():
+    env = gym.make("abd_gym/CartPole-v0")
+    env.reset(seed=0)
+    sim = env.unwrapped.sim
+    q, time = sim.body_q(), sim.state.time.copy()
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(np.array([np.nan], dtype=np.float32))
+    with pytest.raises(ValueError, match="1 entries"):
+        env.step(np.zeros(2, dtype=np.float32))
+    np.testing.assert_array_equal(sim.body_q(), q)
+    np.testing.assert_array_equal(sim.state.time, time)
+    np.testing.assert_array_equal(sim.host_view(sim.state.control), 0.0)
+    env.step(np.array([np.inf], dtype=np.float32))  # clipped to the bound, as the vector env does
+    assert sim.host_view(sim.state.control)[0, 0] == 10.0
+
+
+def test_plan_given_in_simulator_options_is_kept():
+    env = gym.make("abd_gym/CartPole-v0", simulator_options={"plan": {"one_launch": False}})
+    assert not env.unwrapped.sim.plan.one_launch
