@@ -223,8 +223,10 @@ class ArmReachVectorEnv(GymnasiumMjcfEnv):
         if self._renderer is None:
             w, h = self.render_size
             cx, cy, cz = self.render_center
-            self._renderer = [Renderer(self.scene, plane=plane, center=center, width=self.render_width,
-                                       size=(w // 2, h)) for plane, center in (("xy", (cx, cy)), ("xz", (cx, cz)))]  # fmt: skip
+            views = (("xy", (cx, cy)), ("xz", (cx, cz)))
+            size = (w // 2, h)
+            self._renderer = [Renderer(self.scene, plane=plane, center=center, width=self.render_width, size=size)
+                              for plane, center in views]  # fmt: skip
         positions, rotations = self.sim.body_positions(), self.sim.body_rotations()
         tips, targets = np.asarray(self.fingertip().tolist()), np.asarray(self.target.tolist())
 
@@ -232,8 +234,8 @@ class ArmReachVectorEnv(GymnasiumMjcfEnv):
             canvas.circle(targets[world], 0.03, (230, 51, 51))
             canvas.circle(tips[world], 0.015, (20, 20, 20))
 
-        views = [r.frames(positions, rotations, self.render_worlds, marks) for r in self._renderer]
-        return tuple(np.concatenate(pair, axis=1) for pair in zip(*views))
+        frames = [r.frames(positions, rotations, self.render_worlds, marks) for r in self._renderer]
+        return tuple(np.concatenate(pair, axis=1) for pair in zip(*frames))
 
 
 class ArmReachEnv(ABDEnv):
