@@ -26,10 +26,10 @@ Reward (Reacher-v5's): r = −‖fingertip − target‖ − w·‖a‖² with w
   (default 0.1 with effort drives: Pusher-v5's weight, on actions normalised to ±1, so 0.025 per
   (N·m)² of torque; 0 with position drives, whose action is a pose, not an effort): per step in
   [−2.76, 0].
-Termination: none (Reacher-v5's); truncation at 50 steps (2.5 s); ``reward_threshold`` −15 (a
-  policy there brings the fingertip within a few centimetres of the target by the episode's end;
-  zero torque scores about −45, random actions −52, the scripted Jacobian-transpose controller
-  below about −23).
+Termination: none (Reacher-v5's); truncation at 50 steps (2.5 s); ``reward_threshold`` −15.
+  Over 1,024 episodes zero torque scores −45 and random actions −53; the scripted
+  Jacobian-transpose controller below −22 (it ends 2 cm from the target, but slowly); PPO
+  policies at −14.6 end about 12 cm from it, at −13.1 about 4 cm (three in four within 5 cm).
 Reset (Reacher-v5's noise): q ~ U(−0.1, 0.1) within each joint's range (the elbow and wrist flex
   ranges end at 0), q̇ ~ U(−0.005, 0.005); the target is the fingertip of a pose drawn uniformly
   in the joint ranges, so it is reachable (reset option ``target`` = (x, y, z) fixes it).
