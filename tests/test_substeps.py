@@ -148,3 +148,8 @@ def test_substeps_return_to_one_after_a_retried_step():
     np.testing.assert_array_equal(sim.substeps(), np.ones(W))
     sim.step()
     np.testing.assert_array_equal(sim.substeps(), np.ones(W))
+    state = sim.get_state()
+    state["substeps"][:] = 2  # a restored count: the next step's check sets it again
+    sim.set_state(state)
+    sim.step()
+    np.testing.assert_array_equal(sim.substeps(), np.ones(W))
