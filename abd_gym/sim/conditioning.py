@@ -103,10 +103,8 @@ def _list(worlds, most=8) -> str:
 
 
 # the most a step may turn the scene's fastest pendulum mode [rad]: beyond it the step's motion is
-# far from the prediction Newton starts from.  Measured (float64, 50 iterations, no retries):
-# double pendulums of 0.5 m links (√(g/r) = 6.2 rad/s) released from ±2.5 rad at ±3 rad/s, 2 of
-# 16 failed within 5 steps at dt 0.1 (0.62 rad a step), 10 at dt 0.2 (1.25); FourBar-v0's linkage
-# (13.7 rad/s) from its reset distribution, 44 of 64 at its first step at dt 0.1 (1.37), 54 at 0.2
+# far from the prediction Newton starts from, and Newton often fails to converge (docs/robustness.md:
+# the large_dt and fourbar cases of ``python -m abd_gym.bench robustness``)
 STEP_TURN = 1.0
 
 
