@@ -7,12 +7,10 @@ Two dimensionless numbers compare a stiffness with the inertia it acts on:
 - a body's ``4κ·vol·h²/λ_min(S)`` [–]: the orthogonality Hessian's scale 4κ·vol·h² [kg·m²] over the
   smallest eigenvalue of its second moment S [kg·m²], with h = dt [s].
 
-A double pendulum of 1 kg, 0.5 m links fails in every world at its first steps (float32, dt 0.002 to
-0.05) once a joint's K/m reaches 2e7 and a body's number 2e9; float64 fails at K/m 2e10 (dt 0.01) and
-at a body number of 6e10 (dt 0.05), where Newton no longer converges within 50 iterations.  Below
-float32's failure, at K/m 2e6, the solve still converges but its rounding shows: under BDF2 one of
-64 double pendulums released from up to ±2 rad gained 12% of its swing energy in 1 s (dt 0.01;
-``python -m abd_gym.bench robustness``, case strength_1e+06).  The limits below sit under those.
+Past a limit of its dtype the Newton solve of a step fails (a factor breaks down, or it does not
+converge within its iterations); somewhat below it, it still converges but its rounding shows (a
+BDF2 world gains energy).  SOLVABLE sits under both, for each dtype (docs/design.md §1 and §3.1,
+"Solvable range"; docs/robustness.md, ``python -m abd_gym.bench robustness``, the strength cases).
 """
 from __future__ import annotations
 
@@ -105,10 +103,8 @@ def _list(worlds, most=8) -> str:
 
 
 # the most a step may turn the scene's fastest pendulum mode [rad]: beyond it the step's motion is
-# far from the prediction Newton starts from.  Measured (float64, 50 iterations, no retries):
-# double pendulums of 0.5 m links (√(g/r) = 6.2 rad/s) released from ±2.5 rad at ±3 rad/s, 2 of
-# 16 failed within 5 steps at dt 0.1 (0.62 rad a step), 10 at dt 0.2 (1.25); FourBar-v0's linkage
-# (13.7 rad/s) from its reset distribution, 44 of 64 at its first step at dt 0.1 (1.37), 54 at 0.2
+# far from the prediction Newton starts from, and Newton often fails to converge (docs/robustness.md:
+# the large_dt and fourbar cases of ``python -m abd_gym.bench robustness``)
 STEP_TURN = 1.0
 
 

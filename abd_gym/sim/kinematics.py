@@ -215,5 +215,5 @@ def restart_launch(plan: TreePlan, omega: wp.array, state, model, solver, idx: w
         omega, st.q, st.qd, st.q_prev, st.q_hist, st.qd_hist, st.qd_hist2, st.order3, st.status, st.fresh,
         mask if masked else idx, int(masked),
         m.num_joints, m.body_a, m.body_b, m.joint_kind, m.c_a, m.c_b, m.t_a, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
-        st.theta0, st.c_prev, st.s_prev, st.unwrapped, st.x_hist, solver.h_step, float(solver.h), st.x_anchor, st.coord,
+        st.theta0, st.c_prev, st.s_prev, st.unwrapped, st.x_hist, solver.h_step, float(solver.dt), st.x_anchor, st.coord,
         st.coord_vel, st.coord_vel_hist, st.v_anchor]

@@ -62,8 +62,8 @@ class Simulator:
 
     How the step runs on the device (kernels, memory layout, launches, graphs) is ``plan``, an
     ExecutionPlan (or a dict of its fields) whose None fields are derived from the device, the
-    number of worlds and the scene by rules measured on an H100 (abd_gym.solver.plan); every plan gives
-    the same step to rounding.  ``Simulator.plan`` is the resolved plan.
+    number of worlds and the scene by the rules of abd_gym.solver.plan (the measurement behind each:
+    docs/performance.md); every plan gives the same step to rounding.  ``Simulator.plan`` is the resolved plan.
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "bdf2",

@@ -13,7 +13,7 @@ import warp as wp
 
 class State:
     def __init__(self, model):
-        W, dev, dt = model.num_worlds, model.device, model.dtype
+        W, dev, scalar = model.num_worlds, model.device, model.dtype
         nb, nj, nd = model.num_bodies, max(model.num_joints, 1), max(model.num_drives, 1)
         self.q = wp.zeros((W, nb), dtype=model.vec12, device=dev)
         self.qd = wp.zeros_like(self.q)
@@ -22,12 +22,12 @@ class State:
         self.q_hist = wp.zeros_like(self.q)
         self.qd_hist = wp.zeros_like(self.q)
         self.theta0, self.c_prev, self.s_prev, self.coord, self.coord_vel, self.unwrapped, self.x_hist, self.x_anchor = (
-            wp.zeros((W, nj), dtype=dt, device=dev) for _ in range(8)
+            wp.zeros((W, nj), dtype=scalar, device=dev) for _ in range(8)
         )
         # the passive terms' rate history ẋⁿ⁻¹ and predicted rate v̂ (constitutions.passive; kept
         # where the scene has passive terms)
-        self.coord_vel_hist, self.v_anchor = (wp.zeros((W, nj), dtype=dt, device=dev) for _ in range(2))
-        self.control = wp.zeros((W, nd), dtype=dt, device=dev)
+        self.coord_vel_hist, self.v_anchor = (wp.zeros((W, nj), dtype=scalar, device=dev) for _ in range(2))
+        self.control = wp.zeros((W, nd), dtype=scalar, device=dev)
         # q̇ⁿ⁻², whether its third-order extrapolation guesses a body's next step, the last step's
         # controls and the steps in a row with the same (solver_kernels.predict_body, open_body)
         self.qd_hist2 = wp.zeros_like(self.q)

@@ -136,8 +136,7 @@ def _noise_funcs(dtype):
         """eps·(1 + ‖q‖∞)·‖g‖₁: how much the energy can change when q moves by its own rounding (a
         first-order bound).  The rounding of E's own sum (eps·|E|) is far smaller where q − q̃ and
         the joints' offsets are differences of nearly equal numbers: a predicted decrease −gᵀΔq under
-        this is noise, and a line search on it only halves the step (measured: float32 double
-        pendulums at dt 0.002 and 0.005 spent up to 15 iterations at α = 1/32 on such steps)."""
+        this is noise, and a line search on it only halves the step, iteration after iteration."""
         return rounding * g_abs
 
     return dict(noise_floor=noise_floor, energy_noise=energy_noise)
@@ -198,18 +197,16 @@ def _predict_funcs(dtype):
         Euler step from qⁿ + h q̇ⁿ + h (q̇ⁿ − q̇ⁿ⁻¹), exact on quadratic motion where q̇ⁿ = (qⁿ − qⁿ⁻¹)/h;
         before a BDF2 step from qⁿ + (qⁿ − qⁿ⁻¹) + h (q̇ⁿ − q̇ⁿ⁻¹), exact on quadratic motion for that q̇
         and for BDF2's, the slope at tⁿ of the quadratic through qⁿ⁻², qⁿ⁻¹, qⁿ (with which the first
-        form overshoots by h²q̈/2, as far as q̃ is off).  Not from q̃: q̃ lets a jointed body fall freely by h²g, which the joints then undo
-        (a first Newton step of ~1e-3 m at dt 0.01, against ~1e-5 m from the extrapolation; float32
-        cart-poles and double pendulums converge in 2.0 iterations instead of 2.7–2.9).  Where the
-        third-order extrapolation qⁿ + h(3q̇ⁿ − 3q̇ⁿ⁻¹ + q̇ⁿ⁻²) would have guessed the body's last
-        step better (``order3``, set by finalize_body) and the world's controls are those of its last
-        two steps (``calm``, open_body), it is used instead: smooth motion then starts ~10x closer
-        (float32 cart-poles at dt 0.01: 1.87 -> 1.02 Newton iterations a step; before a BDF2 step
+        form overshoots by h²q̈/2, as far as q̃ is off).  Not from q̃: q̃ lets a jointed body fall
+        freely by h²g, which the joints then undo: a first Newton step far longer than the
+        extrapolation's error, and more iterations.  Where the third-order extrapolation
+        qⁿ + h(3q̇ⁿ − 3q̇ⁿ⁻¹ + q̇ⁿ⁻²) would have guessed the body's last step better (``order3``, set
+        by finalize_body) and the world's controls are those of its last two steps (``calm``,
+        open_body), it is used instead: smooth motion then starts closer (before a BDF2 step
         qⁿ + (qⁿ − qⁿ⁻¹) + h(3q̇ⁿ − 4q̇ⁿ⁻¹ + q̇ⁿ⁻²)/2, exact on cubic motion); across a change of
-        control its jerk is the change's, and guessed 1.05-1.3x more iterations on CartPole-v0,
-        TwoLinkReacher-v0 and DoublePendulumCart-v0 under random actions.  After
-        a reset q̇ⁿ⁻² = q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ.  A world whose limits act or
-        are in reach takes the fraction ``beta`` of that step (limit_reach; 1 elsewhere).  A retry
+        control its jerk is the change's, and it guesses worse than second order.  After a reset
+        q̇ⁿ⁻² = q̇ⁿ⁻¹ = q̇ⁿ, so the first guess is qⁿ + h q̇ⁿ.  A world whose limits act or are in
+        reach takes the fraction ``beta`` of that step (limit_reach; 1 elsewhere).  A retry
         from a fresh factor starts from q̃ instead (fused.solve_world, converge)."""
         qb = q[w, b]
         q_prev[w, b] = qb
@@ -230,8 +227,8 @@ def _predict_funcs(dtype):
             qt[r] = qt[r] + he * he * gravity[r]
         q_tilde[w, b] = qt
         # Newton's initial guess, A turned by Cayley's rotation of its extrapolated step (retract,
-        # rigid); with the bent trial steps, CartPole-v0's scene at dt 0.02 under random forces takes
-        # 3.14 Newton iterations a step instead of 4.54 (float64, tests/test_hard_cases.py)
+        # rigid): a straight step in A would leave the rotations by ~½θ², which the stiff
+        # orthogonality energy then pulls back over several iterations (docs/design.md §4)
         if he < h:
             # a BDF2 step's q̇ⁿ is the slope at tⁿ of the quadratic through qⁿ⁻², qⁿ⁻¹, qⁿ, not the
             # mean slope (qⁿ − qⁿ⁻¹)/h of the last step: h(2q̇ⁿ − q̇ⁿ⁻¹) would overshoot by h²q̈/2
@@ -277,7 +274,7 @@ def _predict_funcs(dtype):
         but h (an implicit Euler step) for a world whose history restarts (``fresh`` nonzero):
         - its state was set, so it has no past.  BDF2 started from a past invented as "the velocity
           was constant" takes a first velocity of (2/3)h·a for h·a, an O(h) error it never loses
-          (measured: first-order global error); an implicit Euler first step is O(h²) accurate,
+          (its global error would be first order); an implicit Euler first step is O(h²) accurate,
           which keeps BDF2 second order.
         - a limit was engaged at the end of one of its last two steps (coordinates.restart_engaged).
           A stiff limit's impulse acts within a step or two; BDF2's two-step history would span it,
@@ -373,9 +370,8 @@ def _finalize_funcs(dtype):
 # The Newton scratch of a world (or of a fused thread) is column w of n × n and n × 1 arrays with
 # one column per world or thread, stored flat: H's entry (i, j) at (i·n + j)·T + w, g's entry i
 # at i·T + w (T columns; neighbouring threads read neighbouring words).  Flat 1-D indices, kept
-# as running offsets in the loops: with 3-D indexing every access cost three multiplies and
-# three negative-index tests, half of all the instructions the fused step executed (Nsight
-# Compute, cart-pole, H100).
+# as running offsets in the loops: 3-D indexing would cost every access of the Newton system
+# three multiplies and three negative-index tests.
 
 
 @functools.lru_cache(maxsize=None)

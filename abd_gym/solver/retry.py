@@ -127,7 +127,7 @@ class Retry:
         plan = dict(fused=True, one_launch=True, use_graph=False)
         if wp.get_device(m.device).is_cpu:
             plan["cpu_workers"] = 1  # one launch
-        subs = [self.make_solver(m, s.h / n, s.settings, plan) for n in SUBSTEPS]
+        subs = [self.make_solver(m, s.dt / n, s.settings, plan) for n in SUBSTEPS]
         none = wp.zeros(1, dtype=wp.int32, device=m.device)  # go 0: no world is stepped
         for sub in subs:
             sub.enable_hold()

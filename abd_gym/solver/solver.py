@@ -54,20 +54,15 @@ class SolverSettings:
     # after a full Newton step taken whole, solve the next iteration's gradient against the same
     # Cholesky factor (a simplified-Newton step, tried at α = 1, kept while it converges 8× per
     # iteration); False: factor at every iteration.  Off by default: a reused factor converges
-    # linearly and stops short of the solution.  In float32, one implicit-Euler step from float64
-    # states against the float64 step (CPU, 256 worlds × 30 steps): largest error 3.5e-6 m
-    # (TwoLinkReacher-v0), 1.2e-5 (FourBar-v0), 2.0e-5 (5-link chain) with reuse, 3.5e-7, 3.2e-6, 1.6e-6
-    # without; in float64 ~1e-10 m a step where Newton leaves ~1e-14 (tests/test_hard_cases.py).
-    # Nor is it faster where it matters: its extra iterations fall on a warp's slowest world
-    # (docs/performance.md, "Factor reuse": 1.1–1.8× faster without it on the loops and chains,
-    # 0.95–1.01× on the mechanisms of one to three bodies without limits).
+    # linearly and stops short of the solution (docs/design.md §4, "Factor reuse";
+    # tests/test_hard_cases.py).  Nor is it faster where it matters: its extra iterations fall on
+    # a warp's slowest world (docs/performance.md, the plan rule "Factor reuse off").
     reuse_factor: bool = False
     # a step from a fresh factor accepted at α = 1 (Armijo, or taken whole) that is under this many
     # times q's rounding floor (4·eps·(1 + ‖q‖∞)) ends the solve without an iteration to confirm it:
-    # Newton's next step would be below that rounding (float32 cart-poles and double pendulums at
-    # dt 0.01: first steps up to 3e-4 m, the next at most 1.3e-7 m).  It acts in float32 (1e-4 m
-    # for q ~ 1); in float64 the tolerance h·tol is far above the rounding and the stop stays the
-    # step under the tolerance.  0: off.
+    # quadratic convergence leaves Newton's next step below that rounding (docs/design.md §4,
+    # "Quadratic stop").  It acts in float32 (1e-4 m for q ~ 1); in float64 the tolerance h·tol is
+    # far above the rounding and the stop stays the step under the tolerance.  0: off.
     quadratic_stop: float = 100.0
     # a world whose step does not converge or breaks down takes it again as 2, then 4 substeps before
     # it is rejected (solver.retry; a step of several in one launch is not retried)
@@ -143,13 +138,14 @@ class Solver:
     def __init__(self, model, dt: float, settings: SolverSettings, plan: ExecutionPlan | None = None, retry=True):
         self.model, self.settings = model, settings
         self.plan = plan = resolve_plan(plan, model)
-        self.h = float(dt)
+        self.dt = float(dt)
         self.bdf2 = int(settings.integrator == "bdf2")
-        # the step's effective h: physical potentials sit inside h_eff², velocities are Δq/h_eff
-        self.h_eff = self.h * (2.0 / 3.0 if self.bdf2 else 1.0)
-        W, n, dev, dt_ = model.num_worlds, model.num_dofs, model.device, model.dtype
-        # per world, set by each step (open_step): h_eff, or h for a BDF2 world's first step
-        self.h_step = wp.full(W, self.h_eff, dtype=dt_, device=dev)
+        # the effective step ĥ (dt, or 2dt/3 under BDF2): physical potentials sit inside h_eff²,
+        # velocities are Δq/h_eff
+        self.h_eff = self.dt * (2.0 / 3.0 if self.bdf2 else 1.0)
+        W, n, dev, scalar = model.num_worlds, model.num_dofs, model.device, model.dtype
+        # per world, set by each step (open_step): h_eff, or dt for a BDF2 world's first step
+        self.h_step = wp.full(W, self.h_eff, dtype=scalar, device=dev)
         # only the constitutions this scene has get a term (and so a kernel launch)
         self.parts = [c for c in REGISTRY if c.terms(model)]
         self.cols = self._columns(physical=False)
@@ -187,33 +183,33 @@ class Solver:
         # how the fused step groups limits and drives with their joints (read again by _build_fused)
         self.joint_terms = joint_terms(model)
         self.q_trial = wp.zeros((T, model.num_bodies), dtype=model.vec12, device=dev)
-        self.E = wp.zeros((W, len(self.cols)), dtype=dt_, device=dev)
+        self.E = wp.zeros((W, len(self.cols)), dtype=scalar, device=dev)
         self.E_trial = wp.zeros_like(self.E)
-        self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=dt_, device=dev)
+        self.E_report = wp.zeros((W, len(self.report_cols) + 1), dtype=scalar, device=dev)
         # column-minor: thread s reads H[i, j, s] coalesced with its neighbours (one unused column when
         # the systems live in shared memory)
         Tg = 1 if self.in_smem or (self.lanes and cuda) else T
-        self.g = wp.zeros((n, Tg), dtype=dt_, device=dev)
+        self.g = wp.zeros((n, Tg), dtype=scalar, device=dev)
         # the staged kernels' square H; the fused step's band is a flat array of its own (H_flat), and
         # the square one is then made only where a staged assembly asks for it (H)
-        self._H = None if self.band else wp.zeros((n, n, Tg), dtype=dt_, device=dev)
-        self.dq = wp.zeros((n, Tg), dtype=dt_, device=dev)
+        self._H = None if self.band else wp.zeros((n, n, Tg), dtype=scalar, device=dev)
+        self.dq = wp.zeros((n, Tg), dtype=scalar, device=dev)
         # the staged step's Cholesky factors, kept for an iteration that reuses them (H is reassembled)
-        self.L = None if self.fused else wp.zeros((n, n, T), dtype=dt_, device=dev)
+        self.L = None if self.fused else wp.zeros((n, n, T), dtype=scalar, device=dev)
         # the same memory as flat 1-D arrays, which the factor, the solves and the fused step index
         # (solver_kernels: one multiply per access instead of three, and no negative-index tests)
         self.g_flat, self.dq_flat = _flat(self.g), _flat(self.dq)
-        self.H_flat = wp.zeros(h_words(n, True, True) * Tg, dtype=dt_, device=dev) if self.band else _flat(self._H)
+        self.H_flat = wp.zeros(h_words(n, True, True) * Tg, dtype=scalar, device=dev) if self.band else _flat(self._H)
         self.L_flat = None if self.L is None else _flat(self.L)
         # the CPU's lanes keep each world's g, H, Δq contiguous: H packed, a copy per lane group
         # (fused.newton_lanes), G copies of the triangle or the block band (h_words) apiece
         self.lane_stride = self.lane_groups * h_words(n, True, self.band)
         if self.lanes and not cuda:
-            self.g_flat, self.H_flat, self.dq_flat = (wp.zeros(W * self.lane_stride, dtype=dt_, device=dev)
+            self.g_flat, self.H_flat, self.dq_flat = (wp.zeros(W * self.lane_stride, dtype=scalar, device=dev)
                                                       for _ in range(3))  # fmt: skip
         self.chord = wp.zeros(W, dtype=wp.int32, device=dev)
-        self.d_prev = wp.zeros(W, dtype=dt_, device=dev)
-        self.gdq, self.dq_max, self.alpha, self.g_abs = (wp.zeros(W, dtype=dt_, device=dev) for _ in range(4))
+        self.d_prev = wp.zeros(W, dtype=scalar, device=dev)
+        self.gdq, self.dq_max, self.alpha, self.g_abs = (wp.zeros(W, dtype=scalar, device=dev) for _ in range(4))
         self.active, self.searching, self.take = (wp.zeros(W, dtype=wp.int32, device=dev) for _ in range(3))
         # the staged solve's iteration budget per world, and whether its retry from a fresh factor is left
         self.cap, self.spare = (wp.zeros(W, dtype=wp.int32, device=dev) for _ in range(2))
@@ -223,9 +219,9 @@ class Solver:
         self._go_all = wp.ones(1, dtype=wp.int32, device=dev)
         self.remaining = wp.zeros(1, dtype=wp.int32, device=dev)  # loop flags for wp.capture_while
         self.ls_remaining = wp.zeros(1, dtype=wp.int32, device=dev)
-        self.k = solver_kernels(dt_, self.envelope)
+        self.k = solver_kernels(scalar, self.envelope)
         self._fused = None  # (kernel, struct of arrays), built on the first fused step
-        self.begin_step, self.coordinates = coordinates.kernels(dt_, model.num_passive > 0)
+        self.begin_step, self.coordinates = coordinates.kernels(scalar, model.num_passive > 0)
         # BDF2 restarts a world's history where a limit is engaged (solver_kernels.open_body)
         self.restarts = bool(self.bdf2 and any(model.limit_joints.values()))
         self._restart_cmds = {}  # restart_joints' recorded launches
@@ -341,8 +337,7 @@ class Solver:
 
     def enable_hold(self) -> bool:
         """Build the one-launch step with the check of ``hold`` and ``go`` (two loads and a branch a
-        world-step, which a scene stepped on its own does not carry: 1–2% of an H100's cart-pole
-        step at 1,024 worlds); before the first step only.  Returns ``holds``."""
+        world-step, a cost a scene stepped on its own does not carry); before the first step only.  Returns ``holds``."""
         if self.one_launch and not self.hold_worlds:
             if self._fused is not None:
                 raise RuntimeError("enable_hold comes before the first step (the step's kernel is built then)")
@@ -407,19 +402,19 @@ class Solver:
     def open_step(self, state):
         """Before Newton: each world's step opened, the joints' references, the prediction q̃."""
         m, k, dev = self.model, self.k, self.model.device
-        W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
-        wp.launch(k["open_step"], dim=(W, nb), inputs=[state.q, state.qd, state.status, state.fresh, dt(self.h), self.bdf2,
+        W, nb, scalar = m.num_worlds, m.num_bodies, m.dtype
+        wp.launch(k["open_step"], dim=(W, nb), inputs=[state.q, state.qd, state.status, state.fresh, scalar(self.dt), self.bdf2,
                                                        self.h_step, state.control, state.control_prev, state.calm],
                   device=dev)  # fmt: skip
         if m.num_joints:
             wp.launch(self.begin_step, dim=(W, m.num_joints),
                       inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref, m.s_ref,
                               state.theta0, state.c_prev, state.s_prev, self.all_active, state.unwrapped,
-                              state.x_hist, self.h_step, dt(self.h), state.x_anchor, state.coord_vel,
+                              state.x_hist, self.h_step, scalar(self.dt), state.x_anchor, state.coord_vel,
                               state.coord_vel_hist, state.v_anchor], device=dev)  # fmt: skip
         wp.launch(k["predict"], dim=(W, nb), inputs=[state.q, state.qd, state.q_prev, state.q_hist, state.qd_hist,
                                                      state.qd_hist2, state.order3, state.calm, self.q_tilde,
-                                                     m.dof, m.mass, m.mc, m.gravity, dt(self.h), self.h_step,
+                                                     m.dof, m.mass, m.mc, m.gravity, scalar(self.dt), self.h_step,
                                                      state.status, state.coord, state.coord_vel,
                                                      *self._limits(REVOLUTE), *self._limits(PRISMATIC)],
                   device=dev)  # fmt: skip
@@ -447,13 +442,13 @@ class Solver:
     def close_step(self, state):
         """After Newton: velocities and histories, then the joint coordinates."""
         m, k, dev = self.model, self.k, self.model.device
-        W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
+        W, nb, scalar = m.num_worlds, m.num_bodies, m.dtype
         wp.launch(k["finalize"], dim=(W, nb), inputs=[state.q, state.q_prev, state.qd, state.q_hist, state.qd_hist,
-                                                      state.qd_hist2, state.order3, m.dof, dt(self.h), self.h_step,
+                                                      state.qd_hist2, state.order3, m.dof, scalar(self.dt), self.h_step,
                                                       state.status], device=dev)  # fmt: skip
         self.update_coordinates(state, accumulate=True)
         if self.restarts:
-            wp.launch(coordinates.restart_funcs(dt)[1], dim=W,
+            wp.launch(coordinates.restart_funcs(scalar)[1], dim=W,
                       inputs=[state.coord, state.status, state.fresh, *self._limits(REVOLUTE),
                               *self._limits(PRISMATIC)],
                       device=dev)  # fmt: skip
@@ -473,7 +468,7 @@ class Solver:
         if self.lanes:
             L = self.block_dim
             wp.launch(kernel, dim=m.num_worlds * L, inputs=[
-                state.q, self.q_trial, terms, bracket, self.g_flat, self.H_flat, self.dq_flat, m.dtype(s.tol * self.h),
+                state.q, self.q_trial, terms, bracket, self.g_flat, self.H_flat, self.dq_flat, m.dtype(s.tol * self.dt),
                 s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
                 state.factorizations, state.converged, int(steps)], block_dim=L * self.worlds_per_block,
                 device=m.device)  # fmt: skip
@@ -486,7 +481,7 @@ class Solver:
             g, H, dq = self.g_flat, self.H_flat, self.dq_flat
             if count != self.threads:
                 g, H, dq = (a[start * size:(start + count) * size] for a, size in ((g, n), (H, hw), (dq, n)))
-            return [state.q, self.q_trial, terms, bracket, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.h),
+            return [state.q, self.q_trial, terms, bracket, g, H, dq, start, count, wa, wb, m.dtype(s.tol * self.dt),
                     s.max_iterations, s.max_line_search, int(self.reuse_factor), state.status, state.iterations,
                     state.factorizations, state.converged, self.queues[chunk]]  # fmt: skip
 
@@ -557,7 +552,7 @@ class Solver:
             setattr(k, name, getattr(state, name))
         k.velocity, k.velocity_hist = state.coord_vel, state.coord_vel_hist
         k.c_ref, k.s_ref = m.c_ref, m.s_ref
-        k.gravity, k.h, k.bdf2 = m.gravity, m.dtype(self.h), self.bdf2
+        k.gravity, k.h, k.bdf2 = m.gravity, m.dtype(self.dt), self.bdf2
         k.hold, k.go = self._no_hold, self._go_all
         self._Bracket, self._brackets = Bracket, {}
         return kernel, t, k, assemble_system
@@ -586,7 +581,7 @@ class Solver:
 
     def _newton_iteration(self, state):
         m, k, dev, s = self.model, self.k, self.model.device, self.settings
-        W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
+        W, nb, scalar = m.num_worlds, m.num_bodies, m.dtype
         self.E.zero_()
         self.g.zero_()
         self.H.zero_()
@@ -600,7 +595,7 @@ class Solver:
         wp.capture_while(self.ls_remaining, self._line_search_round, state=state)
         wp.launch(k["commit"], dim=(W, nb), inputs=[state.q, self.q_trial, self.take], device=dev)
         self.remaining.zero_()
-        wp.launch(k["converge"], dim=W, inputs=[state.q, self.q_tilde, self.take, self.dq_max, dt(s.tol * self.h),
+        wp.launch(k["converge"], dim=W, inputs=[state.q, self.q_tilde, self.take, self.dq_max, scalar(s.tol * self.dt),
                                                 self.alpha, int(self.reuse_factor), self.chord, self.d_prev, self.active,
                                                 state.converged, state.iterations, s.max_iterations, m.dof, self.cap,
                                                 self.spare, state.retried, state.status, self.remaining],
@@ -609,15 +604,15 @@ class Solver:
     def _line_search_round(self, state):
         """Try α on every searching world; Armijo accepts or halves it (down to 2^-(max_line_search-1))."""
         m, k, dev, s = self.model, self.k, self.model.device, self.settings
-        W, nb, dt = m.num_worlds, m.num_bodies, m.dtype
+        W, nb, scalar = m.num_worlds, m.num_bodies, m.dtype
         wp.launch(k["trial"], dim=(W, nb), inputs=[state.q, self.dq, m.dof, m.mass, m.mc, self.alpha, self.searching,
                                                     self.q_trial], device=dev)  # fmt: skip
         self.E_trial.zero_()
         self.assemble(state, self.q_trial, self.E_trial, self.searching, 0)
         self.ls_remaining.zero_()
         wp.launch(k["accept"], dim=W, inputs=[state.q, self.E, self.E_trial, len(self.cols), self.gdq, self.g_abs, self.dq_max,
-                                              dt(s.tol * self.h), dt(0.5 ** (s.max_line_search - 1)),
-                                              dt(s.quadratic_stop), self.alpha,
+                                              scalar(s.tol * self.dt), scalar(0.5 ** (s.max_line_search - 1)),
+                                              scalar(s.quadratic_stop), self.alpha,
                                               self.searching, self.take, self.chord, self.active, state.converged,
                                               self.ls_remaining], device=dev)  # fmt: skip
 
@@ -628,7 +623,7 @@ class Solver:
             return wp.launch(self.begin_step, dim=(m.num_worlds, m.num_joints),
                              inputs=[state.q, m.body_a, m.body_b, m.joint_kind, m.n_a, m.b_a, m.n_b, m.b_b, m.c_ref,
                                      m.s_ref, state.theta0, state.c_prev, state.s_prev, mask, state.unwrapped,
-                                     state.x_hist, self.h_step, m.dtype(self.h), state.x_anchor, state.coord_vel,
+                                     state.x_hist, self.h_step, m.dtype(self.dt), state.x_anchor, state.coord_vel,
                                      state.coord_vel_hist, state.v_anchor],
                              device=m.device, record_cmd=record)  # fmt: skip
 
@@ -639,7 +634,7 @@ class Solver:
         mask = self.all_active if mask is None else mask
         return wp.launch(self.coordinates, dim=(m.num_worlds, m.num_joints),
                          inputs=[state.q, state.q_prev, state.qd, m.body_a, m.body_b, m.joint_kind, m.c_a, m.c_b, m.t_a,
-                                 m.n_a, m.b_a, m.n_b, m.b_b, state.theta0, state.c_prev, state.s_prev, m.dtype(self.h),
+                                 m.n_a, m.b_a, m.n_b, m.b_b, state.theta0, state.c_prev, state.s_prev, m.dtype(self.dt),
                                  self.h_step, state.status, mask, int(accumulate), int(rate_from_qd), state.coord, state.coord_vel,
                                  state.unwrapped, state.x_hist, state.coord_vel_hist], device=m.device,
                          record_cmd=record)  # fmt: skip

@@ -22,9 +22,10 @@ def joint_terms(model) -> dict:
     """How the fused step folds the coordinate terms into their joints' terms, each coordinate
     constitution in registry order, each instance in order onto its joint's next free slot:
 
-    - ``joints``: {joint kind: joint ids of its coordinate terms} (prismatic: Model.joint_ids
-      order, H100: 1.17x cart-poles at 1,024 worlds; revolute: the
-      joints with a folded instance, ascending);
+    - ``joints``: {joint kind: joint ids of its coordinate terms} (prismatic: every prismatic
+      joint in Model.joint_ids order, so that row k of a fold belongs to the prismatic joint's
+      own term k, which assembles it in the same pass; revolute: the joints with a folded
+      instance, ascending);
     - ``folds``: {(name, joint kind): int32 (joint terms,) for one slot, else (joint terms, slots),
       the instances folded on each, or −1};
     - ``rest``: {name: the instances left with terms of their own, in order}."""

@@ -15,8 +15,8 @@ from .structs import structs
 from ...core.warp_ops import ops
 
 # loops stay loops: unrolling the 12×12 block loops of every inlined evaluator multiplies the
-# code size, and with it NVRTC's compile time (minutes); on an H100 unrolling the 3-loops
-# (max_unroll 3) made the cart-pole step 15% slower, max_unroll 4 compiled for minutes for 5%
+# code size, and with it NVRTC's compile time (minutes), for little or no gain in the step's
+# speed
 options = dict(module="unique", module_options={"max_unroll": 1})
 
 
@@ -137,8 +137,8 @@ def thread_kernel(spec: KernelSpec):
         thread's scratch is reused world after world, so it stays in cache however many worlds there
         are.  On the CPU ranges of threads and worlds run as concurrent launches, each with its own
         scratch (g, H, dq: Tw columns), its own run of worlds and its own queue (2 words); s0 + c is
-        the thread's row of q_trial.  (One step a launch: a loop of steps around a world's step cost
-        12% at 16,384 and 131,072 cart-poles on an H100.)"""
+        the thread's row of q_trial.  (One step a launch: a loop of steps around a world's step
+        made the step slower at large batches.)"""
         c = wp.tid()
         s = c + s0
         if wp.static(in_smem):

@@ -35,13 +35,10 @@ would be needed).
 Where it runs (ExecutionPlan.limit_secant, KernelSpec.secant): it saves iterations in the worlds
 that strike and leave limits, which at a batch of about a world a resident thread set a step's
 length; it costs every iteration of every world the acting limits' check, which at batches of many
-worlds a thread, where the queue evens the worlds' iterations out, is a loss.  Against Newton's
-direction, one H200, abd_gym alone (results/limit_secant_h200.json): SliderCrank-v0 1.14x and
-InvertedPendulum-v5 1.11x at 16,384 worlds, 0.78x and 0.81x at 131,072, the cart-pole (whose rail
-limit never acts) 0.98-1.00x and 0.97x.  The lane-split step keeps Newton's direction: this adds
-20-36 KB of SASS to its kernels of scenes with limits, and at the small batches it runs a step's
-time follows its code (scripts/sass_size.py: CartPole-v0 265 -> 285 KB, InvertedPendulum-v5
-324 -> 360 KB, SliderCrank-v0 395 -> 415 KB)."""
+worlds a thread, where the queue evens the worlds' iterations out, is a loss (the plan rule and
+its measurement: docs/performance.md, results/limit_secant_h200.json).  The lane-split step keeps
+Newton's direction: the secant enlarges the code of its kernels of scenes with limits, and at
+the small batches it runs a step's time follows its code (scripts/sass_size.py measures it)."""
 import functools
 from types import SimpleNamespace
 from typing import Any
