@@ -47,7 +47,8 @@ class Simulator:
     loses its swing); ``dtype`` "float32" or "float64";
     ``device`` "cpu" or "cuda:N" (default: $ABD_GYM_DEVICE, else "cpu").  The Newton solve
     (SolverSettings): it stops a world once ‖Δq‖∞/h < ``tol`` [m/s], after at most
-    ``max_iterations`` iterations of at most ``max_line_search`` Armijo trials each;
+    ``max_iterations`` iterations (None: 50, more for a scene whose stiffest joint's K/m is past 1e4:
+    conditioning.default_max_iterations) of at most ``max_line_search`` Armijo trials each;
     ``reuse_factor`` solves an iteration after a full step against the last Cholesky factor
     (off by default: it stops short of the solution, SolverSettings); ``quadratic_stop``: a
     Newton step from a fresh factor accepted whole (α = 1) under this many times q's rounding
@@ -60,11 +61,13 @@ class Simulator:
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "bdf2",
-                 dtype="float32", device=None, tol: float = 1e-5, max_iterations: int = 50,
+                 dtype="float32", device=None, tol: float = 1e-5, max_iterations: int | None = None,
                  max_line_search: int = 12, reuse_factor: bool = False, quadratic_stop: float = 100.0,
                  plan: ExecutionPlan | dict | None = None):  # fmt: skip
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number, got {dt!r}")
+        if max_iterations is None:
+            max_iterations = conditioning.default_max_iterations(scene)
         settings = SolverSettings(tol=float(tol), max_iterations=int(max_iterations),
                                   max_line_search=int(max_line_search), integrator=integrator,
                                   reuse_factor=reuse_factor, quadratic_stop=quadratic_stop)  # fmt: skip
