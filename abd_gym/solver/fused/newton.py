@@ -471,7 +471,8 @@ def newton(spec: KernelSpec):
         budget), ``spare`` (1: a budget from a fresh factor is left), ``exact`` (1: the Hessian is
         assembled exact, indefinite orthogonality blocks included; from the first iteration after one
         that converged only linearly, until a factor of it breaks down, when the iteration is done
-        again with the PSD Hessian).  Returns (1 when the solve is over, converged or rejected, else
+        again with the PSD Hessian, or its step's line search runs out, when the next iteration takes
+        the PSD Hessian's step from the same q).  Returns (1 when the solve is over, converged or rejected, else
         0; the new state)."""
         c = clock_now()
         if wp.static(spec.exact):
@@ -568,9 +569,13 @@ def newton(spec: KernelSpec):
             linear = int(0)
             stop, chord, linear = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold,
                                             chord, reuse, d_prev, max_line_search, converged, lane)  # fmt: skip
-            if wp.static(spec.exact):
-                exact = wp.where(linear != 0, 1, exact)
             c = tick(t, w, lane, PHASE_STEP, c)
+            if wp.static(spec.exact):
+                if stop == 2 and exact != 0 and its < cap:
+                    # the exact Hessian's step found no decrease (its search ran out; q is unchanged):
+                    # the next iteration takes R⁺'s
+                    return 0, chord, d_prev, nfact, its, cap, spare, 0
+                exact = wp.where(linear != 0, 1, exact)
         if stop == 1:
             return 1, chord, dmax, nfact, its, cap, spare, exact
         if stop >= 2 or its == cap:
