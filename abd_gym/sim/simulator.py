@@ -258,9 +258,10 @@ class Simulator:
         return self.state.iterations.numpy().copy()
 
     def newton_retried(self) -> np.ndarray:
-        """(num_worlds,) bool: the last step's solve, which reused the factor, did not converge within
-        its budget and was started again from the prediction q̃ with a fresh factor at every
-        iteration (``newton_iterations`` counts both)."""
+        """(num_worlds,) bool: the last step's solve, which reused the factor or (the fused step) ran
+        in a scene with a stiff joint (Model.stiff), did not converge within its budget and was
+        started again from the prediction q̃ with a fresh factor at every iteration
+        (``newton_iterations`` counts both)."""
         return self.state.retried.numpy().astype(bool)
 
     def newton_factorizations(self) -> np.ndarray:

@@ -448,14 +448,18 @@ def newton(spec: KernelSpec):
                    iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
                    converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
         """World w's counters cleared (by lane 0); (1 where its solve runs: its status is OK and the
-        budget max_iterations is not empty, else 0; the solve's first state, as iterate takes it)."""
+        budget max_iterations is not empty, else 0; the solve's first state, as iterate takes it: a
+        retry from q̃ left with ``reuse`` or in a scene built with ``exact``)."""
         if lane == 0:
             iterations[w] = 0
             factorizations[w] = 0
             converged[w] = 0
             t.retried[w] = 0
         solving = wp.where(status[w] == OK and max_iterations > 0, 1, 0)
-        return solving, int(0), zero, int(0), int(0), max_iterations, reuse, int(0)
+        spare = reuse
+        if wp.static(spec.exact):
+            spare = 1
+        return solving, int(0), zero, int(0), int(0), max_iterations, spare, int(0)
 
     @wp.func
     def iterate(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
@@ -612,7 +616,9 @@ def newton(spec: KernelSpec):
         convergence or the factor breaks down.  A solve with ``reuse`` then starts again from the
         prediction q̃ (t.q_tilde: the extrapolated guess it began from is not kept, which would cost a
         store per body every step) with max_iterations more, factoring at every one (chord −1), so
-        factor reuse never commits a step that a fresh factor could not solve.  A solve that ends its
+        factor reuse never commits a step that a fresh factor could not solve; so does every solve in
+        a scene built with ``exact`` (a stiff joint), whose iterates from the guess can end where
+        neither Hessian's step finds a decrease.  A solve that ends its
         last budget unconverged is rejected (status UNCONVERGED, or BREAKDOWN; close_world keeps qⁿ).
         The counts include the retry's iterations.  Lane-split, every lane takes every branch (each
         decides from the same sums in the same order) and lane 0 alone writes the world's counters."""
