@@ -194,6 +194,34 @@ def test_warp_psd_part_matches_eigh(dtype, rtol):
         assert np.linalg.eigvalsh(want).min() >= -1e-12 * np.abs(M).max()
 
 
+@pytest.mark.parametrize("exact", [0, 1])
+def test_warp_orthogonality_hessian_blocks_match_numpy(exact):
+    """The fused step's orthogonality blocks (affine_body.hessian_parts, a_block) of a compressed A
+    (R of mixed sign): the PSD Hessian Hp, or with ``exact`` the exact Hessian H (indefinite), each
+    as orthogonality_np gives it (float64)."""
+    rng = np.random.default_rng(14)
+    A = random_rotation(rng) @ np.diag([1.01, 0.99, 1.0]) @ random_rotation(rng)
+    q = np.concatenate([rng.normal(size=3), A.ravel()])
+    kv = 2.0
+    _, _, H, Hp = affine_body.orthogonality_np(q, kv)
+    k = affine_body.kernels(wp.float64)
+    vec12 = wp.types.vector(12, wp.float64)
+    mat33 = wp.types.matrix(shape=(3, 3), dtype=wp.float64)
+
+    @wp.kernel(module="unique")
+    def blocks(qb: wp.array(dtype=vec12), exact: int, out: wp.array2d(dtype=mat33)):
+        kk, ll = wp.tid()
+        Rp, ata = k.hessian_parts(qb[0], exact)
+        out[kk, ll] = k.a_block(qb[0], kk, ll, Rp, ata, wp.float64(kv), mat33())
+
+    out = wp.zeros((3, 3), dtype=mat33, device="cpu")
+    wp.launch(blocks, dim=(3, 3), inputs=[wp.array([q], dtype=vec12, device="cpu"), exact, out], device="cpu")
+    got = out.numpy().transpose(0, 2, 1, 3).reshape(9, 9)
+    want = (H if exact else Hp)[3:, 3:]
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    assert (np.linalg.eigvalsh(got).min() < 0) == bool(exact)
+
+
 def _retract_warp(q, d, alpha, m, mc):
     k = affine_body.kernels(wp.float64).retract
     vec12 = wp.types.vector(12, wp.float64)

@@ -60,6 +60,60 @@ def test_twenty_link_chain(integrator):
     assert converged
 
 
+def test_mixed_mass_3d_chain_converges_at_the_defaults():
+    """A 30-link chain with hinges about +y and +x in turn and link masses from 1e-3 to 1e2 kg
+    (mechanisms.mixed_masses; joint K/m up to 2e7): its light links carry loads far beyond their own
+    weight, and Newton with the orthogonality Hessian's PSD part converges only linearly there.  At
+    the defaults (a budget that follows the stiffest joint, conditioning.default_max_iterations;
+    the exact Hessian after a linearly converging iteration) every world's BDF2 step converges
+    (float64, dt 0.01, 8 worlds from random states; with 50 iterations and the PSD Hessian alone
+    one world's 8th step was rejected), joints within 1 mm, and the trajectory is the staged
+    kernels' (the PSD Hessian alone, within the same budget) to 1e-6; a budget the user sets is
+    kept."""
+    from abd_gym.sim import conditioning
+
+    scene = mechanisms.alternating_chain(30, length=0.1, masses=mechanisms.mixed_masses(30))
+    with pytest.warns(RuntimeWarning, match="float32 solves reliably"):
+        ag.Simulator(scene, num_worlds=1, dtype="float32")  # (no kernel built: the warning only)
+    q = {}
+    for fused in (True, False):
+        sim = ag.Simulator(scene, num_worlds=8, dt=0.01, dtype="float64", integrator="bdf2", plan=dict(fused=fused))
+        assert sim.model.stiff and sim.solver.settings.max_iterations == conditioning.default_max_iterations(scene)
+        rng = np.random.default_rng(0)
+        sim.set_joint_state(rng.uniform(-1, 1, (8, 30)), rng.uniform(-2, 2, (8, 30)))
+        most = 0
+        for _ in range(10):
+            sim.step()
+            assert sim.failed_worlds().size == 0 and sim.converged().all()
+            assert sim.joint_violation().max() <= 1e-3
+            most = max(most, sim.newton_iterations().max())
+        assert most > 30  # (the hard steps are taken)
+        q[fused] = sim.body_q()
+    assert conditioning.default_max_iterations(scene) == 215
+    np.testing.assert_allclose(q[True], q[False], rtol=0, atol=1e-6)
+    assert ag.Simulator(scene, num_worlds=1, dtype="float64", max_iterations=7).solver.settings.max_iterations == 7
+    assert ag.Simulator(mechanisms.chain(30, length=0.1), num_worlds=1).solver.settings.max_iterations == 50
+
+
+def test_mixed_mass_3d_chain_converges_in_float32():
+    """The same chain in float32 (its K/m past what float32 solves reliably: the simulator warns),
+    BDF2, 16 worlds, 25 steps: every step converges, a world whose iterates from the guess end
+    where no Hessian's step finds a decrease starting again from the prediction q̃ (without that
+    retry world 2's 24th step was rejected)."""
+    scene = mechanisms.alternating_chain(30, length=0.1, masses=mechanisms.mixed_masses(30))
+    with pytest.warns(RuntimeWarning, match="float32 solves reliably"):
+        sim = ag.Simulator(scene, num_worlds=16, dt=0.01, integrator="bdf2")
+    rng = np.random.default_rng(0)
+    sim.set_joint_state(rng.uniform(-1, 1, (16, 30)), rng.uniform(-2, 2, (16, 30)))
+    retried = np.zeros(16, bool)
+    for _ in range(25):
+        sim.step()
+        assert sim.failed_worlds().size == 0 and sim.converged().all()
+        assert sim.joint_violation().max() <= 1e-3
+        retried |= sim.newton_retried()
+    assert retried.any()
+
+
 @INTEGRATORS
 def test_large_step_dt_0_05(integrator):
     """dt = 0.05 on a double pendulum released at (2, 1) rad: stable, residual under 1 mm."""

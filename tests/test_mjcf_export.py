@@ -37,7 +37,7 @@ def run_ours(case, q, qd, controls=None, dt=1e-3, duration=DURATION):
     return sim.joint_angles_unwrapped()
 
 
-@pytest.mark.parametrize("name", ["chain5", "fourbar", "slider_crank"])
+@pytest.mark.parametrize("name", ["chain5", "alt_chain5", "fourbar", "slider_crank"])
 def test_exported_model_moves_like_ours(name):
     case = CASES[name]
     q, qd = case.states(3, 1)

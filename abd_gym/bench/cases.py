@@ -7,7 +7,9 @@ sits in MuJoCo's ``qpos`` (None for a joint that closes a loop: MuJoCo holds it 
 equality and it has no coordinate).  ``mujoco_qpos`` / ``ours_from_qpos`` convert.
 
 The cases: ``cartpole`` and ``double_pendulum`` (hand-written MJCF); ``chain5``, ``chain10``,
-``chain20`` (0.1 m, 1 kg links); every registered task's mechanism (``PeerCase.tasks`` names the
+``chain20`` (0.1 m, 1 kg links); the 3-D chains ``alt_chain5``, ``alt_chain10``, ``alt_chain20``,
+``alt_chain30`` (hinges about +y and +x in turn, 0.1 m, 1 kg links) and ``alt_chain30_mixed`` (link
+masses 1e-3 to 1e2 kg, ``mechanisms.mixed_masses``); every registered task's mechanism (``PeerCase.tasks`` names the
 tasks a case stands for: CartPole-v0 and CartPoleSwingUp-v0 share one), ``fourbar`` and
 ``slider_crank`` being the closed-loop tasks' and ``pusher_arm`` the 7-joint 3-D arm of
 ArmReach-v0 (Gymnasium's ``pusher.xml``).  The abd_gym-built ones reach MuJoCo through
@@ -196,6 +198,10 @@ def _chain(n):
     return lambda: mechanisms.chain(n, length=0.1)
 
 
+def _alt_chain(n, masses=None):
+    return lambda: mechanisms.alternating_chain(n, length=0.1, masses=masses)
+
+
 _BUILDERS = {
     "cartpole": lambda: PeerCase("cartpole", mechanisms.cartpole, lambda dt: CARTPOLE_XML.format(dt=dt),
                                  _cartpole_states, (0, 1)),
@@ -204,6 +210,11 @@ _BUILDERS = {
     "chain5": lambda: exported_case("chain5", _chain(5)),
     "chain10": lambda: exported_case("chain10", _chain(10)),
     "chain20": lambda: exported_case("chain20", _chain(20)),
+    "alt_chain5": lambda: exported_case("alt_chain5", _alt_chain(5)),
+    "alt_chain10": lambda: exported_case("alt_chain10", _alt_chain(10)),
+    "alt_chain20": lambda: exported_case("alt_chain20", _alt_chain(20)),
+    "alt_chain30": lambda: exported_case("alt_chain30", _alt_chain(30)),
+    "alt_chain30_mixed": lambda: exported_case("alt_chain30_mixed", _alt_chain(30, mechanisms.mixed_masses(30))),
     "fourbar": lambda: task_case("fourbar", "FourBar-v0", closed_loop=True),
     "slider_crank": lambda: task_case("slider_crank", "SliderCrank-v0", closed_loop=True),
     "pendulum": lambda: task_case("pendulum", "Pendulum-v0"),

@@ -166,12 +166,15 @@ def kernels(dtype):
         return l1 * wp.outer(v, v)
 
     @wp.func
-    def hessian_parts(qb: vec12):
+    def hessian_parts(qb: vec12, exact: int):
         """(R⁺, AᵀA) of the orthogonality Hessian: R⁺ = R = AAᵀ − I where R ⪰ 0, else R with its
-        negative eigenvalues set to 0 (the Hessian's PSD part)."""
+        negative eigenvalues set to 0 (the Hessian's PSD part); R itself where ``exact`` (the exact
+        Hessian, indefinite where A is compressed)."""
         A = wp.matrix_from_rows(row(qb, 0), row(qb, 1), row(qb, 2))
         R = A * wp.transpose(A) - wp.identity(3, dtype)
-        return psd_part(R), wp.transpose(A) * A
+        if exact == 0:
+            R = psd_part(R)
+        return R, wp.transpose(A) * A
 
     @wp.func
     def a_block(qb: vec12, kk: int, ll: int, Rp: mat33, ata: mat33, ks: dtype, s: mat33):
@@ -223,7 +226,7 @@ def kernels(dtype):
         if derivs != HESSIAN:
             return e_inertia, e_ortho, f, h
         # Hessian: mass matrix plus the PSD orthogonality blocks
-        Rp, ata = hessian_parts(qb)
+        Rp, ata = hessian_parts(qb, 0)
         for r in range(3):
             h[r, r] = m
             for a in range(3):

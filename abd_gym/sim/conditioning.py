@@ -19,6 +19,14 @@ import numpy as np
 # dtype name -> (largest joint K/m, largest body 4κ·vol·h²/λ_min(S))
 SOLVABLE = {"float32": (1e6, 5e8), "float64": (5e9, 1e10)}
 
+# Newton's default budget a step, where no joint's K/m exceeds STIFF_JOINT; past it, ITERATIONS more
+# per decade of the largest K/m.  A light body between heavy ones (a 30-link chain with link masses
+# from 1e-3 to 1e2 kg, K/m 2e7) carries loads far beyond its own weight through its deformation, which
+# the orthogonality Hessian's PSD part (affine_body) overestimates: its worlds converge only linearly
+# for tens of iterations (docs/performance.md, "A 30-link 3-D chain of mixed masses").
+ITERATIONS = 50
+STIFF_JOINT = 1e4
+
 
 def joint_numbers(scene, ratios=None) -> np.ndarray:
     """(num_joints,) K/m of each joint: K = γ·(m_i + m_j) over its lighter free body's mass
@@ -168,3 +176,12 @@ def driven_inertia(scene, joint: int) -> float:
         second = R @ m.second_moment @ R.T + np.outer(first, d) + np.outer(d, first) + m.mass * np.outer(d, d)
         total += float(np.trace(across @ second))
     return total
+
+
+def default_max_iterations(scene) -> int:
+    """Newton's iteration budget a step for ``scene`` (SolverSettings.max_iterations where none is
+    given): ITERATIONS, plus ITERATIONS a decade of its largest joint K/m past STIFF_JOINT."""
+    worst = float(np.max(joint_numbers(scene), initial=0.0))
+    if not worst > STIFF_JOINT:
+        return ITERATIONS
+    return ITERATIONS + int(np.ceil(ITERATIONS * np.log10(worst / STIFF_JOINT)))

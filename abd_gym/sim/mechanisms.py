@@ -1,6 +1,7 @@
 """Ready-made mechanisms in their zero pose, shared by tests, benchmarks and examples.
 
-Links hang along −z from hinges about +y; lengths in metres, masses in kilograms.
+Links hang along −z from hinges about +y (``alternating_chain``: about +y and +x in turn);
+lengths in metres, masses in kilograms.
 """
 import numpy as np
 
@@ -13,11 +14,11 @@ def link_shape(length, width=0.04):
 
 
 def chain(num_links=2, length=0.5, mass=1.0, strength_ratio=None, gravity=(0, 0, -9.81), masses=None,
-          limit=None) -> Scene:  # fmt: skip
+          limit=None, axes=((0, 1, 0),)) -> Scene:  # fmt: skip
     """A chain of ``num_links`` links hanging from a fixed base by hinges about +y.
 
     ``masses`` overrides the per-link mass; ``limit=(lower, upper, strength)`` adds a revolute
-    limit (UID 670) to every hinge.
+    limit (UID 670) to every hinge; ``axes``: the hinges' axes, link k's ``axes[k % len(axes)]``.
     """
     scene = Scene(gravity=gravity)
     parent = scene.add_body(Box(half_extents=(0.05, 0.05, 0.05)), fixed=True, name="base")
@@ -25,11 +26,26 @@ def chain(num_links=2, length=0.5, mass=1.0, strength_ratio=None, gravity=(0, 0,
     for k in range(num_links):
         top = -k * length
         body = scene.add_body(link_shape(length), mass=masses[k], position=(0, 0, top - length / 2), name=f"link{k}")
-        j = scene.add_revolute_joint(parent, body, anchor=(0, 0, top), axis=(0, 1, 0), strength_ratio=strength_ratio)
+        j = scene.add_revolute_joint(parent, body, anchor=(0, 0, top), axis=axes[k % len(axes)],
+                                     strength_ratio=strength_ratio)  # fmt: skip
         if limit is not None:
             scene.add_revolute_limit(j, *limit)
         parent = body
     return scene
+
+
+def alternating_chain(num_links=5, length=0.1, mass=1.0, **kw) -> Scene:
+    """A chain whose hinges turn about +y and +x in turn (a 3-D mechanism: each link swings across
+    the one above it); ``chain``'s other arguments."""
+    return chain(num_links, length=length, mass=mass, axes=((0, 1, 0), (1, 0, 0)), **kw)
+
+
+def mixed_masses(num_links, lightest=1e-3, heaviest=1e2) -> list:
+    """Link masses [kg] spread log-evenly from ``lightest`` to ``heaviest`` and laid along a chain
+    in a fixed shuffled order (heavy links beside light ones, so that joint strengths, which follow
+    the masses, span the same range along the chain)."""
+    m = np.geomspace(lightest, heaviest, num_links)
+    return [float(x) for x in m[np.random.default_rng(num_links).permutation(num_links)]]
 
 
 def pendulum(length=0.5, mass=1.0, **kw) -> Scene:

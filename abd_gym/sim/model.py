@@ -13,6 +13,7 @@ import warp as wp
 from ..core import angles
 from ..constitutions import drive as drive_mod
 from ..core.warp_ops import ops
+from . import conditioning
 from .coordinates import FIXED_CODE, PRISMATIC_CODE, REVOLUTE_CODE
 from ..core.devices import resolve_device
 from .scene import FIXED, PRISMATIC, REVOLUTE, Scene
@@ -110,6 +111,9 @@ class Model:
         # closed through the ground: the four-bar, the slider-crank): the Hessian lies in its block
         # band, which the fused step stores packed (solver_kernels.h_words, plan.plan_band)
         self.banded = len(block_first) >= 3 and all(f >= 12 * (b - 1) for b, f in enumerate(block_first))
+        # a joint whose K/m is past conditioning.STIFF_JOINT: Newton may assemble the exact orthogonality
+        # Hessian (fused.kernel's ``exact``)
+        self.stiff = bool(np.max(conditioning.joint_numbers(scene), initial=0.0) > conditioning.STIFF_JOINT)
         self.first = self.int_array(self.first_np)
         frames = np.zeros((8, max(nj, 1), 3))
         pts = np.zeros((2, max(nj, 1), 4, 3))

@@ -52,7 +52,8 @@ class Simulator:
     loses its swing); ``dtype`` "float32" or "float64";
     ``device`` "cpu" or "cuda:N" (default: $ABD_GYM_DEVICE, else "cpu").  The Newton solve
     (SolverSettings): it stops a world once ‖Δq‖∞/h < ``tol`` [m/s], after at most
-    ``max_iterations`` iterations of at most ``max_line_search`` Armijo trials each;
+    ``max_iterations`` iterations (None: 50, more for a scene whose stiffest joint's K/m is past 1e4:
+    conditioning.default_max_iterations) of at most ``max_line_search`` Armijo trials each;
     ``reuse_factor`` solves an iteration after a full step against the last Cholesky factor
     (off by default: it stops short of the solution, SolverSettings); ``quadratic_stop``: a
     Newton step from a fresh factor accepted whole (α = 1) under this many times q's rounding
@@ -67,11 +68,13 @@ class Simulator:
     """
 
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "bdf2",
-                 dtype="float32", device=None, tol: float = 1e-5, max_iterations: int = 50,
+                 dtype="float32", device=None, tol: float = 1e-5, max_iterations: int | None = None,
                  max_line_search: int = 12, reuse_factor: bool = False, quadratic_stop: float = 100.0,
                  retry: bool = True, plan: ExecutionPlan | dict | None = None):  # fmt: skip
         inputs.count("num_worlds", num_worlds, minimum=1)
         dt = inputs.real_number("dt", dt, positive=True)
+        if max_iterations is None:
+            max_iterations = conditioning.default_max_iterations(scene)
         settings = SolverSettings(tol=inputs.real_number("tol", tol, positive=True),
                                   max_iterations=inputs.count("max_iterations", max_iterations, minimum=1),
                                   max_line_search=inputs.count("max_line_search", max_line_search, minimum=1),
@@ -297,9 +300,10 @@ class Simulator:
         return self.state.iterations.numpy().copy()
 
     def newton_retried(self) -> np.ndarray:
-        """(num_worlds,) bool: the last step's solve, which reused the factor, did not converge within
-        its budget and was started again from the prediction q̃ with a fresh factor at every
-        iteration (``newton_iterations`` counts both)."""
+        """(num_worlds,) bool: the last step's solve, which reused the factor or (the fused step) ran
+        in a scene with a stiff joint (Model.stiff), did not converge within its budget and was
+        started again from the prediction q̃ with a fresh factor at every iteration
+        (``newton_iterations`` counts both)."""
         return self.state.retried.numpy().astype(bool)
 
     def substeps(self) -> np.ndarray:

@@ -519,7 +519,7 @@ class Solver:
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
             groups=self.lane_groups, per_block=self.worlds_per_block, quadratic=float(st.quadratic_stop), hold=self.hold_worlds,
             limits=(len(m.limit_joints[REVOLUTE]), len(m.limit_joints[PRISMATIC])),
-            secant=self.plan.limit_secant)  # fmt: skip
+            secant=self.plan.limit_secant, exact=m.stiff)  # fmt: skip
         t = Terms()
         for name in ("free", "dof", "first", "mass", "mc", "S", "kv", "body_a", "body_b", "joint_kind", "pts_a", "pts_b", "K",
                      "c_a", "c_b", "t_a", "t_b", "n_a", "n_b", "b_a", "b_b", "drive_joint", "drive_mode"):  # fmt: skip
@@ -527,6 +527,7 @@ class Solver:
         for name in ("theta0", "c_prev", "s_prev", "control", "unwrapped", "x_anchor", "v_anchor", "retried"):
             setattr(t, name, getattr(state, name))
         t.q_tilde = self.q_tilde
+        t.exact = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
         t.drive_rest = m.int_array(jt["rest"][drive.NAME])
         t.ang_joint = m.int_array(jt["joints"][REVOLUTE])
         for (name, kind), a in jt["folds"].items():

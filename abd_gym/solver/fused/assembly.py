@@ -62,7 +62,10 @@ def lane_assembly(spec: KernelSpec):
             if derivs != 0:
                 g[rho * B + s] = g[rho * B + s] + f[r]
                 if derivs == HESSIAN:
-                    Rp, ata = hessian_parts(qb)
+                    exact = int(0)
+                    if wp.static(spec.exact):
+                        exact = t.exact[w]
+                    Rp, ata = hessian_parts(qb, exact)
                     body_row(H, s, B, 12 * k, r, qb, t.mass[w, b], t.mc[w, b], t.S[w, b], ks, Rp, ata)
             if r == 0:
                 g[(N + k) * B + s] = e_in + e_or

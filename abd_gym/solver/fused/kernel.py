@@ -96,6 +96,7 @@ def thread_kernel(spec: KernelSpec):
         its = int(0)
         cap = int(0)
         spare = int(0)
+        exact = int(0)
         while w < wb:
             if fresh != 0:
                 fresh = 0
@@ -106,13 +107,14 @@ def thread_kernel(spec: KernelSpec):
                         ck = clock_now()
                         open_world(q, t, k, status, w, 0)
                         tick(t, w, 0, PHASE_OPEN, ck)
-                    solving, chord, d_prev, nfact, its, cap, spare = open_solve(
+                    solving, chord, d_prev, nfact, its, cap, spare, exact = open_solve(
                         t, w, max_iterations, reuse, status, iterations, factorizations, converged, 0)  # fmt: skip
             over = int(1)
             if solving != 0:
-                over, chord, d_prev, nfact, its, cap, spare = iterate(
+                over, chord, d_prev, nfact, its, cap, spare, exact = iterate(
                     q, q_trial, t, g, H, dq, w, col, B, row, threshold, max_iterations, max_line_search, reuse,
-                    status, iterations, factorizations, converged, 0, chord, d_prev, nfact, its, cap, spare)  # fmt: skip
+                    status, iterations, factorizations, converged, 0, chord, d_prev, nfact, its, cap, spare,
+                    exact)  # fmt: skip
             if over != 0:
                 if wp.static(bracket):
                     if skip == 0:
@@ -215,7 +217,7 @@ def lanes_kernel(spec: KernelSpec):
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False, phase_clock=False, cuda=False,
                  block=0, bracket=True, groups=1, per_block=1, quadratic=0.0, hold=False, band=False,
-                 limits=(0, 0), secant=False):  # fmt: skip
+                 limits=(0, 0), secant=False, exact=False):  # fmt: skip
     """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
 
     ``own``: the names of the joint and coordinate constitutions with terms of their own; ``folds``:
@@ -256,8 +258,11 @@ def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False,
     every world (step_world; a vector env's step graph), a check that a scene stepped on its own
     does not carry.  ``limits``: the scene's (revolute, prismatic) limit counts, for the line
     search's model of them (line_search.limit_step).  ``secant`` (a thread per world): the Newton
-    direction at an acting limit takes the limit's secant curvature (limit_secant)."""
+    direction at an acting limit takes the limit's secant curvature (limit_secant).  ``exact``: after
+    an iteration that converged only linearly, a world's solve assembles the orthogonality Hessian
+    exact (R for its PSD part R⁺, affine_body) until a factor of it breaks down (newton.iterate); for
+    scenes with a joint past conditioning.STIFF_JOINT (Model.stiff)."""
     spec = KernelSpec(dtype, tuple(own), tuple(folds), scratch, n, envelope, phase_clock, cuda, block, bracket, groups,
-                      per_block, quadratic, hold, band, tuple(limits), bool(secant))  # fmt: skip
+                      per_block, quadratic, hold, band, tuple(limits), bool(secant), bool(exact))  # fmt: skip
     kernel = lanes_kernel(spec) if spec.lanes else thread_kernel(spec)
     return kernel, structs(dtype).Terms, structs(dtype).Bracket, assembly_kernel(spec)

@@ -123,6 +123,7 @@ class KernelSpec:
     band: bool = False
     limits: tuple = (0, 0)
     secant: bool = False
+    exact: bool = False
 
     def __post_init__(self):
         if self.LANES % self.G:

@@ -323,7 +323,7 @@ def stepping(spec: KernelSpec):
     noise_floor, energy_noise = staged["noise_floor"], staged["energy_noise"]
     block_sync = indexing(spec).block_sync
     search = line_search(spec).search
-    one = dtype(1.0)
+    zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
     EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
     QUAD = dtype(4.0 * float(spec.quadratic))  # × q's rounding (SolverSettings.quadratic_stop)
 
@@ -411,7 +411,11 @@ def stepping(spec: KernelSpec):
             stop = end_iteration(q, q_trial, w, row, accepted, stalled, dmax, floor, converged, lane)
         if wp.static(lanes):
             block_sync()  # q is read whole by the next iteration
-        return stop, chord_next
+        # a fresh factor's step accepted whole by the line search (not one at the noise floor) that
+        # shrank less than 2× from the last: Newton converges only linearly, its Hessian short of the
+        # exact one (affine_body: R⁺ for R where a body is compressed)
+        linear = chord <= 0 and skip == 0 and accepted != 0 and alpha == one and d_prev > zero and dmax > half * d_prev
+        return stop, chord_next, wp.where(linear, 1, 0)
 
     return SimpleNamespace(take_step=take_step)
 
@@ -444,14 +448,18 @@ def newton(spec: KernelSpec):
                    iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
                    converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
         """World w's counters cleared (by lane 0); (1 where its solve runs: its status is OK and the
-        budget max_iterations is not empty, else 0; the solve's first state, as iterate takes it)."""
+        budget max_iterations is not empty, else 0; the solve's first state, as iterate takes it: a
+        retry from q̃ left with ``reuse`` or in a scene built with ``exact``)."""
         if lane == 0:
             iterations[w] = 0
             factorizations[w] = 0
             converged[w] = 0
             t.retried[w] = 0
         solving = wp.where(status[w] == OK and max_iterations > 0, 1, 0)
-        return solving, int(0), zero, int(0), int(0), max_iterations, reuse
+        spare = reuse
+        if wp.static(spec.exact):
+            spare = 1
+        return solving, int(0), zero, int(0), int(0), max_iterations, spare, int(0)
 
     @wp.func
     def iterate(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
@@ -459,14 +467,21 @@ def newton(spec: KernelSpec):
                 max_iterations: int, max_line_search: int, reuse: int, status: wp.array(dtype=wp.int32),
                 iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
                 converged: wp.array(dtype=wp.int32), lane: int, chord: int, d_prev: dtype, nfact: int, its: int,
-                cap: int, spare: int):  # fmt: skip
+                cap: int, spare: int, exact: int):  # fmt: skip
         """One Newton iteration of world w's solve (solve_world): zero, assemble, factor and solve, take
         the step.  The solve's state goes in and comes back: ``chord`` (1: H holds the factor of an
         earlier iteration, reused for this one; chord_step), ``d_prev`` (the last step's ‖Δq‖∞),
         ``nfact`` (factorisations so far), ``its`` (Newton iterations, solves, so far), ``cap`` (the
-        budget), ``spare`` (1: a budget from a fresh factor is left).  Returns (1 when the solve is
-        over, converged or rejected, else 0; the new state)."""
+        budget), ``spare`` (1: a budget from a fresh factor is left), ``exact`` (1: the Hessian is
+        assembled exact, indefinite orthogonality blocks included; from the first iteration after one
+        that converged only linearly, until a factor of it breaks down, when the iteration is done
+        again with the PSD Hessian, or its step's line search runs out, when the next iteration takes
+        the PSD Hessian's step from the same q).  Returns (1 when the solve is over, converged or rejected, else
+        0; the new state)."""
         c = clock_now()
+        if wp.static(spec.exact):
+            if chord <= 0:
+                t.exact[w] = exact  # (every lane writes the same value; assemble reads it after a barrier)
         if wp.static(G > 1 or packed):
             # H packed (the triangle or the block band): its TRI words are one run of the column;
             # lane groups (T = 1): every group's copy of g and H, each TRI words on
@@ -547,21 +562,31 @@ def newton(spec: KernelSpec):
                 c = tick(t, w, lane, PHASE_SOLVE, c)
         if lane == 0:
             factorizations[w] = nfact
+        if wp.static(spec.exact):
+            if ok == 0 and exact != 0 and chord <= 0:
+                return 0, chord, d_prev, nfact, its, cap, spare, 0  # the exact Hessian is not positive definite here
         stop = int(3)  # 3: the factor or the solve broke down
         if ok != 0:
             its += 1
             if lane == 0:
                 iterations[w] = its
-            stop, chord = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold, chord,
-                                    reuse, d_prev, max_line_search, converged, lane)  # fmt: skip
+            linear = int(0)
+            stop, chord, linear = take_step(q, q_trial, t, dq, g, H, w, row, s, T, e0, gdq, dmax, g_abs, threshold,
+                                            chord, reuse, d_prev, max_line_search, converged, lane)  # fmt: skip
             c = tick(t, w, lane, PHASE_STEP, c)
+            if wp.static(spec.exact):
+                if stop == 2 and exact != 0 and its < cap:
+                    # the exact Hessian's step found no decrease (its search ran out; q is unchanged):
+                    # the next iteration takes R⁺'s
+                    return 0, chord, d_prev, nfact, its, cap, spare, 0
+                exact = wp.where(linear != 0, 1, exact)
         if stop == 1:
-            return 1, chord, dmax, nfact, its, cap, spare
+            return 1, chord, dmax, nfact, its, cap, spare, exact
         if stop >= 2 or its == cap:
             if spare == 0:
                 if lane == 0:
                     status[w] = wp.where(stop == 3, BREAKDOWN, UNCONVERGED)
-                return 1, chord, dmax, nfact, its, cap, spare
+                return 1, chord, dmax, nfact, its, cap, spare, exact
             # the retry: reuse's budget spent, or its iterates broke down or stalled
             spare = 0
             chord = -1
@@ -573,7 +598,7 @@ def newton(spec: KernelSpec):
                     q[w, b] = t.q_tilde[w, b]
             if wp.static(lanes):
                 block_sync()
-        return 0, chord, dmax, nfact, its, cap, spare
+        return 0, chord, dmax, nfact, its, cap, spare, exact
 
     @wp.func
     def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
@@ -591,17 +616,19 @@ def newton(spec: KernelSpec):
         convergence or the factor breaks down.  A solve with ``reuse`` then starts again from the
         prediction q̃ (t.q_tilde: the extrapolated guess it began from is not kept, which would cost a
         store per body every step) with max_iterations more, factoring at every one (chord −1), so
-        factor reuse never commits a step that a fresh factor could not solve.  A solve that ends its
+        factor reuse never commits a step that a fresh factor could not solve; so does every solve in
+        a scene built with ``exact`` (a stiff joint), whose iterates from the guess can end where
+        neither Hessian's step finds a decrease.  A solve that ends its
         last budget unconverged is rejected (status UNCONVERGED, or BREAKDOWN; close_world keeps qⁿ).
         The counts include the retry's iterations.  Lane-split, every lane takes every branch (each
         decides from the same sums in the same order) and lane 0 alone writes the world's counters."""
-        solving, chord, d_prev, nfact, its, cap, spare = open_solve(t, w, max_iterations, reuse, status, iterations,
-                                                                    factorizations, converged, lane)  # fmt: skip
+        solving, chord, d_prev, nfact, its, cap, spare, exact = open_solve(
+            t, w, max_iterations, reuse, status, iterations, factorizations, converged, lane)  # fmt: skip
         over = 1 - solving
         while over == 0:
-            over, chord, d_prev, nfact, its, cap, spare = iterate(
+            over, chord, d_prev, nfact, its, cap, spare, exact = iterate(
                 q, q_trial, t, g, H, dq, w, s, T, row, threshold, max_iterations, max_line_search, reuse, status,
-                iterations, factorizations, converged, lane, chord, d_prev, nfact, its, cap, spare)  # fmt: skip
+                iterations, factorizations, converged, lane, chord, d_prev, nfact, its, cap, spare, exact)  # fmt: skip
         return 0
 
     return SimpleNamespace(solve_world=solve_world, open_solve=open_solve, iterate=iterate)

@@ -71,13 +71,13 @@ def puts(spec: KernelSpec):
                         H[q] = H[q] + blk[a, bb]
 
     @wp.func
-    def put_body(H: Any, s: int, B: int, o: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype):
+    def put_body(H: Any, s: int, B: int, o: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype, exact: int):
         """Body o's Hessian (affine_body.body_eval's h) added to the lower triangle from its parts,
         without building the 12 × 12 matrix in the thread's local memory: m on the translation
         diagonal, the first moments c below it, and the A rows' 3 × 3 blocks (a_block), 57
         entries where the dense block's lower triangle has 78.  (Lanes add bodies by rows: lane_bodies.)"""
         if o >= 0:
-            Rp, ata = hessian_parts(qb)
+            Rp, ata = hessian_parts(qb, exact)
             for r in range(3):
                 p = (hrow(o + r) + o + r) * B + s
                 H[p] = H[p] + m

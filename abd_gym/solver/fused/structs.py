@@ -98,6 +98,7 @@ def structs(dtype):
         pas_damp: wp.array2d(dtype=dtype)
         v_anchor: wp.array2d(dtype=dtype)
         retried: wp.array(dtype=wp.int32)  # State.retried
+        exact: wp.array(dtype=wp.int32)  # (W,) 1: the Hessian assembled now is exact (newton.iterate)
         clock: wp.array2d(dtype=wp.int64)  # (W, len(PHASES)) with phase_clock, else unused
         # lane groups: group c's joints, limits and drives, (kind WORK_*, index in its kind) for
         # it < work_n[c] (Solver.lane_work); unused with one group

@@ -70,7 +70,10 @@ def terms(spec: KernelSpec):
         if derivs != 0:
             put_grad(g, s, B, t.dof[b], f)
             if derivs == HESSIAN:
-                put_body(H, s, B, t.dof[b], qb, t.mass[w, b], t.mc[w, b], t.S[w, b], ks)
+                exact = int(0)
+                if wp.static(spec.exact):
+                    exact = t.exact[w]
+                put_body(H, s, B, t.dof[b], qb, t.mass[w, b], t.mc[w, b], t.S[w, b], ks, exact)
         return e_in + e_or
 
     @wp.func
