@@ -59,7 +59,8 @@ class Simulator:
     Newton step from a fresh factor accepted whole (α = 1) under this many times q's rounding
     floor 4·eps·(1 + ‖q‖∞) ends the solve (float32 only in effect; 0: off); ``retry``: a world whose
     step fails (does not converge, breaks down) takes it again as 2, then 4 substeps before it is
-    rejected (``substeps``; solver/retry.py).
+    rejected (``substeps``; solver/retry.py); None: on the CPU, and on a GPU only where asked for
+    (``retry=True``), whose branch in the step's graphs has not been timed or run there yet.
 
     How the step runs on the device (kernels, memory layout, launches, graphs) is ``plan``, an
     ExecutionPlan (or a dict of its fields) whose None fields are derived from the device, the
@@ -70,7 +71,7 @@ class Simulator:
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "bdf2",
                  dtype="float32", device=None, tol: float = 1e-5, max_iterations: int | None = None,
                  max_line_search: int = 12, reuse_factor: bool = False, quadratic_stop: float = 100.0,
-                 retry: bool = True, plan: ExecutionPlan | dict | None = None):  # fmt: skip
+                 retry: bool | None = None, plan: ExecutionPlan | dict | None = None):  # fmt: skip
         inputs.count("num_worlds", num_worlds, minimum=1)
         dt = inputs.real_number("dt", dt, positive=True)
         if max_iterations is None:
@@ -78,11 +79,14 @@ class Simulator:
         settings = SolverSettings(tol=inputs.real_number("tol", tol, positive=True),
                                   max_iterations=inputs.count("max_iterations", max_iterations, minimum=1),
                                   max_line_search=inputs.count("max_line_search", max_line_search, minimum=1),
-                                  integrator=integrator, reuse_factor=reuse_factor, retry=retry,
+                                  integrator=integrator, reuse_factor=reuse_factor,
+                                  retry=True if retry is None else retry,
                                   quadratic_stop=inputs.real_number("quadratic_stop", quadratic_stop, nonnegative=True))  # fmt: skip
         self.scene = scene
         device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
         self.model = Model(scene, num_worlds, dtype=dtype, device=device)
+        if retry is None and self.model.device.is_cuda:
+            settings.retry = False  # on a GPU the retry is asked for (its branch in the step's graphs is unmeasured)
         dtype_name = "float32" if self.model.np_dtype == np.float32 else "float64"
         for message in conditioning.unsolvable(scene, dt, dtype_name) + conditioning.step_too_large(scene, dt):
             warnings.warn(message, RuntimeWarning, stacklevel=2)
