@@ -19,7 +19,7 @@ from .coordinates import FIXED_CODE
 from .inputs import check_body_spin, check_joint_state, check_within_limits
 from .inputs import finite_array as _finite_array
 from .model import Model
-from ..solver.plan import ExecutionPlan
+from ..solver.plan import ExecutionPlan, as_plan
 from .scene import REVOLUTE, Scene
 from ..solver.solver import Solver, SolverSettings
 from .state import State
@@ -84,7 +84,10 @@ class Simulator:
                                   quadratic_stop=inputs.real_number("quadratic_stop", quadratic_stop, nonnegative=True))  # fmt: skip
         self.scene = scene
         device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
-        self.model = Model(scene, num_worlds, dtype=dtype, device=device)
+        plan = as_plan(plan)
+        # the staged reference step (fused=False) solves 12 unknowns a body in every scene; the fused
+        # step, a planar scene's 6 (sim/planar.py)
+        self.model = Model(scene, num_worlds, dtype=dtype, device=device, reduce=plan.fused is not False)
         if retry is None and self.model.device.is_cuda:
             settings.retry = False  # on a GPU the retry is asked for (its branch in the step's graphs is unmeasured)
         dtype_name = "float32" if self.model.np_dtype == np.float32 else "float64"
