@@ -4,7 +4,8 @@ A scene is planar about the world axis ``a`` (its normal n = e_a) where
 
 - every hinge axis (revolute joint) is parallel to n and every slide (prismatic joint) lies in the
   plane ⟂ n;
-- gravity lies in that plane or along n;
+- gravity lies in that plane, or along n where every free body is joined (through joints) to a
+  fixed body that holds it;
 - every free body starts turned about n only (row a and column a of its rotation are ±e_a), with
   its velocity in the plane (no out-of-plane translation, spin about n only);
 - the scene's data is symmetric under the reflection x_a → −x_a of each body's frame: the first
@@ -78,10 +79,24 @@ def _normal_axis(scene: Scene):
         return None, f"hinge axis {np.round(t, 6).tolist()} is not along a world axis"
     slides = [j.frame[0] for j in scene.joints if j.kind == PRISMATIC]
     g = scene.gravity
-    for a in (2, 1, 0):  # without hinges: a plane holding every slide and gravity (z first)
-        if all(_small(t[a]) for t in slides) and (_small(g[a], np.abs(g).max()) or _small(np.delete(g, a), np.abs(g).max())):
+    for a in (1, 0, 2):  # without hinges: a plane holding every slide and gravity (xz first)
+        if all(_small(t[a]) for t in slides) and _small(g[a], np.abs(g).max()):
             return a, None
     return None, "no world plane holds every slide and gravity"
+
+
+def _held_by_fixed(scene: Scene) -> bool:
+    """Whether every free body is joined, through joints, to a fixed body (which then holds it
+    against gravity along the plane's normal)."""
+    held = {k for k, b in enumerate(scene.bodies) if b.fixed}
+    grew = True
+    while grew:
+        grew = False
+        for j in scene.joints:
+            if (j.body_a in held) != (j.body_b in held):
+                held |= {j.body_a, j.body_b}
+                grew = True
+    return len(held) == scene.num_bodies
 
 
 def kinematic_reasons(scene: Scene, a: int) -> list:
@@ -90,6 +105,8 @@ def kinematic_reasons(scene: Scene, a: int) -> list:
     g, gs = scene.gravity, float(np.abs(scene.gravity).max())
     if not (_small(g[a], gs) or _small(np.delete(g, a), gs)):
         why.append(f"gravity {g.tolist()} is neither in the plane nor along its normal")
+    elif not _small(g[a], gs) and not _held_by_fixed(scene):
+        why.append(f"gravity {g.tolist()} lies along the plane's normal and a body is not joined to a fixed one")
     for j in scene.joints:
         t = j.frame[0]
         if j.kind == REVOLUTE and not _small(np.delete(t, a)):
