@@ -189,3 +189,28 @@ def test_a_state_off_the_plane_is_refused(acrobot):
         np.testing.assert_array_equal(after[key], before[key])
     sim.set_state(before)  # a state the simulator made is taken back
     sim.set_body_states(P, R)
+
+
+DM_CONTROL = {"cartpole": "xz", "acrobot": "xz", "pendulum": "xz", "reacher": "xy"}
+# dm_control's reacher lies flat under gravity along its plane's normal, as Reacher-v5 (TOLERANCE):
+# its lighter links sag further, 2.1e-6 rad over 0.5 s apart (1.5e-15 with gravity off)
+DM_TOLERANCE = {"reacher": 1e-5}
+
+
+@pytest.mark.parametrize("model, plane", DM_CONTROL.items())
+def test_imported_planar_models_are_solved_in_their_plane(model, plane):
+    """dm_control's planar models (tests/data/dm_control, imported without their contacts) get their
+    plane automatically; 0.5 s from random joint states equals the 12-unknown step (float64)."""
+    import os
+    import warnings
+
+    path = os.path.join(os.path.dirname(__file__), "data", "dm_control", f"{model}.xml")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # "imported without contacts"
+        scene = ag.Scene.from_mjcf(path, ignore_contacts=True)
+    assert str(planar.plane_of(scene)) == plane
+    reference = STAGED if not any(j.has_limit for j in scene.joints) else None
+    full, _ = _trajectory(scene, False if reference is None else None, plan=reference, steps=50, worlds=2)
+    reduced, sim = _trajectory(scene, None, steps=50, worlds=2)
+    assert str(sim.plane) == plane
+    assert np.abs(reduced - full).max() <= DM_TOLERANCE.get(model, 1e-9)
