@@ -34,7 +34,7 @@ def puts(spec: KernelSpec):
     vec3, vec12, mat33, mat44 = o.vec3, o.vec12, o.mat33, o.mat44
     kron_index = o.kron_index
     bd = body_dofs(spec.axis)  # a body's D unknowns: entry r of its q is unknown slot(r) (−1: held), u moves sel(u)
-    D, slot, sel = bd.D, bd.slot, bd.sel
+    D, slot, sel, AXIS = bd.D, bd.slot, bd.sel, bd.axis
     hessian_parts, a_block = affine_body.kernels(dtype).hessian_parts, affine_body.kernels(dtype).a_block
     at = indexing(spec)
     hrow, own_from = at.hrow, at.own_from
@@ -102,8 +102,29 @@ def puts(spec: KernelSpec):
                                     H[p] = H[p] + blk[a, bb]
                                 p += B
             else:  # the in-plane rows and columns only (the held ones' blocks are never formed)
-                for u in range(D):
-                    body_row(H, s, B, o, u, qb, m, c, S, ks, Rp, ata)
+                for r in range(3):
+                    ur = slot(r)
+                    if ur >= 0:
+                        p = (hrow(o + ur) + o + ur) * B + s
+                        H[p] = H[p] + m
+                        for a in range(3):
+                            ua = slot(3 + 3 * r + a)
+                            if ua >= 0:
+                                p = (hrow(o + ua) + o + ur) * B + s
+                                H[p] = H[p] + c[a]
+                for kk in range(3):
+                    if kk != AXIS:
+                        for ll in range(kk + 1):
+                            if ll != AXIS:
+                                blk = a_block(qb, kk, ll, Rp, ata, ks, S)
+                                for a in range(3):
+                                    ua = slot(3 + 3 * kk + a)
+                                    if ua >= 0:
+                                        for bb in range(3):
+                                            ub = slot(3 + 3 * ll + bb)
+                                            if ub >= 0 and (kk != ll or bb <= a):
+                                                p = (hrow(o + ua) + o + ub) * B + s
+                                                H[p] = H[p] + blk[a, bb]
 
     @wp.func
     def kron_rows(H: Any, s: int, B: int, oa: int, ob: int, U: mat44):
