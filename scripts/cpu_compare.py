@@ -2,7 +2,7 @@
 """abd_gym on the CPU beside MuJoCo C: world-steps per second of each mechanism.
 
     python scripts/cpu_compare.py [--cases pendulum,cartpole_task,...] [--worlds 1,64,1024]
-        [--steps 50] [--repeat 3] [--threads N] [--integrators Euler,RK4] [--json PATH]
+        [--steps 50] [--repeat 3] [--threads N] [--integrators Euler,RK4] [--planar auto,off] [--json PATH]
 
 Both engines step the case's random starts (``peer_cases.CASES``, seed 0) with dt = 0.01 s.
 abd_gym: ``bench compare``'s timing on the CPU device (float32, its default plan: the fused
@@ -63,6 +63,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--integrators", default="Euler,RK4")
+    p.add_argument("--planar", default="auto", help="comma-separated forms of abd_gym's step: auto (a planar "
+                   "scene's 6 unknowns a body), off (12 unknowns a body)")
     p.add_argument("--json", help="write the rows to this JSON file")
     args = p.parse_args(argv)
     unknown = [c for c in args.cases.split(",") if c not in CASES]
@@ -77,23 +79,32 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for case in args.cases.split(","):
         for w in (int(x) for x in args.worlds.split(",")):
-            ours, _, _, layout, ours_bad = ours_steps_per_second(case, w, args.steps, DT, "cpu", repeat=args.repeat)
-            row = dict(case=case, num_worlds=w, abd_gym=ours, abd_gym_layout=layout, abd_gym_nonfinite=ours_bad)
+            row = dict(case=case, num_worlds=w)
+            for form in args.planar.split(","):
+                ours, _, _, layout, bad, unknowns = ours_steps_per_second(
+                    case, w, args.steps, DT, "cpu", repeat=args.repeat, planar={"auto": None, "off": False}[form])
+                key = "abd_gym" if form == "auto" else f"abd_gym_{form}"
+                row.update({key: ours, f"{key}_layout": layout, f"{key}_nonfinite": bad, f"{key}_unknowns": unknowns})
+            ours, ours_bad = row.get("abd_gym", math.nan), row.get("abd_gym_nonfinite", 0)
             for name in integrators:
                 sps, bad = mujoco_steps_per_second(case, w, args.steps, name, args.threads, args.repeat)
                 row[f"mujoco_{name.lower()}"] = sps
                 row[f"mujoco_{name.lower()}_nonfinite"] = bad
                 row[f"ratio_{name.lower()}"] = None if bad or ours_bad else ours / sps
             rows.append(row)
-            print(f"{case:28s} {w:6d} worlds  abd_gym {ours:12,.0f}  " + "  ".join(
+            print(f"{case:28s} {w:6d} worlds  abd_gym {ours:12,.0f} ({row.get('abd_gym_unknowns')})  " + "  ".join(
                 f"MuJoCo {n} {row[f'mujoco_{n.lower()}']:12,.0f}" for n in integrators), flush=True)  # fmt: skip
-    head = ["mechanism", "worlds", "abd_gym"] + [c for n in integrators for c in (f"MuJoCo {n}", f"ours / {n}")]
+    forms = [f for f in args.planar.split(",") if f != "auto"]
+    head = (["mechanism", "worlds", "unknowns", "abd_gym"] + [f"abd_gym, planar {f}" for f in forms]
+            + [c for n in integrators for c in (f"MuJoCo {n}", f"ours / {n}")])  # fmt: skip
     print(f"\nCPU: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; MuJoCo threads "
           f"{args.threads}; dt {DT}; world-steps/s\n")
     print("| " + " | ".join(head) + " |")
     print("|---|---:" + "|---:" * (len(head) - 2) + "|")
     for r in rows:
-        cells = [r["case"], f"{r['num_worlds']:,}", f"{r['abd_gym']:,.0f}"]
+        unknowns = "/".join(str(r[f"{k}_unknowns"]) for k in ["abd_gym"] * ("abd_gym" in r) + [f"abd_gym_{f}" for f in forms])
+        cells = [r["case"], f"{r['num_worlds']:,}", unknowns, f"{r.get('abd_gym', math.nan):,.0f}"]
+        cells += [f"{r[f'abd_gym_{f}']:,.0f}" for f in forms]
         for n in integrators:
             ratio = r[f"ratio_{n.lower()}"]
             cells += [f"{r[f'mujoco_{n.lower()}']:,.0f}", "—" if ratio is None else f"{ratio:.2f}×"]

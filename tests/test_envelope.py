@@ -1,5 +1,7 @@
 """The Hessian's envelope: a chain factors only the band its joints couple, with the dense factor's
-result; a closed loop widens the envelope to the bodies it closes on."""
+result; a closed loop widens the envelope to the bodies it closes on.  The chains here move in a
+plane; they are solved with 12 unknowns a body (``_chain``), whose block band these tests check
+(tests/test_planar.py: the planar form's envelope)."""
 import numpy as np
 import pytest
 
@@ -7,15 +9,22 @@ import abd_gym as ag
 from abd_gym.sim import mechanisms
 
 
+def _chain(n, **kw):
+    """mechanisms.chain, solved with 12 unknowns a body (Scene.planar False)."""
+    scene = mechanisms.chain(n, **kw)
+    scene.planar = False
+    return scene
+
+
 def test_envelope_follows_the_joints():
     dense = ag.Simulator(mechanisms.double_pendulum(), num_worlds=1)
     assert not dense.model.envelope  # two coupled bodies: dense, the plain loops run
-    chain = ag.Simulator(mechanisms.chain(4), num_worlds=1, plan=ag.ExecutionPlan(scratch="global"))
+    chain = ag.Simulator(_chain(4), num_worlds=1, plan=ag.ExecutionPlan(scratch="global"))
     assert chain.model.envelope and chain.plan.envelope  # (a GPU's lane-split step keeps H packed whole)
     np.testing.assert_array_equal(chain.model.first_np[::12], [0, 0, 12, 24])
     assert (chain.model.first_np.reshape(4, 12) == chain.model.first_np[::12, None]).all()
     # closing the chain on its first link (body 1): the last link's rows start at link 0
-    scene = mechanisms.chain(4)
+    scene = _chain(4)
     scene.add_revolute_joint(1, 4, anchor=(0.0, 0.0, -1.0), axis=(0, 1, 0))
     loop = ag.Simulator(scene, num_worlds=1).model
     np.testing.assert_array_equal(loop.first_np[::12], [0, 0, 12, 0])
@@ -30,7 +39,7 @@ def test_envelope_factor_gives_the_dense_trajectory(fused, workers):
     x0 = [[0.4, -0.3, 0.2, 0.5, -0.1], [1.0, 0.0, -0.5, 0.3, 0.2]] * 2
     runs = {}
     for envelope in (False, True):
-        sim = ag.Simulator(mechanisms.chain(5, length=0.2), num_worlds=4, dt=0.01, dtype="float64",
+        sim = ag.Simulator(_chain(5, length=0.2), num_worlds=4, dt=0.01, dtype="float64",
                            plan=ag.ExecutionPlan(envelope=envelope, fused=fused,
                                                  cpu_workers=workers if fused else None))  # fmt: skip
         assert sim.solver.band == (fused and envelope) and len(sim.solver.newton_launches) == (workers if fused else 1)
@@ -56,7 +65,7 @@ def test_lane_split_band_gives_the_dense_trajectory():
     try:
         runs = {}
         for band in (False, True):
-            sim = ag.Simulator(mechanisms.chain(5, length=0.2), num_worlds=2, dt=0.01, dtype="float64", device="cpu",
+            sim = ag.Simulator(_chain(5, length=0.2), num_worlds=2, dt=0.01, dtype="float64", device="cpu",
                                plan=ag.ExecutionPlan(scratch="lanes", block_dim=8, envelope=band))  # fmt: skip
             assert sim.solver.band == band
             sim.set_joint_state([[0.4, -0.3, 0.2, 0.5, -0.1], [1.0, 0.0, -0.5, 0.3, 0.2]])

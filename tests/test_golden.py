@@ -4,7 +4,9 @@ Every registered task's vector env (N worlds, a fixed seed, a fixed action seque
 mechanisms on the Simulator (a 5-link chain with limits, BDF2; a double pendulum in float64) are
 stepped from a fixed start; their observations, rewards and body coordinates must equal the stored
 ones exactly (on the CPU, where they were written: a GPU's float32 rounds otherwise).  A change that alters the arithmetic of a step fails here; regenerate only when that
-change is meant (``python tests/test_golden.py --write``) and say so in its commit message.
+change is meant (``python tests/test_golden.py --write KEY_PREFIX ...``, e.g. ``planar:``; no prefix
+rewrites every key) and say so in its commit message.  "task:…" and the mechanisms are the
+12-unknown step; "planar:…" each task's default form (a planar scene's 6 unknowns a body).
 """
 import os
 import sys
@@ -14,7 +16,7 @@ import numpy as np
 import pytest
 
 import abd_gym as ag
-from abd_gym.sim import mechanisms
+from abd_gym.sim import mechanisms, planar
 from abd_gym.vector.registration import env_ids
 
 PATH = os.path.join(os.path.dirname(__file__), "data", "golden.npz")
@@ -55,9 +57,23 @@ def mechanism_trajectories():
     return out
 
 
+class twelve_unknowns:
+    """Within it, every scene is solved with 12 unknowns a body (the planar reduction off: the
+    trajectories "task:…" and the mechanisms' were stored with it)."""
+
+    def __enter__(self):
+        self.patch = pytest.MonkeyPatch()
+        self.patch.setattr(planar, "plane_of", lambda scene: None)
+
+    def __exit__(self, *exc):
+        self.patch.undo()
+
+
 def all_trajectories():
-    out = {f"task:{i}": task_trajectory(i) for i in env_ids()}
-    out.update(mechanism_trajectories())
+    with twelve_unknowns():
+        out = {f"task:{i}": task_trajectory(i) for i in env_ids()}
+        out.update(mechanism_trajectories())
+    out.update({f"planar:{i}": task_trajectory(i) for i in env_ids()})
     return out
 
 
@@ -69,14 +85,22 @@ def stored():
 
 @pytest.mark.parametrize("env_id", env_ids())
 def test_task_trajectory_is_the_stored_one(env_id, stored):
-    np.testing.assert_array_equal(task_trajectory(env_id), stored[f"task:{env_id}"])
+    """12 unknowns a body, and the form each task gets by default (a planar scene's 6)."""
+    with twelve_unknowns():
+        np.testing.assert_array_equal(task_trajectory(env_id), stored[f"task:{env_id}"])
+    np.testing.assert_array_equal(task_trajectory(env_id), stored[f"planar:{env_id}"])
 
 
 def test_mechanism_trajectories_are_the_stored_ones(stored):
-    for name, q in mechanism_trajectories().items():
-        np.testing.assert_array_equal(q, stored[name], err_msg=name)
+    with twelve_unknowns():
+        for name, q in mechanism_trajectories().items():
+            np.testing.assert_array_equal(q, stored[name], err_msg=name)
 
 
 if __name__ == "__main__" and "--write" in sys.argv:
-    np.savez_compressed(PATH, **all_trajectories())
-    print("wrote", PATH)
+    keys = sys.argv[sys.argv.index("--write") + 1:]  # the keys to rewrite (prefixes; none: all)
+    old = dict(np.load(PATH)) if os.path.exists(PATH) else {}
+    new = all_trajectories()
+    kept = {k: v for k, v in old.items() if keys and not any(k.startswith(p) for p in keys)}
+    np.savez_compressed(PATH, **{**new, **kept})
+    print("wrote", PATH, "rewriting", sorted(set(new) - set(kept)))

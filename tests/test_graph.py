@@ -140,6 +140,7 @@ def test_lane_split_step_on_a_closed_loop(cpu_blocks):
     from abd_gym.envs.slider_crank import SliderCrankVectorEnv
 
     env = SliderCrankVectorEnv(1)
+    env.scene.planar = False  # 12 unknowns a body (tests/test_planar.py: the lanes in the plane)
     W, rng = 4, np.random.default_rng(2)
     x, xd = env.initial_state(W, rng, {})
     torque = rng.uniform(-1, 1, (W, 1)) * env.max_effort

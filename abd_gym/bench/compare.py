@@ -110,11 +110,20 @@ def mjw_accuracy(case, num_worlds, dt, device, integrator="Euler", duration=ACCU
                 limit_penetration=float(pen.max()), nonfinite=int(bad.sum()))  # fmt: skip
 
 
-def ours_accuracy(case, num_worlds, dt, device, dtype="float32", duration=ACCURACY_DURATION, **sim_kwargs):
+def scene_of(case, planar=None):
+    """The case's scene, with Scene.planar set (None: a planar scene solved in its plane; False: 12
+    unknowns a body)."""
+    scene = CASES[case].scene()
+    scene.planar = planar
+    return scene
+
+
+def ours_accuracy(case, num_worlds, dt, device, dtype="float32", duration=ACCURACY_DURATION, planar=None,
+                  **sim_kwargs):  # fmt: skip
     """abd_gym's accuracy over ``duration`` [s] (module docstring), stepping one step at a time:
     dict of joint_residual, loop_closure [m] (NaN without a loop), limit_penetration, nonfinite."""
     c = CASES[case]
-    sim = Simulator(c.scene(), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
+    sim = Simulator(scene_of(case, planar), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
     sim.set_joint_state(*c.states(num_worlds, 0))
     bad = np.zeros(num_worlds, dtype=bool)
     res, gap, pen = np.zeros(num_worlds), np.zeros(num_worlds), np.zeros(num_worlds)
@@ -145,13 +154,13 @@ def fastest_run(sim, x0, steps: int, repeat: int, v0=None) -> float:
     return best
 
 
-def ours_steps_per_second(case, num_worlds, steps, dt, device, dtype="float32", repeat=1, **sim_kwargs):
+def ours_steps_per_second(case, num_worlds, steps, dt, device, dtype="float32", repeat=1, planar=None, **sim_kwargs):
     """Throughput: ``steps`` steps launched back to back (a CUDA graph each on a GPU), one
     synchronisation at the end; the best of ``repeat`` such runs (each restarted from the same
     states: a short run on a GPU varies with clocks and whatever ran before it).
     Returns (world-steps/s, joint residual [m], bytes per world, the fused step's scratch layout,
-    the count of worlds whose state is non-finite at the end)."""
-    sim = Simulator(CASES[case].scene(), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
+    the count of worlds whose state is non-finite at the end, the unknowns a world)."""
+    sim = Simulator(scene_of(case, planar), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
     x0, v0 = CASES[case].states(num_worlds, 0)
     sim.set_joint_state(x0, v0)
     sim.step(3)
@@ -159,16 +168,16 @@ def ours_steps_per_second(case, num_worlds, steps, dt, device, dtype="float32", 
     bad = int(_nonfinite(sim.body_q()).sum())
     with np.errstate(invalid="ignore"):
         residual = float(np.nanmax(sim.joint_violation()))
-    return sps, residual, sim.memory_bytes()["total"] / num_worlds, sim.plan.scratch, bad
+    return sps, residual, sim.memory_bytes()["total"] / num_worlds, sim.plan.scratch, bad, sim.model.num_dofs
 
 
 METRICS = ("joint_residual", "loop_closure", "limit_penetration", "nonfinite")
 
 
-def _accuracy(case, n, args, plan, integrator):
+def _accuracy(case, n, args, plan, integrator, planar=None):
     """{engine: accuracy dict} of the first n worlds: abd_gym and MuJoCo Warp per integrator (NaN
     without mujoco_warp)."""
-    out = {"abd_gym": ours_accuracy(case, n, args.dt, args.device, plan=plan, **integrator)}
+    out = {"abd_gym": ours_accuracy(case, n, args.dt, args.device, plan=plan, planar=planar, **integrator)}
     for name in args.mjw_integrators:
         try:
             out[name] = mjw_accuracy(case, n, args.dt, args.device, integrator=name)
@@ -177,10 +186,10 @@ def _accuracy(case, n, args, plan, integrator):
     return out
 
 
-def _row(case, w, scratch, ours, theirs, acc, mem, acc_worlds):
+def _row(case, w, scratch, ours, theirs, acc, mem, acc_worlds, unknowns=None):
     """One result row: speeds, ratios (None against a diverged run), accuracy per engine."""
     ours_sps, residual, ours_bad = ours
-    row = dict(case=case, num_worlds=w, scratch=scratch, abd_gym=ours_sps, joint_residual=residual,
+    row = dict(case=case, num_worlds=w, scratch=scratch, unknowns=unknowns, abd_gym=ours_sps, joint_residual=residual,
                memory_bytes_per_world=mem, abd_gym_nonfinite=ours_bad + acc["abd_gym"]["nonfinite"],
                accuracy_worlds=acc_worlds)  # fmt: skip
     for k in METRICS[:3]:
@@ -222,7 +231,8 @@ def table(result) -> str:
     for r in result["rows"]:
         flag = lambda bad: "†" if bad else ""  # noqa: E731
         ours = _num(r["abd_gym"], ",.0f") + flag(r["abd_gym_nonfinite"])
-        cells = [r["case"], str(r["num_worlds"]), r["scratch"], ours]
+        step = r["scratch"] + (f", {r['unknowns']} unknowns" if r.get("unknowns") else "")
+        cells = [r["case"], str(r["num_worlds"]), step, ours]
         for n in names:
             k = f"mujoco_warp_{n.lower()}"
             bad = r.get(f"{k}_nonfinite", math.nan)
@@ -247,6 +257,9 @@ def main(argv=None):
     ap.add_argument("--cases", default=",".join(CASES), help="peer_cases.CASES names (default: all)")
     ap.add_argument("--scratch", default="auto", help="comma-separated layouts of our fused step: auto (the "
                     "simulator's default), global, shared, lanes (each timed against the same MuJoCo Warp run)")
+    ap.add_argument("--planar", default="auto", help="comma-separated forms of our step: auto (a planar scene's 6 "
+                    "unknowns a body, Scene.planar None), off (12 unknowns a body), each timed against the same "
+                    "MuJoCo Warp run")
     ap.add_argument("--repeat", type=int, default=3, help="time each engine this many times and keep its fastest")
     ap.add_argument("--integrator", default=None, help="our integrator: bdf2 or implicit_euler (default: the "
                     "simulator's)")
@@ -274,23 +287,24 @@ def main(argv=None):
                                                         integrator=name)  # fmt: skip
                 except ImportError:
                     theirs[name] = (math.nan, math.nan)
-            for scratch in args.scratch.split(","):
+            for scratch, form in ((k, f) for k in args.scratch.split(",") for f in args.planar.split(",")):
                 plan = ExecutionPlan(scratch=None if scratch == "auto" else scratch)
-                sps, residual, mem, layout, bad = ours_steps_per_second(
-                    case, w, steps, args.dt, args.device, repeat=args.repeat, plan=plan, **integrator)
+                planar = {"auto": None, "off": False}[form]
+                sps, residual, mem, layout, bad, unknowns = ours_steps_per_second(
+                    case, w, steps, args.dt, args.device, repeat=args.repeat, plan=plan, planar=planar, **integrator)
                 n = min(args.accuracy_worlds, w)
-                if (n, scratch) not in accuracy:
-                    accuracy[n, scratch] = _accuracy(case, n, args, plan, integrator) if n else {
+                if (n, scratch, form) not in accuracy:
+                    accuracy[n, scratch, form] = _accuracy(case, n, args, plan, integrator, planar) if n else {
                         "abd_gym": dict.fromkeys(METRICS, math.nan)}  # fmt: skip
-                acc = dict(accuracy[n, scratch])
+                acc = dict(accuracy[n, scratch, form])
                 if math.isnan(acc["abd_gym"]["nonfinite"]):
                     acc["abd_gym"] = dict(acc["abd_gym"], nonfinite=0)
                 if w in alone:  # no MuJoCo Warp run at this size
                     acc = {"abd_gym": acc["abd_gym"]}
-                rows.append(_row(case, w, layout, (sps, residual, bad), theirs, acc, mem, n))
+                rows.append(_row(case, w, layout, (sps, residual, bad), theirs, acc, mem, n, unknowns))
                 r = rows[-1]
                 mjw = "  ".join(f"MJW {k} {v[0]:14,.0f}" for k, v in theirs.items())
-                print(f"{case:28s} {w:8d} worlds  abd_gym ({layout}) {sps:14,.0f}  {mjw} world-steps/s  residual "
+                print(f"{case:28s} {w:8d} worlds  abd_gym ({layout}, {unknowns}) {sps:14,.0f}  {mjw} world-steps/s  residual "
                       f"{residual:.1e} m  non-finite {r['abd_gym_nonfinite']}  {mem:,.0f} B/world",
                       flush=True)  # fmt: skip
     result = dict(device=args.device, device_name=wp.get_device(args.device).name, dt=args.dt, steps=steps,

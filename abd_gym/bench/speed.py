@@ -89,11 +89,13 @@ def period_error(case, dt, dtype, device, amplitude=0.02):
     return float((np.diff(t).mean() - period) / period)
 
 
-def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, **sim_kwargs):
-    """Time ``steps`` steps of ``num_worlds`` worlds (``sim_kwargs``: more Simulator options, e.g.
-    ``plan``, an ExecutionPlan; the row records the resolved plan's choices)."""
+def time_steps(case, num_worlds, steps, dt, dtype, device, seed=0, planar=None, **sim_kwargs):
+    """Time ``steps`` steps of ``num_worlds`` worlds (``planar``: Scene.planar; ``sim_kwargs``: more
+    Simulator options, e.g. ``plan``, an ExecutionPlan; the row records the resolved plan's choices)."""
     c = CASES[case]
-    sim = Simulator(c["scene"](), num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
+    scene = c["scene"]()
+    scene.planar = planar
+    sim = Simulator(scene, num_worlds=num_worlds, dt=dt, device=device, dtype=dtype, **sim_kwargs)
     rng = np.random.default_rng(seed)
     x0 = np.array(c["rest"]) + rng.uniform(-0.3, 0.3, size=(num_worlds, len(c["rest"])))
     if case.startswith("cartpole"):
@@ -159,6 +161,8 @@ def main(argv=None):
     ap.add_argument("--scratch", default="auto",
                     help="comma-separated fused-step layouts: auto (the simulator's default), global (a thread per "
                          "world), shared (a thread per world, its system in shared memory), lanes (a block per world)")
+    ap.add_argument("--planar", default="auto", help="comma-separated forms: auto (a planar scene's 6 unknowns a "
+                    "body, Scene.planar None), off (12 unknowns a body)")
     ap.add_argument("--block-dim", type=int, default=None, help="CUDA block size (default: per solver)")
     ap.add_argument("--repeat", type=int, default=1, help="time each row this many times and keep the fastest")
     ap.add_argument("--threads", default=None, help="fused-step threads: all (one per world), Nsm (N per SM) or a count")
@@ -196,22 +200,22 @@ def main(argv=None):
         envelope_choice = {"auto": None, "0": False, "1": True}
         variants = [(k, float(t), reuse_choice[ru], envelope_choice[en],
                      None if cw == "auto" else int(cw), None if lg == "auto" else int(lg),
-                     None if spl == "auto" else int(spl), None if lw == "auto" else int(lw))
-                    for k in args.scratch.split(",") for t in args.tol.split(",") for ru in args.reuse_factor.split(",")
+                     None if spl == "auto" else int(spl), None if lw == "auto" else int(lw), {"auto": None, "off": False}[pf])
+                    for pf in args.planar.split(",") for k in args.scratch.split(",") for t in args.tol.split(",") for ru in args.reuse_factor.split(",")
                     for en in args.envelope.split(",") for cw in args.cpu_workers.split(",")
                     for lg in args.lane_groups.split(",") for spl in args.steps_per_launch.split(",")
                     for lw in args.lockstep_warps.split(",")]  # fmt: skip
-        for (scratch, tol, reuse, env, cw, lg, spl, lw), w in ((v, w) for v in variants for w in worlds):
+        for (scratch, tol, reuse, env, cw, lg, spl, lw, planar), w in ((v, w) for v in variants for w in worlds):
             plan = ExecutionPlan(scratch=None if scratch == "auto" else scratch, block_dim=args.block_dim,
                                  envelope=env, cpu_workers=cw, lane_groups=lg, steps_per_launch=spl,
                                  lockstep_warps=lw, threads=_thread_count(args.threads, w, args.device))  # fmt: skip
             runs = [time_steps(case, w, steps, args.dt, args.dtype, args.device, tol=tol, integrator=args.integrator,
-                               reuse_factor=reuse, plan=plan)
+                               reuse_factor=reuse, plan=plan, planar=planar)
                     for _ in range(max(args.repeat, 1))]  # fmt: skip
             rows.append(max(runs, key=lambda r: r["world_steps_per_second"]))
             rows[-1]["repeats"] = len(runs)
             r = rows[-1]
-            print(f"{case:16s} worlds {w:6d} tol {tol:g} {_solver(r):9s} {r['world_steps_per_second']:12.0f} world-steps/s  "
+            print(f"{case:16s} worlds {w:6d} unknowns {r['unknowns']:3d} tol {tol:g} {_solver(r):9s} {r['world_steps_per_second']:12.0f} world-steps/s  "
                   f"{r['steps_per_second']:8.1f} steps/s  iters {r['newton_iterations']:.2f}  "
                   f"factorisations {r['newton_factorizations']:.2f}  "
                   f"residual {r['joint_residual']:.2e}", flush=True)  # fmt: skip
@@ -318,10 +322,10 @@ def _solver(r) -> str:
 def table(result) -> str:
     """Markdown tables of a bench result."""
     lines = [f"Device: {result['device_name']} ({result['device']}), warp {result['warp']}", "",
-             "| mechanism | worlds | step | tol [m/s] | world-steps/s | steps/s | Newton iters | factorisations | "
-             "joint residual [m] |", "|---|---:|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+             "| mechanism | worlds | unknowns | step | tol [m/s] | world-steps/s | steps/s | Newton iters | factorisations | "
+             "joint residual [m] |", "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
     for r in result["simulator"]:
-        lines.append(f"| {r['case']} | {r['num_worlds']} | {_solver(r)} | {r.get('tol', 1e-5):g} | "
+        lines.append(f"| {r['case']} | {r['num_worlds']} | {r.get('unknowns', '')} | {_solver(r)} | {r.get('tol', 1e-5):g} | "
                      f"{r['world_steps_per_second']:,.0f} | "
                      f"{r['steps_per_second']:,.1f} | {r['newton_iterations']:.2f} | "
                      f"{r.get('newton_factorizations', r['newton_iterations']):.2f} | "

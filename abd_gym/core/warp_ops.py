@@ -134,3 +134,48 @@ def ops(dtype):
         return r
 
     return SimpleNamespace(**{k: v for k, v in locals().items() if k != "dtype"}, dtype=dtype)
+
+
+@functools.lru_cache(maxsize=None)
+def body_dofs(axis: int):
+    """A free body's unknowns in a world's system: all 12 of q = (p, a1, a2, a3) (``axis`` −1), or
+    the 6 in the plane ⟂ e_axis of a planar scene (sim/planar.py: p_i and A_ij for i, j ≠ axis).
+    ``D`` unknowns a body; ``slot(r)``: the unknown of q's entry r within its body's (−1: held);
+    ``sel(u)``: the entry of q that unknown u moves (u < D).  With 12 both are the identity."""
+    a = int(axis)
+    if a < 0:
+
+        @wp.func
+        def slot(r: int):
+            return r
+
+        @wp.func
+        def sel(u: int):
+            return u
+
+        return SimpleNamespace(D=12, slot=slot, sel=sel, axis=-1)
+
+    @wp.func
+    def slot(r: int):
+        # p_i (r < 3) or A_kj (r = 3 + 3k + j); i, k, j = a are held, the others keep their order
+        s = int(-1)
+        if r < 3:
+            if r != a:
+                s = r - wp.where(r > a, 1, 0)
+        else:
+            k = (r - 3) // 3
+            j = (r - 3) - 3 * k
+            if k != a and j != a:
+                s = 2 + 2 * (k - wp.where(k > a, 1, 0)) + j - wp.where(j > a, 1, 0)
+        return s
+
+    @wp.func
+    def sel(u: int):
+        r = u + wp.where(u >= a, 1, 0)
+        if u >= 2:
+            k = (u - 2) // 2
+            j = (u - 2) - 2 * k
+            r = 3 + 3 * (k + wp.where(k >= a, 1, 0)) + j + wp.where(j >= a, 1, 0)
+        return r
+
+    return SimpleNamespace(D=6, slot=slot, sel=sel, axis=a)

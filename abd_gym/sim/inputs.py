@@ -146,6 +146,29 @@ def check_rotations(name, R, worlds, items, item="body", movable=None):
                          f"{R[i, b].tolist()}")  # fmt: skip
 
 
+# how far a held entry of a planar scene's body state (sim/planar.py) may be off its scene value: q's
+# rounding, far below any motion out of the plane
+PLANE_TOL = 1e-9
+
+
+def check_in_plane(name, q, worlds, items, held, q0, movable, velocity=False):
+    """Raise a ValueError where a planar-reduced scene's body state (N, items, 12) would leave the
+    plane: an entry the step holds (``held``: sim.planar.Plane.held) off the body's scene value
+    ``q0`` (items, 12) (a velocity's: off 0) by more than PLANE_TOL·(1 + |value|).  The scene is
+    solved in its plane only (Scene.planar); a state out of it is refused, never projected."""
+    held = list(held)
+    ref = np.zeros_like(q[..., held]) if velocity else np.broadcast_to(q0[:, held], q[..., held].shape)
+    off = np.abs(q[..., held] - ref) > PLANE_TOL * (1.0 + np.abs(ref))
+    off &= np.asarray(movable)[None, :, None]
+    if off.any():
+        i, b, k = np.argwhere(off)[0]
+        r = held[k]
+        entry = f"p[{r}]" if r < 3 else f"A[{(r - 3) // 3}, {(r - 3) % 3}]"
+        raise ValueError(f"{name}: body {items[b]!r} in world {int(worlds[i])} leaves the plane the scene is solved "
+                         f"in: {entry} = {float(q[i, b, r]):.9g}, held at {float(ref[i, b, k]):.9g} (Scene.planar=False "
+                         f"solves the scene in 3-D)")  # fmt: skip
+
+
 def limit_scale(revolute: bool, lower, upper):
     """The penetration of a limit at which its energy reaches its strength s: 1 rad for a revolute
     limit (E = s·d³), the range width u − l for a prismatic one (E = s·(d/(u − l))³), and 1 m for

@@ -13,7 +13,7 @@ import warp as wp
 from ..core import angles
 from ..constitutions import drive as drive_mod
 from ..core.warp_ops import ops
-from . import conditioning
+from . import conditioning, planar
 from .coordinates import FIXED_CODE, PRISMATIC_CODE, REVOLUTE_CODE
 from ..core.devices import resolve_device
 from .scene import FIXED, PRISMATIC, REVOLUTE, Scene
@@ -52,7 +52,7 @@ def without_rounding_noise(x: np.ndarray, rel: float = 1e-12, axis: int | None =
 class Model:
     """Device arrays of one scene for ``num_worlds`` worlds (see module docstring)."""
 
-    def __init__(self, scene: Scene, num_worlds: int, dtype=wp.float32, device="cpu"):
+    def __init__(self, scene: Scene, num_worlds: int, dtype=wp.float32, device="cpu", reduce: bool = True):
         if not isinstance(num_worlds, (int, np.integer)) or num_worlds < 1:
             raise ValueError(f"num_worlds must be a positive integer, got {num_worlds!r}")
         if scene.num_bodies == 0:
@@ -66,16 +66,20 @@ class Model:
         self.vec3, self.vec12, self.mat33 = o.vec3, o.vec12, o.mat33
         bodies, joints = scene.bodies, scene.joints
 
-        # ---- bodies: dof offsets (fixed bodies carry no unknowns)
+        # ---- bodies: the plane a planar scene moves in (sim/planar.py; ``reduce`` False: none, the
+        # staged reference step's 12 unknowns a body), and dof offsets (fixed bodies carry no unknowns)
+        self.plane = planar.plane_of(scene) if reduce else None
+        D = self.body_dofs = 6 if self.plane else 12  # unknowns a free body
+        self.axis = self.plane.axis if self.plane else -1  # the plane's normal axis, -1: none
         dof, free = [], []
         for k, b in enumerate(bodies):
-            dof.append(-1 if b.fixed else 12 * len(free))
+            dof.append(-1 if b.fixed else D * len(free))
             if not b.fixed:
                 free.append(k)
         if not free:
             raise ValueError("the scene has no free (non-fixed) body")
         self.num_bodies, self.num_free = len(bodies), len(free)
-        self.num_dofs = 12 * len(free)
+        self.num_dofs = D * len(free)
         self.dof = self.int_array(dof)
         self.free = self.int_array(free)
         self.gravity = self.vec3(*scene.gravity)
@@ -98,19 +102,25 @@ class Model:
         self.joint_kind = self.int_array(self.joint_kind_np)
         # the Hessian's envelope: row i's first non-zero column, from the body pairs the joints (and
         # their limits and drives) couple; a chain in scene order is block-banded, and Cholesky
-        # fills nothing outside the envelope, so a 20-link chain factors in O(n·12²), not O(n³)
+        # fills nothing outside the envelope, so a 20-link chain factors in O(n·D²), not O(n³)
         block_first = [dof[k] for k in free]
         for j in joints:
             da, db = dof[j.body_a], dof[j.body_b]
             if da >= 0 and db >= 0:
                 lo, hi = min(da, db), max(da, db)
-                block_first[hi // 12] = min(block_first[hi // 12], lo)
-        self.first_np = np.repeat(np.array(block_first, dtype=np.int32), 12)
+                block_first[hi // D] = min(block_first[hi // D], lo)
+        self.first_np = np.repeat(np.array(block_first, dtype=np.int32), D)
         self.envelope = bool(self.first_np.any())  # False: the Hessian is dense, the plain loops run
+        # a world's system: the unknowns, then rows to a multiple of 4 (the factor's 4 × 4 tiles) that
+        # couple to nothing (H 1 on their diagonal, g 0: fused.assembly), so D = 6 needs no other factor
+        self.system_size = -(-self.num_dofs // 4) * 4
+        pad = np.arange(self.num_dofs, self.system_size, dtype=np.int32)
+        self.first_np = np.concatenate([self.first_np, pad]) if self.envelope else np.zeros(self.system_size, np.int32)
         # three or more free bodies, each coupled to the one before it at most (chains, and loops
         # closed through the ground: the four-bar, the slider-crank): the Hessian lies in its block
         # band, which the fused step stores packed (solver_kernels.h_words, plan.plan_band)
-        self.banded = len(block_first) >= 3 and all(f >= 12 * (b - 1) for b, f in enumerate(block_first))
+        # (12 unknowns a body: the band's 12-row blocks are what its 4 × 4 tiles step over)
+        self.banded = D == 12 and len(block_first) >= 3 and all(f >= D * (b - 1) for b, f in enumerate(block_first))
         # a joint whose K/m is past conditioning.STIFF_JOINT: Newton may assemble the exact orthogonality
         # Hessian (fused.kernel's ``exact``)
         self.stiff = bool(np.max(conditioning.joint_numbers(scene), initial=0.0) > conditioning.STIFF_JOINT)

@@ -183,12 +183,26 @@ class Scene:
     Units are SI throughout: metres, kilograms, seconds, radians.
     """
 
-    def __init__(self, gravity=(0.0, 0.0, -9.81)):
+    def __init__(self, gravity=(0.0, 0.0, -9.81), planar=None):
         self.gravity = _vec3("gravity", gravity)
+        self.planar = planar
         self.bodies: list[Body] = []
         self.joints: list[Joint] = []
         self.drives: list[Drive] = []
         self.imported = None  # abd_gym.mjcf.MjcfInfo of a scene made by from_mjcf / from_urdf
+
+    @property
+    def planar(self):
+        """Whether the step solves 6 unknowns a body in the plane the scene moves in (abd_gym.sim.planar):
+        None (the default) where the scene meets every rule there, True where its axes, gravity and
+        starts lie in a plane (else the Simulator refuses it), False never."""
+        return self._planar
+
+    @planar.setter
+    def planar(self, value):
+        if value is not None and not isinstance(value, (bool, np.bool_)):
+            raise TypeError(f"planar must be None, True or False, got {value!r}")
+        self._planar = None if value is None else bool(value)
 
     @classmethod
     def from_mjcf(cls, path_or_xml, *, exclude=(), ignore_contacts=False) -> "Scene":

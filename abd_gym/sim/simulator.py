@@ -19,7 +19,7 @@ from .coordinates import FIXED_CODE
 from .inputs import check_body_spin, check_joint_state, check_within_limits
 from .inputs import finite_array as _finite_array
 from .model import Model
-from ..solver.plan import ExecutionPlan
+from ..solver.plan import ExecutionPlan, as_plan
 from .scene import REVOLUTE, Scene
 from ..solver.solver import Solver, SolverSettings
 from .state import State
@@ -84,7 +84,10 @@ class Simulator:
                                   quadratic_stop=inputs.real_number("quadratic_stop", quadratic_stop, nonnegative=True))  # fmt: skip
         self.scene = scene
         device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
-        self.model = Model(scene, num_worlds, dtype=dtype, device=device)
+        plan = as_plan(plan)
+        # the staged reference step (fused=False) solves 12 unknowns a body in every scene; the fused
+        # step, a planar scene's 6 (sim/planar.py)
+        self.model = Model(scene, num_worlds, dtype=dtype, device=device, reduce=plan.fused is not False)
         if retry is None and self.model.device.is_cuda:
             settings.retry = False  # on a GPU the retry is asked for (its branch in the step's graphs is unmeasured)
         dtype_name = "float32" if self.model.np_dtype == np.float32 else "float64"
@@ -115,6 +118,19 @@ class Simulator:
         self._replays = {}  # steps a call -> its (phase, graph) pairs, once every launch of it is captured (step)
         self._warm = False
         self.reset()
+
+    @property
+    def plane(self):
+        """The plane a planar scene is solved in (sim.planar.Plane: 6 unknowns a body, e.g. "xz"), or
+        None (12 unknowns a body): Scene.planar, resolved when the simulator was built."""
+        return self.model.plane
+
+    def __repr__(self) -> str:
+        m = self.model
+        form = f"6 a body in the {m.plane} plane" if m.plane else "12 a body"
+        return (f"Simulator({m.num_worlds} worlds, {m.num_bodies} bodies ({m.num_free} free), {m.num_dofs} unknowns a "
+                f"world ({form}), dt {self.dt:g} s, {self.solver.settings.integrator}, "
+                f"{np.dtype(m.np_dtype).name}, {self.device}, scratch {self.plan.scratch!r})")  # fmt: skip
 
     @property
     def plan(self) -> ExecutionPlan:
@@ -406,6 +422,7 @@ class Simulator:
         qd = np.concatenate([v, (_skew(w) @ R).reshape(len(idx), nb, 9)], axis=-1)
         q[:, fixed] = self.model.q0[fixed]
         qd[:, fixed] = 0.0
+        self._check_in_plane(("positions, rotations", q), ("linear_velocities, angular_velocities", qd), worlds=idx)
         limits = self._limit_bounds()
         before = self.get_state(idx) if limits and len(idx) else None
         self._set_q(idx, q, qd)
@@ -416,6 +433,19 @@ class Simulator:
             except ValueError:
                 self._write_state(before, idx)
                 raise
+
+    def _check_in_plane(self, *named, worlds):
+        """For a planar-reduced scene, each (name, (N, bodies, 12) array) a pose (name starting "q"
+        or "positions") or a velocity, refused where it leaves the plane (inputs.check_in_plane)."""
+        plane = self.model.plane
+        if plane is None:
+            return
+        movable = ~np.array([b.fixed for b in self.scene.bodies])
+        items = [b.name for b in self.scene.bodies]
+        for name, a in named:
+            velocity = not (name.startswith("positions") or name in ("state['q']", "state['q_prev']", "state['q_hist']"))
+            inputs.check_in_plane(name, np.asarray(a, dtype=np.float64), worlds, items, plane.held, self.model.q0,
+                                  movable, velocity=velocity)  # fmt: skip
 
     def _set_q(self, idx, q, qd):
         """Restart the worlds idx at body states q, q̇ (N, bodies, 12)."""
@@ -556,6 +586,8 @@ class Simulator:
         fixed = np.array([b.fixed for b in self.scene.bodies])
         inputs.check_rotations("state['q']", vals["q"][..., 3:].reshape(len(idx), -1, 3, 3).astype(np.float64), idx,
                                bodies, movable=~fixed)  # fmt: skip
+        self._check_in_plane(*[(f"state[{k!r}]", vals[k]) for k in ("q", "qd", "q_prev", "q_hist", "qd_hist", "qd_hist2")],
+                             worlds=idx)  # fmt: skip
         if self.model.num_joints:
             coord = _finite_array("state['coord']", vals["coord"], vals["coord"].shape, idx, joints, "joint",
                                   self._state_bound)

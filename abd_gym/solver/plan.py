@@ -313,9 +313,9 @@ def resolve_plan(plan, model) -> ExecutionPlan:
     """``plan`` (an ExecutionPlan, a dict of its fields, or None) for ``model`` (its device,
     num_worlds, num_dofs, dtype and scene), every None derived: the plan a Solver runs.  Resolving
     a resolved plan returns it unchanged.  Raises ValueError on a bad or inconsistent value."""
-    plan = _as_plan(plan)
+    plan = as_plan(plan)
     _check_values(plan)
-    device, W, n, dtype = wp.get_device(model.device), model.num_worlds, model.num_dofs, model.dtype
+    device, W, n, dtype = wp.get_device(model.device), model.num_worlds, model.system_size, model.dtype
     fused = True if plan.fused is None else bool(plan.fused)
     banded = model.banded
     scratch = plan.scratch or default_scratch(device, n, dtype, fused, W, banded and plan.envelope is not False)
@@ -385,7 +385,8 @@ def worlds_per_block(plan: ExecutionPlan, device) -> int:
     return (32 // L if share else 1) * plan.lockstep_warps
 
 
-def _as_plan(plan) -> ExecutionPlan:
+def as_plan(plan) -> ExecutionPlan:
+    """``plan`` (an ExecutionPlan, a dict of its fields or None) as an ExecutionPlan, unresolved."""
     if plan is None:
         return ExecutionPlan()
     if isinstance(plan, ExecutionPlan):
@@ -449,7 +450,7 @@ def _blocks(plan: ExecutionPlan, model, device, scratch: str, threads: int, band
     """(block_dim, lane_groups): lanes a world and their groups for the lane-split step (narrow
     worlds where the GPU must hold more of them at once, one group each), the threads a block
     whose systems fit its shared memory for "shared" on CUDA, default_block_dim otherwise."""
-    W, n, dtype = model.num_worlds, model.num_dofs, model.dtype
+    W, n, dtype = model.num_worlds, model.system_size, model.dtype
     lanes = scratch == "lanes"
     width = plan.block_dim or (lanes and default_lane_width(device, W, dtype, n, band)) or 32
     narrow = lanes and width < 32

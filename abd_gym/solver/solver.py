@@ -143,7 +143,7 @@ class Solver:
         # the effective step ĥ (dt, or 2dt/3 under BDF2): physical potentials sit inside h_eff²,
         # velocities are Δq/h_eff
         self.h_eff = self.dt * (2.0 / 3.0 if self.bdf2 else 1.0)
-        W, n, dev, scalar = model.num_worlds, model.num_dofs, model.device, model.dtype
+        W, n, dev, scalar = model.num_worlds, model.system_size, model.device, model.dtype
         # per world, set by each step (open_step): h_eff, or dt for a BDF2 world's first step
         self.h_step = wp.full(W, self.h_eff, dtype=scalar, device=dev)
         # only the constitutions this scene has get a term (and so a kernel launch)
@@ -274,7 +274,7 @@ class Solver:
     def _unpack(self, packed: np.ndarray) -> np.ndarray:
         """(columns, n, n) lower triangles from (columns, words) packed rows, the triangle or
         (``band``) the block band (row i from h_row_starts[i], its stored columns only)."""
-        n = self.model.num_dofs
+        n = self.model.system_size
         starts, firsts = h_row_starts(n, True, self.band), h_row_first(n, self.band)
         full = np.zeros((packed.shape[0], n, n), dtype=packed.dtype)
         for i, (start, lo) in enumerate(zip(starts, firsts)):
@@ -292,7 +292,7 @@ class Solver:
         if self._fused is None:
             self._fused = self._build_fused(state)
         _, terms, _, assemble_system = self._fused
-        W, n, L = m.num_worlds, m.num_dofs, self.block_dim if self.lanes else 1
+        W, n, L = m.num_worlds, m.system_size, self.block_dim if self.lanes else 1
         g, H = self.g, self.H_flat if self.band else self.H
         if self.lanes:  # world w's g and H (packed, a copy per lane group) from w·lane_stride
             g, H = (wp.zeros((W, self.lane_stride), dtype=m.dtype, device=m.device) for _ in range(2))
@@ -473,7 +473,7 @@ class Solver:
                 state.factorizations, state.converged, int(steps)], block_dim=L * self.worlds_per_block,
                 device=m.device)  # fmt: skip
             return
-        n, hw = m.num_dofs, h_words(m.num_dofs, self.band, self.band)
+        n, hw = m.system_size, h_words(m.system_size, self.band, self.band)
 
         def inputs(chunk, start, count, wa, wb):
             # the launch's own scratch: columns start … start + count − 1 of g, H, dq, stored as a
@@ -513,7 +513,7 @@ class Solver:
         own, folds = fused_flags(m, jt)
         st = self.settings
         kernel, Terms, Bracket, assemble_system = fused_kernel(
-            m.dtype, own, folds, scratch=self.scratch, n=m.num_dofs, envelope=self.envelope and not self.band,
+            m.dtype, own, folds, scratch=self.scratch, n=m.system_size, envelope=self.envelope and not self.band, axis=m.axis,
             band=self.band, phase_clock=self.plan.phase_clock,
             cuda=bool((self.lanes or self.shared) and wp.get_device(m.device).is_cuda),
             block=self.block_dim if self.in_smem or self.lanes else 0, bracket=self.one_launch,
@@ -542,7 +542,7 @@ class Solver:
         counts = term_counts(m, jt)
         G = self.lane_groups
         none = (np.zeros((1, 1), np.int32), np.zeros((1, 1), np.int32), np.zeros(1, np.int32))  # (unused)
-        self.work = lane_work(counts, G, self.block_dim // G, m.num_dofs) if G > 1 else none
+        self.work = lane_work(counts, G, self.block_dim // G, m.system_size) if G > 1 else none
         t.work_kind, t.work_idx, t.work_n = (wp.array(a, dtype=wp.int32, device=m.device) for a in self.work)
         rows = m.num_worlds if self.plan.phase_clock else 1
         self.phase_cycles = wp.zeros((rows, len(PHASES)), dtype=wp.int64, device=m.device)
@@ -587,7 +587,7 @@ class Solver:
         self.g.zero_()
         self.H.zero_()
         self.assemble(state, state.q, self.E, self.active, HESSIAN)
-        wp.launch(k["newton_direction"], dim=W, inputs=[self.H_flat, self.L_flat, self.g_flat, m.num_dofs, m.first, self.active,
+        wp.launch(k["newton_direction"], dim=W, inputs=[self.H_flat, self.L_flat, self.g_flat, m.system_size, m.first, self.active,
                                                         self.chord, self.dq_flat, self.gdq, self.dq_max, self.g_abs, state.status,
                                                         state.factorizations, self.searching, self.take, self.spare],
                   device=dev)  # fmt: skip

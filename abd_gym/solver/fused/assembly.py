@@ -16,7 +16,7 @@ import warp as wp
 
 from ...constitutions import affine_body
 from ...sim.scene import REVOLUTE
-from ...core.warp_ops import HESSIAN, ops
+from ...core.warp_ops import HESSIAN, body_dofs, ops
 from .clock import (PHASE_ASSEMBLE_BODIES, PHASE_ASSEMBLE_REVOLUTE, PHASE_ASSEMBLE_FIXED, PHASE_ASSEMBLE_PRISMATIC,
                      PHASE_ASSEMBLE_LIMITS, PHASE_ASSEMBLE_DRIVES, clock)  # fmt: skip
 from .layout import KernelSpec, indexing
@@ -31,14 +31,16 @@ def lane_assembly(spec: KernelSpec):
     """The lanes' assembly: ``lane_bodies`` (the bodies by rows) and ``assemble_groups`` (lane
     groups, each its share of the terms in its own copy of g and H)."""
     dtype, N, NF, TRI, LANES, G, RL = spec.dtype, spec.N, spec.NF, spec.TRI, spec.LANES, spec.G, spec.RL
+    D, NR = spec.D, spec.NR
     has_rev, has_fix, has_pri = spec.has("revolute_joint"), spec.has("fixed_joint"), spec.has("prismatic_joint")
     has_rlim, has_plim, has_drive = spec.has("revolute_limit"), spec.has("prismatic_limit"), spec.has("drive")
     rev_angles = len(spec.folded(REVOLUTE)) > 0
     vec12 = ops(dtype).vec12
+    sel = body_dofs(spec.axis).sel
     Terms = structs(dtype).Terms
     body_grad, hessian_parts = affine_body.kernels(dtype).body_grad, affine_body.kernels(dtype).hessian_parts
     at = indexing(spec)
-    block_sync, lane_index = at.block_sync, at.lane_index
+    block_sync, lane_index, hrow = at.block_sync, at.lane_index, at.hrow
     body_row = puts(spec).body_row
     point_term, prismatic_term = terms(spec).point_term, terms(spec).prismatic_term
     ct = coordinate_terms(spec)
@@ -51,22 +53,27 @@ def lane_assembly(spec: KernelSpec):
                   H: Any, h2: dtype, first: int, stride: int):  # fmt: skip
         """The bodies' terms by rows: the lane evaluates the body of each of its rows ρ = first,
         first + stride, … and adds that row only; body k's energy to slot N + k of g (past the
-        gradient) from the lane of its first row."""
-        for rho in range(first, N, stride):
-            k = rho // 12
+        gradient) from the lane of its first row.  A padding row past the bodies' (NR ≤ ρ < N) gets
+        1 on its diagonal."""
+        if wp.static(NR < N):
+            if derivs == HESSIAN:
+                for rho in range(NR + (first - NR % stride + stride) % stride, N, stride):
+                    H[(hrow(rho) + rho) * B + s] = H[(hrow(rho) + rho) * B + s] + dtype(1.0)
+        for rho in range(first, NR, stride):
+            k = rho // D
             b = t.free[k]
-            r = rho - 12 * k
+            r = rho - D * k
             qb = q[qr, b]
             ks = t.kv[w, b] * h2
             e_in, e_or, f = body_grad(qb, t.q_tilde[w, b], t.mass[w, b], t.mc[w, b], t.S[w, b], ks, derivs)
             if derivs != 0:
-                g[rho * B + s] = g[rho * B + s] + f[r]
+                g[rho * B + s] = g[rho * B + s] + f[sel(r)]
                 if derivs == HESSIAN:
                     exact = int(0)
                     if wp.static(spec.exact):
                         exact = t.exact[w]
                     Rp, ata = hessian_parts(qb, exact)
-                    body_row(H, s, B, 12 * k, r, qb, t.mass[w, b], t.mc[w, b], t.S[w, b], ks, Rp, ata)
+                    body_row(H, s, B, D * k, r, qb, t.mass[w, b], t.mc[w, b], t.S[w, b], ks, Rp, ata)
             if r == 0:
                 g[(N + k) * B + s] = e_in + e_or
 
@@ -163,7 +170,8 @@ def lane_assembly(spec: KernelSpec):
 def assembly(spec: KernelSpec):
     """``assemble(q, qr, w, s, B, derivs, t, g, H)``: the incremental potential of world w at
     q[qr] and, per ``derivs``, its gradient and Hessian added to scratch column s (of B)."""
-    dtype, G, lanes = spec.dtype, spec.G, spec.lanes
+    dtype, G, lanes, N, NR = spec.dtype, spec.G, spec.lanes, spec.N, spec.NR
+    hrow = indexing(spec).hrow
     has_rev, has_fix, has_pri = spec.has("revolute_joint"), spec.has("fixed_joint"), spec.has("prismatic_joint")
     has_rlim, has_plim, has_drive = spec.has("revolute_limit"), spec.has("prismatic_limit"), spec.has("drive")
     rev_angles = len(spec.folded(REVOLUTE)) > 0
@@ -193,6 +201,10 @@ def assembly(spec: KernelSpec):
         else:
             for k in range(t.free.shape[0]):
                 e += body_term(q, qr, w, s, B, derivs, t, g, H, k, h2)
+            if wp.static(NR < N):  # padding rows past the bodies' (KernelSpec.NR): 1 on the diagonal
+                if derivs == HESSIAN:
+                    for i in range(NR, N):
+                        H[(hrow(i) + i) * B + s] = H[(hrow(i) + i) * B + s] + dtype(1.0)
         ck = tick(t, w, 0, PHASE_ASSEMBLE_BODIES, ck)
         if wp.static(has_rev):
             for k in range(t.rev_ids.shape[0]):

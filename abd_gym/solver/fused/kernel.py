@@ -217,8 +217,10 @@ def lanes_kernel(spec: KernelSpec):
 @functools.lru_cache(maxsize=None)
 def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False, phase_clock=False, cuda=False,
                  block=0, bracket=True, groups=1, per_block=1, quadratic=0.0, hold=False, band=False,
-                 limits=(0, 0), secant=False, exact=False):  # fmt: skip
-    """The Newton kernel for a scene with the given constitutions and ``n`` unknowns per world.
+                 limits=(0, 0), secant=False, exact=False, axis=-1):  # fmt: skip
+    """The Newton kernel for a scene with the given constitutions and ``n`` rows a world's system
+    (Model.system_size); ``axis``: a planar scene's normal axis (6 unknowns a body, in the plane;
+    −1: 12).
 
     ``own``: the names of the joint and coordinate constitutions with terms of their own; ``folds``:
     the (name, joint kind) of the coordinate terms folded into a joint's term (a prismatic joint's
@@ -263,6 +265,6 @@ def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False,
     exact (R for its PSD part R⁺, affine_body) until a factor of it breaks down (newton.iterate); for
     scenes with a joint past conditioning.STIFF_JOINT (Model.stiff)."""
     spec = KernelSpec(dtype, tuple(own), tuple(folds), scratch, n, envelope, phase_clock, cuda, block, bracket, groups,
-                      per_block, quadratic, hold, band, tuple(limits), bool(secant), bool(exact))  # fmt: skip
+                      per_block, quadratic, hold, band, tuple(limits), bool(secant), bool(exact), int(axis))  # fmt: skip
     kernel = lanes_kernel(spec) if spec.lanes else thread_kernel(spec)
     return kernel, structs(dtype).Terms, structs(dtype).Bracket, assembly_kernel(spec)

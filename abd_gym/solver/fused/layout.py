@@ -58,12 +58,12 @@ def tile_address(dtype, count: int):
     return address
 
 
-def lanes_scratch_words(n: int, groups: int, band: bool = False) -> int:
+def lanes_scratch_words(n: int, groups: int, band: bool = False, body_dofs: int = 12) -> int:
     """Words of one world's scratch in the lane-split step (its block's shared memory on CUDA):
     ``groups`` copies of H's packed lower triangle (n(n+1)/2 each; ``band``: its packed block band,
     solver_kernels.h_words), g (n, then the bodies' energies and, with groups, the copies' g, the
-    groups' energies and the factor's flag) and Δq (n)."""
-    tri, nf = solver_kernels.h_words(n, True, band), n // 12
+    groups' energies and the factor's flag) and Δq (n); ``body_dofs`` unknowns a free body."""
+    tri, nf = solver_kernels.h_words(n, True, band), n // body_dofs
     glen = n + nf if groups == 1 else (groups - 1) * tri + n + nf + groups + 1
     return groups * tri + glen + n
 
@@ -124,6 +124,7 @@ class KernelSpec:
     limits: tuple = (0, 0)
     secant: bool = False
     exact: bool = False
+    axis: int = -1
 
     def __post_init__(self):
         if self.LANES % self.G:
@@ -177,13 +178,24 @@ class KernelSpec:
 
     @property
     def N(self) -> int:
-        """Unknowns per world (12 per free body), a constant of the kernel."""
+        """Rows of a world's system (Model.system_size), a constant of the kernel: D per free body,
+        then up to 3 padding rows to a multiple of 4 (the factor's tiles)."""
         return self.n
 
     @property
+    def D(self) -> int:
+        """Unknowns per free body: 12, or 6 in a planar scene's plane (``axis``: its normal, −1: none)."""
+        return 6 if self.axis >= 0 else 12
+
+    @property
     def NF(self) -> int:
-        """Free bodies (12 unknowns each, body k's from 12k: Model.dof)."""
-        return self.N // 12
+        """Free bodies (D unknowns each, body k's from D·k: Model.dof)."""
+        return self.N // self.D
+
+    @property
+    def NR(self) -> int:
+        """The bodies' rows (D·NF); rows NR … N − 1 pad the system (H 1 on their diagonal, g 0)."""
+        return self.D * self.NF
 
     @property
     def TRI(self) -> int:
@@ -243,7 +255,7 @@ class KernelSpec:
     @property
     def WORDS(self) -> int:
         """A lane-split world's scratch words."""
-        return lanes_scratch_words(self.N, self.G, self.band)
+        return lanes_scratch_words(self.N, self.G, self.band, self.D)
 
 
 @functools.lru_cache(maxsize=None)

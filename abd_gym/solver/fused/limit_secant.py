@@ -46,7 +46,7 @@ from typing import Any
 import warp as wp
 
 from ...constitutions import prismatic_limit, revolute_limit
-from ...core.warp_ops import GRADIENT, ops
+from ...core.warp_ops import GRADIENT, body_dofs, ops
 from .layout import KernelSpec
 from .structs import structs
 
@@ -58,6 +58,8 @@ def limit_secant(spec: KernelSpec):
     dtype, N = spec.dtype, spec.N
     NR, NP = spec.limits
     vec12 = ops(dtype).vec12
+    bd = body_dofs(spec.axis)
+    D, sel = bd.D, bd.sel
     Terms = structs(dtype).Terms
     staged = spec.staged()
     h_row, row_first = staged["h_row"], staged["row_first"]
@@ -96,10 +98,10 @@ def limit_secant(spec: KernelSpec):
     def u_row(i: int, ui: vec12, uj: vec12, oi: int, oj: int):
         """Row i of u = ∇x (its two bodies' rows, 0 elsewhere)."""
         v = zero
-        if oi >= 0 and i >= oi and i < oi + 12:
-            v = ui[i - oi]
-        if oj >= 0 and i >= oj and i < oj + 12:
-            v += uj[i - oj]
+        if oi >= 0 and i >= oi and i < oi + D:
+            v = ui[sel(i - oi)]
+        if oj >= 0 and i >= oj and i < oj + D:
+            v += uj[sel(i - oj)]
         return v
 
     @wp.func
@@ -107,11 +109,11 @@ def limit_secant(spec: KernelSpec):
         """uᵀv over v's rows in scratch column s (of T)."""
         d = zero
         if oi >= 0:
-            for r in range(12):
-                d += ui[r] * v[(oi + r) * T + s]
+            for u in range(D):
+                d += ui[sel(u)] * v[(oi + u) * T + s]
         if oj >= 0:
-            for r in range(12):
-                d += uj[r] * v[(oj + r) * T + s]
+            for u in range(D):
+                d += uj[sel(u)] * v[(oj + u) * T + s]
         return d
 
     @wp.func
@@ -157,7 +159,7 @@ def limit_secant(spec: KernelSpec):
         d1 = -sg * b  # how far Newton's step moves x towards the bound
         if wp.abs(d1) <= eighth * r0:
             return gdq, dmax  # the secant's curvature is within 6% of Newton's
-        n = t.free.shape[0] * 12  # N, read at run time (loops not unrolled: a rare path's code kept small)
+        n = t.free.shape[0] * D  # the bodies' rows (N less its padding), read at run time (loops not unrolled: a rare path's code kept small)
         for i in range(n):
             g[i * T + s] = u_row(i, ui, uj, oi, oj)
         solve_in_place(H, g, s, T, t, n)  # g = −w, w = H⁻¹u

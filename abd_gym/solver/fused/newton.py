@@ -16,7 +16,7 @@ import warp as wp
 from ...core.angles import angle_ops
 from ...constitutions import affine_body
 from ...sim.status import BREAKDOWN, OK, UNCONVERGED
-from ...core.warp_ops import ENERGY, GRADIENT, HESSIAN, ops
+from ...core.warp_ops import ENERGY, GRADIENT, HESSIAN, body_dofs, ops
 from .assembly import assembly
 from .clock import (PHASE_ZERO, PHASE_ASSEMBLE, PHASE_FACTOR, PHASE_SOLVE, PHASE_STEP, PHASE_STEP_ENERGY,
                      PHASE_STEP_TRIAL, clock)  # fmt: skip
@@ -32,6 +32,8 @@ def line_search(spec: KernelSpec):
     retraction, ``armijo``'s test on the world's energy)."""
     dtype, LANES, lanes, compact = spec.dtype, spec.LANES, spec.lanes, spec.compact
     vec12 = ops(dtype).vec12
+    bd = body_dofs(spec.axis)
+    D, sel = bd.D, bd.sel
     Terms = structs(dtype).Terms
     retract_body = affine_body.kernels(dtype).retract
     block_sync = indexing(spec).block_sync
@@ -57,9 +59,9 @@ def line_search(spec: KernelSpec):
             qb = q[w, b]
             ob = t.dof[b]
             if ob >= 0:
-                d = vec12()
-                for r in range(12):
-                    d[r] = step[(ob + r) * T + s]
+                d = vec12()  # the body's step, 0 on the entries a planar scene holds
+                for u in range(D):
+                    d[sel(u)] = step[(ob + u) * T + s]
                 qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b], 0)
             q_trial[row, b] = qb
         if wp.static(lanes):

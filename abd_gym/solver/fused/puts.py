@@ -20,7 +20,7 @@ from typing import Any
 import warp as wp
 
 from ...constitutions import affine_body
-from ...core.warp_ops import HESSIAN, ops
+from ...core.warp_ops import HESSIAN, body_dofs, ops
 from .layout import KernelSpec, indexing
 
 
@@ -33,6 +33,8 @@ def puts(spec: KernelSpec):
     o = ops(dtype)
     vec3, vec12, mat33, mat44 = o.vec3, o.vec12, o.mat33, o.mat44
     kron_index = o.kron_index
+    bd = body_dofs(spec.axis)  # a body's D unknowns: entry r of its q is unknown slot(r) (−1: held), u moves sel(u)
+    D, slot, sel, AXIS = bd.D, bd.slot, bd.sel, bd.axis
     hessian_parts, a_block = affine_body.kernels(dtype).hessian_parts, affine_body.kernels(dtype).a_block
     at = indexing(spec)
     hrow, own_from = at.hrow, at.own_from
@@ -48,27 +50,32 @@ def puts(spec: KernelSpec):
     @wp.func
     def put_grad(g: Any, s: int, B: int, o: int, v: vec12):
         if o >= 0:
-            for r in range(own_from(o), 12, RL):
-                p = (o + r) * B + s
-                g[p] = g[p] + v[r]
+            for u in range(own_from(o), D, RL):
+                p = (o + u) * B + s
+                g[p] = g[p] + v[sel(u)]
 
     @wp.func
-    def body_row(H: Any, s: int, B: int, o: int, r: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype, Rp: mat33,
+    def body_row(H: Any, s: int, B: int, o: int, u: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype, Rp: mat33,
                  ata: mat33):  # fmt: skip
-        """Row r of body o's Hessian (put_body's entries of that row, lower triangle), for a lane."""
-        p = hrow(o + r) + o
+        """Row u of body o's Hessian (put_body's entries of that row, lower triangle), for a lane."""
+        p = hrow(o + u) + o
+        r = sel(u)
         if r < 3:
-            H[(p + r) * B + s] = H[(p + r) * B + s] + m
+            H[(p + u) * B + s] = H[(p + u) * B + s] + m
         else:
             kk = (r - 3) // 3
             a = (r - 3) % 3
-            H[(p + kk) * B + s] = H[(p + kk) * B + s] + c[a]
+            pk = slot(kk)
+            if pk >= 0:
+                H[(p + pk) * B + s] = H[(p + pk) * B + s] + c[a]
             for ll in range(kk + 1):
-                blk = a_block(qb, kk, ll, Rp, ata, ks, S)
-                for bb in range(3):
-                    if kk != ll or bb <= a:
-                        q = (p + 3 + 3 * ll + bb) * B + s
-                        H[q] = H[q] + blk[a, bb]
+                if slot(3 + 3 * ll + a) >= 0 or wp.static(D == 12):
+                    blk = a_block(qb, kk, ll, Rp, ata, ks, S)
+                    for bb in range(3):
+                        cu = slot(3 + 3 * ll + bb)
+                        if cu >= 0 and (kk != ll or bb <= a):
+                            q = (p + cu) * B + s
+                            H[q] = H[q] + blk[a, bb]
 
     @wp.func
     def put_body(H: Any, s: int, B: int, o: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype, exact: int):
@@ -78,32 +85,57 @@ def puts(spec: KernelSpec):
         entries where the dense block's lower triangle has 78.  (Lanes add bodies by rows: lane_bodies.)"""
         if o >= 0:
             Rp, ata = hessian_parts(qb, exact)
-            for r in range(3):
-                p = (hrow(o + r) + o + r) * B + s
-                H[p] = H[p] + m
-                for a in range(3):
-                    p = (hrow(o + 3 + 3 * r + a) + o + r) * B + s
-                    H[p] = H[p] + c[a]
-            for kk in range(3):
-                for ll in range(kk + 1):
-                    blk = a_block(qb, kk, ll, Rp, ata, ks, S)
+            if wp.static(D == 12):
+                for r in range(3):
+                    p = (hrow(o + r) + o + r) * B + s
+                    H[p] = H[p] + m
                     for a in range(3):
-                        p = (hrow(o + 3 + 3 * kk + a) + o + 3 + 3 * ll) * B + s
-                        for bb in range(3):
-                            if kk != ll or bb <= a:
-                                H[p] = H[p] + blk[a, bb]
-                            p += B
+                        p = (hrow(o + 3 + 3 * r + a) + o + r) * B + s
+                        H[p] = H[p] + c[a]
+                for kk in range(3):
+                    for ll in range(kk + 1):
+                        blk = a_block(qb, kk, ll, Rp, ata, ks, S)
+                        for a in range(3):
+                            p = (hrow(o + 3 + 3 * kk + a) + o + 3 + 3 * ll) * B + s
+                            for bb in range(3):
+                                if kk != ll or bb <= a:
+                                    H[p] = H[p] + blk[a, bb]
+                                p += B
+            else:  # the in-plane rows and columns only (the held ones' blocks are never formed)
+                for r in range(3):
+                    ur = slot(r)
+                    if ur >= 0:
+                        p = (hrow(o + ur) + o + ur) * B + s
+                        H[p] = H[p] + m
+                        for a in range(3):
+                            ua = slot(3 + 3 * r + a)
+                            if ua >= 0:
+                                p = (hrow(o + ua) + o + ur) * B + s
+                                H[p] = H[p] + c[a]
+                for kk in range(3):
+                    if kk != AXIS:
+                        for ll in range(kk + 1):
+                            if ll != AXIS:
+                                blk = a_block(qb, kk, ll, Rp, ata, ks, S)
+                                for a in range(3):
+                                    ua = slot(3 + 3 * kk + a)
+                                    if ua >= 0:
+                                        for bb in range(3):
+                                            ub = slot(3 + 3 * ll + bb)
+                                            if ub >= 0 and (kk != ll or bb <= a):
+                                                p = (hrow(o + ua) + o + ub) * B + s
+                                                H[p] = H[p] + blk[a, bb]
 
     @wp.func
     def kron_rows(H: Any, s: int, B: int, oa: int, ob: int, U: mat44):
         """Block (oa, ob), oa ≥ ob, += U ⊗ I₃ (a diagonal block's lower half), this thread's rows:
         row kron_index(m, c) holds U[c, d] at columns kron_index(m, d)."""
-        for a in range(own_from(oa), 12, RL):
-            m, c = kron_split(a)
+        for ua in range(own_from(oa), D, RL):
+            m, c = kron_split(sel(ua))
             for d in range(4):
-                b = kron_index(m, d)
-                if oa > ob or b <= a:
-                    p = (hrow(oa + a) + ob + b) * B + s
+                ub = slot(kron_index(m, d))
+                if ub >= 0 and (oa > ob or ub <= ua):
+                    p = (hrow(oa + ua) + ob + ub) * B + s
                     H[p] = H[p] + U[c, d]
 
     @wp.func
@@ -137,12 +169,12 @@ def puts(spec: KernelSpec):
     @wp.func
     def outer_rows(H: Any, s: int, B: int, oa: int, ob: int, ga: vec12, gb: vec12, cf: dtype):
         """Block (oa, ob), oa ≥ ob, += cf·ga gbᵀ (a diagonal block's lower half), this thread's rows."""
-        for r in range(own_from(oa), 12, RL):
-            p = (hrow(oa + r) + ob) * B + s
-            v = cf * ga[r]
-            for c in range(12):
-                if oa != ob or c <= r:
-                    H[p] = H[p] + v * gb[c]
+        for u in range(own_from(oa), D, RL):
+            p = (hrow(oa + u) + ob) * B + s
+            v = cf * ga[sel(u)]
+            for c in range(D):
+                if oa != ob or c <= u:
+                    H[p] = H[p] + v * gb[sel(c)]
                 p += B
 
     @wp.func
@@ -197,6 +229,8 @@ def prismatic_puts(spec: KernelSpec):
     at = indexing(spec)
     hrow, own_from = at.hrow, at.own_from
     kron_split = puts(spec).kron_split
+    bd = body_dofs(spec.axis)
+    D, slot, sel = bd.D, bd.slot, bd.sel
     zero, one = dtype(0.0), dtype(1.0)
 
     @wp.func
@@ -208,16 +242,16 @@ def prismatic_puts(spec: KernelSpec):
     def ksum_rows(H: Any, s: int, B: int, oa: int, ob: int, ua: vec4, ta: vec4, ub: vec4, tb: vec4, Pcc: mat33,
                   Pct: mat33, Ptc: mat33, Ptt: mat33, U: mat44):  # fmt: skip
         """put_ksum's block (oa, ob), oa ≥ ob, this thread's rows."""
-        for ra in range(own_from(oa), 12, RL):
-            al, a = kron_split(ra)
+        for ra in range(own_from(oa), D, RL):
+            al, a = kron_split(sel(ra))
             for b in range(4):
                 cc = ua[a] * ub[b]
                 ct = ua[a] * tb[b]
                 tc = ta[a] * ub[b]
                 tt = ta[a] * tb[b]
                 for be in range(3):
-                    cb = kron_index(be, b)
-                    if oa > ob or cb <= ra:
+                    cb = slot(kron_index(be, b))
+                    if cb >= 0 and (oa > ob or cb <= ra):
                         v = cc * Pcc[al, be] + ct * Pct[al, be] + tc * Ptc[al, be] + tt * Ptt[al, be]
                         if al == be:
                             v += U[a, b]
