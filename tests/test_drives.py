@@ -44,6 +44,25 @@ def test_effort_motor_torque_and_clip(motor):
     assert abs(sim.joint_coordinates()[1, 0]) <= math.pi + 0.5
 
 
+def test_controls_written_on_the_device_step_as_set_controls(motor):
+    """``Simulator.controls("warp")`` is the array the step reads: a write into it (as a caller's
+    kernel makes one inside its own graph) steps each world as ``set_controls`` of the same values."""
+    sim, _ = motor
+    tau = np.array([[0.5], [100.0], [-0.5]])
+    sim.reset()
+    sim.set_controls(tau)
+    sim.step(3)
+    want = sim.joint_velocities()
+    sim.reset()
+    assert sim.controls("warp").dtype == sim.scalar and tuple(sim.controls("warp").shape) == (3, 1)
+    sim.controls("warp").assign(tau)
+    np.testing.assert_array_equal(sim.controls("numpy"), tau)
+    sim.step(3)
+    np.testing.assert_array_equal(sim.joint_velocities(), want)
+    np.testing.assert_allclose(sim.time, 0.03)
+    assert sim.world_status().dtype == np.int32 and sim.world_status("warp") is sim.world_status("warp")
+    np.testing.assert_array_equal(sim.substeps(), sim.substeps("warp").numpy())
+
 @pytest.mark.parametrize("integrator", ["implicit_euler", "bdf2"])
 def test_slider_force_motor(integrator):
     """A force F on a 3 kg slider block from rest, a = F/m: implicit Euler gives x_n = h²a·n(n+1)/2

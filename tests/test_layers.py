@@ -79,3 +79,31 @@ def test_imports_flow_one_way():
 def test_every_module_lives_in_a_layer_folder():
     loose = [name for name in GRAPH if name and name.split(".")[0] not in LAYERS]
     assert not loose, f"modules outside the layers' folders: {loose}"
+
+
+# the modules of the vector env's device step, which reach the simulator through its public calls
+ENV_STEP = ("vector.device_step", "vector.step_graph", "vector.outcome")
+SIMULATOR_INSIDES = {"state", "solver", "model"}
+
+
+def _is_simulator(node) -> bool:
+    return (isinstance(node, ast.Name) and node.id == "sim") or (isinstance(node, ast.Attribute) and node.attr == "sim")
+
+
+def test_the_env_step_calls_the_simulator_through_its_public_calls():
+    paths = modules()
+    reached = sorted({f"{name}: sim.{node.attr}" for name in ENV_STEP
+                      for node in ast.walk(ast.parse(paths[name].read_text()))
+                      if isinstance(node, ast.Attribute) and _is_simulator(node.value)
+                      and (node.attr in SIMULATOR_INSIDES or node.attr.startswith("_"))})  # fmt: skip
+    assert not reached, f"the env step reaches into the simulator: {reached}"
+
+
+def test_the_physics_never_holds_an_env():
+    held = sorted({f"{name}: {getattr(node, 'id', None) or getattr(node, 'attr', None) or node.arg}"
+                   for name, path in modules().items() if name and layer(name) == 0
+                   for node in ast.walk(ast.parse(path.read_text()))
+                   if (isinstance(node, ast.Name) and node.id == "env")
+                   or (isinstance(node, ast.Attribute) and node.attr == "env")
+                   or (isinstance(node, ast.arg) and node.arg == "env")})  # fmt: skip
+    assert not held, f"physics modules that hold an env: {held}"

@@ -92,15 +92,9 @@ def retract_np(q, d, alpha, m, mc, rigid=False):
 
 # ----------------------------------------------------------------------------- Warp
 @functools.lru_cache(maxsize=None)
-def kernels(dtype):
-    o = ops(dtype)
-    vec3, vec12, mat33, mat12 = o.vec3, o.vec12, o.mat33, o.mat12
-    add_energy, add_grad, add_block = o.add_energy, o.add_grad, o.add_block
-    half, four = dtype(0.5), dtype(4.0)
-
-    @wp.func
-    def row(q: vec12, k: int):
-        return vec3(q[3 + 3 * k], q[4 + 3 * k], q[5 + 3 * k])
+def psd_funcs(dtype):
+    """R⁺ of a symmetric 3 × 3 R in closed form (``psd_part``), with its PSD test and null vector."""
+    mat33 = ops(dtype).mat33
 
     @wp.func
     def is_psd3(R: mat33):
@@ -164,6 +158,23 @@ def kernels(dtype):
             return R - l3 * wp.outer(v, v)
         v = null_vector(R - l1 * I)  # one positive eigenvalue: keep its part
         return l1 * wp.outer(v, v)
+
+    return SimpleNamespace(is_psd3=is_psd3, null_vector=null_vector, psd_part=psd_part)
+
+
+@functools.lru_cache(maxsize=None)
+def body_funcs(dtype):
+    """One body's inertia and orthogonality: energies and gradient (``body_grad``), with the Hessian
+    whole (``body_eval``) or by its parts for the fused step (``hessian_parts``, ``a_block``); ``row``
+    reads row k of q's A."""
+    o = ops(dtype)
+    vec3, vec12, mat33, mat12 = o.vec3, o.vec12, o.mat33, o.mat12
+    half, four = dtype(0.5), dtype(4.0)
+    psd_part = psd_funcs(dtype).psd_part
+
+    @wp.func
+    def row(q: vec12, k: int):
+        return vec3(q[3 + 3 * k], q[4 + 3 * k], q[5 + 3 * k])
 
     @wp.func
     def hessian_parts(qb: vec12, exact: int):
@@ -240,6 +251,69 @@ def kernels(dtype):
                         h[3 + 3 * kk + a, 3 + 3 * ll + bb] = blk[a, bb]
         return e_inertia, e_ortho, f, h
 
+    return SimpleNamespace(row=row, hessian_parts=hessian_parts, a_block=a_block, body_grad=body_grad,
+                           body_eval=body_eval)
+
+
+@functools.lru_cache(maxsize=None)
+def retract_func(dtype):
+    """``retract``: a body's trial point bent along the rotation its step makes."""
+    o = ops(dtype)
+    vec3, vec12 = o.vec3, o.vec12
+    half = dtype(0.5)
+    row = body_funcs(dtype).row
+
+    @wp.func
+    def retract(qb: vec12, d: vec12, alpha: dtype, m: dtype, mc: vec3, rigid: int):
+        """qb + α d, bent along the rotation the step makes: A + αΔA + (Cay(αK) − I − αK) A with
+        K = skew(ΔA Aᵀ) (Cayley's rotation, exactly orthogonal), p shifted so that the centre of
+        mass moves by α d alone.  The path leaves q along d (same first derivative, so Armijo's test
+        is unchanged) and differs from the straight one at O(α²): a straight step in A rotates by
+        turning A off the rotations by ~½(αθ)², which the stiff orthogonality energy (κ·vol·h²)
+        then pushes back across several Newton iterations.  ``rigid``: A turns by Cay(αK) alone,
+        the symmetric part S = sym(ΔA Aᵀ) dropped (A' = Cay(αK) A): for an extrapolated motion,
+        whose ΔA already holds the rotation's own curvature (½h²W²A of a quadratic extrapolation),
+        which the Cayley term would count twice.  Without ``rigid``, a step whose full rotation
+        |K| exceeds 0.1 rad is taken along the line (the same path for every α of the step)."""
+        A = wp.matrix_from_rows(row(qb, 0), row(qb, 1), row(qb, 2))
+        D = wp.matrix_from_rows(row(d, 0), row(d, 1), row(d, 2))
+        M = D * wp.transpose(A)
+        k1 = half * vec3(M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1])
+        if rigid == 0 and wp.dot(k1, k1) > dtype(0.01):
+            # a Newton step that turns A by over 0.1 rad stays straight: along so bent a path the
+            # trial points leave Newton's model, and the solve converges only linearly
+            return qb + alpha * d
+        k = alpha * k1
+        X = wp.skew(k)
+        kk = dtype(0.25) * wp.dot(k, k)
+        # Cay(X) − I − X = (X + X²/2)/(1 + |k|²/4) − X, written without the cancellation
+        C = (half * (X * X) - kk * X) * (dtype(1.0) / (dtype(1.0) + kk))  # (one division, not nine)
+        if rigid != 0:
+            C = C - alpha * half * (M + wp.transpose(M))
+        dA = C * A
+        out = qb + alpha * d
+        dp = dA * (mc * (dtype(1.0) / m))
+        for r in range(3):
+            out[r] = out[r] - dp[r]
+            for l in range(3):
+                out[3 + 3 * r + l] = out[3 + 3 * r + l] + dA[r, l]
+        return out
+
+    return retract
+
+
+@functools.lru_cache(maxsize=None)
+def kernels(dtype):
+    """The body terms' kernels (``body_terms``: energies, gradient and Hessian into the staged
+    step's arrays; ``body_report``: kinetic and gravity energies) and, by name, the functions the
+    fused step takes from psd_funcs, body_funcs and retract_func."""
+    o = ops(dtype)
+    vec3, vec12, mat33 = o.vec3, o.vec12, o.mat33
+    add_energy, add_grad, add_block = o.add_energy, o.add_grad, o.add_block
+    half = dtype(0.5)
+    body = body_funcs(dtype)
+    row, body_eval = body.row, body.body_eval
+
     @wp.kernel(module="unique")
     def body_terms(
         q: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
@@ -287,45 +361,9 @@ def kernels(dtype):
         com = m * vec3(qb[0], qb[1], qb[2]) + vec3(wp.dot(row(qb, 0), c), wp.dot(row(qb, 1), c), wp.dot(row(qb, 2), c))
         wp.atomic_add(E, w, col_gravity, -wp.dot(gravity, com))
 
-    @wp.func
-    def retract(qb: vec12, d: vec12, alpha: dtype, m: dtype, mc: vec3, rigid: int):
-        """qb + α d, bent along the rotation the step makes: A + αΔA + (Cay(αK) − I − αK) A with
-        K = skew(ΔA Aᵀ) (Cayley's rotation, exactly orthogonal), p shifted so that the centre of
-        mass moves by α d alone.  The path leaves q along d (same first derivative, so Armijo's test
-        is unchanged) and differs from the straight one at O(α²): a straight step in A rotates by
-        turning A off the rotations by ~½(αθ)², which the stiff orthogonality energy (κ·vol·h²)
-        then pushes back across several Newton iterations.  ``rigid``: A turns by Cay(αK) alone,
-        the symmetric part S = sym(ΔA Aᵀ) dropped (A' = Cay(αK) A): for an extrapolated motion,
-        whose ΔA already holds the rotation's own curvature (½h²W²A of a quadratic extrapolation),
-        which the Cayley term would count twice.  Without ``rigid``, a step whose full rotation
-        |K| exceeds 0.1 rad is taken along the line (the same path for every α of the step)."""
-        A = wp.matrix_from_rows(row(qb, 0), row(qb, 1), row(qb, 2))
-        D = wp.matrix_from_rows(row(d, 0), row(d, 1), row(d, 2))
-        M = D * wp.transpose(A)
-        k1 = half * vec3(M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1])
-        if rigid == 0 and wp.dot(k1, k1) > dtype(0.01):
-            # a Newton step that turns A by over 0.1 rad stays straight: along so bent a path the
-            # trial points leave Newton's model, and the solve converges only linearly
-            return qb + alpha * d
-        k = alpha * k1
-        X = wp.skew(k)
-        kk = dtype(0.25) * wp.dot(k, k)
-        # Cay(X) − I − X = (X + X²/2)/(1 + |k|²/4) − X, written without the cancellation
-        C = (half * (X * X) - kk * X) * (dtype(1.0) / (dtype(1.0) + kk))  # (one division, not nine)
-        if rigid != 0:
-            C = C - alpha * half * (M + wp.transpose(M))
-        dA = C * A
-        out = qb + alpha * d
-        dp = dA * (mc * (dtype(1.0) / m))
-        for r in range(3):
-            out[r] = out[r] - dp[r]
-            for l in range(3):
-                out[3 + 3 * r + l] = out[3 + 3 * r + l] + dA[r, l]
-        return out
-
-    return SimpleNamespace(psd_part=psd_part, body_terms=body_terms, body_report=body_report, body_eval=body_eval,
-                           body_grad=body_grad, retract=retract,
-                           hessian_parts=hessian_parts, a_block=a_block)
+    return SimpleNamespace(psd_part=psd_funcs(dtype).psd_part, body_terms=body_terms, body_report=body_report,
+                           body_eval=body_eval, body_grad=body.body_grad, retract=retract_func(dtype),
+                           hessian_parts=body.hessian_parts, a_block=body.a_block)
 
 
 # ----------------------------------------------------------------------------- wiring

@@ -46,14 +46,8 @@ def drive_np(x, x_prev, u, mode, k, d, max_effort, h):
 
 
 @functools.lru_cache(maxsize=None)
-def kernel(dtype):
-    o = ops(dtype)
-    a = angle_ops(dtype)
-    vec12 = o.vec12
-    vec3 = o.vec3
-    add_energy, scatter_pair, outer_blocks = o.add_energy, o.scatter_pair, o.outer_blocks
-    cos_sin, delta_theta, theta_grad = a.cos_sin, a.delta_theta, a.theta_grad
-    displacement, displacement_grad = a.displacement, a.displacement_grad
+def scalar_func(dtype):
+    """drive_scalar: one drive's energy and its first two derivatives at its coordinate."""
     half = dtype(0.5)
     zero = dtype(0.0)
 
@@ -89,6 +83,22 @@ def kernel(dtype):
                 e = fmax * (wp.abs(r) - half * cap)
                 de = fmax * wp.sign(r)
         return e, de, dde
+
+    return drive_scalar
+
+
+@functools.lru_cache(maxsize=None)
+def kernel(dtype):
+    o = ops(dtype)
+    a = angle_ops(dtype)
+    vec12 = o.vec12
+    vec3 = o.vec3
+    add_energy, scatter_pair, outer_blocks = o.add_energy, o.scatter_pair, o.outer_blocks
+    cos_sin, delta_theta, theta_grad = a.cos_sin, a.delta_theta, a.theta_grad
+    displacement, displacement_grad = a.displacement, a.displacement_grad
+    half = dtype(0.5)
+    zero = dtype(0.0)
+    drive_scalar = scalar_func(dtype)
 
     @wp.func
     def drive_parts(

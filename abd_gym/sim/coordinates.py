@@ -19,30 +19,29 @@ REVOLUTE_CODE, PRISMATIC_CODE, FIXED_CODE = 0, 1, 2
 def kernels(dtype, passive=False):
     """(begin_step, coordinates): the kernels; funcs(dtype): their per-joint functions.  ``passive``:
     they keep the passive terms' rate history and predicted rate (State.coord_vel_hist, v_anchor)."""
-    return _build(dtype, bool(passive))[:2]
+    return _begin(dtype, bool(passive))[1], _coordinates(dtype, bool(passive))[1]
 
 
 @functools.lru_cache(maxsize=None)
 def funcs(dtype, passive=False):
     """(begin_joint, joint_coordinates, close_joint): one joint of one world each (for the fused
     step); ``passive`` as for kernels."""
-    return _build(dtype, bool(passive))[2:5]
+    begin_joint, _ = _begin(dtype, bool(passive))
+    joint_coordinates, _ = _coordinates(dtype, bool(passive))
+    return begin_joint, joint_coordinates, _close_joint(dtype, bool(passive))
 
 
 @functools.lru_cache(maxsize=None)
 def restart_funcs(dtype):
     """(limit_engaged, restart_engaged): a BDF2 world's history restarts where a limit is engaged
     (solver_kernels.open_body)."""
-    return _build(dtype, False)[5:]
+    return _restart(dtype)
 
 
 @functools.lru_cache(maxsize=None)
-def _build(dtype, passive):
-    o = ops(dtype)
-    a = angle_ops(dtype)
-    vec3, vec12 = o.vec3, o.vec12
-    cos_sin, delta_theta, displacement = a.cos_sin, a.delta_theta, a.displacement
-    theta_grad, displacement_grad = a.theta_grad, a.displacement_grad
+def _anchors(dtype):
+    """(anchor, rate_anchor, step_rate): a joint's anchor coordinate and predicted rate at the start
+    of a step, and its rate at the end."""
 
     @wp.func
     def anchor(unwrapped: wp.array2d(dtype=dtype), x_hist: wp.array2d(dtype=dtype), bdf2_step: bool, w: int, j: int):
@@ -74,6 +73,18 @@ def _build(dtype, passive):
         if h_step[w] < h:
             return (dtype(3.0) * d - (unwrapped[w, j] - x_hist[w, j])) / (dtype(2.0) * h)
         return d / h
+
+    return anchor, rate_anchor, step_rate
+
+
+@functools.lru_cache(maxsize=None)
+def _begin(dtype, passive):
+    """(begin_joint, begin_step): a joint's references and anchors before a step."""
+    o = ops(dtype)
+    a = angle_ops(dtype)
+    vec3, vec12 = o.vec3, o.vec12
+    cos_sin, delta_theta = a.cos_sin, a.delta_theta
+    anchor, rate_anchor, _ = _anchors(dtype)
 
     @wp.func
     def begin_joint(
@@ -116,6 +127,19 @@ def _build(dtype, passive):
             return
         begin_joint(q, body_a, body_b, kind, n_a, b_a, n_b, b_b, c_ref, s_ref, theta0, c_prev, s_prev, unwrapped, x_hist,
                     h_step, h, x_anchor, velocity, velocity_hist, v_anchor, w, j)  # fmt: skip
+
+    return begin_joint, begin_step
+
+
+@functools.lru_cache(maxsize=None)
+def _coordinates(dtype, passive):
+    """(joint_coordinates, coordinates): a joint's coordinate and rate after a step."""
+    o = ops(dtype)
+    a = angle_ops(dtype)
+    vec3, vec12 = o.vec3, o.vec12
+    cos_sin, delta_theta, displacement = a.cos_sin, a.delta_theta, a.displacement
+    theta_grad, displacement_grad = a.theta_grad, a.displacement_grad
+    step_rate = _anchors(dtype)[2]
 
     @wp.func
     def joint_coordinates(
@@ -185,6 +209,18 @@ def _build(dtype, passive):
         joint_coordinates(q, q_prev, qd, body_a, body_b, kind, c_a, c_b, t_a, n_a, b_a, n_b, b_b, theta0, c_prev, s_prev, h,
                           h_step, accumulate, rate_from_qd, coord, velocity, unwrapped, x_hist, velocity_hist, w, j)  # fmt: skip
 
+    return joint_coordinates, coordinates
+
+
+@functools.lru_cache(maxsize=None)
+def _close_joint(dtype, passive):
+    """close_joint: the fused step's close of a joint, which also opens its next step."""
+    o = ops(dtype)
+    a = angle_ops(dtype)
+    vec3, vec12 = o.vec3, o.vec12
+    cos_sin, delta_theta, displacement = a.cos_sin, a.delta_theta, a.displacement
+    anchor, rate_anchor, step_rate = _anchors(dtype)
+
     @wp.func
     def close_joint(
         q: wp.array2d(dtype=vec12), q_prev: wp.array2d(dtype=vec12), body_a: wp.array(dtype=wp.int32),
@@ -204,8 +240,8 @@ def _build(dtype, passive):
         passive terms, the rate's history and predicted rate (rate_anchor).  The
         same values, one cos_sin a step fewer; a world set between steps (fresh) opens with
         begin_joint.  (joint_coordinates' arithmetic written out, not called: calling it and then
-        storing its cos/sin builds a 0.8 KB larger kernel with a larger stack frame, and at 1,024
-        worlds the step's time follows its code size.)"""
+        storing its cos/sin builds a larger kernel with a larger stack frame, and where a world's
+        step is a latency-bound chain its time follows its code size.)"""
         if wp.static(passive):
             velocity_hist[w, j] = velocity[w, j]
         qi = q[w, body_a[j]]
@@ -230,6 +266,13 @@ def _build(dtype, passive):
         x_anchor[w, j] = anchor(unwrapped, x_hist, bdf2 != 0, w, j)
         if wp.static(passive):
             rate_anchor(velocity, velocity_hist, v_anchor, bdf2 != 0, w, j)
+
+    return close_joint
+
+
+@functools.lru_cache(maxsize=None)
+def _restart(dtype):
+    """(limit_engaged, restart_engaged): see restart_funcs."""
 
     @wp.func
     def limit_engaged(coord: wp.array2d(dtype=dtype), lim_ids: wp.array(dtype=wp.int32), lo: wp.array2d(dtype=dtype),
@@ -259,4 +302,4 @@ def _build(dtype, passive):
                 coord, plim_ids, plim_lo, plim_up, num_plim, w) != 0:  # fmt: skip
             fresh[w] = RESTART
 
-    return begin_step, coordinates, begin_joint, joint_coordinates, close_joint, limit_engaged, restart_engaged
+    return limit_engaged, restart_engaged

@@ -179,7 +179,7 @@ class Simulator:
         graphs and without advancing the host clock ``state.time``: for a caller that captures the
         step in a graph of its own (the vector env's), and advances the clock (``tick``) at each
         replay.  The same step as ``step`` (``num_steps`` at least 1).  ``hold`` (device int32
-        (num_worlds,)) and ``go`` (device int32 (1,)), where the step is one launch (``solver.holds``): the worlds with
+        (num_worlds,)) and ``go`` (device int32 (1,)), where the step is one launch (``holds``): the worlds with
         hold[w] != 0, and every world while go[0] == 0, are not stepped, and none of their rows is
         read or written, so that other launches may rewrite them at the same time.  A failed step is
         retried as in ``step`` on the CPU; on a GPU, where the caller's graph would hold the retry's
@@ -190,6 +190,38 @@ class Simulator:
     def tick(self, num_steps: int = 1):
         """Advance the host clock ``state.time`` by ``num_steps`` steps (see ``launch_step``)."""
         self.state.time += inputs.count("num_steps", num_steps) * self.dt
+
+    # ------------------------------------------------------------------ a caller's own graphs
+    # What a caller that steps the simulator inside CUDA graphs of its own (launch_step) reads and
+    # writes there: device arrays a kernel or a graph node can take, where the getters and setters
+    # are host calls that check their input.
+    @property
+    def time(self) -> np.ndarray:
+        """(num_worlds,) seconds since each world's last reset: the host clock (NumPy, writable),
+        which ``step`` and ``tick`` advance and the setters restart.  A caller that restarts worlds
+        on the device (``set_joint_state_where``) restarts their clocks here itself."""
+        return self.state.time
+
+    @property
+    def scalar(self):
+        """The Warp scalar type of the simulator's arrays (wp.float32 or wp.float64)."""
+        return self.model.dtype
+
+    def controls(self, backend: str = "warp"):
+        """The drive inputs the next step reads, (num_worlds, num_drives) of ``scalar``, as ``view``
+        gives them: "warp" and "torch" are the array itself, which a caller's kernel may write on the
+        device (in a graph, where ``set_controls`` is host work); such a write is not checked."""
+        return self.view(self.state.control, backend)
+
+    @property
+    def holds(self) -> bool:
+        """Whether ``launch_step`` can hold worlds (its ``hold`` and ``go``; Solver.holds)."""
+        return self.solver.holds
+
+    def enable_hold(self) -> bool:
+        """Build the one-launch step so that ``launch_step`` can hold worlds (Solver.enable_hold);
+        before the first step only.  Returns ``holds``."""
+        return self.solver.enable_hold()
 
     def _capture(self, phase):
         """A graph of ``phase`` (a solver step's part)."""
@@ -299,11 +331,12 @@ class Simulator:
         out["total"] = sum(out.values())
         return out
 
-    def world_status(self) -> np.ndarray:
-        """(num_worlds,) int32 copy of each world's status code (abd_gym.WorldStatus: OK, NONFINITE,
-        BREAKDOWN, UNCONVERGED).  A world not OK kept the state it had before the step that set the
-        code and is not stepped until reset, set_joint_state or set_body_states writes it."""
-        return np.array(self.view(self.state.status, "numpy"), dtype=np.int32)
+    def world_status(self, backend: str = "numpy"):
+        """(num_worlds,) int32 status code of each world (abd_gym.WorldStatus: OK, NONFINITE,
+        BREAKDOWN, UNCONVERGED), as ``view`` gives it ("numpy": a copy; "warp", "torch": the device
+        array itself, to read only).  A world not OK kept the state it had before the step that set
+        the code and is not stepped until reset, set_joint_state or set_body_states writes it."""
+        return self.view(self.state.status, backend)
 
     def failed_worlds(self) -> np.ndarray:
         """Indices of the worlds whose status is not OK (world_status): their state went non-finite,
@@ -326,11 +359,12 @@ class Simulator:
         (``newton_iterations`` counts both)."""
         return self.state.retried.numpy().astype(bool)
 
-    def substeps(self) -> np.ndarray:
+    def substeps(self, backend: str = "numpy"):
         """(num_worlds,) int32: the substeps of each world's last step: 1, or 2 or 4 where the step
         failed (did not converge, broke down) and was taken again as that many steps of dt/2 or
-        dt/4 (``retry``); a world that failed at 4 too is rejected (world_status)."""
-        return np.array(self.view(self.state.substeps, "numpy"), dtype=np.int32)
+        dt/4 (``retry``); a world that failed at 4 too is rejected (world_status).  As ``view``
+        gives it ("numpy": a copy; "warp", "torch": the device array itself, to read only)."""
+        return self.view(self.state.substeps, backend)
 
     def newton_factorizations(self) -> np.ndarray:
         """(num_worlds,) Cholesky factorisations in the last step: the iterations less those that

@@ -5,8 +5,9 @@ and ``SolverSettings``'; everything here changes how the work is laid out on the
 arithmetic of a world's step (the layouts give the same trajectories to rounding, most of them bit
 for bit; tests/test_graph.py).  ``ExecutionPlan`` holds the choices, None meaning "derive it";
 ``resolve_plan`` derives every None for a model (its device, number of worlds, unknowns, dtype and
-terms) by the ``default_*`` rules below, each measured where its docstring says, and refuses
-inconsistent choices with a ValueError naming the value.  An expert overrides any of them by
+terms) by the ``default_*`` rules below, and refuses inconsistent choices with a ValueError
+naming the value.  The measurement behind each rule is in docs/performance.md ("Why the
+execution plan chooses what it does") or results/solver_notes.md.  An expert overrides any of them by
 passing a plan: ``Simulator(scene, plan=ExecutionPlan(scratch="global", threads=1024))``.
 """
 from __future__ import annotations
@@ -70,11 +71,11 @@ def available_cores() -> int:
 
 
 def default_threads(device, num_worlds: int, cpu_workers: int = 1) -> int:
-    """Threads of the fused step.  On a GPU at most 256 per SM: measured on an H100
-    (``python -m abd_gym.bench threads``), 131,072 cart-poles step 3% slower on 33,792 threads
-    than on one thread per world, with the dense Newton scratch (n² values per thread, the
-    largest per-world array) shared 4 ways, so memory per world halves.  On the CPU, where Warp
-    runs a launch's threads one after another, 16, or one per worker where there are more."""
+    """Threads of the fused step.  On a GPU at most 256 per SM: a large batch then steps about as
+    fast as on one thread per world, with the dense Newton scratch (n² values per thread, the
+    largest per-world array) shared among the worlds a thread takes in turn, so memory per world
+    falls (``python -m abd_gym.bench threads``).  On the CPU, where Warp runs a launch's threads
+    one after another, 16, or one per worker where there are more."""
     if device.is_cuda:
         return min(num_worlds, 256 * device.sm_count)
     return min(num_worlds, max(16, cpu_workers))
@@ -82,17 +83,15 @@ def default_threads(device, num_worlds: int, cpu_workers: int = 1) -> int:
 
 def default_cpu_workers(num_worlds: int) -> int:
     """Concurrent launches of the fused step on the CPU: one per core, each with at least 64 worlds.
-    Measured on a 2-core machine (``python -m abd_gym.bench --device cpu --cpu-workers 1,2``, 30
-    steps, best of 3, two runs): 2 workers step double pendulums 0.6-0.9x as fast as 1 at 16
-    worlds (the phases around the launches replay as two graphs instead of one), 1.4-1.5x at 64,
-    1.7x at 256 and 1.8x at 1,024; cart-poles 0.7-1.05x, 0.9-1.5x, 1.45-1.7x and 1.3-1.75x."""
+    Below that a second launch costs more than it shares out: the phases around the launches
+    replay as two graphs instead of one (``python -m abd_gym.bench --device cpu --cpu-workers 1,2``)."""
     return max(1, min(available_cores(), num_worlds // 64))
 
 
 def default_block_dim(device, threads: int) -> int:
     """CUDA block size of the fused step: small blocks while there are few threads, so they spread
-    over every SM (each thread's solve is latency-bound; on an H100, 1,024 cart-poles step 1.9x
-    faster in blocks of 32 than of 256), 128 once every SM is busy."""
+    over every SM (each thread's solve is latency-bound, so an idle SM is time lost), 128 once
+    every SM is busy."""
     sms = device.sm_count if device.is_cuda else 1
     return 32 if threads <= 32 * sms else 64 if threads <= 128 * sms else 128
 
@@ -126,13 +125,8 @@ def default_block_dim_shared(n: int, dtype, band: bool = False, device=None, num
     array's most); else as many as fit; 0 when not even one does.  On a GPU (``device``) whose SM
     holds four blocks of more (quarter_sm_block_dim), those, where ``num_worlds`` fill a wave of
     them (four a SM): an SM's four warps then hold more worlds, and the threads' world queue
-    (fused.kernel.run_worlds) keeps them busy past the wave.  Measured on an H100, world-steps/s of
-    24 against 20 threads a block (36 unknowns, the block band) at 16,384 worlds, with the queue:
-    FourBar-v0 1.11x, DoublePendulumCart-v0 1.00x, SliderCrank-v0 0.99x
-    (results/world_queue_h100.json); without it, at 16,384 / 32,768 / 65,536 / 131,072 worlds:
-    FourBar-v0 0.97x / 1.12x / 1.09x / 1.11x, DoublePendulumCart-v0 0.98x / 1.12x / 1.07x / 1.09x,
-    and 13 against 11 threads for 5-link chains (60 unknowns) 0.99x / 1.12x / 1.12x / 1.11x
-    (results/shared_quarter_sm_h100.json)."""
+    (fused.kernel.run_worlds) keeps them busy past the wave.  Below a wave the larger blocks leave
+    SMs idle, so the 48 KB rule stays."""
     fit = min(32, SHARED_BLOCK_BYTES // shared_bytes_per_thread(n, dtype, band))
     big = quarter_sm_block_dim(device, n, dtype, band) if getattr(device, "is_cuda", False) else 0
     if big > fit and num_worlds >= 4 * device.sm_count * big:
@@ -169,12 +163,9 @@ def max_block_dim_shared(device, n: int, dtype, band: bool = False) -> int:
 
 def default_steps_per_launch(lockstep_warps: int = 1) -> int:
     """Steps a launch where a step is one launch: 50 where the lane-split step's warps run in
-    lockstep blocks (``lockstep_warps`` > 1), else 2.  Measured on an H100 at 1,024 worlds,
-    world-steps/s against 2 steps a launch in blocks of a warp:
-    lockstep blocks of 8 warps at 10 / 20 / 50 steps 1.09x / 1.12x / 1.14x cart-poles and 1.10x /
-    1.12x / 1.14x double pendulums; without lockstep 10 steps took 1.03x cart-poles (1.18x double
-    pendulums), 2,048 cart-poles at 16 lanes 0.90x: a launch's warps drift apart in the ~240 KB
-    kernel and the SM's instruction caches miss more."""
+    lockstep blocks (``lockstep_warps`` > 1), else 2.  Each launch saved is its overhead saved; but
+    without lockstep, a launch's warps drift apart over many steps of the large kernel and the SM's
+    instruction caches miss more, which loses what the launches saved."""
     return 50 if lockstep_warps > 1 else 2
 
 
@@ -203,8 +194,8 @@ def lanes_scratch_bytes(n: int, dtype, groups: int = 1, per_block: int = 1, band
 
 # the lane-split step keeps a banded scene's block band where a world's rows do not fit its warp's
 # registers (more than 3 rows a lane of 32: warp_ldl_solve, which reads the triangle): chains of
-# 9 links and more.  H100, 1,024 worlds (results/lanes_band_h100.json): 10-link chains 3.2x the
-# packed triangle, 20-link chains (whose triangle does not fit a block) 4.6x the global band step
+# 9 links and more, whose packed triangle is slower to factor than the band, or (20 links) does
+# not fit a block at all
 LANES_BAND_MIN_UNKNOWNS = 3 * 32 + 1
 
 
@@ -219,12 +210,8 @@ def default_lane_groups(device, scratch: str, num_worlds: int, terms: int = 3, n
     """Lane groups a world of the lane-split step on a GPU: one for the bodies and one for each of
     the world's ``terms`` (joints, limits and drives, term_counts), at most 4, else 2, else 1: the
     most whose blocks (a warp a group) all fit on the GPU at once (LANE_WARPS_PER_SM), else the
-    launch runs in two waves.  Measured on an H100: cart-poles / double pendulums, each with 2 terms, at 128 and 256
-    worlds in 3 groups 1.12x / 1.10x and 1.11x / 1.07x as fast as in 1 (4 groups, one idle,
-    1.07x / 1.06x and 1.05x / 1.02x); at 352 worlds 3-warp blocks no longer fit at once (2 a SM) and run 0.65x; 2
-    groups at 512 worlds 1.01x / 0.98x; at 1,024 worlds 2 groups run in two waves, 0.61x.  With
-    ``n`` unknowns: no more groups than a block's shared memory holds copies of the system.  The
-    CPU: 1."""
+    launch runs in two waves, which costs more than the groups save.  With ``n`` unknowns: no more
+    groups than a block's shared memory holds copies of the system.  The CPU: 1."""
     if scratch != "lanes" or not getattr(device, "is_cuda", False):
         return 1
     top = min(4, 1 + terms)
@@ -241,12 +228,9 @@ def default_lane_width(device, num_worlds: int, dtype=wp.float32, n: int = 0, ba
     worlds where one world's system (``band``: a banded scene's block band) fits a block's shared
     memory, else 0.  A world's step is a chain of dependent work on its lanes, so the GPU runs ~8 warps an SM (its
     registers' worth) each taking about as long whether it holds 1, 2 or 4 worlds: narrower worlds
-    pay only once one wave of full-width worlds no longer holds them.  Measured on an H100,
-    world-steps/s against a thread per world ("shared"): 2,048
-    worlds at 16 lanes 2.11x (cart-pole) / 2.35x (double pendulum), 4,096 at 8 lanes 1.68x / 1.90x;
-    at 1,024 worlds 16 lanes 0.96x / 0.92x of 32; at 8,192 worlds (8 lanes, two waves) 0.83x /
-    1.07x of shared.  float64: 32 lanes only (narrower worlds hold 2-3 rows of twice the registers
-    a lane; unmeasured)."""
+    pay only once one wave of full-width worlds no longer holds them, and past one wave of the
+    narrowest a thread per world is as fast.  float64: 32 lanes only (narrower worlds hold 2-3 rows
+    of twice the registers a lane; not measured)."""
     room = LANE_WARPS_PER_SM * getattr(device, "sm_count", 0)
     if n > LANES_MAX_UNKNOWNS:
         fits = room and lanes_scratch_bytes(n, dtype, band=band) <= SHARED_BLOCK_BYTES
@@ -256,21 +240,14 @@ def default_lane_width(device, num_worlds: int, dtype=wp.float32, n: int = 0, ba
 
 
 # the most unknowns of a world that the default lane-split step gives 16 or 8 lanes where 32 would
-# not fit the GPU at once (three free bodies: the closed-loop tasks FourBar-v0 and SliderCrank-v0,
-# measured); larger worlds take 32 lanes, up to WIDE_LANES_MAX_WORLDS worlds.  H100, 5-link chains
-# (60 unknowns), world-steps/s: 2,048 worlds at 16 lanes 4.68 M against 9.64 M
-# at 32 (and 4.47 M shared); 4,096 worlds at 8 lanes 4.17 M, at 32 9.07 M, shared 5.54 M; 16,384
-# at 32 lanes 6.42 M against shared 8.35 M.  10-link chains (120 unknowns, no shared scratch):
-# 32 lanes 3.4x / 2.4x the global step at 1,024 / 2,048 worlds.
+# not fit the GPU at once (three free bodies: the closed-loop tasks FourBar-v0 and SliderCrank-v0);
+# larger worlds take 32 lanes, up to WIDE_LANES_MAX_WORLDS worlds: a narrow chain holds too many
+# rows a lane, and past those worlds a thread per world is faster.
 LANES_MAX_UNKNOWNS = 36
 WIDE_LANES_MAX_WORLDS = 4096
 # past those worlds, a chain's systems in shared memory where this many fit a block (fewer threads
-# than a warp): H100, 5-link chains (6 a block) 2.7x / 1.84x / 1.51x / 1.07x the global step at
-# 1,024 / 8,192 / 16,384 / 65,536 worlds; 10-link chains (1 a block) 1.06x at 4,096 but 0.51x at
-# 16,384.  Worlds of 36 unknowns (16 a block): InvertedDoublePendulum-v5's env 2.5x at 16,384.
-# With the block band (Model.banded; results/band_plans_h100.json, band_ab_h200.json): 5-link
-# chains (11 a block) 1.36x / 0.95x the global band step at 16,384 / 131,072 worlds (H100);
-# 10-link chains (5 a block) 0.96x / 0.59x (H200), so they stay global.
+# than a warp): with fewer a block, its few threads leave the SM's warps idle and global memory is
+# faster, so 10-link chains (5 a block with the block band, Model.banded) stay global.
 SHARED_MIN_SYSTEMS = 6
 
 
@@ -282,15 +259,9 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
     where a world's system fits a block's shared memory; else "shared" where SHARED_MIN_SYSTEMS
     threads' systems fit a block's shared memory (32 of them up to 24 unknowns in float32, 16 at
     36; with ``band``, a Model.banded scene's block band, 20 at 36 and 11 at 60); else "global".
-    Measured on an H100 (``python -m abd_gym.bench --scratch global,shared,lanes``): shared
-    1.18-1.25x as fast as global on cart-poles and 1.25-1.47x on double pendulums, at 1,024 to
-    131,072 worlds; lanes 1.15x as fast as shared on both at 1,024 worlds, and narrower lanes
-    1.7-2.4x at 2,048 and 4,096; for the 36 unknowns of FourBar-v0's and SliderCrank-v0's scenes,
-    lanes 6.6x / 9.0x as fast as global at 1,024 worlds, 4.5x / 6.7x at 2,048 and 2.9x / 3.2x at
-    4,096; past those worlds, shared (16 threads a block) 2.5x as fast as global for the 36
-    unknowns of InvertedDoublePendulum-v5 at 16,384 worlds (env-steps/s 2.05 M against 0.83 M), and
-    in float64 (17 threads a block) 1.17x / 1.30x on cart-poles and 1.31x / 1.58x on double
-    pendulums at 4,096 / 16,384 worlds (results/scratch_float64_24_unknowns_h100.json)."""
+    Shared memory is nearer than global memory to a thread that reads its system at every step of
+    the factor and solve; lanes spread a world's work over a warp, which wins while the batch
+    alone would leave SMs idle (``python -m abd_gym.bench --scratch global,shared,lanes``)."""
     if not (fused and device.is_cuda):
         return "global"
     if default_lane_width(device, num_worlds, dtype, n, lanes_band(n, band)):
@@ -301,12 +272,10 @@ def default_scratch(device, n: int, dtype, fused: bool = True, num_worlds: int =
     return "global"
 
 
-# the one-launch step (one_launch None): with the lane-split step only.  On an H100
-# (scripts/profile_step.py --split, device time) the five kernels that open and close a step took
-# 27 us of an 80 us step of 1,024 cart-poles (lanes), which one launch cut to 61 us (double
-# pendulums 56 -> 39 us); with a thread per world (16,384 worlds, "shared") one launch was no
-# faster on cart-poles (209 us both) and slower on double pendulums (143 -> 155 us): each thread
-# then walks its world's bodies and joints in turn, where the separate kernels spread them over threads
+# the one-launch step (one_launch None): with the lane-split step only, whose short steps the five
+# kernels that open and close a step would otherwise weigh on (scripts/profile_step.py --split).
+# With a thread per world one launch gains nothing: each thread then walks its world's bodies and
+# joints in turn, where the separate kernels spread them over threads
 
 
 def resolve_plan(plan, model) -> ExecutionPlan:
@@ -351,8 +320,7 @@ def resolve_plan(plan, model) -> ExecutionPlan:
 
 
 # the most worlds a thread of the fused step's launch (world queue) at which the plan takes the
-# limits' secant direction: measured on an H200 (default_limit_secant) faster at 1.0-2.6 worlds a
-# thread, slower from 3.1
+# limits' secant direction (default_limit_secant says why)
 SECANT_MAX_WORLDS_PER_THREAD = 2.75
 
 
@@ -361,13 +329,8 @@ def default_limit_secant(device, scratch: str, num_worlds: int, threads: int) ->
     on a GPU where its threads hold at most SECANT_MAX_WORLDS_PER_THREAD worlds each.  A step then
     lasts about as long as its slowest worlds' solves, and those are the worlds striking and
     leaving limits, whose iterations the secant saves; with many worlds a thread, the world queue
-    evens their iterations out and the acting limits' check at every iteration is a loss.  Measured
-    on an H200 against Newton's direction, world-steps/s (results/limit_secant_h200.json,
-    results/limit_secant_gate_h200.json): SliderCrank-v0 (12,672 threads) 1.14x at 16,384 worlds
-    (1.3 a thread), 1.065x at 32,768 (2.6), 0.92x at 65,536 (5.2), 0.78x at 131,072 (10.3);
-    InvertedPendulum-v5 (21,120 threads) 1.11x at 16,384 (1.0), 0.92x at 65,536 (3.1), 0.81x at
-    131,072 (6.2).  On the CPU, whose threads run one after another, no slowest world sets the
-    pace: never."""
+    evens their iterations out and the acting limits' check at every iteration is a loss.  On the
+    CPU, whose threads run one after another, no slowest world sets the pace: never."""
     return bool(device.is_cuda and scratch != "lanes" and num_worlds <= SECANT_MAX_WORLDS_PER_THREAD * threads)
 
 

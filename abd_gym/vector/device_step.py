@@ -70,7 +70,7 @@ class DeviceStep:
         # the step graph runs the autoreset beside the physics, which then holds the pending worlds
         # (physics): where the step is one launch, its kernel is built with that check
         if self.use_graph:
-            self.sim.solver.enable_hold()
+            self.sim.enable_hold()
         # a host check would make the host wait for the device each step
         self.check_on_device = self.use_graph and wp.is_conditional_graph_supported()
         # the task's observation, reward and termination (a dozen one-line Torch operations, each a
@@ -166,9 +166,9 @@ class DeviceStep:
         scaled = env.default_controls
         k = self.arrays
         mailed = slot is not None
-        wp.launch(env_kernels.check_actions(self.sim.model.dtype, scaled, mailed), dim=self.num_envs,
+        wp.launch(env_kernels.check_actions(self.sim.scalar, scaled, mailed), dim=self.num_envs,
                   inputs=[wp.from_torch(a), k["scale"], float(env.action_bound), k["bad"], self.go,
-                          self.sim.state.control, mail if mailed else None, slot or 0,
+                          self.sim.controls("warp"), mail if mailed else None, slot or 0,
                           mail_copy if mailed else None],
                   device=self.device)  # fmt: skip
         if not scaled:
@@ -180,7 +180,7 @@ class DeviceStep:
         device decides).  Captured where the step can hold worlds: both at once on ``side_stream``
         and the current stream (below)."""
         sim, frame_skip = self.sim, self.env.frame_skip
-        if capturing and self.xp is not np and sim.solver.holds:
+        if capturing and self.xp is not np and sim.holds:
             # the physics and the autoreset at once, on two streams of the graph: the step holds the
             # pending worlds (it neither reads nor writes their rows) while the autoreset restarts
             # them, and both leave a refused batch (go cleared) alone themselves, with no
@@ -232,7 +232,7 @@ class DeviceStep:
         steps = -1 if env.max_episode_steps is None else env.max_episode_steps
         mailed = slot is not None
         wp.launch(env_kernels.finish_step(mailed), dim=N,
-                  inputs=[wp.from_torch(packed), self.sim.state.status, self.go, pending, k["elapsed"], steps,
+                  inputs=[wp.from_torch(packed), self.sim.world_status("warp"), self.go, pending, k["elapsed"], steps,
                           k["obs"], k["reward"], k["status"], k["flags"], mail if mailed else None, slot or 0,
                           pinned.flags_dev if mailed else None], device=self.device)  # fmt: skip
         return self.unpack(self.out_raw), info_values, self.out_b[3:5]
@@ -290,7 +290,7 @@ class DeviceStep:
         if torch_backend:
             self.buffers()
         if checked:
-            before = (self.sim.state.time.copy(), self.next.bookmark())
+            before = (self.sim.time.copy(), self.next.bookmark())
         replayed = self.use_graph and self.warm
         slot = None
         if replayed:
@@ -316,7 +316,7 @@ class DeviceStep:
             if not fixed:  # else handed back in place, as the outputs
                 info_values = {k: v.clone() for k, v in info_values.items()}
             info_values = dict(info_values, sim_status=self.fixed_status if fixed else self.status_of(raw),
-                               sim_substeps=self.sim.view(self.sim.state.substeps, "torch").clone())  # fmt: skip
+                               sim_substeps=self.sim.substeps("torch").clone())  # fmt: skip
         obs, reward, terminated, truncated, failed = out
         # the worlds the device just reset (last step's ended ones, known on the host now): their
         # info is a reset's (none), their clock restarts, they took a row of their queues; this
@@ -330,7 +330,7 @@ class DeviceStep:
             self.undo = before + (mask.copy(),)
         has_info = ~mask
         if mask.any():
-            self.sim.state.time[mask] = 0.0
+            self.sim.time[mask] = 0.0
             self.next.took(mask)
             mask[...] = False  # (none left pending)
         if not checked and flags.ndim == 2:
@@ -362,7 +362,7 @@ class DeviceStep:
         again, and the refusal raised."""
         pm = self.env.pending
         clock, taken, pending = self.undo
-        self.sim.state.time[...] = clock
+        self.sim.time[...] = clock
         self.next.rewind(taken)
         pm.mask = pending
         self.go.fill_(1)

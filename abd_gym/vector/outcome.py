@@ -24,7 +24,7 @@ def failed_mask(env):
         mask = np.zeros(env.num_envs, dtype=bool)
         mask[env.sim.failed_worlds()] = True
         return mask
-    return env.sim.view(env.sim.state.status, "torch") != 0
+    return env.sim.world_status("torch") != 0
 
 
 def world_status(env):
@@ -32,7 +32,7 @@ def world_status(env):
     abd_gym.WorldStatus)."""
     if env.xp is np:
         return env.sim.world_status()
-    return env.sim.view(env.sim.state.status, "torch").clone()
+    return env.sim.world_status("torch").clone()
 
 
 def substeps(env):
@@ -40,7 +40,7 @@ def substeps(env):
     (``Simulator.substeps``: 1, or 2 or 4 where a failed step was retried)."""
     if env.xp is np:
         return env.sim.substeps()
-    return env.sim.view(env.sim.state.substeps, "torch").clone()
+    return env.sim.substeps("torch").clone()
 
 
 def outcome(env, a, pend=None):

@@ -57,10 +57,10 @@ class StepGraph:
         # load is no graph node)
         kernels = [env_kernels.finish_step(True)]
         if self.mailed:
-            kernels.append(env_kernels.check_actions(ds.sim.model.dtype, True, True))
+            kernels.append(env_kernels.check_actions(ds.sim.scalar, True, True))
         for kernel in kernels:
             kernel.module.load(ds.device)
-        if ds.sim.solver.holds:
+        if ds.sim.holds:
             self.side_stream = wp.Stream(ds.device)
         self.physics, self.posts, self.outputs = [], [], []
         # the outcome run once on the captured actions' tensor outside the captures (it only reads):

@@ -240,9 +240,9 @@ class KernelSpec:
     @property
     def compact(self) -> bool:
         """Compact code where a world's step is a latency-bound chain (lanes): blocks of a term in
-        loops of selected arguments, one inlined assemble per mode (cart-pole's kernel 414 KB of
-        SASS -> 291 KB, 1,024 worlds 5% faster on an H100); a thread
-        per world (throughput-bound) keeps the branches, whose selects cost it 1-5% there."""
+        loops of selected arguments, one inlined assemble per mode: a smaller kernel, whose
+        instructions the SM's caches hold better, for a chain that waits on each one; a thread
+        per world (throughput-bound) keeps the branches, which cost it less than the selects."""
         return self.lanes
 
     @property

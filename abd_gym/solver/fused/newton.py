@@ -256,7 +256,7 @@ def line_search(spec: KernelSpec):
             tries = max_line_search + 2  # α* and, where it fails, α = 1 again
         if wp.static(compact):
             # one trial and one energy in the code (a loop of tries, not a first try and a loop):
-            # each inlined copy of assemble's energy costs ~28 KB of a cart-pole kernel's SASS
+            # each inlined copy of assemble's energy adds that whole code to the kernel again
             tries = wp.where(skip != 0 or chord > 0, 1, tries)
             for _ls in range(tries):
                 trial(q, q_trial, t, step, w, row, s, B, alpha, lane)
@@ -339,8 +339,8 @@ def stepping(spec: KernelSpec):
         unresolved = -gdq <= dtype(1600.0) * EPS * wp.abs(e0) or -gdq <= noise
         # within 10x the noise floor the step is taken whole: in float32 the energy's rounding there
         # exceeds the step's decrease (a joint's energy K/2‖Δx‖² at ‖Δx‖ ~ 1e-6 m is computed from
-        # positions rounded to ~6e-8 m), and a search halves good steps on noise (measured: double
-        # pendulums at dt 0.005 crawling at α = 1/32 where float64 takes α = 1 and converges in 2)
+        # positions rounded to ~6e-8 m), and a search halves good steps on noise: a float32 solve
+        # would crawl at a small α where float64 takes the whole step and converges
         skip = dmax < dtype(10.0) * floor or unresolved
         done = dmax < floor or (unresolved and dmax < dtype(1000.0) * floor and chord <= 0)
         return wp.where(skip, 1, 0), wp.where(done, 1, 0)
@@ -351,14 +351,14 @@ def stepping(spec: KernelSpec):
         factors, −1: it factors and the step reuses no factor again.  A step from a reused factor is
         tried at α = 1 only: rejected, it is not taken and the next iteration refactors at the same q
         (retry 1), and the rest of the step refactors every iteration (where a reused factor fails,
-        the Hessian changes fast: alternating the two doubled a hard step's iterations, 13 → 22 on a
-        float32 double pendulum at dt 0.05).  The factor is reused after a full step taken whole,
-        and kept while the reused steps shrink at least 8× an iteration (they converge linearly, at
-        the rate the Hessian has changed; a slow rate would leave the solve's error near the
-        tolerance, where Newton's leaves it far below); a reused step that shrinks less also ends
-        reuse for the step (where float32's noise makes steps ~1e-3 that are taken whole, refactor
-        and reuse would otherwise alternate up to the iteration cap: 6 world-steps of 1,024 double
-        pendulums at dt 0.05 reached the 50-iteration cap without this rule)."""
+        the Hessian changes fast, and alternating the two would spend iterations on reused steps
+        that fail).  The factor is reused after a full step taken whole, and kept while the reused
+        steps shrink at least 8× an iteration (they converge linearly, at the rate the Hessian has
+        changed; a slow rate would leave the solve's error near the tolerance, where Newton's leaves
+        it far below); a reused step that shrinks less also ends reuse for the step (where float32's
+        noise makes steps ~1e-3 that are taken whole, refactor and reuse would otherwise alternate
+        until the iteration cap ends the solve unconverged: a rule that keeps float32 solves of
+        large steps converging)."""
         if chord > 0:
             if accepted == 0:
                 return 1, -1
@@ -514,7 +514,7 @@ def newton(spec: KernelSpec):
         g_abs = zero
         if wp.static(compact):
             # one call with the derivatives chosen at run time: a second inlined assemble
-            # (gradient only) would add ~54 KB of code
+            # (gradient only) would add its whole code to the kernel again
             e0 = assemble(q, w, w, s, T, wp.where(chord > 0, GRADIENT, HESSIAN), t, g, H)
         elif chord > 0:
             e0 = assemble(q, w, w, s, T, GRADIENT, t, g, H)
