@@ -138,7 +138,7 @@ def fused_kernels():
     for name, scene in scenes.items():
         m = Model(scene, num_worlds=1, device="cpu")
         own, folds = fused_flags(m)
-        common = dict(n=m.num_dofs, quadratic=float(SolverSettings.quadratic_stop), exact=m.stiff,
+        common = dict(n=m.system_size, axis=m.axis, quadratic=float(SolverSettings.quadratic_stop), exact=m.stiff,
                       limits=tuple(len(m.limit_joints[kind]) for kind in ("revolute", "prismatic")))  # fmt: skip
         forms = {"lanes": dict(scratch="lanes", cuda=True, block=32, bracket=True),
                  "shared": dict(scratch="shared", cuda=True, block=24, bracket=False, band=m.banded, secant=True),

@@ -49,7 +49,7 @@ def build(case: str, lanes: int = 32, lineinfo: bool = False, groups: int = 1, o
     m = Model(scene, num_worlds=1, device="cpu")
     own, folds = fused_flags(m)
     limits = tuple(len(m.limit_joints[kind]) for kind in ("revolute", "prismatic"))
-    kernel = fused_kernel(wp.float32, own, folds, scratch="lanes", n=m.num_dofs, cuda=True, block=lanes, bracket=True,
+    kernel = fused_kernel(wp.float32, own, folds, scratch="lanes", n=m.system_size, axis=m.axis, cuda=True, block=lanes, bracket=True,
                           groups=groups, quadratic=float(SolverSettings.quadratic_stop), limits=limits)[0]  # fmt: skip
     kernel.module.options["block_dim"] = lanes
     out = tempfile.mkdtemp() if out is None else out
