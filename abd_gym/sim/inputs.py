@@ -101,6 +101,8 @@ def real_number(name, value, positive=False, nonnegative=False, allow_inf=False)
 
 def count(name, value, minimum=0) -> int:
     """An integer count (Python or NumPy integer, not bool) of at least ``minimum``."""
+    if type(value) is int and value >= minimum:  # the common case, before the abstract type checks
+        return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral, np.integer)):
         raise TypeError(f"{name} must be an integer, got {value!r}")
     if value < minimum:
