@@ -58,3 +58,31 @@ def test_a_refused_state_changes_no_world(sim):
     with pytest.raises(ValueError):
         sim.set_joint_state([[0.0, 0.0], [0.0, 0.0], [0.0, 4.0]])
     np.testing.assert_array_equal(sim.body_q(), before)
+
+
+def test_joint_state_ok_agrees_with_check_joint_state():
+    """The whole-array check set_joint_state runs first passes exactly the states that
+    check_joint_state passes: values at, just inside and just beyond each widened bound and at the
+    rate bound π/dt, for a limited revolute, a limited prismatic and an unlimited revolute joint,
+    in two worlds whose bounds differ."""
+    from abd_gym.sim import inputs
+
+    dt, names, revolute = 0.01, ["a", "b", "c"], np.array([True, False, True])
+    limits = {0: (np.array([-1.0, -0.5]), np.array([1.0, 0.5]), True),
+              1: (np.array([0.0, -2.0]), np.array([0.3, 2.0]), False)}  # fmt: skip
+    bounds = inputs.joint_state_bounds(limits, revolute, 2)
+    edges = [-2.0, -1.5, 2.0, 1.5, -0.3, 0.6, -4.0, 6.0]  # the widened bounds of both worlds
+    values = sorted({v for e in edges for v in (e, np.nextafter(e, -np.inf), np.nextafter(e, np.inf))} | {0.0})
+    rate = np.pi / dt
+    rates = [0.0, rate, np.nextafter(rate, 0.0), -rate, 1e5]
+    rng = np.random.default_rng(0)
+    for _ in range(400):
+        w = rng.integers(0, 2, size=1)
+        x = rng.choice(values, size=(1, 3))
+        xd = rng.choice(rates, size=(1, 3))
+        try:
+            inputs.check_joint_state(names, revolute, x, xd, w, dt, limits)
+            passed = True
+        except ValueError:
+            passed = False
+        assert inputs.joint_state_ok(x, xd, w, dt, bounds) == passed, (w, x, xd)

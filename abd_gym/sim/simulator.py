@@ -106,6 +106,8 @@ class Simulator:
         self._limits = {kind: [np.broadcast_to([scene.joints[k].attributes[f"limit/{a}"] for k in ids], (self.num_worlds, len(ids))).copy()
                                for a in ("lower", "upper", "strength")] for kind, ids in m.limit_joints.items()}  # fmt: skip
         self._set_mask = None
+        self._joints = None  # set_joint_state's joint names and revolute mask (_joint_names)
+        self._joint_bounds = None  # set_joint_state's bounds (inputs.joint_state_bounds), until set_limit
         self._tree_plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
         self._torch_views = {}
         self._host_views = {}
@@ -449,22 +451,35 @@ class Simulator:
         idx = self._worlds(worlds)
         m = self.model
         nj, N = m.num_joints, len(idx)
-        names = [j.name for j in self.scene.joints]
+        names, revolute = self._joint_names()
         at = dict(worlds=idx, items=names, item="joint", bound=self._state_bound)
         x = _finite_array("coordinates", coordinates, (N, nj), **at)
         xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj), **at)
         if N == 0:
             return
-        revolute = [j.kind == REVOLUTE for j in self.scene.joints]
-        check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds())
+        if self._joint_bounds is None:  # kept until set_limit changes the limits
+            self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), revolute, self.num_worlds)
+        if not inputs.joint_state_ok(x, xd, idx, self.dt, self._joint_bounds):
+            check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds())  # raises, naming the joint
         idx_dev = rows.indices(idx, self._stage)
         # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
         # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
-        xx = np.stack([np.where(m.joint_kind_np[None, :] == FIXED_CODE, 0.0, x), xd], axis=1) if nj else np.zeros((N, 2, 1))
+        if nj:
+            fixed = m.joint_kind_np == FIXED_CODE
+            xx = np.concatenate((np.where(fixed, 0.0, x) if fixed.any() else x, xd), axis=1).reshape(N, 2, nj)
+        else:
+            xx = np.zeros((N, 2, 1))
         xx = self._stage("xx", xx, m.dtype)
         self._replay("restart", *kinematics.restart_launch(*self._tree(), self.state, m, self.solver, idx_dev, xx, N,
                                                            self.dt))  # fmt: skip
         self.state.time[idx] = 0.0
+
+    def _joint_names(self):
+        """(the joints' names, a bool array (joints,) of the revolute ones), made once."""
+        if self._joints is None:
+            joints = self.scene.joints
+            self._joints = ([j.name for j in joints], np.array([j.kind == REVOLUTE for j in joints], dtype=bool))
+        return self._joints
 
     def _limit_bounds(self):
         """{joint index: (lower (W,), upper (W,), revolute)} of the limited joints, from the host copies."""
@@ -667,6 +682,7 @@ class Simulator:
             names = [jt.name for jt in self.scene.joints]
             check_within_limits("set_limit", self.joint_coordinates()[idx], idx, bounds, names)
         idx_dev = rows.indices(idx, self._stage)
+        self._joint_bounds = None
         for h, v, dev_a in zip(host, new, m.limit_params[kind]):
             h[idx, col] = v
             self._write_rows(dev_a, idx_dev, h[idx])
