@@ -111,6 +111,7 @@ class Simulator:
         self._tree_plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
         self._torch_views = {}
         self._host_views = {}
+        self._host_copies = {}  # view's NumPy copies on the CPU: id -> (array, host view, the copy's dtype)
         self._cmds = {}  # recorded launches of the reset path, replayed with changed arguments (_replay)
         self._stage = rows.Staging(self.device)  # host rows to the device without waiting for the device
         self._graph = {}  # steps a launch -> the captured step: [(phase, graph or None)]
@@ -132,13 +133,14 @@ class Simulator:
         num_steps = inputs.count("num_steps", num_steps)
         replay = self._replays.get(num_steps)
         if replay is not None:  # every launch's phases captured: the graphs alone (a one-world step is a few us)
+            state, launch = self.state, wp.capture_launch
             for phase, graph in replay[0]:
                 if graph is None:
-                    phase(self.state)  # a phase a graph cannot hold (the CPU's concurrent launches, its retry)
+                    phase(state)  # a phase a graph cannot hold (the CPU's concurrent launches, its retry)
                 else:
-                    wp.capture_launch(graph)
+                    launch(graph)
             for k in replay[1]:
-                self.state.time += k * self.dt
+                state.time += k * self.dt
             return
         chunks = self.solver.launch_chunks(num_steps)
         for k in chunks:
@@ -188,8 +190,14 @@ class Simulator:
         "torch" a zero-copy Torch view on the device (made once per array: the simulator's arrays
         are never reallocated, so the view stays valid and writes through it reach the array)."""
         if backend == "numpy":  # a copy: on the CPU .numpy() is a view of memory the next step overwrites
-            src = self.host_view(array) if self.device.is_cpu else array.numpy()
-            return np.array(src, dtype=np.float64 if array.dtype != wp.int32 else np.int32)
+            copy = self._host_copies.get(id(array))
+            if copy is not None and copy[0] is array:  # a CPU array seen before: its view and the copy's dtype
+                return np.array(copy[1], dtype=copy[2])
+            dtype = np.float64 if array.dtype != wp.int32 else np.int32
+            if not self.device.is_cpu:
+                return np.array(array.numpy(), dtype=dtype)
+            self._host_copies[id(array)] = (array, self.host_view(array), dtype)
+            return np.array(self.host_view(array), dtype=dtype)
         if backend == "warp":
             return array
         if backend == "torch":  # zero-copy views, made once: the state's arrays are never reallocated

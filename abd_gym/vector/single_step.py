@@ -38,6 +38,7 @@ class HostStep:
         self.action = np.zeros((1, env.action_dim), dtype=np.float32)  # the clipped action, reused
         self.flat = self.action.reshape(-1)  # a view of it
         self.bound = float(env.action_bound)
+        self.low = -self.bound
         # the default controls hook writes a × action_scale straight into the simulator's array
         self.scale = env.action_scale if env.default_controls else None
         if self.scale is not None:
@@ -54,14 +55,14 @@ class HostStep:
     def set_action(self, action):
         """The action as the clipped float32 row ``self.action`` (a NaN raises, nothing written)."""
         a = np.asarray(action, dtype=np.float32)
-        if a.size != self.action.size:
-            raise ValueError(f"action must have {self.action.size} entries, got shape {a.shape}")
         row = self.action
-        row.flat = a
-        if math.isnan(self.flat.dot(self.flat)):  # Σ a² is NaN where an entry is (inf² is not)
-            raise ValueError(f"action contains NaN: {a.tolist()}; nothing was stepped")
-        np.maximum(row, -self.bound, out=row)  # np.clip's arithmetic without its Python wrapper
+        if a.size != row.size:
+            raise ValueError(f"action must have {row.size} entries, got shape {a.shape}")
+        # np.clip's arithmetic without its Python wrapper; NaN stays NaN through both
+        np.maximum(a.reshape(row.shape), self.low, out=row)
         np.minimum(row, self.bound, out=row)
+        if math.isnan(self.flat.dot(self.flat)):  # Σ a² is NaN where an entry is (clipped, none is inf)
+            raise ValueError(f"action contains NaN: {a.tolist()}; nothing was stepped")
         return row
 
     def write_controls(self, a):
