@@ -25,6 +25,8 @@ import math
 
 import numpy as np
 
+from .task import Task
+
 
 class HostStep:
     """The env step of ``env`` (an ABDVectorEnv of one world, NumPy backend, on the CPU, no
@@ -48,6 +50,7 @@ class HostStep:
         self.status = env.sim.host_view(state.status)
         self.substeps = env.sim.host_view(state.substeps)
         self.elapsed = env.episodes.elapsed
+        self.own_info = type(env).info is not Task.info  # the default info hook has no values
         self.frame_skip = env.frame_skip
         self.zero_obs = np.zeros(env.single_observation_space.shape, dtype=np.float32)
         self.world = np.arange(1)  # the reset's world index
@@ -95,9 +98,9 @@ class HostStep:
         status = int(self.status[0])
         row = obs[0]  # clipped: a non-finite entry is NaN, and Σ o² is NaN just where one is
         failed = status != 0 or math.isnan(row.dot(row))
-        reward = float(env.f32(env.reward(obs, a))[0])
+        reward = float(np.float32(env.reward(obs, a)[0]))  # float32, as the vector env's reward
         terminated = bool(env.terminated(obs)[0]) or failed
-        info = world_info(env.info(obs))
+        info = world_info(env.info(obs)) if self.own_info else {}
         info["sim_status"] = status
         info["sim_substeps"] = int(self.substeps[0])
         info["sim_failed"] = failed
