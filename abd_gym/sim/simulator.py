@@ -139,8 +139,12 @@ class Simulator:
                     phase(state)  # a phase a graph cannot hold (the CPU's concurrent launches, its retry)
                 else:
                     launch(graph)
+            time = state.time
             for k in replay[1]:
-                state.time += k * self.dt
+                if self.num_worlds == 1:
+                    time[0] += k * self.dt  # the same sum as the array's, without a ufunc call (~1 us)
+                else:
+                    time += k * self.dt
             return
         chunks = self.solver.launch_chunks(num_steps)
         for k in chunks:

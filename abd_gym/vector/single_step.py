@@ -39,8 +39,11 @@ class HostStep:
         state = env.sim.state
         self.action = np.zeros((1, env.action_dim), dtype=np.float32)  # the clipped action, reused
         self.flat = self.action.reshape(-1)  # a view of it
-        self.bound = float(env.action_bound)
-        self.low = -self.bound
+        bound = float(env.action_bound)
+        # the clip's bounds as float32 rows (np.clip's bounds ±bound, cast as NumPy casts them):
+        # an array operand costs a ufunc less than a Python scalar
+        self.low = np.full_like(self.action, -bound)
+        self.high = np.full_like(self.action, bound)
         # the default controls hook writes a × action_scale straight into the simulator's array
         self.scale = env.action_scale if env.default_controls else None
         if self.scale is not None:
@@ -63,7 +66,7 @@ class HostStep:
             raise ValueError(f"action must have {row.size} entries, got shape {a.shape}")
         # np.clip's arithmetic without its Python wrapper; NaN stays NaN through both
         np.maximum(a.reshape(row.shape), self.low, out=row)
-        np.minimum(row, self.bound, out=row)
+        np.minimum(row, self.high, out=row)
         if math.isnan(self.flat.dot(self.flat)):  # Σ a² is NaN where an entry is (clipped, none is inf)
             raise ValueError(f"action contains NaN: {a.tolist()}; nothing was stepped")
         return row
@@ -93,7 +96,7 @@ class HostStep:
         a = self.set_action(action)
         self.write_controls(a)
         self.sim.step(self.frame_skip)
-        self.elapsed += 1
+        self.elapsed[0] += 1  # (one world: an item's add costs less than the array's)
         obs = env.observation()
         status = int(self.status[0])
         row = obs[0]  # clipped: a non-finite entry is NaN, and Σ o² is NaN just where one is
