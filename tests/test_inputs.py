@@ -86,3 +86,20 @@ def test_joint_state_ok_agrees_with_check_joint_state():
         except ValueError:
             passed = False
         assert inputs.joint_state_ok(x, xd, w, dt, bounds) == passed, (w, x, xd)
+
+
+def test_finite_array_takes_every_value_within_its_bound_and_no_other():
+    """Entries at the bound (many of them: beyond the one-product shortcut) are taken; one just
+    beyond it, NaN or inf is refused, named by world and item."""
+    from abd_gym.sim import inputs
+
+    bound = 1e6
+    at_bound = np.full((2, 3), -bound)
+    assert inputs.finite_array("v", at_bound, (2, 3), bound=bound) is not None
+    assert inputs.finite_array("v", np.full((2, 3), 1e200), (2, 3)) is not None  # no bound: Σ a² overflows
+    for bad, what in ((np.nextafter(bound, np.inf), "value 1000000.0000000001 beyond"), (np.nan, "non-finite value nan"),
+                      (-np.inf, "non-finite value -inf")):  # fmt: skip
+        v = at_bound.copy()
+        v[1, 2] = bad
+        with pytest.raises(ValueError, match=rf"v has a {what}.* in world 7, joint 'c'"):
+            inputs.finite_array("v", v, (2, 3), worlds=[3, 7], items=["a", "b", "c"], item="joint", bound=bound)

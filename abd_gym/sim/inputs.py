@@ -66,13 +66,16 @@ def finite_array(name, values, shape, worlds=None, items=None, item="index", bou
             a = np.broadcast_to(a, shape)
         except ValueError:
             raise ValueError(f"{name} must have shape {shape}, got {np.shape(values)}") from None
-    # the common case in one reduction: the largest |entry| is NaN where an entry is, inf where one is
-    largest = np.maximum.reduce(np.abs(a), axis=None, initial=0.0)
-    if largest < math.inf and largest <= bound:
+    # the common case in one product: Σ a² is NaN or inf where an entry is, and below (bound/2)²
+    # only where every |entry| is below the bound (by a margin that rounding cannot cross)
+    flat = a.ravel()
+    if flat.dot(flat) < (0.25 * bound * bound if bound < math.inf else math.inf):
         return a
     bad = ~np.isfinite(a)
     if bound < math.inf:
         bad |= np.abs(a) > bound
+    if not bad.any():  # (large entries within the bound)
+        return a
     at = tuple(np.argwhere(bad)[0].tolist())
     what = f"a non-finite value {a[at]}" if not np.isfinite(a[at]) else f"a value {a[at]} beyond ±{bound:.3g}"
     raise ValueError(f"{name} has {what}{_where(at, worlds, items, item)}")
@@ -202,7 +205,7 @@ def joint_state_ok(x, xd, worlds, dt, bounds) -> bool:
         lower, upper = lower[worlds], upper[worlds]
     bad = (x < lower) | (x > upper)
     bad |= np.abs(xd) * dt >= turn
-    return not bad.any()
+    return not np.count_nonzero(bad)
 
 
 def check_joint_state(names, revolute, x, xd, worlds, dt, limits):
