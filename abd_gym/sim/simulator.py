@@ -106,6 +106,7 @@ class Simulator:
         self._limits = {kind: [np.broadcast_to([scene.joints[k].attributes[f"limit/{a}"] for k in ids], (self.num_worlds, len(ids))).copy()
                                for a in ("lower", "upper", "strength")] for kind, ids in m.limit_joints.items()}  # fmt: skip
         self._set_mask = None
+        self._world0 = None  # a one-world simulator's device indices [0] (_one_world)
         self._joints = None  # set_joint_state's joint names and revolute mask (_joint_names)
         self._joint_bounds = None  # set_joint_state's bounds (inputs.joint_state_bounds), until set_limit
         self._tree_plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
@@ -463,7 +464,7 @@ class Simulator:
         idx = self._worlds(worlds)
         m = self.model
         nj, N = m.num_joints, len(idx)
-        names, revolute = self._joint_names()
+        names, revolute, fixed = self._joint_names()
         at = dict(worlds=idx, items=names, item="joint", bound=self._state_bound)
         x = _finite_array("coordinates", coordinates, (N, nj), **at)
         xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj), **at)
@@ -473,12 +474,11 @@ class Simulator:
             self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), revolute, self.num_worlds)
         if not inputs.joint_state_ok(x, xd, idx, self.dt, self._joint_bounds):
             check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds())  # raises, naming the joint
-        idx_dev = rows.indices(idx, self._stage)
+        idx_dev = self._one_world() if self.num_worlds == 1 else rows.indices(idx, self._stage)
         # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
         # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
         if nj:
-            fixed = m.joint_kind_np == FIXED_CODE
-            xx = np.concatenate((np.where(fixed, 0.0, x) if fixed.any() else x, xd), axis=1).reshape(N, 2, nj)
+            xx = np.concatenate((x if fixed is None else np.where(fixed, 0.0, x), xd), axis=1).reshape(N, 2, nj)
         else:
             xx = np.zeros((N, 2, 1))
         xx = self._stage("xx", xx, m.dtype)
@@ -486,11 +486,21 @@ class Simulator:
                                                            self.dt))  # fmt: skip
         self.state.time[idx] = 0.0
 
+    def _one_world(self) -> wp.array:
+        """The device indices [0] of a one-world simulator (every nonempty ``worlds`` of it), kept:
+        its resets stage no indices."""
+        if self._world0 is None:
+            self._world0 = wp.zeros(1, dtype=wp.int32, device=self.device)
+        return self._world0
+
     def _joint_names(self):
-        """(the joints' names, a bool array (joints,) of the revolute ones), made once."""
+        """(the joints' names, a bool array (joints,) of the revolute ones, one of the fixed ones or
+        None where none is), made once."""
         if self._joints is None:
             joints = self.scene.joints
-            self._joints = ([j.name for j in joints], np.array([j.kind == REVOLUTE for j in joints], dtype=bool))
+            fixed = self.model.joint_kind_np[: len(joints)] == FIXED_CODE
+            self._joints = ([j.name for j in joints], np.array([j.kind == REVOLUTE for j in joints], dtype=bool),
+                            fixed if fixed.any() else None)  # fmt: skip
         return self._joints
 
     def _limit_bounds(self):
