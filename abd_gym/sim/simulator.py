@@ -143,7 +143,7 @@ class Simulator:
             time = state.time
             for k in replay[1]:
                 if self.num_worlds == 1:
-                    time[0] += k * self.dt  # the same sum as the array's, without a ufunc call (~1 us)
+                    time[0] += k * self.dt  # the same sum as the array's, without a ufunc call
                 else:
                     time += k * self.dt
             return
