@@ -97,8 +97,9 @@ def test_finite_array_takes_every_value_within_its_bound_and_no_other():
     at_bound = np.full((2, 3), -bound)
     assert inputs.finite_array("v", at_bound, (2, 3), bound=bound) is not None
     assert inputs.finite_array("v", np.full((2, 3), 1e200), (2, 3)) is not None  # no bound: Σ a² overflows
-    for bad, what in ((np.nextafter(bound, np.inf), "value 1000000.0000000001 beyond"), (np.nan, "non-finite value nan"),
-                      (-np.inf, "non-finite value -inf")):  # fmt: skip
+    cases = ((np.nextafter(bound, np.inf), "value 1000000.0000000001 beyond"), (np.nan, "non-finite value nan"),
+             (-np.inf, "non-finite value -inf"))  # fmt: skip
+    for bad, what in cases:
         v = at_bound.copy()
         v[1, 2] = bad
         with pytest.raises(ValueError, match=rf"v has a {what}.* in world 7, joint 'c'"):
