@@ -58,3 +58,49 @@ def test_a_refused_state_changes_no_world(sim):
     with pytest.raises(ValueError):
         sim.set_joint_state([[0.0, 0.0], [0.0, 0.0], [0.0, 4.0]])
     np.testing.assert_array_equal(sim.body_q(), before)
+
+
+def test_joint_state_ok_agrees_with_check_joint_state():
+    """The whole-array check set_joint_state runs first passes exactly the states that
+    check_joint_state passes: values at, just inside and just beyond each widened bound and at the
+    rate bound π/dt, for a limited revolute, a limited prismatic and an unlimited revolute joint,
+    in two worlds whose bounds differ."""
+    from abd_gym.sim import inputs
+
+    dt, names, revolute = 0.01, ["a", "b", "c"], np.array([True, False, True])
+    limits = {0: (np.array([-1.0, -0.5]), np.array([1.0, 0.5]), True),
+              1: (np.array([0.0, -2.0]), np.array([0.3, 2.0]), False)}  # fmt: skip
+    bounds = inputs.joint_state_bounds(limits, revolute, 2)
+    edges = [-2.0, -1.5, 2.0, 1.5, -0.3, 0.6, -4.0, 6.0]  # the widened bounds of both worlds
+    values = sorted({v for e in edges for v in (e, np.nextafter(e, -np.inf), np.nextafter(e, np.inf))} | {0.0})
+    rate = np.pi / dt
+    rates = [0.0, rate, np.nextafter(rate, 0.0), -rate, 1e5]
+    rng = np.random.default_rng(0)
+    for _ in range(400):
+        w = rng.integers(0, 2, size=1)
+        x = rng.choice(values, size=(1, 3))
+        xd = rng.choice(rates, size=(1, 3))
+        try:
+            inputs.check_joint_state(names, revolute, x, xd, w, dt, limits)
+            passed = True
+        except ValueError:
+            passed = False
+        assert inputs.joint_state_ok(x, xd, w, dt, bounds) == passed, (w, x, xd)
+
+
+def test_finite_array_takes_every_value_within_its_bound_and_no_other():
+    """Entries at the bound (many of them: beyond the one-product shortcut) are taken; one just
+    beyond it, NaN or inf is refused, named by world and item."""
+    from abd_gym.sim import inputs
+
+    bound = 1e6
+    at_bound = np.full((2, 3), -bound)
+    assert inputs.finite_array("v", at_bound, (2, 3), bound=bound) is not None
+    assert inputs.finite_array("v", np.full((2, 3), 1e200), (2, 3)) is not None  # no bound: Σ a² overflows
+    cases = ((np.nextafter(bound, np.inf), "value 1000000.0000000001 beyond"), (np.nan, "non-finite value nan"),
+             (-np.inf, "non-finite value -inf"))  # fmt: skip
+    for bad, what in cases:
+        v = at_bound.copy()
+        v[1, 2] = bad
+        with pytest.raises(ValueError, match=rf"v has a {what}.* in world 7, joint 'c'"):
+            inputs.finite_array("v", v, (2, 3), worlds=[3, 7], items=["a", "b", "c"], item="joint", bound=bound)

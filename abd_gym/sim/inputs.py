@@ -61,14 +61,20 @@ def finite_array(name, values, shape, worlds=None, items=None, item="index", bou
     for a wrong shape, or a non-finite entry or one above ``bound`` in magnitude, naming ``name``,
     its world (``worlds[i]`` of row i) and its item (``items[j]`` of column j)."""
     a = real_values(name, values).astype(np.float64, copy=False)
-    try:
-        a = np.broadcast_to(a, shape)
-    except ValueError:
-        raise ValueError(f"{name} must have shape {shape}, got {np.shape(values)}") from None
+    if a.shape != shape:
+        try:
+            a = np.broadcast_to(a, shape)
+        except ValueError:
+            raise ValueError(f"{name} must have shape {shape}, got {np.shape(values)}") from None
+    # the common case in one product: Σ a² is NaN or inf where an entry is, and below (bound/2)²
+    # only where every |entry| is below the bound (by a margin that rounding cannot cross)
+    flat = a.ravel()
+    if flat.dot(flat) < (0.25 * bound * bound if bound < math.inf else math.inf):
+        return a
     bad = ~np.isfinite(a)
     if bound < math.inf:
         bad |= np.abs(a) > bound
-    if not bad.any():  # the common case, without argwhere's cost
+    if not bad.any():  # (large entries within the bound)
         return a
     at = tuple(np.argwhere(bad)[0].tolist())
     what = f"a non-finite value {a[at]}" if not np.isfinite(a[at]) else f"a value {a[at]} beyond ±{bound:.3g}"
@@ -101,6 +107,8 @@ def real_number(name, value, positive=False, nonnegative=False, allow_inf=False)
 
 def count(name, value, minimum=0) -> int:
     """An integer count (Python or NumPy integer, not bool) of at least ``minimum``."""
+    if type(value) is int and value >= minimum:  # the common case, before the abstract type checks
+        return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral, np.integer)):
         raise TypeError(f"{name} must be an integer, got {value!r}")
     if value < minimum:
@@ -124,6 +132,8 @@ def world_indices(worlds, num_worlds) -> np.ndarray:
     if w.dtype.kind not in "iu" and not (w.size == 0 and w.dtype.kind == "f"):  # [] is float64
         raise TypeError(f"worlds must be integer world indices or a bool mask, got dtype {w.dtype}: {worlds!r}")
     w = w.astype(np.int64).reshape(-1)
+    if w.size == 1 and 0 <= w[0] < num_worlds:  # one world, without the reductions
+        return w
     if w.size and (w.min() < 0 or w.max() >= num_worlds):
         raise ValueError(f"world indices must lie in [0, {num_worlds}), got {w.tolist()}")
     if w.size > 1 and np.unique(w).size != w.size:
@@ -193,6 +203,32 @@ def check_within_limits(name, x, worlds, limits, names):
             raise ValueError(f"{name}: joint {names[k]!r} in world {int(worlds[i])} is at {float(x[i, k])!r}, outside its "
                              f"limit [{float(lo[i])!r}, {float(up[i])!r}] by more than the limit holds "
                              f"({float(slack[i]):.4g} {unit}, where its energy reaches its strength)")  # fmt: skip
+
+
+def joint_state_bounds(limits, revolute, num_worlds):
+    """``check_joint_state``'s bounds as arrays, for ``joint_state_ok``: (lower, upper), each
+    (num_worlds, joints), every limited joint's bounds widened by the limit's scale
+    (``limit_scale``; −inf and +inf for a joint without a limit), and (joints,) the bound of
+    |rate|·dt, π for a revolute joint, +inf for another.  ``limits`` as for
+    ``check_within_limits``, ``revolute`` (joints,) bool."""
+    revolute = np.asarray(revolute, dtype=bool)
+    lower, upper = np.full((num_worlds, revolute.size), -np.inf), np.full((num_worlds, revolute.size), np.inf)
+    for k, (lo, up, rev) in limits.items():
+        slack = limit_scale(rev, lo, up)
+        lower[:, k], upper[:, k] = lo - slack, up + slack
+    return lower, upper, np.where(revolute, math.pi, np.inf)
+
+
+def joint_state_ok(x, xd, worlds, dt, bounds) -> bool:
+    """Whether ``check_joint_state`` passes the finite joint state x, xd (N, joints) of the worlds
+    ``worlds``: its comparisons on whole arrays, against ``joint_state_bounds``'s ``bounds``.
+    Where it is False, ``check_joint_state`` finds and names the joint."""
+    lower, upper, turn = bounds
+    if lower.shape[0] > 1:  # (of one world, the worlds are [0])
+        lower, upper = lower[worlds], upper[worlds]
+    bad = (x < lower) | (x > upper)
+    bad |= np.abs(xd) * dt >= turn
+    return not np.count_nonzero(bad)
 
 
 def check_joint_state(names, revolute, x, xd, worlds, dt, limits):

@@ -109,9 +109,13 @@ class Simulator:
         self._limits = {kind: [np.broadcast_to([scene.joints[k].attributes[f"limit/{a}"] for k in ids], (self.num_worlds, len(ids))).copy()
                                for a in ("lower", "upper", "strength")] for kind, ids in m.limit_joints.items()}  # fmt: skip
         self._set_mask = None
+        self._world0 = None  # a one-world simulator's device indices [0] (_one_world)
+        self._joints = None  # set_joint_state's joint names and revolute mask (_joint_names)
+        self._joint_bounds = None  # set_joint_state's bounds (inputs.joint_state_bounds), until set_limit
         self._tree_plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
         self._torch_views = {}
         self._host_views = {}
+        self._host_copies = {}  # view's NumPy copies on the CPU: id -> (array, host view, the copy's dtype)
         self._cmds = {}  # recorded launches of the reset path, replayed with changed arguments (_replay)
         self._stage = rows.Staging(self.device)  # host rows to the device without waiting for the device
         self._graph = {}  # steps a launch -> the captured step: [(phase, graph or None)]
@@ -146,13 +150,18 @@ class Simulator:
         num_steps = inputs.count("num_steps", num_steps)
         replay = self._replays.get(num_steps)
         if replay is not None:  # every launch's phases captured: the graphs alone (a one-world step is a few us)
+            state, launch = self.state, wp.capture_launch
             for phase, graph in replay[0]:
                 if graph is None:
-                    phase(self.state)  # a phase a graph cannot hold (the CPU's concurrent launches, its retry)
+                    phase(state)  # a phase a graph cannot hold (the CPU's concurrent launches, its retry)
                 else:
-                    wp.capture_launch(graph)
+                    launch(graph)
+            time = state.time
             for k in replay[1]:
-                self.state.time += k * self.dt
+                if self.num_worlds == 1:
+                    time[0] += k * self.dt  # the same sum as the array's, without a ufunc call
+                else:
+                    time += k * self.dt
             return
         chunks = self.solver.launch_chunks(num_steps)
         for k in chunks:
@@ -234,8 +243,14 @@ class Simulator:
         "torch" a zero-copy Torch view on the device (made once per array: the simulator's arrays
         are never reallocated, so the view stays valid and writes through it reach the array)."""
         if backend == "numpy":  # a copy: on the CPU .numpy() is a view of memory the next step overwrites
-            src = self.host_view(array) if self.device.is_cpu else array.numpy()
-            return np.array(src, dtype=np.float64 if array.dtype != wp.int32 else np.int32)
+            copy = self._host_copies.get(id(array))
+            if copy is not None and copy[0] is array:  # a CPU array seen before: its view and the copy's dtype
+                return np.array(copy[1], dtype=copy[2])
+            dtype = np.float64 if array.dtype != wp.int32 else np.int32
+            if not self.device.is_cpu:
+                return np.array(array.numpy(), dtype=dtype)
+            self._host_copies[id(array)] = (array, self.host_view(array), dtype)
+            return np.array(self.host_view(array), dtype=dtype)
         if backend == "warp":
             return array
         if backend == "torch":  # zero-copy views, made once: the state's arrays are never reallocated
@@ -513,22 +528,44 @@ class Simulator:
         idx = self._worlds(worlds)
         m = self.model
         nj, N = m.num_joints, len(idx)
-        names = [j.name for j in self.scene.joints]
+        names, revolute, fixed = self._joint_names()
         at = dict(worlds=idx, items=names, item="joint", bound=self._state_bound)
         x = _finite_array("coordinates", coordinates, (N, nj), **at)
         xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj), **at)
         if N == 0:
             return
-        revolute = [j.kind == REVOLUTE for j in self.scene.joints]
-        check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds())
-        idx_dev = rows.indices(idx, self._stage)
+        if self._joint_bounds is None:  # kept until set_limit changes the limits
+            self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), revolute, self.num_worlds)
+        if not inputs.joint_state_ok(x, xd, idx, self.dt, self._joint_bounds):
+            check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds())  # raises, naming the joint
+        idx_dev = self._one_world() if self.num_worlds == 1 else rows.indices(idx, self._stage)
         # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
         # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
-        xx = np.stack([np.where(m.joint_kind_np[None, :] == FIXED_CODE, 0.0, x), xd], axis=1) if nj else np.zeros((N, 2, 1))
+        if nj:
+            xx = np.concatenate((x if fixed is None else np.where(fixed, 0.0, x), xd), axis=1).reshape(N, 2, nj)
+        else:
+            xx = np.zeros((N, 2, 1))
         xx = self._stage("xx", xx, m.dtype)
         self._replay("restart", *kinematics.restart_launch(*self._tree(), self.state, m, self.solver, idx_dev, xx, N,
                                                            self.dt))  # fmt: skip
         self.state.time[idx] = 0.0
+
+    def _one_world(self) -> wp.array:
+        """The device indices [0] of a one-world simulator (every nonempty ``worlds`` of it), kept:
+        its resets stage no indices."""
+        if self._world0 is None:
+            self._world0 = wp.zeros(1, dtype=wp.int32, device=self.device)
+        return self._world0
+
+    def _joint_names(self):
+        """(the joints' names, a bool array (joints,) of the revolute ones, one of the fixed ones or
+        None where none is), made once."""
+        if self._joints is None:
+            joints = self.scene.joints
+            fixed = self.model.joint_kind_np[: len(joints)] == FIXED_CODE
+            self._joints = ([j.name for j in joints], np.array([j.kind == REVOLUTE for j in joints], dtype=bool),
+                            fixed if fixed.any() else None)  # fmt: skip
+        return self._joints
 
     def _limit_bounds(self):
         """{joint index: (lower (W,), upper (W,), revolute)} of the limited joints, from the host copies."""
@@ -733,6 +770,7 @@ class Simulator:
             names = [jt.name for jt in self.scene.joints]
             check_within_limits("set_limit", self.joint_coordinates()[idx], idx, bounds, names)
         idx_dev = rows.indices(idx, self._stage)
+        self._joint_bounds = None
         for h, v, dev_a in zip(host, new, m.limit_params[kind]):
             h[idx, col] = v
             self._write_rows(dev_a, idx_dev, h[idx])

@@ -111,7 +111,8 @@ class Retry:
         self.all_idle = wp.ones(W, dtype=wp.int32, device=dev)  # (prepare's launch that changes no world)
         self._subs = None  # the substep solvers, SUBSTEPS[i] steps of dt/SUBSTEPS[i] each
         self._pairs = None  # [(state rows, saved rows)] of the arrays an attempt puts back
-        self._host = None  # CPU: (state, NumPy views of its status and substeps)
+        self._cpu = wp.get_device(dev).is_cpu
+        self._host = None  # CPU: (state, NumPy views of its status and substeps, their bytes when all OK)
 
     @property
     def ready(self) -> bool:
@@ -146,13 +147,15 @@ class Retry:
         world, as Solver.step does): retry the worlds it failed (module docstring).  On a GPU the
         substep solvers are made at the first check, so that a graph captured later holds them."""
         s, m = self.solver, self.solver.model
-        device = wp.get_device(m.device)
-        if device.is_cpu:  # host memory: no launch while every world is OK after a step of 1 substep
-            if self._host is None or self._host[0] is not state:
-                self._host = (state, state.status.numpy(), state.substeps.numpy())
-            if not self._host[1].any() and (self._host[2] == 1).all():
+        if self._cpu:  # host memory: no launch while every world is OK after a step of 1 substep
+            host = self._host
+            if host is None or host[0] is not state:
+                W = m.num_worlds  # every status OK (0) and every substeps 1, compared as bytes
+                host = self._host = (state, state.status.numpy(), state.substeps.numpy(),
+                                     np.zeros(W, np.int32).tobytes(), np.ones(W, np.int32).tobytes())  # fmt: skip
+            if host[1].tobytes() == host[3] and host[2].tobytes() == host[4]:
                 return
-        elif self._subs is None and not device.is_capturing:
+        elif self._subs is None and not wp.get_device(m.device).is_capturing:
             self.prepare(state)
         hold = s._no_hold if hold is None else hold
         go = s._go_all if go is None else go

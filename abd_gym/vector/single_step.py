@@ -25,6 +25,8 @@ import math
 
 import numpy as np
 
+from .task import Task
+
 
 class HostStep:
     """The env step of ``env`` (an ABDVectorEnv of one world, NumPy backend, on the CPU, no
@@ -37,7 +39,11 @@ class HostStep:
         state = env.sim.state
         self.action = np.zeros((1, env.action_dim), dtype=np.float32)  # the clipped action, reused
         self.flat = self.action.reshape(-1)  # a view of it
-        self.bound = float(env.action_bound)
+        bound = float(env.action_bound)
+        # the clip's bounds as float32 rows (np.clip's bounds ±bound, cast as NumPy casts them):
+        # an array operand costs a ufunc less than a Python scalar
+        self.low = np.full_like(self.action, -bound)
+        self.high = np.full_like(self.action, bound)
         # the default controls hook writes a × action_scale straight into the simulator's array
         self.scale = env.action_scale if env.default_controls else None
         if self.scale is not None:
@@ -47,6 +53,7 @@ class HostStep:
         self.status = env.sim.host_view(state.status)
         self.substeps = env.sim.host_view(state.substeps)
         self.elapsed = env.episodes.elapsed
+        self.own_info = type(env).info is not Task.info  # the default info hook has no values
         self.frame_skip = env.frame_skip
         self.zero_obs = np.zeros(env.single_observation_space.shape, dtype=np.float32)
         self.world = np.arange(1)  # the reset's world index
@@ -54,14 +61,14 @@ class HostStep:
     def set_action(self, action):
         """The action as the clipped float32 row ``self.action`` (a NaN raises, nothing written)."""
         a = np.asarray(action, dtype=np.float32)
-        if a.size != self.action.size:
-            raise ValueError(f"action must have {self.action.size} entries, got shape {a.shape}")
         row = self.action
-        row.flat = a
-        if math.isnan(self.flat.dot(self.flat)):  # Σ a² is NaN where an entry is (inf² is not)
+        if a.size != row.size:
+            raise ValueError(f"action must have {row.size} entries, got shape {a.shape}")
+        # np.clip's arithmetic without its Python wrapper; NaN stays NaN through both
+        np.maximum(a.reshape(row.shape), self.low, out=row)
+        np.minimum(row, self.high, out=row)
+        if math.isnan(self.flat.dot(self.flat)):  # Σ a² is NaN where an entry is (clipped, none is inf)
             raise ValueError(f"action contains NaN: {a.tolist()}; nothing was stepped")
-        np.maximum(row, -self.bound, out=row)  # np.clip's arithmetic without its Python wrapper
-        np.minimum(row, self.bound, out=row)
         return row
 
     def write_controls(self, a):
@@ -89,14 +96,14 @@ class HostStep:
         a = self.set_action(action)
         self.write_controls(a)
         self.sim.step(self.frame_skip)
-        self.elapsed += 1
+        self.elapsed[0] += 1  # (one world: an item's add costs less than the array's)
         obs = env.observation()
         status = int(self.status[0])
         row = obs[0]  # clipped: a non-finite entry is NaN, and Σ o² is NaN just where one is
         failed = status != 0 or math.isnan(row.dot(row))
-        reward = float(env.f32(env.reward(obs, a))[0])
+        reward = float(np.float32(env.reward(obs, a)[0]))  # float32, as the vector env's reward
         terminated = bool(env.terminated(obs)[0]) or failed
-        info = world_info(env.info(obs))
+        info = world_info(env.info(obs)) if self.own_info else {}
         info["sim_status"] = status
         info["sim_substeps"] = int(self.substeps[0])
         info["sim_failed"] = failed
