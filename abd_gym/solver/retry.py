@@ -15,6 +15,13 @@ branch); their kernel is the one-launch step built to hold worlds, compiled once
 
 A retried world's next step is an implicit Euler step (fresh RESET): its BDF2 history spans a
 substep, not dt.  ``state.substeps[w]``: the substeps of world w's last step (1, 2 or 4).
+
+With the energy test (``energy``, an energy_gain.EnergyCheck: a conservative scene, built with
+SolverSettings.energy_gain > 0) a step that converged but gained more energy than the test allows
+is retried the same way, from the state before the step, which ``before`` copies at the start of
+every step (the state a converged step leaves is the one after it); an attempt that converges and
+still gains is taken again at the next count, and at 4 substeps it is kept and flagged
+(``state.gained``).  A scene without the test runs none of this.
 """
 
 import functools
@@ -28,7 +35,7 @@ from .kernels import RESET, RESTART
 SUBSTEPS = (2, 4)
 # the state's arrays a retry leaves as its last attempt wrote them (the rest are put back to the
 # state before the step where an attempt fails): the status and the last solve's counters
-KEPT = ("status", "fresh", "substeps", "iterations", "factorizations", "converged", "retried")
+KEPT = ("status", "fresh", "substeps", "iterations", "factorizations", "converged", "retried", "gained")
 
 
 @wp.kernel
@@ -100,9 +107,10 @@ def _rows(a: wp.array) -> wp.array:
 class Retry:
     """The retry of one Solver's failed worlds (module docstring)."""
 
-    def __init__(self, solver, make_solver):
-        """``make_solver(model, dt, settings, plan)``: a Solver of no retry of its own (the substeps')."""
-        self.solver, self.make_solver = solver, make_solver
+    def __init__(self, solver, make_solver, energy=None):
+        """``make_solver(model, dt, settings, plan)``: a Solver of no retry of its own (the substeps');
+        ``energy``: the energy test (energy_gain.EnergyCheck) or None."""
+        self.solver, self.make_solver, self.energy = solver, make_solver, energy
         m = solver.model
         W, dev = m.num_worlds, m.device
         self.flag = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -147,7 +155,7 @@ class Retry:
         substep solvers are made at the first check, so that a graph captured later holds them."""
         s, m = self.solver, self.solver.model
         device = wp.get_device(m.device)
-        if device.is_cpu:  # host memory: no launch while every world is OK after a step of 1 substep
+        if device.is_cpu and self.energy is None:  # host memory: no launch while every world is OK after 1 substep
             if self._host is None or self._host[0] is not state:
                 self._host = (state, state.status.numpy(), state.substeps.numpy())
             if not self._host[1].any() and (self._host[2] == 1).all():
@@ -158,18 +166,33 @@ class Retry:
         go = s._go_all if go is None else go
         wp.launch(mark, dim=m.num_worlds, inputs=[state.status, state.iterations, state.fresh, state.substeps, hold, go,
                                                   self.idle, self.flag], device=m.device)  # fmt: skip
+        if self.energy is not None:
+            self.energy.judge(state, hold, go, self.idle, self.flag)
         wp.capture_if(self.flag, on_true=self._retry, state=state)
+
+    def before(self, state):
+        """Before a step, with the energy test: the state before it (every world's rows, which a
+        retry restores) and the energy of the worlds whose energy before it is not known."""
+        if self._subs is None and not wp.get_device(self.solver.model.device).is_capturing:
+            self.prepare(state)
+        self.energy.before(state)
+        for live, saved in self._pairs:
+            wp.copy(saved, live)
 
     def _retry(self, state):
         self.prepare(state)
         m = self.solver.model
-        for live, saved in self._pairs:  # the retried worlds' state before the step
-            wp.launch(_copy_rows(live.dtype), dim=live.shape, inputs=[saved, live, self.idle, 0], device=m.device)
+        for live, saved in self._pairs:  # the retried worlds' state before the step: kept, or (energy) put back
+            pair = [live, saved] if self.energy is not None else [saved, live]
+            wp.launch(_copy_rows(live.dtype), dim=live.shape, inputs=pair + [self.idle, 0], device=m.device)
         for i, (n, sub) in enumerate(zip(SUBSTEPS, self._subs)):
             sub.step(state, n, hold=self.idle)
             next_n = SUBSTEPS[i + 1] if i + 1 < len(SUBSTEPS) else 0
-            wp.launch(settle, dim=m.num_worlds, inputs=[state.status, state.fresh, state.substeps, self.idle, self.back,
-                                                        n, next_n], device=m.device)  # fmt: skip
+            if self.energy is not None:
+                self.energy.settle(state, self.idle, self.back, n, next_n)
+            else:
+                wp.launch(settle, dim=m.num_worlds, inputs=[state.status, state.fresh, state.substeps, self.idle,
+                                                            self.back, n, next_n], device=m.device)  # fmt: skip
             for live, saved in self._pairs:  # a failed attempt's worlds back to the state before the step
                 wp.launch(_copy_rows(live.dtype), dim=live.shape, inputs=[live, saved, self.back, 1], device=m.device)
         self.flag.zero_()
