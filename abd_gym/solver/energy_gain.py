@@ -70,12 +70,12 @@ def kernels(dtype):
 
     @wp.kernel
     def unknown(status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32), energy: wp.array(dtype=dtype),
-                need: wp.array(dtype=wp.int32)):  # fmt: skip
+                hold: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32), need: wp.array(dtype=wp.int32)):  # fmt: skip
         """need[w] = 1 where world w's energy before its step is to be computed: its state was set
-        (fresh) or a parameter changed it (energy NaN)."""
+        (fresh) or a parameter changed it (energy NaN); not a world the step holds (hold, go)."""
         w = wp.tid()
         need[w] = 0
-        if status[w] == OK and (fresh[w] != 0 or not wp.isfinite(energy[w])):
+        if go[0] != 0 and hold[w] == 0 and status[w] == OK and (fresh[w] != 0 or not wp.isfinite(energy[w])):
             need[w] = 1
 
     @wp.kernel
@@ -175,6 +175,8 @@ class EnergyCheck:
         self.E = wp.zeros((m.num_worlds, len(cols)), dtype=m.dtype, device=m.device)
         self.need = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
         self.busy = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
+        self._host = None  # CPU: (state, NumPy views of its status, fresh and energy)
+        self._control = None  # CPU: (state, NumPy views of its controls and energy)
         self.floor = FLOOR_EPS * float(np.finfo(m.np_dtype).eps)
         # 2/ĥ² on the joints' columns (module docstring: their stretch's share of gravity's work)
         slack = [2.0 / solver.h_eff**2 if name.endswith("_joint") else 0.0 for name in list(cols)[: self.ncols]]
@@ -185,10 +187,30 @@ class EnergyCheck:
         self.E.zero_()
         self.solver.assemble(state, state.q, self.E, mask, 0, physical=True)
 
-    def before(self, state):
-        """Before a step: the energy of the worlds whose E_before is not known (module docstring)."""
+    def any_checked(self, state) -> bool:
+        """CPU (host memory): whether a world has no drive pushing (else the step is not tested, and
+        every world's energy is marked unknown, to be computed before a step that is)."""
+        nd = self.solver.model.num_drives
+        if not nd:
+            return True
+        if self._control is None or self._control[0] is not state:
+            self._control = (state, state.control.numpy(), state.energy.numpy())
+        if (self._control[1][:, :nd] == 0).all(axis=1).any():
+            return True
+        self._control[2][:] = np.nan
+        return False
+
+    def before(self, state, hold, go):
+        """Before a step (holding the worlds ``hold``, and every world while go[0] == 0): the energy
+        of the worlds whose E_before is not known (module docstring)."""
         m = self.solver.model
-        wp.launch(self.k["unknown"], dim=m.num_worlds, inputs=[state.status, state.fresh, state.energy, self.need],
+        if wp.get_device(m.device).is_cpu:  # host memory: no launch where every world's energy is known
+            if self._host is None or self._host[0] is not state:
+                self._host = (state, state.status.numpy(), state.fresh.numpy(), state.energy.numpy())
+            _, status, fresh, energy = self._host
+            if not ((status == OK) & ((fresh != 0) | np.isnan(energy))).any():
+                return
+        wp.launch(self.k["unknown"], dim=m.num_worlds, inputs=[state.status, state.fresh, state.energy, hold, go, self.need],
                   device=m.device)  # fmt: skip
         self.measure(state, self.need)
         wp.launch(self.k["remember"], dim=m.num_worlds, inputs=[self.E, self.ncols, self.gcol, self.slack,

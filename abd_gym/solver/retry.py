@@ -29,6 +29,7 @@ import functools
 import numpy as np
 import warp as wp
 
+from ..core import graphs
 from ..sim.status import BREAKDOWN, OK, UNCONVERGED
 from .kernels import RESET, RESTART
 
@@ -111,6 +112,8 @@ class Retry:
         """``make_solver(model, dt, settings, plan)``: a Solver of no retry of its own (the substeps');
         ``energy``: the energy test (energy_gain.EnergyCheck) or None."""
         self.solver, self.make_solver, self.energy = solver, make_solver, energy
+        # whether this step runs the energy test (before: on the CPU, not where every world's drive pushes)
+        self.testing = energy is not None
         m = solver.model
         W, dev = m.num_worlds, m.device
         self.flag = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -120,6 +123,8 @@ class Retry:
         self._subs = None  # the substep solvers, SUBSTEPS[i] steps of dt/SUBSTEPS[i] each
         self._pairs = None  # [(state rows, saved rows)] of the arrays an attempt puts back
         self._host = None  # CPU: (state, NumPy views of its status and substeps)
+        self._graphs = {}  # CPU: (state, hold, go) -> (state, hold, go, the graph of _mark)
+        self._host_pairs = None  # CPU, with the energy test: (state, [(saved rows, state rows)] as NumPy views)
 
     @property
     def ready(self) -> bool:
@@ -155,7 +160,7 @@ class Retry:
         substep solvers are made at the first check, so that a graph captured later holds them."""
         s, m = self.solver, self.solver.model
         device = wp.get_device(m.device)
-        if device.is_cpu and self.energy is None:  # host memory: no launch while every world is OK after 1 substep
+        if device.is_cpu and not self.testing:  # host memory: no launch while every world is OK after 1 substep
             if self._host is None or self._host[0] is not state:
                 self._host = (state, state.status.numpy(), state.substeps.numpy())
             if not self._host[1].any() and (self._host[2] == 1).all():
@@ -164,18 +169,41 @@ class Retry:
             self.prepare(state)
         hold = s._no_hold if hold is None else hold
         go = s._go_all if go is None else go
-        wp.launch(mark, dim=m.num_worlds, inputs=[state.status, state.iterations, state.fresh, state.substeps, hold, go,
-                                                  self.idle, self.flag], device=m.device)  # fmt: skip
-        if self.energy is not None:
-            self.energy.judge(state, hold, go, self.idle, self.flag)
+        if device.is_cpu:  # the energy test's launches every step: replayed (packing their arguments costs more)
+            key = (id(state), hold.ptr, go.ptr, self.testing)
+            if key not in self._graphs:  # the entry keeps state, hold and go alive, so the key stays theirs
+                self._graphs[key] = (state, hold, go, graphs.capture(device, lambda: self._mark(state, hold, go))[0])
+            wp.capture_launch(self._graphs[key][3])
+        else:
+            self._mark(state, hold, go)
         wp.capture_if(self.flag, on_true=self._retry, state=state)
 
-    def before(self, state):
+    def _mark(self, state, hold, go):
+        """The worlds to retry: those the step failed (mark) and, with the energy test, those that gained."""
+        m = self.solver.model
+        wp.launch(mark, dim=m.num_worlds, inputs=[state.status, state.iterations, state.fresh, state.substeps, hold, go,
+                                                  self.idle, self.flag], device=m.device)  # fmt: skip
+        if self.testing:
+            self.energy.judge(state, hold, go, self.idle, self.flag)
+
+    def before(self, state, hold=None, go=None):
         """Before a step, with the energy test: the state before it (every world's rows, which a
-        retry restores) and the energy of the worlds whose energy before it is not known."""
-        if self._subs is None and not wp.get_device(self.solver.model.device).is_capturing:
+        retry restores; a held world's copy is never read back) and the energy of the worlds
+        whose energy before it is not known (none that the step holds: ``hold``, ``go``)."""
+        s = self.solver
+        if self._subs is None and not wp.get_device(s.model.device).is_capturing:
             self.prepare(state)
-        self.energy.before(state)
+        if wp.get_device(s.model.device).is_cpu:  # no test where every world's drive pushes (host memory)
+            self.testing = self.energy.any_checked(state)
+            if not self.testing:
+                return
+        self.energy.before(state, s._no_hold if hold is None else hold, s._go_all if go is None else go)
+        if wp.get_device(self.solver.model.device).is_cpu:  # host memory: NumPy copies, no launch
+            if self._host_pairs is None or self._host_pairs[0] is not state:
+                self._host_pairs = (state, [(saved.numpy(), live.numpy()) for live, saved in self._pairs])
+            for saved, live in self._host_pairs[1]:
+                np.copyto(saved, live)
+            return
         for live, saved in self._pairs:
             wp.copy(saved, live)
 
@@ -183,12 +211,12 @@ class Retry:
         self.prepare(state)
         m = self.solver.model
         for live, saved in self._pairs:  # the retried worlds' state before the step: kept, or (energy) put back
-            pair = [live, saved] if self.energy is not None else [saved, live]
+            pair = [live, saved] if self.testing else [saved, live]
             wp.launch(_copy_rows(live.dtype), dim=live.shape, inputs=pair + [self.idle, 0], device=m.device)
         for i, (n, sub) in enumerate(zip(SUBSTEPS, self._subs)):
             sub.step(state, n, hold=self.idle)
             next_n = SUBSTEPS[i + 1] if i + 1 < len(SUBSTEPS) else 0
-            if self.energy is not None:
+            if self.testing:
                 self.energy.settle(state, self.idle, self.back, n, next_n)
             else:
                 wp.launch(settle, dim=m.num_worlds, inputs=[state.status, state.fresh, state.substeps, self.idle,

@@ -404,7 +404,7 @@ class Solver:
             # a GPU's graph holds the retry's branch; the CPU runs it as it comes (retry.Retry.check)
             cuda = wp.get_device(self.model.device).is_cuda
             if self.retry.energy is not None:  # the state and energy before the step (retry.Retry.before)
-                phases = [(self.retry.before, cuda)] + phases
+                phases = [(functools.partial(self.retry.before, hold=hold, go=go), cuda)] + phases
             phases = phases + [(functools.partial(self.retry.check, hold=hold, go=go), cuda)]
         return phases
 
