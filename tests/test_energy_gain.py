@@ -77,7 +77,7 @@ def test_a_step_still_gaining_at_four_substeps_is_kept_and_flagged(large_dt):
     sim = _sim(large_dt[1])
     sim.step()
     state = sim.get_state()
-    state["energy"][:2] -= 1.0
+    state["energy"][:2, 0] -= 1.0
     sim.set_state(state)
     before = sim.body_q()
     sim.step()
@@ -153,7 +153,7 @@ def test_the_vector_env_reports_a_kept_gain():
     info = env.step(np.zeros((2, 1), dtype=np.float32))[4]
     np.testing.assert_array_equal(info["sim_energy_gained"], [False, False])
     state = env.sim.get_state()
-    state["energy"][1] -= 1.0
+    state["energy"][1, 0] -= 1.0
     env.sim.set_state(state)
     info = env.step(np.zeros((2, 1), dtype=np.float32))[4]
     np.testing.assert_array_equal(info["sim_energy_gained"], [False, True])

@@ -602,7 +602,7 @@ class Simulator:
     def _energy_changed(self, idx):
         """A parameter of the worlds idx changed their energy: the energy test computes it anew
         before their next step (State.energy NaN)."""
-        self._write_rows(self.state.energy, idx, np.full(len(idx), np.nan))
+        self._write_rows(self.state.energy, idx, np.full((len(idx), 4), np.nan))
 
     def set_body_mass(self, mass, bodies=None, worlds=None):
         """Per-world body masses [kg] (N, len(bodies)); every mass moment scales with it, and joint

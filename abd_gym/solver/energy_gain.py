@@ -10,14 +10,21 @@ clipped spring has an energy that ``energies()`` does not report, so a scene wit
 Its total mechanical energy E is the sum of ``Simulator.energies()`` (kinetic, the armature's
 included; gravity; orthogonality; joints; limits; drives).  A step that ended OK gains too much when
 
-    E_after − E_before > tol·S + floor·Σ|E_c|,    S = E_before − min(V_low, V_g,after) ≥ 0,
+    E_after − E_before > tol·S + max(A_before, A_after),
+    S = max over the steps since the state was set of E_before − min(V_low, V_g,after),
 
-with V_low the lowest gravity potential the world has had since its state was set: S is the swing
-energy known so far (its kinetic plus elastic energy at its lowest point), which never exceeds the
-swing energy of the whole run, so the test is at least as strict as a gain of tol of the run's swing
-energy; ``floor`` (1000 eps of the dtype) times the terms' magnitudes keeps the energy's own
-rounding out of it.  E_before is E_after of the world's last step (``State.energy``), computed anew
-only where its state was just set (``fresh``) or a parameter changed it (NaN: Simulator's setters).
+with V_low the lowest gravity potential the world has reached: S is the largest swing energy the
+world has had (its kinetic plus elastic energy at its lowest point), which does not exceed the
+swing energy of the whole run while no step gains, so the test is at least as strict as a gain of
+tol of the run's swing energy.  The allowance A of a state is what the energy cannot resolve: its
+rounding, ``floor`` (1000 eps of the dtype) times Σ|E_c|, and its joints' stretch, 2/ĥ² times
+their energy: a joint's penalty sits outside ĥ² in the step (docs/design.md §2), so a load F
+stretches it by C = Fĥ²/K and stores E_joint = F²ĥ⁴/2K while doing work F·C = 2E_joint/ĥ² on it,
+the energy a step, or its retry at a smaller step, moves between gravity and the joints.
+
+``State.energy`` (W, 4) keeps, after each step, E, V_low, S and A as the next step's "before"; it
+is computed anew before a step only where the state was set (``fresh``) or a parameter changed it
+(E NaN: Simulator's setters).
 """
 import functools
 
@@ -53,11 +60,24 @@ def kernels(dtype):
         return e, allow
 
     @wp.func
-    def gains(e: dtype, allow: dtype, g: dtype, before: dtype, low: dtype, tol: dtype):
-        """Whether a step from energy ``before`` to ``e`` (gravity potential g) gains more than tol
-        of the swing energy known so far plus ``allow``."""
-        swing = before - wp.min(low, g)
-        return e - before > tol * swing + allow
+    def swing_of(mem: wp.array2d(dtype=dtype), w: int, g: dtype):
+        """S: the largest swing energy world w has had since its state was set, its energy before
+        the step above the lowest gravity potential it has reached (g, after the step, included)."""
+        return wp.max(mem[w, 2], mem[w, 0] - wp.min(mem[w, 1], g))
+
+    @wp.func
+    def gains(mem: wp.array2d(dtype=dtype), w: int, e: dtype, allow: dtype, g: dtype, tol: dtype):
+        """Whether world w's step to energy ``e`` (gravity potential g; ``allow`` its allowance)
+        gains more than tol of S plus the larger allowance of before and after."""
+        return e - mem[w, 0] > tol * swing_of(mem, w, g) + wp.max(allow, mem[w, 3])
+
+    @wp.func
+    def keep(mem: wp.array2d(dtype=dtype), w: int, e: dtype, allow: dtype, g: dtype):
+        """World w's step is kept: its energy, allowance and swing as the next step's before."""
+        mem[w, 2] = swing_of(mem, w, g)
+        mem[w, 1] = wp.min(mem[w, 1], g)
+        mem[w, 0] = e
+        mem[w, 3] = allow
 
     @wp.func
     def pushed(control: wp.array2d(dtype=dtype), w: int, nd: int):
@@ -69,31 +89,34 @@ def kernels(dtype):
         return out
 
     @wp.kernel
-    def unknown(status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32), energy: wp.array(dtype=dtype),
+    def unknown(status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32), mem: wp.array2d(dtype=dtype),
                 hold: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32), need: wp.array(dtype=wp.int32)):  # fmt: skip
         """need[w] = 1 where world w's energy before its step is to be computed: its state was set
         (fresh) or a parameter changed it (energy NaN); not a world the step holds (hold, go)."""
         w = wp.tid()
         need[w] = 0
-        if go[0] != 0 and hold[w] == 0 and status[w] == OK and (fresh[w] != 0 or not wp.isfinite(energy[w])):
+        if go[0] != 0 and hold[w] == 0 and status[w] == OK and (fresh[w] != 0 or not wp.isfinite(mem[w, 0])):
             need[w] = 1
 
     @wp.kernel
     def remember(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, slack: wp.array(dtype=dtype), floor: dtype,
-                 need: wp.array(dtype=wp.int32),
-                 energy: wp.array(dtype=dtype), low: wp.array(dtype=dtype)):  # fmt: skip
-        """The energy and gravity potential of the worlds ``need`` marks, as of before their step."""
+                 need: wp.array(dtype=wp.int32), mem: wp.array2d(dtype=dtype)):  # fmt: skip
+        """The energy, gravity potential, swing and allowance of the worlds ``need`` marks, as of
+        before their step."""
         w = wp.tid()
         if need[w] != 0:
             e, allow = total(E, w, ncols, slack, floor)
-            energy[w] = e
-            low[w] = E[w, gcol]
+            g = E[w, gcol]
+            mem[w, 0] = e
+            mem[w, 1] = g
+            mem[w, 2] = e - g
+            mem[w, 3] = allow
 
     @wp.kernel
     def judge(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, slack: wp.array(dtype=dtype), floor: dtype,
               control: wp.array2d(dtype=dtype), nd: int,
               status: wp.array(dtype=wp.int32), hold: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32),
-              tol: dtype, energy: wp.array(dtype=dtype), low: wp.array(dtype=dtype),
+              tol: dtype, mem: wp.array2d(dtype=dtype),
               fresh: wp.array(dtype=wp.int32), substeps: wp.array(dtype=wp.int32), gained: wp.array(dtype=wp.int32),
               idle: wp.array(dtype=wp.int32), busy: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32)):  # fmt: skip
         """After a step and retry.mark: a world it stepped OK whose energy gained too much (and no
@@ -112,21 +135,20 @@ def kernels(dtype):
             return
         e, allow = total(E, w, ncols, slack, floor)
         g = E[w, gcol]
-        if pushed(control, w, nd) == 0 and gains(e, allow, g, energy[w], low[w], tol):
+        if pushed(control, w, nd) == 0 and gains(mem, w, e, allow, g, tol):
             idle[w] = 0
             busy[w] = 1
             fresh[w] = RESTART
             substeps[w] = 2
             flag[0] = 1
             return
-        energy[w] = e
-        low[w] = wp.min(low[w], g)
+        keep(mem, w, e, allow, g)
 
     @wp.kernel
     def settle(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, slack: wp.array(dtype=dtype), floor: dtype,
                control: wp.array2d(dtype=dtype), nd: int,
-               status: wp.array(dtype=wp.int32), tol: dtype, energy: wp.array(dtype=dtype),
-               low: wp.array(dtype=dtype), fresh: wp.array(dtype=wp.int32), substeps: wp.array(dtype=wp.int32),
+               status: wp.array(dtype=wp.int32), tol: dtype, mem: wp.array2d(dtype=dtype),
+               fresh: wp.array(dtype=wp.int32), substeps: wp.array(dtype=wp.int32),
                gained: wp.array(dtype=wp.int32), idle: wp.array(dtype=wp.int32), busy: wp.array(dtype=wp.int32),
                back: wp.array(dtype=wp.int32), n: int, next_n: int):  # fmt: skip
         """retry.settle with the energy test: after an attempt of ``n`` substeps, a retried world
@@ -141,14 +163,13 @@ def kernels(dtype):
         if status[w] == OK:
             e, allow = total(E, w, ncols, slack, floor)
             g = E[w, gcol]
-            bad = pushed(control, w, nd) == 0 and gains(e, allow, g, energy[w], low[w], tol)
+            bad = pushed(control, w, nd) == 0 and gains(mem, w, e, allow, g, tol)
             if not bad or next_n == 0:
                 idle[w] = 1
                 busy[w] = 0
                 fresh[w] = RESET
                 gained[w] = wp.where(bad, 1, 0)
-                energy[w] = e
-                low[w] = wp.min(low[w], g)
+                keep(mem, w, e, allow, g)
                 return
         back[w] = 1
         if next_n > 0:
@@ -197,7 +218,7 @@ class EnergyCheck:
             self._control = (state, state.control.numpy(), state.energy.numpy())
         if (self._control[1][:, :nd] == 0).all(axis=1).any():
             return True
-        self._control[2][:] = np.nan
+        self._control[2][:, 0] = np.nan
         return False
 
     def before(self, state, hold, go):
@@ -208,13 +229,13 @@ class EnergyCheck:
             if self._host is None or self._host[0] is not state:
                 self._host = (state, state.status.numpy(), state.fresh.numpy(), state.energy.numpy())
             _, status, fresh, energy = self._host
-            if not ((status == OK) & ((fresh != 0) | np.isnan(energy))).any():
+            if not ((status == OK) & ((fresh != 0) | np.isnan(energy[:, 0]))).any():
                 return
         wp.launch(self.k["unknown"], dim=m.num_worlds, inputs=[state.status, state.fresh, state.energy, hold, go, self.need],
                   device=m.device)  # fmt: skip
         self.measure(state, self.need)
         wp.launch(self.k["remember"], dim=m.num_worlds, inputs=[self.E, self.ncols, self.gcol, self.slack,
-                                                                m.dtype(self.floor), self.need, state.energy, state.low], device=m.device)  # fmt: skip
+                                                                m.dtype(self.floor), self.need, state.energy], device=m.device)  # fmt: skip
 
     def _common(self, state):
         m = self.solver.model
@@ -225,7 +246,7 @@ class EnergyCheck:
         m, s = self.solver.model, self.solver
         self.measure(state, s.all_active)
         wp.launch(self.k["judge"], dim=m.num_worlds,
-                  inputs=self._common(state) + [state.status, hold, go, m.dtype(self.tol), state.energy, state.low, state.fresh, state.substeps, state.gained,
+                  inputs=self._common(state) + [state.status, hold, go, m.dtype(self.tol), state.energy, state.fresh, state.substeps, state.gained,
                                                 idle, self.busy, flag], device=m.device)  # fmt: skip
 
     def settle(self, state, idle, back, n, next_n):
@@ -234,5 +255,5 @@ class EnergyCheck:
         self.measure(state, self.busy)
         wp.launch(self.k["settle"], dim=m.num_worlds,
                   inputs=self._common(state) + [state.status, m.dtype(self.tol), state.energy,
-                                                state.low, state.fresh, state.substeps, state.gained, idle, self.busy,
+                                                state.fresh, state.substeps, state.gained, idle, self.busy,
                                                 back, n, next_n], device=m.device)  # fmt: skip
