@@ -23,8 +23,8 @@ stretches it by C = Fĥ²/K and stores E_joint = F²ĥ⁴/2K while doing work F�
 the energy a step, or its retry at a smaller step, moves between gravity and the joints.
 
 ``State.energy`` (W, 4) keeps, after each step, E, V_low, S and A as the next step's "before"; it
-is computed anew before a step only where the state was set (``fresh``) or a parameter changed it
-(E NaN: Simulator's setters).
+is computed anew before a step only where a door set the state (``fresh`` SET) or a parameter
+changed it (E NaN: Simulator's setters).
 """
 import functools
 
@@ -33,7 +33,7 @@ import warp as wp
 
 from ..constitutions import drive
 from ..sim.status import OK
-from .kernels import RESET, RESTART
+from .kernels import RESET, RESTART, SET
 
 # the energy's own rounding allowed in a step, in units of eps·Σ|E_c|
 FLOOR_EPS = 1000.0
@@ -92,10 +92,10 @@ def kernels(dtype):
     def unknown(status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32), mem: wp.array2d(dtype=dtype),
                 hold: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32), need: wp.array(dtype=wp.int32)):  # fmt: skip
         """need[w] = 1 where world w's energy before its step is to be computed: its state was set
-        (fresh) or a parameter changed it (energy NaN); not a world the step holds (hold, go)."""
+        (fresh SET) or a parameter changed it (energy NaN); not a world the step holds (hold, go)."""
         w = wp.tid()
         need[w] = 0
-        if go[0] != 0 and hold[w] == 0 and status[w] == OK and (fresh[w] != 0 or not wp.isfinite(mem[w, 0])):
+        if go[0] != 0 and hold[w] == 0 and status[w] == OK and (fresh[w] == SET or not wp.isfinite(mem[w, 0])):
             need[w] = 1
 
     @wp.kernel
@@ -229,7 +229,7 @@ class EnergyCheck:
             if self._host is None or self._host[0] is not state:
                 self._host = (state, state.status.numpy(), state.fresh.numpy(), state.energy.numpy())
             _, status, fresh, energy = self._host
-            if not ((status == OK) & ((fresh != 0) | np.isnan(energy[:, 0]))).any():
+            if not ((status == OK) & ((fresh == SET) | np.isnan(energy[:, 0]))).any():
                 return
         wp.launch(self.k["unknown"], dim=m.num_worlds, inputs=[state.status, state.fresh, state.energy, hold, go, self.need],
                   device=m.device)  # fmt: skip
