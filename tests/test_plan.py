@@ -14,10 +14,10 @@ from abd_gym.solver.solver import SolverSettings
 
 def test_simulator_takes_the_physics_and_one_plan():
     params = [p for p in inspect.signature(ag.Simulator).parameters if p != "self"]
-    assert len(params) <= 13 and "plan" in params
+    assert len(params) <= 14 and "plan" in params
     assert [f.name for f in dataclasses.fields(SolverSettings)] == ["tol", "max_iterations", "max_line_search",
                                                                     "integrator", "reuse_factor", "quadratic_stop",
-                                                                    "retry"]  # fmt: skip
+                                                                    "retry", "energy_gain"]  # fmt: skip
 
 
 def test_resolved_plan_has_every_choice_and_resolves_to_itself():

@@ -7,7 +7,10 @@ default settings (only the scene and dt are chosen).  Per run it reports:
 - ``reported``: worlds whose ``world_status()`` left OK at any step (with the causes, by
   ``WorldStatus`` name); a reported world's later steps are left out of every other column; at
   dt NO_RETRY_DT and above, also without the retry of failed steps (``retry=False``);
-- ``substeps``: world-steps retried as 2, or 4, substeps (``Simulator.substeps``);
+- ``substeps``: world-steps retried as 2, or 4, substeps (``Simulator.substeps``): steps that
+  failed, or that gained more energy than the simulator's energy test allows (conservative
+  worlds, ``Simulator(energy_gain=...)``); ``kept gain``: world-steps that still gained at 4
+  substeps and were kept (``Simulator.energy_gained``);
 - ``silent``: world-steps whose Newton solve ended unconverged (``converged()`` False) on a world
   that was not reported: a step committed with nothing said;
 - ``gain > 5%`` and ``worst gain`` (conservative cases only: no drive acts): the energy gain
@@ -189,9 +192,10 @@ def _limits(scene):
 
 
 def run_case(c: Case, dt, integrator="implicit_euler", dtype="float32", worlds=64, steps=None, device="cpu",
-             seed=0, scene=None, retry=True) -> dict:
+             seed=0, scene=None, retry=True, energy_gain=None) -> dict:
     """Step ``worlds`` worlds of case ``c`` at ``dt`` for ``steps`` steps (default: ``c.seconds``)
-    with default settings (``retry``: False turns the retry of failed steps off); the row of
+    with default settings (``retry``: False turns the retry of failed steps off; ``energy_gain``,
+    where given, the simulator's energy test's tolerance, 0 off); the row of
     measurements described in the module docstring.  ``scene``: a prebuilt scene of the case
     (building one per run is the same scene)."""
     steps = steps or int(round(c.seconds / dt))
@@ -201,8 +205,9 @@ def run_case(c: Case, dt, integrator="implicit_euler", dtype="float32", worlds=6
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
+            more = {} if energy_gain is None else dict(energy_gain=energy_gain)
             sim = Simulator(scene, num_worlds=worlds, dt=dt, integrator=integrator, dtype=dtype, device=device,
-                            retry=retry)  # fmt: skip
+                            retry=retry, **more)  # fmt: skip
             x0, v0 = c.state(np.random.default_rng(seed), worlds)
             sim.set_joint_state(x0, v0)
         except (ValueError, RuntimeError) as e:
@@ -227,12 +232,14 @@ def _measure(sim, scene, steps, row):
     iters = []
     step_gain = np.full(W, -np.inf)  # largest energy change of one OK step
     substeps = np.zeros(5, dtype=int)  # world-steps taken as 1, 2 or 4 substeps
+    kept_gain = 0  # world-steps that gained at 4 substeps too (kept)
     E_prev = E0
     t0 = time.perf_counter()
     for k in range(steps):
         sim.step()
         status = sim.world_status()
         substeps += np.bincount(np.where(alive & (status == WorldStatus.OK), sim.substeps(), 0), minlength=5)
+        kept_gain += int((alive & sim.energy_gained()).sum())
         failed = status != WorldStatus.OK
         new = failed & alive
         if new.any():
@@ -264,7 +271,7 @@ def _measure(sim, scene, steps, row):
         bound[:, i] = (swing / s) ** (1 / 3) * (1.0 if width is None else width)
     row.update(reported=int((reported_at >= 0).sum()), first_report_step=int(reported_at[reported_at >= 0].min())
                if (reported_at >= 0).any() else None, causes={str(k): v for k, v in sorted(causes.items())},
-               silent=silent, seconds=seconds, substeps={n: int(substeps[n]) for n in (2, 4)},
+               silent=silent, seconds=seconds, substeps={n: int(substeps[n]) for n in (2, 4)}, kept_gain=kept_gain,
                iterations_mean=float(it.mean()) if it.size else None, iterations_max=int(it.max()) if it.size else None,
                gap_mm=float(gap.max() * 1e3))  # fmt: skip
     if row["conservative"]:
@@ -310,7 +317,7 @@ def line(r) -> str:
     over = "" if "overshoot" not in r else \
         f" overshoot {r['overshoot']:.3g} {r['overshoot_unit']} ({r['overshoot_over_bound']:.2f} of bound)"
     return (f"{r['case']:18s} dt {r['dt']:<6g} {r['integrator']:15s} {r['dtype']:8s} reported {r['reported']:3d} "
-            f"substeps 2/4 {r['substeps'][2]}/{r['substeps'][4]} silent {r['silent']:5d}{gain} gap {r['gap_mm']:.3g} mm"
+            f"substeps 2/4 {r['substeps'][2]}/{r['substeps'][4]} kept gain {r['kept_gain']} silent {r['silent']:5d}{gain} gap {r['gap_mm']:.3g} mm"
             f"{over} iters {_its(r)} ({r['seconds']:.1f} s)")
 
 
@@ -327,14 +334,15 @@ def _cell_reported(r):
 
 def table(rows) -> str:
     """A Markdown table of the rows."""
-    lines = ["| case | dt [s] | integrator | dtype | worlds × steps | reported | without retry | substeps 2 / 4 | silent | "
+    lines = ["| case | dt [s] | integrator | dtype | worlds × steps | reported | without retry | substeps 2 / 4 | kept gain | "
+             "silent | "
              "gain > 5% | worst gain | step gain > 5% | worst step gain | ΔE at end | gap [mm] | overshoot (of bound) | "
              "iterations mean / max | build |",
-             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]  # fmt: skip
+             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]  # fmt: skip
     for r in rows:
         head = f"| {r['case']} | {r['dt']:g} | {r['integrator']} | {r['dtype']} | {r['worlds']} × {r['steps']} |"
         if r["refused"]:
-            lines.append(head + f" – | – | – | – | – | – | – | – | – | – | – | – | refused: {r['refused']} |")
+            lines.append(head + f" – | – | – | – | – | – | – | – | – | – | – | – | – | refused: {r['refused']} |")
             continue
         gain = ("–", "–") if r.get("worst_gain") is None else (str(r["gain_worlds"]), f"{r['worst_gain']:+.2%}")
         step = ("–", "–") if r.get("worst_step_gain") is None else (str(r["step_gain_worlds"]),
@@ -345,7 +353,8 @@ def table(rows) -> str:
         over = "–" if "overshoot" not in r else \
             f"{r['overshoot']:.3g} {r['overshoot_unit']} ({r['overshoot_over_bound']:.2f})"
         build = "warned: " + "; ".join(r["warnings"]) if r["warnings"] else "ok"
-        lines.append(head + f" {_cell_reported(r)} | {plain} | {subs} | {r['silent']} | {gain[0]} | {gain[1]} | "
+        lines.append(head + f" {_cell_reported(r)} | {plain} | {subs} | {r['kept_gain']} | {r['silent']} | "
+                     f"{gain[0]} | {gain[1]} | "
                      f"{step[0]} | {step[1]} | {final} | "
                      f"{r['gap_mm']:.3g} | "
                      f"{over} | {_its(r)} | {build} |")  # fmt: skip
@@ -377,9 +386,13 @@ steps {result['worlds']} worlds from random initial states (seed {result['seed']
   left out of the other columns.
 - **without retry**: at dt {NO_RETRY_DT:g} s and above, **reported** of the same run with the
   retry of failed steps off (`Simulator(retry=False)`).
-- **substeps 2 / 4**: world-steps that failed (Newton did not converge or broke down) and were
+- **substeps 2 / 4**: world-steps that failed (Newton did not converge or broke down), or that
+  converged but raised a conservative world's total energy by more than 5% of its swing energy
+  known so far (the energy test, `Simulator(energy_gain=0.05)`, docs/design.md §4.1), and were
   taken again as 2, or 4, substeps (`Simulator.substeps`); a world that fails at 4 too is
   reported.
+- **kept gain**: world-steps that still gained more than the energy test allows at 4 substeps and
+  were kept (`Simulator.energy_gained`). The goal is 0.
 - **silent**: world-steps whose Newton solve ended unconverged (`converged()` False) in a world
   that was not reported: steps committed with nothing said. The goal is 0.
 - **gain > 5%** and **worst gain** (conservative cases, where no drive acts): the gain

@@ -50,7 +50,7 @@ def kernels(dtype):
                   qd_hist2: wp.array2d(dtype=vec12), order3: wp.array2d(dtype=wp.int32),
                   status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32)):  # fmt: skip
         """World idx[i] restarts at (q, q̇) = row i: no past (q^{n−1} = q − dt q̇, q̇^{n−1} = q̇^{n−2} = q̇, and
-        ``fresh``: its next step is an implicit Euler one), status OK."""
+        ``fresh`` SET: its next step is an implicit Euler one, its energy taken anew), status OK."""
         i, b = wp.tid()
         k = idx[i]
         x = q_src[i, b]
@@ -64,7 +64,7 @@ def kernels(dtype):
         order3[k, b] = 0
         if b == 0:
             status[k] = 0
-            fresh[k] = 1
+            fresh[k] = 3  # solver.kernels.SET: the state was set
 
     return dict(scatter=scatter, restart_unwrapped=restart_unwrapped, restart_q=restart_q)
 

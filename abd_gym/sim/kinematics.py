@@ -22,6 +22,7 @@ from .coordinates import PRISMATIC_CODE, REVOLUTE_CODE
 from .coordinates import funcs as coordinate_funcs
 from ..core.rows import world_of
 from ..core.warp_ops import ops
+from ..solver.kernels import SET
 
 
 @dataclass
@@ -187,7 +188,7 @@ def kernels(dtype, passive=False):
             qd_hist2[k, b] = vb
             order3[k, b] = 0
         status[k] = 0
-        fresh[k] = 1
+        fresh[k] = SET
         for j in range(num_joints):
             begin_joint(q, body_a, body_b, kind, n_a, b_a, n_b, b_b, c_ref, s_ref, theta0, c_prev, s_prev, unwrapped,
                         x_hist, h_step, h, x_anchor, coord_vel, coord_vel_hist, v_anchor, k, j)  # fmt: skip

@@ -60,7 +60,11 @@ class Simulator:
     floor 4·eps·(1 + ‖q‖∞) ends the solve (float32 only in effect; 0: off); ``retry``: a world whose
     step fails (does not converge, breaks down) takes it again as 2, then 4 substeps before it is
     rejected (``substeps``; solver/retry.py); None: on the CPU, and on a GPU only where asked for
-    (``retry=True``), whose branch in the step's graphs has not been timed or run there yet.
+    (``retry=True``), whose branch in the step's graphs has not been timed or run there yet;
+    ``energy_gain``: with the retry, a step that converged in a conservative world (no drive
+    pushing, no position drive in the scene) but raised its total energy by more than this fraction
+    of its swing energy is retried the same way, and if it still gains at 4 substeps it is kept
+    and flagged (``energy_gained``; solver/energy_gain.py); 0: no energy test.
 
     How the step runs on the device (kernels, memory layout, launches, graphs) is ``plan``, an
     ExecutionPlan (or a dict of its fields) whose None fields are derived from the device, the
@@ -71,7 +75,8 @@ class Simulator:
     def __init__(self, scene: Scene, num_worlds: int = 1, dt: float = 0.01, *, integrator: str = "bdf2",
                  dtype="float32", device=None, tol: float = 1e-5, max_iterations: int | None = None,
                  max_line_search: int = 12, reuse_factor: bool = False, quadratic_stop: float = 100.0,
-                 retry: bool | None = None, plan: ExecutionPlan | dict | None = None):  # fmt: skip
+                 retry: bool | None = None, energy_gain: float = 0.05,
+                 plan: ExecutionPlan | dict | None = None):  # fmt: skip
         inputs.count("num_worlds", num_worlds, minimum=1)
         dt = inputs.real_number("dt", dt, positive=True)
         if max_iterations is None:
@@ -81,6 +86,7 @@ class Simulator:
                                   max_line_search=inputs.count("max_line_search", max_line_search, minimum=1),
                                   integrator=integrator, reuse_factor=reuse_factor,
                                   retry=True if retry is None else retry,
+                                  energy_gain=inputs.real_number("energy_gain", energy_gain, nonnegative=True),
                                   quadratic_stop=inputs.real_number("quadratic_stop", quadratic_stop, nonnegative=True))  # fmt: skip
         self.scene = scene
         device = device or os.environ.get("ABD_GYM_DEVICE", "cpu")
@@ -380,6 +386,14 @@ class Simulator:
         dt/4 (``retry``); a world that failed at 4 too is rejected (world_status).  As ``view``
         gives it ("numpy": a copy; "warp", "torch": the device array itself, to read only)."""
         return self.view(self.state.substeps, backend)
+
+    def energy_gained(self, backend: str = "numpy"):
+        """(num_worlds,): the world's last step, in a conservative world (``energy_gain``), raised
+        its total energy by more than the test allows at 4 substeps too, and was kept.  "numpy": a
+        bool copy; "warp", "torch": the int32 device array itself (nonzero: gained), to read only."""
+        if backend == "numpy":
+            return np.array(self.view(self.state.gained, "numpy"), dtype=bool)
+        return self.view(self.state.gained, backend)
 
     def newton_factorizations(self) -> np.ndarray:
         """(num_worlds,) Cholesky factorisations in the last step: the iterations less those that
@@ -684,11 +698,17 @@ class Simulator:
     def _update_K(self, idx):
         """Joint strengths K = strength_ratio·(m_i + m_j) of the worlds idx, written to their rows."""
         m = self.model
+        self._energy_changed(idx)
         if not m.num_joints:
             return
         ia, ib = self._joint_bodies
         mass = self._mass[idx]
         self._write_rows(m.K, idx, self._ratio[idx] * (mass[:, ia] + mass[:, ib]))
+
+    def _energy_changed(self, idx):
+        """A parameter of the worlds idx changed their energy: the energy test computes it anew
+        before their next step (State.energy NaN)."""
+        self._write_rows(self.state.energy, idx, np.full((len(idx), 4), np.nan))
 
     def set_body_mass(self, mass, bodies=None, worlds=None):
         """Per-world body masses [kg] (N, len(bodies)); every mass moment scales with it, and joint
@@ -774,3 +794,4 @@ class Simulator:
         for h, v, dev_a in zip(host, new, m.limit_params[kind]):
             h[idx, col] = v
             self._write_rows(dev_a, idx_dev, h[idx])
+        self._energy_changed(idx)

@@ -46,6 +46,12 @@ class State:
         self.retried = wp.zeros(W, dtype=wp.int32, device=dev)
         # the substeps the last step took: 1, or 2 or 4 where it failed and was retried (solver.retry)
         self.substeps = wp.ones(W, dtype=wp.int32, device=dev)
+        # the energy test (solver.energy_gain), per world as of after its last step: the total
+        # energy (NaN: not known, computed before the next step), the lowest gravity potential and
+        # the largest swing energy since the state was set, and the step's allowance; and 1 where
+        # the last step gained more than the test allows at 4 substeps too (kept, reported)
+        self.energy = wp.full((W, 4), np.nan, dtype=scalar, device=dev)
+        self.gained = wp.zeros(W, dtype=wp.int32, device=dev)
         self.time = np.zeros(W)  # seconds since the world's last reset (host bookkeeping)
 
     def snapshot(self) -> dict:

@@ -18,6 +18,9 @@ from ..core.warp_ops import ops
 # engaged at the end of its last step (coordinates.restart_engaged).  Either makes the next step an
 # implicit Euler one (open_body).
 RESET, RESTART = 1, 2
+# State.fresh of a world whose state a door just wrote (rows.restart_q, kinematics' restart): a
+# RESET to the step; the energy test (energy_gain) also takes its energy anew before that step
+SET = 3
 
 
 @wp.func

@@ -15,6 +15,13 @@ branch); their kernel is the one-launch step built to hold worlds, compiled once
 
 A retried world's next step is an implicit Euler step (fresh RESET): its BDF2 history spans a
 substep, not dt.  ``state.substeps[w]``: the substeps of world w's last step (1, 2 or 4).
+
+With the energy test (``energy``, an energy_gain.EnergyCheck: a conservative scene, built with
+SolverSettings.energy_gain > 0) a step that converged but gained more energy than the test allows
+is retried the same way, from the state before the step, which ``before`` copies at the start of
+every step (the state a converged step leaves is the one after it); an attempt that converges and
+still gains is taken again at the next count, and at 4 substeps it is kept and flagged
+(``state.gained``).  A scene without the test runs none of this.
 """
 
 import functools
@@ -22,13 +29,14 @@ import functools
 import numpy as np
 import warp as wp
 
+from ..core import graphs
 from ..sim.status import BREAKDOWN, OK, UNCONVERGED
 from .kernels import RESET, RESTART
 
 SUBSTEPS = (2, 4)
 # the state's arrays a retry leaves as its last attempt wrote them (the rest are put back to the
 # state before the step where an attempt fails): the status and the last solve's counters
-KEPT = ("status", "fresh", "substeps", "iterations", "factorizations", "converged", "retried")
+KEPT = ("status", "fresh", "substeps", "iterations", "factorizations", "converged", "retried", "gained")
 
 
 @wp.kernel
@@ -100,9 +108,12 @@ def _rows(a: wp.array) -> wp.array:
 class Retry:
     """The retry of one Solver's failed worlds (module docstring)."""
 
-    def __init__(self, solver, make_solver):
-        """``make_solver(model, dt, settings, plan)``: a Solver of no retry of its own (the substeps')."""
-        self.solver, self.make_solver = solver, make_solver
+    def __init__(self, solver, make_solver, energy=None):
+        """``make_solver(model, dt, settings, plan)``: a Solver of no retry of its own (the substeps');
+        ``energy``: the energy test (energy_gain.EnergyCheck) or None."""
+        self.solver, self.make_solver, self.energy = solver, make_solver, energy
+        # whether this step runs the energy test (before: on the CPU, not where every world's drive pushes)
+        self.testing = energy is not None
         m = solver.model
         W, dev = m.num_worlds, m.device
         self.flag = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -113,6 +124,8 @@ class Retry:
         self._pairs = None  # [(state rows, saved rows)] of the arrays an attempt puts back
         self._cpu = wp.get_device(dev).is_cpu
         self._host = None  # CPU: (state, NumPy views of its status and substeps, their bytes when all OK)
+        self._graphs = {}  # CPU: (state, hold, go) -> (state, hold, go, the graph of _mark)
+        self._host_pairs = None  # CPU, with the energy test: (state, [(saved rows, state rows)] as NumPy views)
 
     @property
     def ready(self) -> bool:
@@ -147,7 +160,7 @@ class Retry:
         world, as Solver.step does): retry the worlds it failed (module docstring).  On a GPU the
         substep solvers are made at the first check, so that a graph captured later holds them."""
         s, m = self.solver, self.solver.model
-        if self._cpu:  # host memory: no launch while every world is OK after a step of 1 substep
+        if self._cpu and not self.testing:  # host memory: no launch while every world is OK after 1 substep
             host = self._host
             if host is None or host[0] is not state:
                 W = m.num_worlds  # every status OK (0) and every substeps 1, compared as bytes
@@ -159,20 +172,59 @@ class Retry:
             self.prepare(state)
         hold = s._no_hold if hold is None else hold
         go = s._go_all if go is None else go
+        if self._cpu:  # the energy test's launches every step: replayed (packing their arguments costs more)
+            key = (id(state), hold.ptr, go.ptr, self.testing)
+            if key not in self._graphs:  # the entry keeps state, hold and go alive, so the key stays theirs
+                device = wp.get_device(m.device)
+                self._graphs[key] = (state, hold, go, graphs.capture(device, lambda: self._mark(state, hold, go))[0])
+            wp.capture_launch(self._graphs[key][3])
+        else:
+            self._mark(state, hold, go)
+        wp.capture_if(self.flag, on_true=self._retry, state=state)
+
+    def _mark(self, state, hold, go):
+        """The worlds to retry: those the step failed (mark) and, with the energy test, those that gained."""
+        m = self.solver.model
         wp.launch(mark, dim=m.num_worlds, inputs=[state.status, state.iterations, state.fresh, state.substeps, hold, go,
                                                   self.idle, self.flag], device=m.device)  # fmt: skip
-        wp.capture_if(self.flag, on_true=self._retry, state=state)
+        if self.testing:
+            self.energy.judge(state, hold, go, self.idle, self.flag)
+
+    def before(self, state, hold=None, go=None):
+        """Before a step, with the energy test: the state before it (every world's rows, which a
+        retry restores; a held world's copy is never read back) and the energy of the worlds
+        whose energy before it is not known (none that the step holds: ``hold``, ``go``)."""
+        s = self.solver
+        if self._subs is None and not wp.get_device(s.model.device).is_capturing:
+            self.prepare(state)
+        if wp.get_device(s.model.device).is_cpu:  # no test where every world's drive pushes (host memory)
+            self.testing = self.energy.any_checked(state)
+            if not self.testing:
+                return
+        self.energy.before(state, s._no_hold if hold is None else hold, s._go_all if go is None else go)
+        if wp.get_device(self.solver.model.device).is_cpu:  # host memory: NumPy copies, no launch
+            if self._host_pairs is None or self._host_pairs[0] is not state:
+                self._host_pairs = (state, [(saved.numpy(), live.numpy()) for live, saved in self._pairs])
+            for saved, live in self._host_pairs[1]:
+                np.copyto(saved, live)
+            return
+        for live, saved in self._pairs:
+            wp.copy(saved, live)
 
     def _retry(self, state):
         self.prepare(state)
         m = self.solver.model
-        for live, saved in self._pairs:  # the retried worlds' state before the step
-            wp.launch(_copy_rows(live.dtype), dim=live.shape, inputs=[saved, live, self.idle, 0], device=m.device)
+        for live, saved in self._pairs:  # the retried worlds' state before the step: kept, or (energy) put back
+            pair = [live, saved] if self.testing else [saved, live]
+            wp.launch(_copy_rows(live.dtype), dim=live.shape, inputs=pair + [self.idle, 0], device=m.device)
         for i, (n, sub) in enumerate(zip(SUBSTEPS, self._subs)):
             sub.step(state, n, hold=self.idle)
             next_n = SUBSTEPS[i + 1] if i + 1 < len(SUBSTEPS) else 0
-            wp.launch(settle, dim=m.num_worlds, inputs=[state.status, state.fresh, state.substeps, self.idle, self.back,
-                                                        n, next_n], device=m.device)  # fmt: skip
+            if self.testing:
+                self.energy.settle(state, self.idle, self.back, n, next_n)
+            else:
+                wp.launch(settle, dim=m.num_worlds, inputs=[state.status, state.fresh, state.substeps, self.idle,
+                                                            self.back, n, next_n], device=m.device)  # fmt: skip
             for live, saved in self._pairs:  # a failed attempt's worlds back to the state before the step
                 wp.launch(_copy_rows(live.dtype), dim=live.shape, inputs=[live, saved, self.back, 1], device=m.device)
         self.flag.zero_()

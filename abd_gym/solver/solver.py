@@ -24,7 +24,7 @@ import numpy as np
 import warp as wp
 
 from ..sim import coordinates
-from . import fused
+from . import energy_gain, fused
 from ..constitutions import REGISTRY, affine_body, drive
 from .fused import PHASES, fused_kernel
 from .plan import ExecutionPlan, plan_band, resolve_plan, worlds_per_block
@@ -67,6 +67,10 @@ class SolverSettings:
     # a world whose step does not converge or breaks down takes it again as 2, then 4 substeps before
     # it is rejected (solver.retry; a step of several in one launch is not retried)
     retry: bool = True
+    # with retry, in a conservative scene (energy_gain.conservative), a converged step whose total
+    # energy rises by more than this fraction of the world's swing energy is retried as a failed one
+    # is (energy_gain; docs/design.md §4.1); 0: no energy test
+    energy_gain: float = 0.05
 
     def __post_init__(self):
         if not (self.tol > 0):
@@ -81,6 +85,10 @@ class SolverSettings:
         if not isinstance(self.retry, (bool, np.bool_)):
             raise ValueError(f"retry must be True or False, got {self.retry!r}")
         self.retry = bool(self.retry)
+        e = self.energy_gain
+        if not (isinstance(e, (int, float)) and not isinstance(e, bool) and math.isfinite(e) and e >= 0):
+            raise ValueError(f"energy_gain must be a finite number >= 0, got {e!r}")
+        self.energy_gain = float(e)
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be 'implicit_euler' or 'bdf2', got {self.integrator!r}")
 
@@ -226,7 +234,11 @@ class Solver:
         self.restarts = bool(self.bdf2 and any(model.limit_joints.values()))
         self._restart_cmds = {}  # restart_joints' recorded launches
         # the retry of failed worlds as substeps (retry.py; not in the substep solvers themselves)
-        self.retry = Retry(self, functools.partial(Solver, retry=False)) if retry and settings.retry else None
+        self.retry = None
+        if retry and settings.retry:
+            check = settings.energy_gain > 0 and energy_gain.conservative(model)
+            energy = energy_gain.EnergyCheck(self, settings.energy_gain) if check else None
+            self.retry = Retry(self, functools.partial(Solver, retry=False), energy)
 
     @property
     def reuse_factor(self) -> bool:
@@ -391,6 +403,8 @@ class Solver:
         if retry and self.retry is not None and steps == 1:
             # a GPU's graph holds the retry's branch; the CPU runs it as it comes (retry.Retry.check)
             cuda = wp.get_device(self.model.device).is_cuda
+            if self.retry.energy is not None:  # the state and energy before the step (retry.Retry.before)
+                phases = [(functools.partial(self.retry.before, hold=hold, go=go), cuda)] + phases
             phases = phases + [(functools.partial(self.retry.check, hold=hold, go=go), cuda)]
         return phases
 

@@ -316,7 +316,8 @@ class DeviceStep:
             if not fixed:  # else handed back in place, as the outputs
                 info_values = {k: v.clone() for k, v in info_values.items()}
             info_values = dict(info_values, sim_status=self.fixed_status if fixed else self.status_of(raw),
-                               sim_substeps=self.sim.substeps("torch").clone())  # fmt: skip
+                               sim_substeps=self.sim.substeps("torch").clone(),
+                               sim_energy_gained=self.sim.energy_gained("torch").clone().bool())  # fmt: skip
         obs, reward, terminated, truncated, failed = out
         # the worlds the device just reset (last step's ended ones, known on the host now): their
         # info is a reset's (none), their clock restarts, they took a row of their queues; this

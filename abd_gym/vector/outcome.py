@@ -43,6 +43,14 @@ def substeps(env):
     return env.sim.substeps("torch").clone()
 
 
+def energy_gained(env):
+    """(N,) bool backend array (a copy): each world's last physics step gained more energy than the
+    simulator's energy test allows at 4 substeps too, and was kept (``Simulator.energy_gained``)."""
+    if env.xp is np:
+        return env.sim.energy_gained()
+    return env.sim.energy_gained("torch").clone().bool()
+
+
 def outcome(env, a, pend=None):
     """Observation, reward, terminated, truncated, failed and info values of the step ``env`` just
     took with the clipped actions ``a``; ``pend``: a backend bool mask of the worlds reset in this
@@ -58,7 +66,8 @@ def outcome(env, a, pend=None):
         truncated = env.episodes.elapsed >= env.max_episode_steps
     else:
         truncated = env.episodes.all_false()
-    info_values = dict(env.info(obs), sim_status=world_status(env), sim_substeps=substeps(env))
+    info_values = dict(env.info(obs), sim_status=world_status(env), sim_substeps=substeps(env),
+                       sim_energy_gained=energy_gained(env))  # fmt: skip
     zero = failed
     if pend is not None:
         terminated, truncated, zero = terminated & ~pend, truncated & ~pend, failed | pend

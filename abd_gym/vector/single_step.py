@@ -17,7 +17,7 @@ the vector env's world takes, bit for bit (tests/test_single_env.py):
 * the outcome: ``observation()`` (float32, clipped), the status and the NaN check of a failed
   world (zero observation and reward, terminated), the reward as a Python float and the flags as
   bools; ``info`` holds the task's values and ``sim_status`` / ``sim_substeps`` /
-  ``sim_failed``, as the vector env's world 0 has them.
+  ``sim_energy_gained`` / ``sim_failed``, as the vector env's world 0 has them.
 """
 from __future__ import annotations
 
@@ -52,6 +52,7 @@ class HostStep:
             self.product = self.control if same else np.zeros_like(self.action)
         self.status = env.sim.host_view(state.status)
         self.substeps = env.sim.host_view(state.substeps)
+        self.gained = env.sim.host_view(state.gained)
         self.elapsed = env.episodes.elapsed
         self.own_info = type(env).info is not Task.info  # the default info hook has no values
         self.frame_skip = env.frame_skip
@@ -106,6 +107,7 @@ class HostStep:
         info = world_info(env.info(obs)) if self.own_info else {}
         info["sim_status"] = status
         info["sim_substeps"] = int(self.substeps[0])
+        info["sim_energy_gained"] = bool(self.gained[0])
         info["sim_failed"] = failed
         if failed:
             return self.zero_obs.copy(), 0.0, True, False, info

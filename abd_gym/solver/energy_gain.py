@@ -1,0 +1,259 @@
+"""The energy-gain test of a step in a conservative world (docs/design.md §4.1).
+
+A world is conservative in a step when nothing does positive work on it: gravity is a potential,
+joints, limits and the orthogonality penalty are potentials, damping (a passive term's, a velocity
+drive's at target 0) only removes energy, and no drive pushes: every drive's control is 0 in that
+step.  A scene qualifies at build (``conservative``) when its drives are effort or velocity drives
+(at control 0 an effort drive exerts nothing and a velocity drive is a damper); a position drive's
+clipped spring has an energy that ``energies()`` does not report, so a scene with one is not checked.
+
+Its total mechanical energy E is the sum of ``Simulator.energies()`` (kinetic, the armature's
+included; gravity; orthogonality; joints; limits; drives).  A step that ended OK gains too much when
+
+    E_after − E_before > tol·S + max(A_before, A_after),
+    S = max over the steps since the state was set of E_before − min(V_low, V_g,after),
+
+with V_low the lowest gravity potential the world has reached: S is the largest swing energy the
+world has had (its kinetic plus elastic energy at its lowest point), which does not exceed the
+swing energy of the whole run while no step gains, so the test is at least as strict as a gain of
+tol of the run's swing energy.  The allowance A of a state is what the energy cannot resolve: its
+rounding, ``floor`` (1000 eps of the dtype) times Σ|E_c|, and its joints' stretch, 2/ĥ² times
+their energy: a joint's penalty sits outside ĥ² in the step (docs/design.md §2), so a load F
+stretches it by C = Fĥ²/K and stores E_joint = F²ĥ⁴/2K while doing work F·C = 2E_joint/ĥ² on it,
+the energy a step, or its retry at a smaller step, moves between gravity and the joints.
+
+``State.energy`` (W, 4) keeps, after each step, E, V_low, S and A as the next step's "before"; it
+is computed anew before a step only where a door set the state (``fresh`` SET) or a parameter
+changed it (E NaN: Simulator's setters).
+"""
+import functools
+
+import numpy as np
+import warp as wp
+
+from ..constitutions import drive
+from ..sim.status import OK
+from .kernels import RESET, RESTART, SET
+
+# the energy's own rounding allowed in a step, in units of eps·Σ|E_c|
+FLOOR_EPS = 1000.0
+
+
+def conservative(model) -> bool:
+    """Whether the scene's worlds can be checked: no position drive (module docstring)."""
+    return not model.num_drives or not (model.drive_mode.numpy() == drive.POSITION).any()
+
+
+@functools.lru_cache(maxsize=None)
+def kernels(dtype):
+    """The test's kernels for a scalar dtype."""
+
+    @wp.func
+    def total(E: wp.array2d(dtype=dtype), w: int, ncols: int, slack: wp.array(dtype=dtype), floor: dtype):
+        """(Σ E_c, the gain the test leaves unresolved: floor·Σ|E_c| + Σ slack_c·E_c) of world w's
+        first ncols columns."""
+        e = dtype(0.0)
+        allow = dtype(0.0)
+        for c in range(ncols):
+            e += E[w, c]
+            allow += floor * wp.abs(E[w, c]) + slack[c] * E[w, c]
+        return e, allow
+
+    @wp.func
+    def swing_of(mem: wp.array2d(dtype=dtype), w: int, g: dtype):
+        """S: the largest swing energy world w has had since its state was set, its energy before
+        the step above the lowest gravity potential it has reached (g, after the step, included)."""
+        return wp.max(mem[w, 2], mem[w, 0] - wp.min(mem[w, 1], g))
+
+    @wp.func
+    def gains(mem: wp.array2d(dtype=dtype), w: int, e: dtype, allow: dtype, g: dtype, tol: dtype):
+        """Whether world w's step to energy ``e`` (gravity potential g; ``allow`` its allowance)
+        gains more than tol of S plus the larger allowance of before and after."""
+        return e - mem[w, 0] > tol * swing_of(mem, w, g) + wp.max(allow, mem[w, 3])
+
+    @wp.func
+    def keep(mem: wp.array2d(dtype=dtype), w: int, e: dtype, allow: dtype, g: dtype):
+        """World w's step is kept: its energy, allowance and swing as the next step's before."""
+        mem[w, 2] = swing_of(mem, w, g)
+        mem[w, 1] = wp.min(mem[w, 1], g)
+        mem[w, 0] = e
+        mem[w, 3] = allow
+
+    @wp.func
+    def pushed(control: wp.array2d(dtype=dtype), w: int, nd: int):
+        """Whether a drive of world w has a nonzero control (the world is not conservative)."""
+        out = int(0)
+        for d in range(nd):
+            if control[w, d] != dtype(0.0):
+                out = 1
+        return out
+
+    @wp.kernel
+    def unknown(status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32), mem: wp.array2d(dtype=dtype),
+                hold: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32), need: wp.array(dtype=wp.int32)):  # fmt: skip
+        """need[w] = 1 where world w's energy before its step is to be computed: its state was set
+        (fresh SET) or a parameter changed it (energy NaN); not a world the step holds (hold, go)."""
+        w = wp.tid()
+        need[w] = 0
+        if go[0] != 0 and hold[w] == 0 and status[w] == OK and (fresh[w] == SET or not wp.isfinite(mem[w, 0])):
+            need[w] = 1
+
+    @wp.kernel
+    def remember(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, slack: wp.array(dtype=dtype), floor: dtype,
+                 need: wp.array(dtype=wp.int32), mem: wp.array2d(dtype=dtype)):  # fmt: skip
+        """The energy, gravity potential, swing and allowance of the worlds ``need`` marks, as of
+        before their step."""
+        w = wp.tid()
+        if need[w] != 0:
+            e, allow = total(E, w, ncols, slack, floor)
+            g = E[w, gcol]
+            mem[w, 0] = e
+            mem[w, 1] = g
+            mem[w, 2] = e - g
+            mem[w, 3] = allow
+
+    @wp.kernel
+    def judge(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, slack: wp.array(dtype=dtype), floor: dtype,
+              control: wp.array2d(dtype=dtype), nd: int,
+              status: wp.array(dtype=wp.int32), hold: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32),
+              tol: dtype, mem: wp.array2d(dtype=dtype),
+              fresh: wp.array(dtype=wp.int32), substeps: wp.array(dtype=wp.int32), gained: wp.array(dtype=wp.int32),
+              idle: wp.array(dtype=wp.int32), busy: wp.array(dtype=wp.int32), flag: wp.array(dtype=wp.int32)):  # fmt: skip
+        """After a step and retry.mark: a world it stepped OK whose energy gained too much (and no
+        drive pushed) is to be retried as retry.mark does for a failed one (idle 0, an implicit
+        Euler start, 2 substeps; flag[0] = 1); any other world it stepped OK keeps its energy as the
+        next step's E_before.  busy[w] = 1 for every world to be retried (the energy's mask)."""
+        w = wp.tid()
+        busy[w] = 0
+        if go[0] == 0 or hold[w] != 0:
+            return
+        gained[w] = 0
+        if idle[w] == 0:  # a failed step marked for its retry
+            busy[w] = 1
+            return
+        if status[w] != OK:
+            return
+        e, allow = total(E, w, ncols, slack, floor)
+        g = E[w, gcol]
+        if pushed(control, w, nd) == 0 and gains(mem, w, e, allow, g, tol):
+            idle[w] = 0
+            busy[w] = 1
+            fresh[w] = RESTART
+            substeps[w] = 2
+            flag[0] = 1
+            return
+        keep(mem, w, e, allow, g)
+
+    @wp.kernel
+    def settle(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, slack: wp.array(dtype=dtype), floor: dtype,
+               control: wp.array2d(dtype=dtype), nd: int,
+               status: wp.array(dtype=wp.int32), tol: dtype, mem: wp.array2d(dtype=dtype),
+               fresh: wp.array(dtype=wp.int32), substeps: wp.array(dtype=wp.int32),
+               gained: wp.array(dtype=wp.int32), idle: wp.array(dtype=wp.int32), busy: wp.array(dtype=wp.int32),
+               back: wp.array(dtype=wp.int32), n: int, next_n: int):  # fmt: skip
+        """retry.settle with the energy test: after an attempt of ``n`` substeps, a retried world
+        that came through without gaining too much idles from now on (its energy kept); one that
+        failed, or gained with ``next_n`` > 0, goes back to the state before the step (back 1) and
+        tries ``next_n`` substeps; at next_n 0 one that failed is rejected (status kept) and one
+        that gained keeps its step and is flagged (gained 1)."""
+        w = wp.tid()
+        back[w] = 0
+        if idle[w] != 0:
+            return
+        if status[w] == OK:
+            e, allow = total(E, w, ncols, slack, floor)
+            g = E[w, gcol]
+            bad = pushed(control, w, nd) == 0 and gains(mem, w, e, allow, g, tol)
+            if not bad or next_n == 0:
+                idle[w] = 1
+                busy[w] = 0
+                fresh[w] = RESET
+                gained[w] = wp.where(bad, 1, 0)
+                keep(mem, w, e, allow, g)
+                return
+        back[w] = 1
+        if next_n > 0:
+            status[w] = OK
+            fresh[w] = RESTART
+            substeps[w] = next_n
+        else:
+            idle[w] = 1
+            busy[w] = 0
+            substeps[w] = n
+
+    return {"unknown": unknown, "remember": remember, "judge": judge, "settle": settle}
+
+
+class EnergyCheck:
+    """The energy test of one Solver's worlds (module docstring): the energy arrays and launches."""
+
+    def __init__(self, solver, tol: float):
+        self.solver, self.tol = solver, float(tol)
+        m = solver.model
+        self.k = kernels(m.dtype)
+        cols = solver.report_cols
+        self.ncols, self.gcol = len(cols) - 1, cols["gravity"]  # (every column but the scratch)
+        self.E = wp.zeros((m.num_worlds, len(cols)), dtype=m.dtype, device=m.device)
+        self.need = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
+        self.busy = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
+        self._host = None  # CPU: (state, NumPy views of its status, fresh and energy)
+        self._control = None  # CPU: (state, NumPy views of its controls and energy)
+        self.floor = FLOOR_EPS * float(np.finfo(m.np_dtype).eps)
+        # 2/ĥ² on the joints' columns (module docstring: their stretch's share of gravity's work)
+        slack = [2.0 / solver.h_eff**2 if name.endswith("_joint") else 0.0 for name in list(cols)[: self.ncols]]
+        self.slack = wp.array(slack, dtype=m.dtype, device=m.device)
+
+    def measure(self, state, mask):
+        """The physical energies of the worlds in mask into self.E (Solver.assemble, physical)."""
+        self.E.zero_()
+        self.solver.assemble(state, state.q, self.E, mask, 0, physical=True)
+
+    def any_checked(self, state) -> bool:
+        """CPU (host memory): whether a world has no drive pushing (else the step is not tested, and
+        every world's energy is marked unknown, to be computed before a step that is)."""
+        nd = self.solver.model.num_drives
+        if not nd:
+            return True
+        if self._control is None or self._control[0] is not state:
+            self._control = (state, state.control.numpy(), state.energy.numpy())
+        if (self._control[1][:, :nd] == 0).all(axis=1).any():
+            return True
+        self._control[2][:, 0] = np.nan
+        return False
+
+    def before(self, state, hold, go):
+        """Before a step (holding the worlds ``hold``, and every world while go[0] == 0): the energy
+        of the worlds whose E_before is not known (module docstring)."""
+        m = self.solver.model
+        if wp.get_device(m.device).is_cpu:  # host memory: no launch where every world's energy is known
+            if self._host is None or self._host[0] is not state:
+                self._host = (state, state.status.numpy(), state.fresh.numpy(), state.energy.numpy())
+            _, status, fresh, energy = self._host
+            if not ((status == OK) & ((fresh == SET) | np.isnan(energy[:, 0]))).any():
+                return
+        wp.launch(self.k["unknown"], dim=m.num_worlds, inputs=[state.status, state.fresh, state.energy, hold, go, self.need],
+                  device=m.device)  # fmt: skip
+        self.measure(state, self.need)
+        wp.launch(self.k["remember"], dim=m.num_worlds, inputs=[self.E, self.ncols, self.gcol, self.slack,
+                                                                m.dtype(self.floor), self.need, state.energy], device=m.device)  # fmt: skip
+
+    def _common(self, state):
+        m = self.solver.model
+        return [self.E, self.ncols, self.gcol, self.slack, m.dtype(self.floor), state.control, m.num_drives]
+
+    def judge(self, state, hold, go, idle, flag):
+        """After a step and retry.mark: mark the worlds that gained too much for the retry."""
+        m, s = self.solver.model, self.solver
+        self.measure(state, s.all_active)
+        wp.launch(self.k["judge"], dim=m.num_worlds,
+                  inputs=self._common(state) + [state.status, hold, go, m.dtype(self.tol), state.energy, state.fresh, state.substeps, state.gained,
+                                                idle, self.busy, flag], device=m.device)  # fmt: skip
+
+    def settle(self, state, idle, back, n, next_n):
+        """After an attempt of n substeps (retry.settle with the energy test)."""
+        m = self.solver.model
+        self.measure(state, self.busy)
+        wp.launch(self.k["settle"], dim=m.num_worlds,
+                  inputs=self._common(state) + [state.status, m.dtype(self.tol), state.energy,
+                                                state.fresh, state.substeps, state.gained, idle, self.busy,
+                                                back, n, next_n], device=m.device)  # fmt: skip

@@ -1,0 +1,160 @@
+"""A converged step that gains energy in a conservative world is retried as substeps
+(solver/energy_gain.py, solver/retry.py): the robustness report's double pendulums at dt 0.1 s
+BDF2 gain more than 5% of their swing energy in a step without the test and not with it; a
+retried step is the substeps' step from the state before it; a world whose drive pushes is not
+tested, nor a scene with a position drive; a step still gaining at 4 substeps is kept and flagged,
+in the vector env's info too."""
+import numpy as np
+import pytest
+
+import abd_gym as ag
+from abd_gym.bench import robustness as rb
+from abd_gym.sim import mechanisms
+from abd_gym.solver.kernels import RESTART
+
+W, DT = 16, 0.1
+# dt 0.1 s turns these links more than 1 rad a step: the build warns (conditioning.step_too_large)
+pytestmark = pytest.mark.filterwarnings("ignore:dt 0.1 s is beyond what body")
+
+
+@pytest.fixture(scope="module")
+def large_dt():
+    case = rb.case("large_dt")
+    return case, case.scene()
+
+
+def _run(large_dt, energy_gain):
+    case, scene = large_dt
+    return rb.run_case(case, DT, "bdf2", "float64", worlds=W, scene=scene, energy_gain=energy_gain)
+
+
+def test_no_world_gains_more_than_five_percent_in_a_step(large_dt):
+    """The report's step gain (the largest rise of E in one OK step over the run's swing energy)."""
+    plain, tested = _run(large_dt, 0.0), _run(large_dt, 0.05)
+    assert plain["reported"] == tested["reported"] == 0
+    assert plain["step_gain_worlds"] >= 2 and plain["worst_step_gain"] > 0.1
+    assert plain["substeps"] == {2: 0, 4: 0}
+    assert tested["step_gain_worlds"] == 0 and tested["worst_step_gain"] <= 0.05
+    assert tested["substeps"][2] > 0 and tested["kept_gain"] == 0
+
+
+def _sim(scene, dt=DT, **kw):
+    sim = ag.Simulator(scene, num_worlds=W, dt=dt, integrator="bdf2", dtype="float64", **kw)
+    rng = np.random.default_rng(0)
+    sim.set_joint_state(rng.uniform(-2.5, 2.5, (W, 2)))
+    return sim
+
+
+def test_a_gaining_step_is_retried_from_the_state_before_it(large_dt):
+    """A world retried as 2 substeps ends where a simulator of dt/2 ends after 2 implicit Euler
+    steps (fresh RESTART) from the state before the step, to Newton's stop; the other worlds step
+    bit for bit as without the test."""
+    scene = large_dt[1]
+    sim, plain = _sim(scene), _sim(scene, energy_gain=0)
+    for _ in range(20):
+        saved = sim.get_state()
+        sim.step()
+        plain.step()
+        worlds = np.flatnonzero(sim.substeps() == 2)
+        if len(worlds):
+            break
+        np.testing.assert_array_equal(sim.body_q(), plain.body_q())
+    assert len(worlds) and (sim.world_status() == ag.WorldStatus.OK).all()
+    others = np.setdiff1d(np.arange(W), worlds)
+    np.testing.assert_array_equal(sim.body_q()[others], plain.body_q()[others])
+    ref = ag.Simulator(scene, num_worlds=W, dt=DT / 2, integrator="bdf2", dtype="float64", retry=False)
+    saved["fresh"][:] = RESTART
+    ref.set_state(saved)
+    ref.step(2)
+    np.testing.assert_allclose(sim.body_q()[worlds], ref.body_q()[worlds], rtol=0, atol=1e-5)
+    assert not np.allclose(sim.body_q()[worlds], plain.body_q()[worlds], rtol=0, atol=1e-3)
+
+
+def test_a_step_still_gaining_at_four_substeps_is_kept_and_flagged(large_dt):
+    """A world whose energy before the step is set 1 J low (get_state/set_state) gains at every
+    attempt: it takes 4 substeps, keeps their result and is flagged; the next step, from a known
+    energy, is not."""
+    sim = _sim(large_dt[1])
+    sim.step()
+    state = sim.get_state()
+    state["energy"][:2, 0] -= 1.0
+    sim.set_state(state)
+    before = sim.body_q()
+    sim.step()
+    flagged = sim.energy_gained()
+    np.testing.assert_array_equal(np.flatnonzero(flagged), [0, 1])
+    np.testing.assert_array_equal(sim.substeps()[:2], [4, 4])
+    assert (sim.world_status() == ag.WorldStatus.OK).all()
+    assert not np.allclose(sim.body_q()[:2], before[:2])  # the 4 substeps' step, kept
+    sim.step()
+    assert not sim.energy_gained()[:2].any()
+
+
+@pytest.fixture(scope="module")
+def fourbar():
+    case = rb.case("fourbar")
+    return case, case.scene()
+
+
+def _fourbar_sim(fourbar, torque, **kw):
+    case, scene = fourbar
+    sim = ag.Simulator(scene, num_worlds=W, dt=0.05, integrator="bdf2", dtype="float64", **kw)
+    sim.set_joint_state(*case.state(np.random.default_rng(0), W))
+    sim.set_controls(np.full((W, 1), torque))
+    return sim
+
+
+def test_a_world_whose_drive_pushes_is_not_tested(fourbar):
+    """FourBar-v0's linkage at dt 0.05 s BDF2: with its crank's effort drive at 0 the test retries
+    steps besides the failed ones; with a torque, only the failed ones, and the worlds step bit
+    for bit as without the test."""
+    idle, idle_plain = _fourbar_sim(fourbar, 0.0), _fourbar_sim(fourbar, 0.0, energy_gain=0)
+    pushed, plain = _fourbar_sim(fourbar, 0.5), _fourbar_sim(fourbar, 0.5, energy_gain=0)
+    extra = 0
+    for _ in range(20):
+        for sim in (idle, idle_plain, pushed, plain):
+            sim.step()
+        extra += int((idle.substeps() > 1).sum() - (idle_plain.substeps() > 1).sum())
+        np.testing.assert_array_equal(pushed.substeps(), plain.substeps())
+        np.testing.assert_array_equal(pushed.body_q(), plain.body_q())
+    assert extra > 0
+
+
+def test_a_scene_with_a_position_drive_is_not_tested():
+    scene = mechanisms.double_pendulum()
+    scene.add_drive(scene.joints[0].name, mode="position", stiffness=10.0)
+    assert ag.Simulator(scene, num_worlds=2).solver.retry.energy is None
+    assert ag.Simulator(mechanisms.double_pendulum(), num_worlds=2).solver.retry.energy is not None
+    assert ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=0).solver.retry.energy is None
+    with pytest.raises(ValueError, match="energy_gain"):
+        ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=-0.1)
+
+
+def test_a_parameter_change_is_not_a_gain(large_dt):
+    """Doubling a world's masses doubles its energy between steps: the setter makes the energy
+    before the next step be computed anew, so that step is not retried."""
+    sim = _sim(large_dt[1], dt=0.01)
+    sim.step()
+    sim.set_body_mass(np.full((1, 3), 2.0), worlds=[3])
+    sim.step()
+    np.testing.assert_array_equal(sim.substeps(), np.ones(W))
+
+
+def test_the_vector_env_reports_a_kept_gain():
+    """FourBar-v0 (one physics step an env step, so that its last is the one set 1 J low) at zero
+    torque: its info flags the world whose step was kept gaining."""
+    from abd_gym.envs.fourbar import FourBarVectorEnv
+
+    class OneStep(FourBarVectorEnv):
+        frame_skip = 1
+
+    env = OneStep(num_envs=2, dtype="float64")
+    env.reset(seed=0)
+    info = env.step(np.zeros((2, 1), dtype=np.float32))[4]
+    np.testing.assert_array_equal(info["sim_energy_gained"], [False, False])
+    state = env.sim.get_state()
+    state["energy"][1, 0] -= 1.0
+    env.sim.set_state(state)
+    info = env.step(np.zeros((2, 1), dtype=np.float32))[4]
+    np.testing.assert_array_equal(info["sim_energy_gained"], [False, True])
+    np.testing.assert_array_equal(info["sim_substeps"], [1, 4])
