@@ -123,11 +123,19 @@ def test_a_world_whose_drive_pushes_is_not_tested(fourbar):
 def test_a_scene_with_a_position_drive_is_not_tested():
     scene = mechanisms.double_pendulum()
     scene.add_drive(scene.joints[0].name, mode="position", stiffness=10.0)
-    assert ag.Simulator(scene, num_worlds=2).solver.retry.energy is None
-    assert ag.Simulator(mechanisms.double_pendulum(), num_worlds=2).solver.retry.energy is not None
+    assert ag.Simulator(scene, num_worlds=2, energy_gain=0.05).solver.retry.energy is None
+    assert ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=0.05).solver.retry.energy is not None
     assert ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=0).solver.retry.energy is None
     with pytest.raises(ValueError, match="energy_gain"):
         ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=-0.1)
+
+
+def test_the_test_runs_by_default_at_large_steps_only():
+    """energy_gain None: on where a step turns the fastest gravity mode past ENERGY_TEST_TURN (the
+    double pendulum's links, 6.2 rad/s: dt 0.03 and 0.1, not 0.01 or 0.02)."""
+    for dt, tested in ((0.01, False), (0.02, False), (0.03, True), (0.1, True)):
+        sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, dt=dt)
+        assert (sim.solver.retry.energy is not None) == tested, dt
 
 
 def test_a_parameter_change_is_not_a_gain(large_dt):
@@ -148,7 +156,7 @@ def test_the_vector_env_reports_a_kept_gain():
     class OneStep(FourBarVectorEnv):
         frame_skip = 1
 
-    env = OneStep(num_envs=2, dtype="float64")
+    env = OneStep(num_envs=2, dtype="float64", simulator_options={"energy_gain": 0.05})  # (dt 0.01: off by default)
     env.reset(seed=0)
     info = env.step(np.zeros((2, 1), dtype=np.float32))[4]
     np.testing.assert_array_equal(info["sim_energy_gained"], [False, False])

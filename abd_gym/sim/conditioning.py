@@ -116,6 +116,23 @@ def _list(worlds, most=8) -> str:
 STEP_TURN = 1.0
 
 
+# the turn a step of the scene's fastest gravity mode [rad] past which the energy test of a
+# conservative world runs by default (Simulator's energy_gain None): BDF2's steps were measured to
+# gain more than 5% of the swing energy from 0.19 rad a step on (docs/robustness.md: the double
+# pendulum at dt 0.03, 0.1 and 0.2, the four-bar at 0.03 to 0.2), none at 0.06 (dt 0.01); the
+# tasks' steps turn 0.04–0.15 rad, where the test, run or skipped, would cost a one-world CPU step
+# 15–20% (docs/design.md §4.1)
+ENERGY_TEST_TURN = 0.16
+
+
+def gravity_turn(scene, dt: float) -> float:
+    """The most a step of ``dt`` [s] turns a free body's gravity mode √(|g|/r) (r its bounding
+    radius) [rad]; 0 without gravity or free bodies."""
+    g = float(np.linalg.norm(scene.gravity))
+    rates = [np.sqrt(g / b.shape.bounding_radius()) for b in scene.bodies if not b.fixed]
+    return float(max(rates, default=0.0)) * dt
+
+
 def step_too_large(scene, dt: float) -> list[str]:
     """One message per body or drive whose mode turns more than STEP_TURN rad in a step of ``dt``
     [s]: a free body as a pendulum of its size under gravity, √(|g|/r) with r its bounding radius

@@ -80,8 +80,9 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   failed is first taken again as 2, then 4 substeps (``Simulator.substeps``; not in a GPU's
   device step): ``info["sim_substeps"]`` (int32 per world) is the substeps of the env step's last
   physics step.  So is one that gained energy in a conservative world (no drive pushing:
-  ``Simulator(energy_gain=...)``); ``info["sim_energy_gained"]`` (bool per world) marks a last
-  physics step that still gained at 4 substeps and was kept.
+  ``Simulator(energy_gain=...)``, by default at large steps only, ``simulator_options`` to set it);
+  ``info["sim_energy_gained"]`` (bool per world) marks a last physics step that still gained at 4
+  substeps and was kept.
 * observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
   and chosen above what the task reaches (rates: ``velocity_bound`` = 100 rad/s or m/s).
 * per-world physical parameters: ``randomize={...}`` (constructor or ``reset`` option, sticky:
