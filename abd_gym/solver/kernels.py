@@ -563,9 +563,10 @@ def _cholesky_dense(dtype, packed, band=False):
 @functools.lru_cache(maxsize=None)
 def _solve_funcs(dtype, envelope, packed):
     """The triangular solves of a factored H and the direction's reductions (``envelope`` and
-    ``packed``: the packed block band)."""
+    ``packed``: the packed block band; the reductions from ``_reduction_funcs``)."""
     vec3, vec12, zero, one, EPS = _scalars(dtype)
     h_row, row_first, column_end = _rows(packed, envelope and packed)
+    reductions = _reduction_funcs(dtype)["reductions"]
 
     @wp.func
     def solve_dense(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, n: int,
@@ -663,6 +664,24 @@ def _solve_funcs(dtype, envelope, packed):
             solve_dense(L, g, dq, w, n, T)
 
     @wp.func
+    def factored_solve(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int,
+                       n: int, T: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
+        """dq = −(L Lᵀ)⁻¹g (substitute), flat arrays, column w of T.
+
+        Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when the result is not finite.
+        """
+        substitute(L, g, dq, w, n, T, first)
+        return reductions(g, dq, w, n, T)
+
+    return dict(substitute=substitute, reductions=reductions, factored_solve=factored_solve)
+
+
+@functools.lru_cache(maxsize=None)
+def _reduction_funcs(dtype):
+    """``reductions``: a Newton direction's gᵀΔq, ‖Δq‖∞ and ‖g‖₁, and whether it is finite."""
+    zero = dtype(0.0)
+
+    @wp.func
     def reductions(g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, n: int, T: int):
         """(ok, gᵀdq, ‖dq‖∞, ‖g‖₁) of a Newton direction; ok = 0 when it is not finite."""
         gdq = zero
@@ -680,17 +699,7 @@ def _solve_funcs(dtype, envelope, packed):
             return 0, zero, zero, zero
         return 1, gdq, dmax, g_abs
 
-    @wp.func
-    def factored_solve(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int,
-                       n: int, T: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
-        """dq = −(L Lᵀ)⁻¹g (substitute), flat arrays, column w of T.
-
-        Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when the result is not finite.
-        """
-        substitute(L, g, dq, w, n, T, first)
-        return reductions(g, dq, w, n, T)
-
-    return dict(substitute=substitute, reductions=reductions, factored_solve=factored_solve)
+    return dict(reductions=reductions)
 
 
 @functools.lru_cache(maxsize=None)
