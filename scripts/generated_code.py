@@ -9,9 +9,9 @@ the compiler is given the same code.  No GPU is needed.
     python scripts/generated_code.py --out DIR            # one normalised file a kernel and target, and digests.txt
     python scripts/generated_code.py --out DIR --sass     # also the sm_90 machine code's digest (NVRTC, slower)
 
-Kernels: the constitutions' and the step's bracketing kernels (float32 and float64), and the
-fused step for a few tasks and bench cases in its lane-split, thread-per-world shared and global
-forms.
+Kernels: the constitutions' and the step's bracketing kernels and the staged step's kernels
+(float32 and float64), and the fused step for a few tasks and bench cases in its lane-split,
+thread-per-world shared and global forms.
 """
 import argparse
 import hashlib
@@ -113,7 +113,21 @@ def kernels():
             begin, coords = coordinates.kernels(dtype, passive)
             out += [(f"coordinates.begin_step.{t}.passive{int(passive)}", begin, 0),
                     (f"coordinates.coordinates.{t}.passive{int(passive)}", coords, 0)]  # fmt: skip
-    return out + fused_kernels()
+    return out + staged_kernels() + fused_kernels()
+
+
+def staged_kernels():
+    """The staged (reference) step's kernels, dense (its prediction, Newton direction, line search
+    and finalisation), float32 and float64."""
+    from abd_gym.solver import kernels as staged
+
+    out = []
+    for dtype in (wp.float32, wp.float64):
+        t = "f32" if dtype == wp.float32 else "f64"
+        for name, kernel in staged.kernels(dtype).items():
+            if isinstance(kernel, wp.Kernel):
+                out.append((f"staged.{name}.{t}", kernel, 0))
+    return out
 
 
 def fused_kernels():

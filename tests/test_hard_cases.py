@@ -288,7 +288,7 @@ def test_pendulum_dropped_onto_its_limit(integrator):
     cubic E = s e³, s = 64,042 J), 256 worlds, float32, dt 0.01, 1 s: every pole reaches the limit
     and rests there, every step converges within 5 Newton iterations (Newton from a start past
     the bound by e₀ needs ~log₂(e₀/e*) of them: the guess stops at the bound, limit_reach, and
-    the line search models the cubic along the step, fused.line_search.limit_step; measured 3
+    the line search models the cubic along the step, fused.limit_model.limit_step; measured 3
     with implicit Euler and 5 with BDF2, against 6 and 7 with halving alone), no world ends a step
     with more energy than it started with, and the overrun stays under 0.5 mrad (the seed's cubic
     at the impact's force)."""

@@ -147,8 +147,8 @@ def _noise_funcs(dtype):
 
 @functools.lru_cache(maxsize=None)
 def _predict_funcs(dtype):
-    """A step's opening (open_body, open_step) and its prediction and initial guess (predict_body,
-    predict, limit_reach)."""
+    """A step's prediction and initial guess (predict_body, predict, limit_reach); its opening
+    (open_body, open_step) from ``_open_funcs``."""
     vec3, vec12, zero, one, EPS = _scalars(dtype)
     retract = affine_body.kernels(dtype).retract
 
@@ -266,6 +266,15 @@ def _predict_funcs(dtype):
         predict_body(q, qd, q_prev, q_hist, qd_hist, qd_hist2, order3, calm, q_tilde, dof, mass, mc, gravity, h, h_step,
                      status, beta, w, b)  # fmt: skip
 
+    return dict(predict_body=predict_body, predict=predict, limit_reach=limit_reach, **_open_funcs(dtype))
+
+
+@functools.lru_cache(maxsize=None)
+def _open_funcs(dtype):
+    """A step's opening: the finite check, the effective step ĥ and the controls' calm count
+    (open_body, open_step)."""
+    vec12 = _scalars(dtype)[1]
+
     @wp.func
     def open_body(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), status: wp.array(dtype=wp.int32),
@@ -315,8 +324,7 @@ def _predict_funcs(dtype):
         w, b = wp.tid()
         open_body(q, qd, status, fresh, h, bdf2, h_step, control, control_prev, calm, w, b, 1)
 
-    return dict(predict_body=predict_body, predict=predict, open_body=open_body, open_step=open_step,
-                limit_reach=limit_reach)
+    return dict(open_body=open_body, open_step=open_step)
 
 
 @functools.lru_cache(maxsize=None)
@@ -555,9 +563,10 @@ def _cholesky_dense(dtype, packed, band=False):
 @functools.lru_cache(maxsize=None)
 def _solve_funcs(dtype, envelope, packed):
     """The triangular solves of a factored H and the direction's reductions (``envelope`` and
-    ``packed``: the packed block band)."""
+    ``packed``: the packed block band; the reductions from ``_reduction_funcs``)."""
     vec3, vec12, zero, one, EPS = _scalars(dtype)
     h_row, row_first, column_end = _rows(packed, envelope and packed)
+    reductions = _reduction_funcs(dtype)["reductions"]
 
     @wp.func
     def solve_dense(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, n: int,
@@ -655,6 +664,24 @@ def _solve_funcs(dtype, envelope, packed):
             solve_dense(L, g, dq, w, n, T)
 
     @wp.func
+    def factored_solve(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int,
+                       n: int, T: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
+        """dq = −(L Lᵀ)⁻¹g (substitute), flat arrays, column w of T.
+
+        Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when the result is not finite.
+        """
+        substitute(L, g, dq, w, n, T, first)
+        return reductions(g, dq, w, n, T)
+
+    return dict(substitute=substitute, reductions=reductions, factored_solve=factored_solve)
+
+
+@functools.lru_cache(maxsize=None)
+def _reduction_funcs(dtype):
+    """``reductions``: a Newton direction's gᵀΔq, ‖Δq‖∞ and ‖g‖₁, and whether it is finite."""
+    zero = dtype(0.0)
+
+    @wp.func
     def reductions(g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int, n: int, T: int):
         """(ok, gᵀdq, ‖dq‖∞, ‖g‖₁) of a Newton direction; ok = 0 when it is not finite."""
         gdq = zero
@@ -672,17 +699,7 @@ def _solve_funcs(dtype, envelope, packed):
             return 0, zero, zero, zero
         return 1, gdq, dmax, g_abs
 
-    @wp.func
-    def factored_solve(L: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), w: int,
-                       n: int, T: int, first: wp.array(dtype=wp.int32)):  # fmt: skip
-        """dq = −(L Lᵀ)⁻¹g (substitute), flat arrays, column w of T.
-
-        Returns (ok, gᵀdq, ‖dq‖∞, ‖g‖₁); ok = 0 when the result is not finite.
-        """
-        substitute(L, g, dq, w, n, T, first)
-        return reductions(g, dq, w, n, T)
-
-    return dict(substitute=substitute, reductions=reductions, factored_solve=factored_solve)
+    return dict(reductions=reductions)
 
 
 @functools.lru_cache(maxsize=None)
@@ -817,7 +834,15 @@ def _direction_kernels(dtype, envelope, packed):
 
 @functools.lru_cache(maxsize=None)
 def _search_kernels(dtype):
-    """The staged line search: trial point, Armijo test, commit, convergence."""
+    """The staged line search: trial point and Armijo test; the commit and the stop test after it
+    from ``_converge_kernels``.
+
+    The line search of the staged (reference) step (``fused=False``): each kernel runs over every
+    world, a round of them (trial, energies, ``accept``) a halving of α, repeated while any world
+    searches.  It is apart from the fused step's (fused/newton.py, ``line_search``), which runs
+    inside a world's own thread or lanes, because each kernel here is one phase over all worlds
+    and the energies come from the staged terms' columns; it keeps Armijo's test on Newton's
+    direction with α halved, without the fused step's model of the limits along the step."""
     vec3, vec12, zero, one, EPS = _scalars(dtype)
     retract = affine_body.kernels(dtype).retract
     noise_floor = _noise_funcs(dtype)["noise_floor"]
@@ -910,6 +935,16 @@ def _search_kernels(dtype):
             alpha[w] = a * dtype(0.5)
             wp.atomic_add(remaining, 0, 1)
 
+    return dict(trial=trial, accept=accept, **_converge_kernels(dtype))
+
+
+@functools.lru_cache(maxsize=None)
+def _converge_kernels(dtype):
+    """The end of a staged iteration: the accepted trial point taken (commit), the stop test, the
+    factor's reuse and the retry (converge)."""
+    _, vec12, _, one, _ = _scalars(dtype)
+    noise_floor = _noise_funcs(dtype)["noise_floor"]
+
     @wp.kernel(module="unique")
     def commit(
         q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), take: wp.array(dtype=wp.int32),
@@ -976,7 +1011,7 @@ def _search_kernels(dtype):
         else:
             wp.atomic_add(remaining, 0, 1)
 
-    return dict(trial=trial, accept=accept, commit=commit, converge=converge)
+    return dict(commit=commit, converge=converge)
 
 
 @functools.lru_cache(maxsize=None)

@@ -27,14 +27,11 @@ from .terms import coordinate_terms, terms
 
 
 @functools.lru_cache(maxsize=None)
-def lane_assembly(spec: KernelSpec):
-    """The lanes' assembly: ``lane_bodies`` (the bodies by rows) and ``assemble_groups`` (lane
-    groups, each its share of the terms in its own copy of g and H)."""
-    dtype, N, NF, TRI, LANES, G, RL = spec.dtype, spec.N, spec.NF, spec.TRI, spec.LANES, spec.G, spec.RL
+def lane_body_rows(spec: KernelSpec):
+    """The lanes' body terms by rows: ``body_rows`` (a lane's rows of the bodies) and
+    ``lane_bodies`` (every lane's rows, then the bodies' energies summed in body order)."""
+    dtype, N, NF, LANES = spec.dtype, spec.N, spec.NF, spec.LANES
     D, NR = spec.D, spec.NR
-    has_rev, has_fix, has_pri = spec.has("revolute_joint"), spec.has("fixed_joint"), spec.has("prismatic_joint")
-    has_rlim, has_plim, has_drive = spec.has("revolute_limit"), spec.has("prismatic_limit"), spec.has("drive")
-    rev_angles = len(spec.folded(REVOLUTE)) > 0
     vec12 = ops(dtype).vec12
     sel = body_dofs(spec.axis).sel
     Terms = structs(dtype).Terms
@@ -42,10 +39,6 @@ def lane_assembly(spec: KernelSpec):
     at = indexing(spec)
     block_sync, lane_index, hrow = at.block_sync, at.lane_index, at.hrow
     body_row = puts(spec).body_row
-    point_term, prismatic_term = terms(spec).point_term, terms(spec).prismatic_term
-    ct = coordinate_terms(spec)
-    angle_term, rlim_term, plim_term, drive_term = ct.angle_term, ct.rlim_term, ct.plim_term, ct.drive_term
-    clock_now, tick = clock(spec).clock_now, clock(spec).tick
     zero = dtype(0.0)
 
     @wp.func
@@ -90,6 +83,28 @@ def lane_assembly(spec: KernelSpec):
         for k in range(NF):
             e += g[(N + k) * B + s]
         return e
+
+    return SimpleNamespace(body_rows=body_rows, lane_bodies=lane_bodies)
+
+
+@functools.lru_cache(maxsize=None)
+def lane_assembly(spec: KernelSpec):
+    """The lanes' assembly: ``lane_bodies`` (the bodies by rows, ``lane_body_rows``) and
+    ``assemble_groups`` (lane groups, each its share of the terms in its own copy of g and H)."""
+    dtype, N, NF, TRI, LANES, G, RL = spec.dtype, spec.N, spec.NF, spec.TRI, spec.LANES, spec.G, spec.RL
+    has_rev, has_fix, has_pri = spec.has("revolute_joint"), spec.has("fixed_joint"), spec.has("prismatic_joint")
+    has_rlim, has_plim, has_drive = spec.has("revolute_limit"), spec.has("prismatic_limit"), spec.has("drive")
+    rev_angles = len(spec.folded(REVOLUTE)) > 0
+    vec12 = ops(dtype).vec12
+    Terms = structs(dtype).Terms
+    at = indexing(spec)
+    block_sync, lane_index = at.block_sync, at.lane_index
+    body_rows = lane_body_rows(spec).body_rows
+    point_term, prismatic_term = terms(spec).point_term, terms(spec).prismatic_term
+    ct = coordinate_terms(spec)
+    angle_term, rlim_term, plim_term, drive_term = ct.angle_term, ct.rlim_term, ct.plim_term, ct.drive_term
+    clock_now, tick = clock(spec).clock_now, clock(spec).tick
+    zero = dtype(0.0)
 
     @wp.func
     def group_terms(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any,
@@ -163,7 +178,7 @@ def lane_assembly(spec: KernelSpec):
         block_sync()
         return e
 
-    return SimpleNamespace(lane_bodies=lane_bodies, assemble_groups=assemble_groups)
+    return SimpleNamespace(lane_bodies=lane_body_rows(spec).lane_bodies, assemble_groups=assemble_groups)
 
 
 @functools.lru_cache(maxsize=None)

@@ -20,9 +20,10 @@ from .structs import structs
 
 
 @functools.lru_cache(maxsize=None)
-def world_step(spec: KernelSpec):
-    """``step_world``: a world's step, its solve opened and closed here with ``bracket``."""
-    dtype, LANES, lanes, bracket, hold = spec.dtype, spec.LANES, spec.lanes, spec.bracket, spec.hold
+def world_bracket(spec: KernelSpec):
+    """``open_world`` and ``close_world``: Solver.open_step's and close_step's kernels for one
+    world, inside the fused kernel (``spec.bracket``)."""
+    dtype, LANES, lanes = spec.dtype, spec.LANES, spec.lanes
     vec12 = ops(dtype).vec12
     Terms, Bracket = structs(dtype).Terms, structs(dtype).Bracket
     staged = spec.staged()
@@ -36,7 +37,6 @@ def world_step(spec: KernelSpec):
     has_rlim, has_plim = spec.models("revolute_limit"), spec.models("prismatic_limit")
     block_sync = indexing(spec).block_sync
     clock_now, tick = clock(spec).clock_now, clock(spec).tick
-    solve_world = newton(spec).solve_world
 
     @wp.func
     def open_world(q: wp.array2d(dtype=vec12), t: Terms, k: Bracket, status: wp.array(dtype=wp.int32), w: int,
@@ -110,6 +110,20 @@ def world_step(spec: KernelSpec):
                     if engaged != 0:
                         k.fresh[w] = RESTART  # (solver_kernels.open_body)
         tick(t, w, lane, PHASE_CLOSE_JOINTS, c)  # (lane 0's joints: no barrier follows them)
+
+    return SimpleNamespace(open_world=open_world, close_world=close_world)
+
+
+@functools.lru_cache(maxsize=None)
+def world_step(spec: KernelSpec):
+    """``step_world``: a world's step, its solve opened and closed here with ``bracket``
+    (``world_bracket``)."""
+    dtype, bracket, hold = spec.dtype, spec.bracket, spec.hold
+    vec12 = ops(dtype).vec12
+    Terms, Bracket = structs(dtype).Terms, structs(dtype).Bracket
+    open_world, close_world = world_bracket(spec).open_world, world_bracket(spec).close_world
+    clock_now, tick = clock(spec).clock_now, clock(spec).tick
+    solve_world = newton(spec).solve_world
 
     @wp.func
     def held(k: Bracket, w: int):

@@ -259,7 +259,7 @@ def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False,
     ``bracket``): the step leaves alone the worlds of Bracket.hold and, while Bracket.go[0] is 0,
     every world (step_world; a vector env's step graph), a check that a scene stepped on its own
     does not carry.  ``limits``: the scene's (revolute, prismatic) limit counts, for the line
-    search's model of them (line_search.limit_step).  ``secant`` (a thread per world): the Newton
+    search's model of them (limit_model.limit_step).  ``secant`` (a thread per world): the Newton
     direction at an acting limit takes the limit's secant curvature (limit_secant).  ``exact``: after
     an iteration that converged only linearly, a world's solve assembles the orthogonality Hessian
     exact (R for its PSD part R⁺, affine_body) until a factor of it breaks down (newton.iterate); for

@@ -52,21 +52,16 @@ from .structs import structs
 
 
 @functools.lru_cache(maxsize=None)
-def limit_secant(spec: KernelSpec):
-    """``secant_step(q, t, w, g, H, dq, s, T, gdq, dmax) -> (gᵀΔq, ‖Δq‖∞)``: a thread's direction in
-    scratch column s (of T) after Newton's solve, H holding its factor; g is overwritten."""
-    dtype, N = spec.dtype, spec.N
+def acting_limits(spec: KernelSpec):
+    """``acting_limit``: how many of a world's limits act at its q, and the last one's derivatives
+    and gradient ∇x (the secant's rank-one change of H)."""
+    dtype = spec.dtype
     NR, NP = spec.limits
     vec12 = ops(dtype).vec12
-    bd = body_dofs(spec.axis)
-    D, sel = bd.D, bd.sel
     Terms = structs(dtype).Terms
-    staged = spec.staged()
-    h_row, row_first = staged["h_row"], staged["row_first"]
-    square_envelope = spec.envelope and not spec.packed  # H square, each row from Terms.first
     rlim_parts = revolute_limit.kernel(dtype).parts
     plim_parts = prismatic_limit.kernel(dtype).parts
-    zero, one, two, eighth = dtype(0.0), dtype(1.0), dtype(2.0), dtype(0.125)
+    zero = dtype(0.0)
 
     @wp.func
     def acting_limit(q: wp.array2d(dtype=vec12), t: Terms, w: int):
@@ -93,6 +88,24 @@ def limit_secant(spec: KernelSpec):
                 acting += 1
                 de, dde, ui, uj, ja = d1, d2, gi, gj, j
         return acting, de, dde, ui, uj, int(t.dof[t.body_a[ja]]), int(t.dof[t.body_b[ja]])
+
+    return SimpleNamespace(acting_limit=acting_limit)
+
+
+@functools.lru_cache(maxsize=None)
+def limit_secant(spec: KernelSpec):
+    """``secant_step(q, t, w, g, H, dq, s, T, gdq, dmax) -> (gᵀΔq, ‖Δq‖∞)``: a thread's direction in
+    scratch column s (of T) after Newton's solve, H holding its factor; g is overwritten."""
+    dtype, N = spec.dtype, spec.N
+    vec12 = ops(dtype).vec12
+    bd = body_dofs(spec.axis)
+    D, sel = bd.D, bd.sel
+    Terms = structs(dtype).Terms
+    staged = spec.staged()
+    h_row, row_first = staged["h_row"], staged["row_first"]
+    square_envelope = spec.envelope and not spec.packed  # H square, each row from Terms.first
+    acting_limit = acting_limits(spec).acting_limit
+    zero, one, two, eighth = dtype(0.0), dtype(1.0), dtype(2.0), dtype(0.125)
 
     @wp.func
     def u_row(i: int, ui: vec12, uj: vec12, oi: int, oj: int):

@@ -27,45 +27,20 @@ from .structs import structs
 
 
 @functools.lru_cache(maxsize=None)
-def line_search(spec: KernelSpec):
-    """``search``: the line search along a Newton step (``trial`` points on the bodies'
-    retraction, ``armijo``'s test on the world's energy)."""
-    dtype, LANES, lanes, compact = spec.dtype, spec.LANES, spec.lanes, spec.compact
+def limit_model(spec: KernelSpec):
+    """``limit_step``: the step along a Newton step at which the world's energy is least where a
+    limit acts, from each limit's overrun and cubic along the step (the line search's first trial
+    in a scene with limits, ``decide``)."""
+    dtype = spec.dtype
     vec12 = ops(dtype).vec12
-    bd = body_dofs(spec.axis)
-    D, sel = bd.D, bd.sel
     Terms = structs(dtype).Terms
-    retract_body = affine_body.kernels(dtype).retract
-    block_sync = indexing(spec).block_sync
-    assemble = assembly(spec).assemble
-    clock_now, tick = clock(spec).clock_now, clock(spec).tick
     angles = angle_ops(dtype)
     cos_sin, delta_theta, displacement = angles.cos_sin, angles.delta_theta, angles.displacement
     # the scene's limits (KernelSpec.limits), whose cubics the line search models (limit_step)
     NR, NP = spec.limits
     NL = NR + NP
-    has_limits = NL > 0
     vecL = wp.types.vector(length=max(NL, 1), dtype=dtype)
-    zero, one, half = dtype(0.0), dtype(1.0), dtype(0.5)
-    EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
-
-    @wp.func
-    def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Any, step: Any, w: int, row: int,
-              s: int, T: int, alpha: dtype, lane: int):  # fmt: skip
-        """q_trial[row] = q[w] + α Δq along the retraction's path (affine_body.retract), Δq in
-        scratch column s of the flat ``step`` (T columns); lane ``lane`` of LANES moves bodies lane,
-        lane + LANES, … (then the block synchronises)."""
-        for b in range(lane, q.shape[1], LANES):
-            qb = q[w, b]
-            ob = t.dof[b]
-            if ob >= 0:
-                d = vec12()  # the body's step, 0 on the entries a planar scene holds
-                for u in range(D):
-                    d[sel(u)] = step[(ob + u) * T + s]
-                qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b], 0)
-            q_trial[row, b] = qb
-        if wp.static(lanes):
-            block_sync()
+    zero, one = dtype(0.0), dtype(1.0)
 
     @wp.func
     def overrun(x: dtype, lo: dtype, up: dtype, inv: dtype):
@@ -169,6 +144,21 @@ def line_search(spec: KernelSpec):
                 break
         return a
 
+    return SimpleNamespace(limit_step=limit_step)
+
+
+@functools.lru_cache(maxsize=None)
+def acceptance(spec: KernelSpec):
+    """``armijo`` and ``decide``: a trial's test and the line search's next step from it (α halved,
+    or in a scene with limits ``next_trial`` from ``limit_model``'s α*)."""
+    dtype = spec.dtype
+    vec12 = ops(dtype).vec12
+    Terms = structs(dtype).Terms
+    limit_step = limit_model(spec).limit_step
+    has_limits = sum(spec.limits) > 0
+    one, half = dtype(1.0), dtype(0.5)
+    EPS = dtype(float(np.finfo(np.float32 if dtype == wp.float32 else np.float64).eps))
+
     @wp.func
     def armijo(e0: dtype, e1: dtype, alpha: dtype, gdq: dtype):
         """(accepted, stalled) for the trial energy e1 at step α: Armijo's test with rounding-level
@@ -235,6 +225,44 @@ def line_search(spec: KernelSpec):
             return next_trial(phase, ok, a_star, e1, e_first, alpha, max_line_search, chord)
         return ok, ok, phase, wp.where(ok != 0, alpha, alpha * half), e_first
 
+    return SimpleNamespace(armijo=armijo, decide=decide)
+
+
+@functools.lru_cache(maxsize=None)
+def line_search(spec: KernelSpec):
+    """``search``: the line search along a Newton step (``trial`` points on the bodies'
+    retraction, ``acceptance``'s test on the world's energy)."""
+    dtype, LANES, lanes, compact = spec.dtype, spec.LANES, spec.lanes, spec.compact
+    vec12 = ops(dtype).vec12
+    bd = body_dofs(spec.axis)
+    D, sel = bd.D, bd.sel
+    Terms = structs(dtype).Terms
+    retract_body = affine_body.kernels(dtype).retract
+    block_sync = indexing(spec).block_sync
+    assemble = assembly(spec).assemble
+    clock_now, tick = clock(spec).clock_now, clock(spec).tick
+    armijo, decide = acceptance(spec).armijo, acceptance(spec).decide
+    has_limits = sum(spec.limits) > 0
+    zero, one = dtype(0.0), dtype(1.0)
+
+    @wp.func
+    def trial(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Any, step: Any, w: int, row: int,
+              s: int, T: int, alpha: dtype, lane: int):  # fmt: skip
+        """q_trial[row] = q[w] + α Δq along the retraction's path (affine_body.retract), Δq in
+        scratch column s of the flat ``step`` (T columns); lane ``lane`` of LANES moves bodies lane,
+        lane + LANES, … (then the block synchronises)."""
+        for b in range(lane, q.shape[1], LANES):
+            qb = q[w, b]
+            ob = t.dof[b]
+            if ob >= 0:
+                d = vec12()  # the body's step, 0 on the entries a planar scene holds
+                for u in range(D):
+                    d[sel(u)] = step[(ob + u) * T + s]
+                qb = retract_body(qb, d, alpha, t.mass[w, b], t.mc[w, b], 0)
+            q_trial[row, b] = qb
+        if wp.static(lanes):
+            block_sync()
+
     @wp.func
     def search(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, step: Any, g: Any, H: Any,
                w: int, row: int, s: int, B: int, e0: dtype, gdq: dtype, skip: int, done: int, chord: int,
@@ -243,7 +271,16 @@ def line_search(spec: KernelSpec):
         factor's step tried at α = 1 only; else Armijo's test on the world's own energy, α halved on
         rejection, or where the scene has limits the next α from ``decide``.  The search runs out
         after ``max_line_search`` rejections (α ≤ 2^-(max_line_search − 1)).  The trial points go
-        to row ``row`` of q_trial; s, B as in assemble, lane as in trial."""
+        to row ``row`` of q_trial; s, B as in assemble, lane as in trial.
+
+        The trial loop is written twice, for the two forms of the fused step (KernelSpec.compact).
+        The lane-split kernel (compact) runs one loop of tries with a single trial and a single
+        energy in it: its step is a latency-bound chain, and each inlined copy of assemble's energy
+        adds that whole code to the kernel again.  The thread-per-world kernels (shared and global
+        scratch) try α = 1 before the loop and test a reused factor's step on a branch of its own:
+        a throughput-bound thread pays less for the branches than for the selects.  The staged
+        (reference) step has its own search, the same Armijo test as kernels over all worlds a
+        round (solver/kernels.py, ``_search_kernels``), without the limits' model."""
         c = clock_now()
         alpha = one
         accepted = int(0)
@@ -423,8 +460,9 @@ def stepping(spec: KernelSpec):
 
 
 @functools.lru_cache(maxsize=None)
-def newton(spec: KernelSpec):
-    """``solve_world``: a world's whole Newton solve (see its docstring)."""
+def iteration(spec: KernelSpec):
+    """``iterate``: one Newton iteration of a world's solve (zero, assemble, factor and solve, take
+    the step), in the layout ``spec`` builds for."""
     dtype, N, NF, TRI, LANES, G, RL = spec.dtype, spec.N, spec.NF, spec.TRI, spec.LANES, spec.G, spec.RL
     lanes, compact, envelope, warp_regs = spec.lanes, spec.compact, spec.envelope, spec.warp_regs
     packed = spec.packed and not envelope
@@ -444,24 +482,6 @@ def newton(spec: KernelSpec):
     secant_step = limit_secant(spec).secant_step
     clock_now, tick = clock(spec).clock_now, clock(spec).tick
     zero, one = dtype(0.0), dtype(1.0)
-
-    @wp.func
-    def open_solve(t: Terms, w: int, max_iterations: int, reuse: int, status: wp.array(dtype=wp.int32),
-                   iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
-                   converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
-        """World w's counters cleared (by lane 0); (1 where its solve runs: its status is OK and the
-        budget max_iterations is not empty, else 0; the solve's first state, as iterate takes it: a
-        retry from q̃ left with ``reuse`` or in a scene built with ``exact``)."""
-        if lane == 0:
-            iterations[w] = 0
-            factorizations[w] = 0
-            converged[w] = 0
-            t.retried[w] = 0
-        solving = wp.where(status[w] == OK and max_iterations > 0, 1, 0)
-        spare = reuse
-        if wp.static(spec.exact):
-            spare = 1
-        return solving, int(0), zero, int(0), int(0), max_iterations, spare, int(0)
 
     @wp.func
     def iterate(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),
@@ -601,6 +621,37 @@ def newton(spec: KernelSpec):
             if wp.static(lanes):
                 block_sync()
         return 0, chord, dmax, nfact, its, cap, spare, exact
+
+    return SimpleNamespace(iterate=iterate)
+
+
+@functools.lru_cache(maxsize=None)
+def newton(spec: KernelSpec):
+    """``solve_world``: a world's whole Newton solve (see its docstring): ``open_solve``, then
+    ``iteration``'s ``iterate`` until the solve is over."""
+    dtype = spec.dtype
+    vec12 = ops(dtype).vec12
+    Terms = structs(dtype).Terms
+    iterate = iteration(spec).iterate
+    zero = dtype(0.0)
+
+    @wp.func
+    def open_solve(t: Terms, w: int, max_iterations: int, reuse: int, status: wp.array(dtype=wp.int32),
+                   iterations: wp.array(dtype=wp.int32), factorizations: wp.array(dtype=wp.int32),
+                   converged: wp.array(dtype=wp.int32), lane: int):  # fmt: skip
+        """World w's counters cleared (by lane 0); (1 where its solve runs: its status is OK and the
+        budget max_iterations is not empty, else 0; the solve's first state, as iterate takes it: a
+        retry from q̃ left with ``reuse`` or in a scene built with ``exact``)."""
+        if lane == 0:
+            iterations[w] = 0
+            factorizations[w] = 0
+            converged[w] = 0
+            t.retried[w] = 0
+        solving = wp.where(status[w] == OK and max_iterations > 0, 1, 0)
+        spare = reuse
+        if wp.static(spec.exact):
+            spare = 1
+        return solving, int(0), zero, int(0), int(0), max_iterations, spare, int(0)
 
     @wp.func
     def solve_world(q: wp.array2d(dtype=vec12), q_trial: wp.array2d(dtype=vec12), t: Terms, g: wp.array(dtype=dtype),

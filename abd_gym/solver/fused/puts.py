@@ -28,31 +28,24 @@ from .layout import KernelSpec, indexing
 def puts(spec: KernelSpec):
     """The functions that add a term's gradient and Hessian blocks to a scratch column (s of B) of
     g and H, each thread (lane) its own rows (own_from): ``put_grad``, ``put_body``, ``body_row``,
-    ``put_kron_pair``, ``put_outer_pair``, ``put_rank1``, and ``kron_split``."""
-    dtype, RL, compact = spec.dtype, spec.RL, spec.compact
+    ``put_kron_pair``, ``put_outer_pair``, ``put_rank1``, and ``kron_split`` (``body_puts`` and
+    ``pair_puts``)."""
+    b, p = body_puts(spec), pair_puts(spec)
+    return SimpleNamespace(kron_split=p.kron_split, put_grad=p.put_grad, body_row=b.body_row, put_body=b.put_body,
+                           put_kron_pair=p.put_kron_pair, put_rank1=p.put_rank1, put_outer_pair=p.put_outer_pair)
+
+
+@functools.lru_cache(maxsize=None)
+def body_puts(spec: KernelSpec):
+    """``put_body``: a body's Hessian added from its parts (``affine_body.hessian_parts``,
+    ``a_block``), and ``body_row``, one row of it for a lane."""
+    dtype = spec.dtype
     o = ops(dtype)
-    vec3, vec12, mat33, mat44 = o.vec3, o.vec12, o.mat33, o.mat44
-    kron_index = o.kron_index
+    vec3, vec12, mat33 = o.vec3, o.vec12, o.mat33
     bd = body_dofs(spec.axis)  # a body's D unknowns: entry r of its q is unknown slot(r) (−1: held), u moves sel(u)
     D, slot, sel, AXIS = bd.D, bd.slot, bd.sel, bd.axis
     hessian_parts, a_block = affine_body.kernels(dtype).hessian_parts, affine_body.kernels(dtype).a_block
-    at = indexing(spec)
-    hrow, own_from = at.hrow, at.own_from
-    zero = dtype(0.0)
-
-    @wp.func
-    def kron_split(a: int):
-        """(m, c) with kron_index(m, c) = a: component m, factor c of u = (1, x̄)."""
-        if a < 3:
-            return a, 0
-        return (a - 3) // 3, (a - 3) % 3 + 1
-
-    @wp.func
-    def put_grad(g: Any, s: int, B: int, o: int, v: vec12):
-        if o >= 0:
-            for u in range(own_from(o), D, RL):
-                p = (o + u) * B + s
-                g[p] = g[p] + v[sel(u)]
+    hrow = indexing(spec).hrow
 
     @wp.func
     def body_row(H: Any, s: int, B: int, o: int, u: int, qb: vec12, m: dtype, c: vec3, S: mat33, ks: dtype, Rp: mat33,
@@ -125,6 +118,38 @@ def puts(spec: KernelSpec):
                                             if ub >= 0 and (kk != ll or bb <= a):
                                                 p = (hrow(o + ua) + o + ub) * B + s
                                                 H[p] = H[p] + blk[a, bb]
+
+    return SimpleNamespace(body_row=body_row, put_body=put_body)
+
+
+@functools.lru_cache(maxsize=None)
+def pair_puts(spec: KernelSpec):
+    """The blocks of a term on a pair of bodies, each thread (lane) its own rows (own_from):
+    ``put_grad``, the point joints' Kronecker blocks (``put_kron_pair``) and a scalar coordinate's
+    rank-one blocks (``put_rank1``, ``put_outer_pair``)."""
+    dtype, RL, compact = spec.dtype, spec.RL, spec.compact
+    o = ops(dtype)
+    vec12, mat44 = o.vec12, o.mat44
+    kron_index = o.kron_index
+    bd = body_dofs(spec.axis)
+    D, slot, sel = bd.D, bd.slot, bd.sel
+    at = indexing(spec)
+    hrow, own_from = at.hrow, at.own_from
+    zero = dtype(0.0)
+
+    @wp.func
+    def kron_split(a: int):
+        """(m, c) with kron_index(m, c) = a: component m, factor c of u = (1, x̄)."""
+        if a < 3:
+            return a, 0
+        return (a - 3) // 3, (a - 3) % 3 + 1
+
+    @wp.func
+    def put_grad(g: Any, s: int, B: int, o: int, v: vec12):
+        if o >= 0:
+            for u in range(own_from(o), D, RL):
+                p = (o + u) * B + s
+                g[p] = g[p] + v[sel(u)]
 
     @wp.func
     def kron_rows(H: Any, s: int, B: int, oa: int, ob: int, U: mat44):
@@ -214,8 +239,8 @@ def puts(spec: KernelSpec):
             put_outer(H, s, B, oi, oj, gi, gj, dde)
             put_outer(H, s, B, oj, oj, gj, gj, dde)
 
-    return SimpleNamespace(kron_split=kron_split, put_grad=put_grad, body_row=body_row, put_body=put_body,
-                           put_kron_pair=put_kron_pair, put_rank1=put_rank1, put_outer_pair=put_outer_pair)
+    return SimpleNamespace(kron_split=kron_split, put_grad=put_grad, put_kron_pair=put_kron_pair,
+                           put_rank1=put_rank1, put_outer_pair=put_outer_pair)
 
 
 @functools.lru_cache(maxsize=None)
