@@ -37,6 +37,9 @@ from .kernels import RESET, RESTART, SET
 
 # the energy's own rounding allowed in a step, in units of eps·Σ|E_c|
 FLOOR_EPS = 1000.0
+# fresh == SET as the bytes of an int32: a host-side test without a ufunc (fresh's values, 0 to
+# SET, are one low byte and three zero bytes, so the pattern can match only at a value's start)
+SET_BYTES = np.int32(SET).tobytes()
 
 
 def conservative(model) -> bool:
@@ -196,8 +199,8 @@ class EnergyCheck:
         self.E = wp.zeros((m.num_worlds, len(cols)), dtype=m.dtype, device=m.device)
         self.need = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
         self.busy = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
-        self._host = None  # CPU: (state, NumPy views of its status, fresh and energy)
-        self._control = None  # CPU: (state, NumPy views of its controls and energy)
+        self.cpu = wp.get_device(m.device).is_cpu
+        self._host = None  # CPU: HostViews of the state the views are of
         self.floor = FLOOR_EPS * float(np.finfo(m.np_dtype).eps)
         # 2/ĥ² on the joints' columns (module docstring: their stretch's share of gravity's work)
         slack = [2.0 / solver.h_eff**2 if name.endswith("_joint") else 0.0 for name in list(cols)[: self.ncols]]
@@ -208,29 +211,36 @@ class EnergyCheck:
         self.E.zero_()
         self.solver.assemble(state, state.q, self.E, mask, 0, physical=True)
 
+    def host(self, state) -> "HostViews":
+        """CPU: the NumPy views of ``state`` the host-side checks read (made once per state)."""
+        if self._host is None or self._host.state is not state:
+            self._host = HostViews(state, self.solver.model.num_drives)
+        return self._host
+
     def any_checked(self, state) -> bool:
         """CPU (host memory): whether a world has no drive pushing (else the step is not tested, and
-        every world's energy is marked unknown, to be computed before a step that is)."""
-        nd = self.solver.model.num_drives
-        if not nd:
+        every world's energy is marked unknown, to be computed before a step that is).  Counting
+        the nonzero controls decides the common cases, every control nonzero (no world tested) or
+        none (every world), without a per-world reduction."""
+        h = self._host
+        if h is None or h.state is not state:
+            h = self.host(state)
+        if not h.control.size:  # no drive
             return True
-        if self._control is None or self._control[0] is not state:
-            self._control = (state, state.control.numpy(), state.energy.numpy())
-        if (self._control[1][:, :nd] == 0).all(axis=1).any():
+        pushing = np.count_nonzero(h.control)
+        if pushing == 0:
             return True
-        self._control[2][:, 0] = np.nan
+        if pushing < h.control.size and (np.count_nonzero(h.control, axis=1) == 0).any():
+            return True
+        h.energy0.fill(np.nan)
         return False
 
     def before(self, state, hold, go):
         """Before a step (holding the worlds ``hold``, and every world while go[0] == 0): the energy
         of the worlds whose E_before is not known (module docstring)."""
         m = self.solver.model
-        if wp.get_device(m.device).is_cpu:  # host memory: no launch where every world's energy is known
-            if self._host is None or self._host[0] is not state:
-                self._host = (state, state.status.numpy(), state.fresh.numpy(), state.energy.numpy())
-            _, status, fresh, energy = self._host
-            if not ((status == OK) & ((fresh == SET) | np.isnan(energy[:, 0]))).any():
-                return
+        if self.cpu and not self.host(state).unknown():  # host memory: no launch where every energy is known
+            return
         wp.launch(self.k["unknown"], dim=m.num_worlds, inputs=[state.status, state.fresh, state.energy, hold, go, self.need],
                   device=m.device)  # fmt: skip
         self.measure(state, self.need)
@@ -257,3 +267,21 @@ class EnergyCheck:
                   inputs=self._common(state) + [state.status, m.dtype(self.tol), state.energy,
                                                 state.fresh, state.substeps, state.gained, idle, self.busy,
                                                 back, n, next_n], device=m.device)  # fmt: skip
+
+
+class HostViews:
+    """CPU: NumPy views of a state's arrays (host memory) for the energy test's host-side checks."""
+
+    def __init__(self, state, num_drives: int):
+        self.state = state
+        self.status, self.fresh = state.status.numpy(), state.fresh.numpy()
+        self.control = state.control.numpy()[:, :num_drives]
+        self.energy0 = state.energy.numpy()[:, 0]  # E_before, NaN where unknown
+
+    def unknown(self) -> bool:
+        """Whether a world OK has no known energy before its step: its state set (fresh SET) or a
+        parameter changed (E NaN).  The sum of the energies is NaN where one is (a NaN, or an
+        inf meeting -inf, which the full test then rejects as known)."""
+        if not np.isnan(self.energy0.sum()) and SET_BYTES not in self.fresh.tobytes():
+            return False
+        return bool(((self.status == OK) & ((self.fresh == SET) | np.isnan(self.energy0))).any())
