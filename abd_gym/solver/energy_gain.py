@@ -27,6 +27,7 @@ is computed anew before a step only where a door set the state (``fresh`` SET) o
 changed it (E NaN: Simulator's setters).
 """
 import functools
+import math
 
 import numpy as np
 import warp as wp
@@ -280,8 +281,9 @@ class HostViews:
 
     def unknown(self) -> bool:
         """Whether a world OK has no known energy before its step: its state set (fresh SET) or a
-        parameter changed (E NaN).  The sum of the energies is NaN where one is (a NaN, or an
-        inf meeting -inf, which the full test then rejects as known)."""
-        if not np.isnan(self.energy0.sum()) and SET_BYTES not in self.fresh.tobytes():
+        parameter changed (E NaN).  The energies' dot product with themselves is NaN where one is
+        NaN (and only there: squares are never NaN, their sum only where inf meets -inf, which
+        squares are not), a cheaper reduction than a sum or isnan's."""
+        if not math.isnan(self.energy0.dot(self.energy0)) and SET_BYTES not in self.fresh.tobytes():
             return False
         return bool(((self.status == OK) & ((self.fresh == SET) | np.isnan(self.energy0))).any())

@@ -199,13 +199,13 @@ class Retry:
         """Before a step, with the energy test: the state before it (every world's rows, which a
         retry restores; a held world's copy is never read back) and the energy of the worlds
         whose energy before it is not known (none that the step holds: ``hold``, ``go``)."""
-        s = self.solver
-        if self._subs is None and not wp.get_device(s.model.device).is_capturing:
-            self.prepare(state)
         if self._cpu:  # no test where every world's drive pushes (host memory)
             self.testing = self.energy.any_checked(state)
             if not self.testing:
                 return
+        s = self.solver
+        if self._subs is None and not wp.get_device(s.model.device).is_capturing:
+            self.prepare(state)
         self.energy.before(state, s._no_hold if hold is None else hold, s._go_all if go is None else go)
         if self._cpu:  # the copies as one replayed graph (a copy each from Python costs more than all of them)
             if self._save_graph is None or self._save_graph[0] is not state:
