@@ -130,6 +130,28 @@ def test_a_scene_with_a_position_drive_is_not_tested():
         ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=-0.1)
 
 
+def test_the_tests_energies_are_the_reports_sum():
+    """EnergyCheck.measure leaves the drives' launch out (a conservative scene's drives have no
+    physical energy): its columns equal ``energies()``'s bit for bit, effort and velocity drives
+    pushing or not."""
+    scene = mechanisms.double_pendulum()
+    scene.add_drive(scene.joints[0].name, mode="effort", max_effort=5.0)
+    scene.add_drive(scene.joints[1].name, mode="velocity", damping=2.0, max_effort=5.0)
+    sim = _sim(scene, dt=0.01, energy_gain=0.05)
+    sim.set_controls(np.tile([[0.0, 0.0], [1.5, -0.7]], (W // 2, 1)))
+    for _ in range(3):
+        sim.step()
+    check = sim.solver.retry.energy
+    assert check.parts and all(c.name != "drive" for c in check.parts)
+    check.measure(sim.state, sim.solver.all_active)
+    measured, report = check.E.numpy(), sim.energies()
+    assert set(report) == {name for name in sim.solver.report_cols if name != "scratch"}
+    for name, col in sim.solver.report_cols.items():
+        if name != "scratch":
+            np.testing.assert_array_equal(measured[:, col], report[name])
+    assert not report["drive"].any()
+
+
 def test_the_test_runs_by_default_at_large_steps_only():
     """energy_gain None: on where a step turns the fastest gravity mode past ENERGY_TEST_TURN (the
     double pendulum's links, 6.2 rad/s: dt 0.03 and 0.1, not 0.01 or 0.02)."""

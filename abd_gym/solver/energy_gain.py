@@ -198,6 +198,7 @@ class EnergyCheck:
         cols = solver.report_cols
         self.ncols, self.gcol = len(cols) - 1, cols["gravity"]  # (every column but the scratch)
         self.E = wp.zeros((m.num_worlds, len(cols)), dtype=m.dtype, device=m.device)
+        self.parts = [c for c in solver.parts if c.name != drive.NAME]  # (measure)
         self.need = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
         self.busy = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
         self.cpu = wp.get_device(m.device).is_cpu
@@ -208,9 +209,13 @@ class EnergyCheck:
         self.slack = wp.array(slack, dtype=m.dtype, device=m.device)
 
     def measure(self, state, mask):
-        """The physical energies of the worlds in mask into self.E (Solver.assemble, physical)."""
+        """The physical energies of the worlds in mask into self.E (Solver.assemble, physical),
+        but for the drives': a conservative scene's (no position drive) are 0, as the zeroed
+        column keeps them, so their launch is left out."""
+        s = self.solver
         self.E.zero_()
-        self.solver.assemble(state, state.q, self.E, mask, 0, physical=True)
+        for c in self.parts:
+            c.launch(s.model, state, s, state.q, self.E, s.g, s.H, mask, 0, s.report_cols, True)
 
     def host(self, state) -> "HostViews":
         """CPU: the NumPy views of ``state`` the host-side checks read (made once per state)."""
