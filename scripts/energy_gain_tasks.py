@@ -176,7 +176,7 @@ def _sim_round(scene, worlds, gain, control, steps):
     return sim, round_
 
 
-def cost(ids, steps, sim_steps, rounds):
+def cost(ids, steps, sim_steps, rounds, sims=True):
     """Rows of steps/s (best of ``rounds`` alternating rounds) of every variant (module docstring)."""
     from abd_gym.sim import mechanisms
 
@@ -187,7 +187,8 @@ def cost(ids, steps, sim_steps, rounds):
             env, runner = _env_runner(name, gain, steps)
             envs.append(env)
             variants[(f"env {name}", f"energy_gain {gain}")] = runner
-    for label, build in (("pendulum", mechanisms.pendulum), ("double pendulum", mechanisms.double_pendulum)):
+    mechanisms_timed = (("pendulum", mechanisms.pendulum), ("double pendulum", mechanisms.double_pendulum))
+    for label, build in mechanisms_timed if sims else ():
         scene = build()
         scene.add_drive(0, mode="effort")
         for worlds in (1, 64):
@@ -234,6 +235,7 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=3000, help="--cost: env steps a round")
     p.add_argument("--sim-steps", type=int, default=1000, help="--cost: simulator steps a round")
     p.add_argument("--rounds", type=int, default=3, help="--cost: alternating rounds")
+    p.add_argument("--envs-only", action="store_true", help="--cost: the envs only, not the simulator loops")
     a = p.parse_args(argv)
     meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                 machine=platform.processor() or platform.machine(), device="cpu",
@@ -244,7 +246,7 @@ def main(argv=None):
             print(table(json.load(f)["rows"]))
         return
     if a.cost:
-        rows = cost(a.ids, a.steps, a.sim_steps, a.rounds)
+        rows = cost(a.ids, a.steps, a.sim_steps, a.rounds, sims=not a.envs_only)
         print(cost_table(rows))
         out = a.out or "results/energy_gain_cost_cpu.json"
         with open(out, "w") as f:

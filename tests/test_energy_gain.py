@@ -120,6 +120,26 @@ def test_a_world_whose_drive_pushes_is_not_tested(fourbar):
     assert extra > 0
 
 
+@pytest.mark.parametrize("worlds", [1, 3])
+def test_the_test_is_skipped_while_every_drive_pushes(worlds):
+    """A pushed step is not tested and leaves every energy unknown (NaN), to be computed before the
+    next tested step; one world with one drive (its own host check) as several; the steps are
+    the plain ones bit for bit."""
+    scene = mechanisms.pendulum()
+    scene.add_drive(scene.joints[0].name, mode="effort", max_effort=5.0)
+    sims = [ag.Simulator(scene, num_worlds=worlds, dt=0.01, dtype="float64", energy_gain=g) for g in (0.05, 0)]
+    for sim in sims:
+        sim.set_joint_state(np.linspace(0.5, 1.5, worlds)[:, None])
+    for control, tested in ((1.0, False), (0.0, True), (-0.5, False)):
+        for sim in sims:
+            sim.set_controls(np.full((worlds, 1), control))
+            sim.step()
+        energy = sims[0].state.energy.numpy()[:, 0]
+        assert sims[0].solver.retry.testing == tested
+        assert np.isfinite(energy).all() if tested else np.isnan(energy).all()
+        np.testing.assert_array_equal(sims[0].body_q(), sims[1].body_q())
+
+
 def test_a_scene_with_a_position_drive_is_not_tested():
     scene = mechanisms.double_pendulum()
     scene.add_drive(scene.joints[0].name, mode="position", stiffness=10.0)

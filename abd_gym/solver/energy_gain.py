@@ -225,21 +225,12 @@ class EnergyCheck:
 
     def any_checked(self, state) -> bool:
         """CPU (host memory): whether a world has no drive pushing (else the step is not tested, and
-        every world's energy is marked unknown, to be computed before a step that is).  Counting
-        the nonzero controls decides the common cases, every control nonzero (no world tested) or
-        none (every world), without a per-world reduction."""
+        every world's energy is marked unknown, to be computed before a step that is;
+        HostViews.any_checked)."""
         h = self._host
         if h is None or h.state is not state:
             h = self.host(state)
-        if not h.control.size:  # no drive
-            return True
-        pushing = np.count_nonzero(h.control)
-        if pushing == 0:
-            return True
-        if pushing < h.control.size and (np.count_nonzero(h.control, axis=1) == 0).any():
-            return True
-        h.energy0.fill(np.nan)
-        return False
+        return h.any_checked()
 
     def before(self, state, hold, go):
         """Before a step (holding the worlds ``hold``, and every world while go[0] == 0): the energy
@@ -283,6 +274,28 @@ class HostViews:
         self.status, self.fresh = state.status.numpy(), state.fresh.numpy()
         self.control = state.control.numpy()[:, :num_drives]
         self.energy0 = state.energy.numpy()[:, 0]  # E_before, NaN where unknown
+        # one world with one drive: that control alone decides (an item compare, no reduction)
+        self.single = self.control.size == 1
+        self.control_item = self.control.reshape(-1) if self.single else None
+
+    def any_checked(self) -> bool:
+        """Whether a world has no drive pushing; where none has, its energy is marked unknown.
+        Counting the nonzero controls decides the common cases, every control nonzero (no world
+        tested) or none (every world), without a per-world reduction."""
+        if self.single:
+            if self.control_item[0] == 0:
+                return True
+            self.energy0[0] = np.nan
+            return False
+        if not self.control.size:  # no drive
+            return True
+        pushing = np.count_nonzero(self.control)
+        if pushing == 0:
+            return True
+        if pushing < self.control.size and (np.count_nonzero(self.control, axis=1) == 0).any():
+            return True
+        self.energy0.fill(np.nan)
+        return False
 
     def unknown(self) -> bool:
         """Whether a world OK has no known energy before its step: its state set (fresh SET) or a
