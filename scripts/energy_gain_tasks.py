@@ -37,6 +37,7 @@ import datetime
 import importlib
 import json
 import math
+import os
 import platform
 import sys
 import time
@@ -44,6 +45,7 @@ import warnings
 
 import numpy as np
 
+import abd_gym
 from abd_gym.bench.robustness import _measure
 from abd_gym.sim import conditioning
 from abd_gym.sim.simulator import Simulator
@@ -239,7 +241,7 @@ def main(argv=None):
     a = p.parse_args(argv)
     meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                 machine=platform.processor() or platform.machine(), device="cpu",
-                energy_test_turn=conditioning.ENERGY_TEST_TURN,
+                energy_test_turn=conditioning.ENERGY_TEST_TURN, abd_gym=os.path.dirname(abd_gym.__file__),
                 command=" ".join(["python scripts/energy_gain_tasks.py"] + (sys.argv[1:] if argv is None else argv)))
     if a.table:
         with open(a.table) as f:
