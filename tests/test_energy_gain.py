@@ -152,17 +152,24 @@ def test_a_scene_with_a_position_drive_is_not_tested():
 
 def test_the_tests_energies_are_the_reports_sum():
     """EnergyCheck.measure leaves the drives' launch out (a conservative scene's drives have no
-    physical energy): its columns equal ``energies()``'s bit for bit, effort and velocity drives
-    pushing or not."""
+    physical energy) and takes the point joints' energies without their derivatives: its
+    columns equal ``energies()``'s bit for bit, revolute and fixed joints, effort and velocity
+    drives pushing or not."""
     scene = mechanisms.double_pendulum()
+    weight = scene.add_body(ag.Box(half_extents=(0.05, 0.05, 0.05)), mass=0.5, position=(0.1, 0.0, -0.75))
+    scene.add_fixed_joint("link1", weight)
     scene.add_drive(scene.joints[0].name, mode="effort", max_effort=5.0)
     scene.add_drive(scene.joints[1].name, mode="velocity", damping=2.0, max_effort=5.0)
-    sim = _sim(scene, dt=0.01, energy_gain=0.05)
+    sim = ag.Simulator(scene, num_worlds=W, dt=0.01, integrator="bdf2", dtype="float64", energy_gain=0.05)
+    x = np.zeros((W, scene.num_joints))  # (the weld's coordinate 0)
+    x[:, :2] = np.random.default_rng(0).uniform(-2.5, 2.5, (W, 2))
+    sim.set_joint_state(x)
     sim.set_controls(np.tile([[0.0, 0.0], [1.5, -0.7]], (W // 2, 1)))
     for _ in range(3):
         sim.step()
     check = sim.solver.retry.energy
-    assert check.parts and all(c.name != "drive" for c in check.parts)
+    assert {c.name for c in check.parts} >= {"revolute_joint", "fixed_joint"}
+    assert all(c.name != "drive" for c in check.parts)
     check.measure(sim.state, sim.solver.all_active)
     measured, report = check.E.numpy(), sim.energies()
     assert set(report) == {name for name in sim.solver.report_cols if name != "scratch"}

@@ -32,7 +32,8 @@ import math
 import numpy as np
 import warp as wp
 
-from ..constitutions import drive
+from ..constitutions import _point_joint, drive, fixed_joint, revolute_joint
+from ..core.warp_ops import ops
 from ..sim.status import OK
 from .kernels import RESET, RESTART, SET
 
@@ -46,6 +47,33 @@ SET_BYTES = np.int32(SET).tobytes()
 def conservative(model) -> bool:
     """Whether the scene's worlds can be checked: no position drive (module docstring)."""
     return not model.num_drives or not (model.drive_mode.numpy() == drive.POSITION).any()
+
+
+# the point joints (constitution name: (joint kind, points)), whose energy measure takes without
+# the 12 × 12 Hessian blocks their own kernel builds (zeroed) at every evaluation
+POINT_JOINTS = {c.NAME: (c.KIND, c.NUM_POINTS) for c in (revolute_joint, fixed_joint)}
+
+
+@functools.lru_cache(maxsize=None)
+def point_energy(dtype):
+    """The point joints' energies alone: each joint's term of _point_joint's kernel (its energy
+    from the same point_eval_kron, added in the same order), without its derivatives."""
+    vec3, vec12 = ops(dtype).vec3, ops(dtype).vec12
+    evaluate, add_energy = _point_joint.kernel(dtype).eval_kron, ops(dtype).add_energy
+
+    @wp.kernel(module="unique")
+    def point_energy(q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32), body_a: wp.array(dtype=wp.int32),
+                     body_b: wp.array(dtype=wp.int32), pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3),
+                     npts: int, K: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), col: int,
+                     E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        e, gi, gj, uii, uij, ujj = evaluate(q[w, body_a[j]], q[w, body_b[j]], pts_a, pts_b, w, j, npts, K[w, j], 0)
+        add_energy(E, w, col, e)
+
+    return point_energy
 
 
 @functools.lru_cache(maxsize=None)
@@ -211,11 +239,17 @@ class EnergyCheck:
     def measure(self, state, mask):
         """The physical energies of the worlds in mask into self.E (Solver.assemble, physical),
         but for the drives': a conservative scene's (no position drive) are 0, as the zeroed
-        column keeps them, so their launch is left out."""
-        s = self.solver
+        column keeps them, so their launch is left out; the point joints' by point_energy."""
+        s, m = self.solver, self.solver.model
         self.E.zero_()
         for c in self.parts:
-            c.launch(s.model, state, s, state.q, self.E, s.g, s.H, mask, 0, s.report_cols, True)
+            if c.name in POINT_JOINTS:
+                kind, npts = POINT_JOINTS[c.name]
+                wp.launch(point_energy(m.dtype), dim=(m.num_worlds, m.joint_count[kind]),
+                          inputs=[state.q, m.joint_ids[kind], m.body_a, m.body_b, m.pts_a, m.pts_b, npts, m.K, mask,
+                                  s.report_cols[c.name], self.E], device=m.device)  # fmt: skip
+            else:
+                c.launch(m, state, s, state.q, self.E, s.g, s.H, mask, 0, s.report_cols, True)
 
     def host(self, state) -> "HostViews":
         """CPU: the NumPy views of ``state`` the host-side checks read (made once per state)."""
