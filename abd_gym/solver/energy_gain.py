@@ -32,7 +32,7 @@ import math
 import numpy as np
 import warp as wp
 
-from ..constitutions import _point_joint, drive, fixed_joint, revolute_joint
+from ..constitutions import _point_joint, affine_body, drive, fixed_joint, revolute_joint
 from ..core.warp_ops import ops
 from ..sim.status import OK
 from .kernels import RESET, RESTART, SET
@@ -74,6 +74,29 @@ def point_energy(dtype):
         add_energy(E, w, col, e)
 
     return point_energy
+
+
+@functools.lru_cache(maxsize=None)
+def orthogonality_energy(dtype):
+    """The bodies' orthogonality energies alone: affine_body's body_terms in physical form (the
+    same body_grad, added in the same order) without its 12 × 12 Hessian or its inertia term."""
+    o = ops(dtype)
+    vec3, vec12, mat33 = o.vec3, o.vec12, o.mat33
+    body_grad, add_energy = affine_body.body_funcs(dtype).body_grad, o.add_energy
+
+    @wp.kernel(module="unique")
+    def orthogonality_energy(q: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
+                             free: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
+                             mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33), kv: wp.array2d(dtype=dtype),
+                             active: wp.array(dtype=wp.int32), col: int, E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        b = free[k]
+        e_inertia, e_ortho, f = body_grad(q[w, b], q_tilde[w, b], mass[w, b], mc[w, b], S[w, b], kv[w, b], 0)
+        add_energy(E, w, col, e_ortho)
+
+    return orthogonality_energy
 
 
 @functools.lru_cache(maxsize=None)
@@ -239,11 +262,20 @@ class EnergyCheck:
     def measure(self, state, mask):
         """The physical energies of the worlds in mask into self.E (Solver.assemble, physical),
         but for the drives': a conservative scene's (no position drive) are 0, as the zeroed
-        column keeps them, so their launch is left out; the point joints' by point_energy."""
+        column keeps them, so their launch is left out; the bodies' orthogonality and the point
+        joints' by kernels of their energies alone (orthogonality_energy, point_energy)."""
         s, m = self.solver, self.solver.model
         self.E.zero_()
         for c in self.parts:
-            if c.name in POINT_JOINTS:
+            if c.name == affine_body.NAME:  # kinetic and gravity (body_report), orthogonality
+                cols, dim = s.report_cols, (m.num_worlds, m.num_free)
+                wp.launch(affine_body.kernels(m.dtype).body_report, dim=dim,
+                          inputs=[state.q, state.qd, m.free, m.mass, m.mc, m.S, m.gravity, self.E, cols["kinetic"],
+                                  cols["gravity"]], device=m.device)  # fmt: skip
+                wp.launch(orthogonality_energy(m.dtype), dim=dim,
+                          inputs=[state.q, s.q_tilde, m.free, m.mass, m.mc, m.S, m.kv, mask, cols["orthogonality"],
+                                  self.E], device=m.device)  # fmt: skip
+            elif c.name in POINT_JOINTS:
                 kind, npts = POINT_JOINTS[c.name]
                 wp.launch(point_energy(m.dtype), dim=(m.num_worlds, m.joint_count[kind]),
                           inputs=[state.q, m.joint_ids[kind], m.body_a, m.body_b, m.pts_a, m.pts_b, npts, m.K, mask,
