@@ -121,8 +121,8 @@ def table(rows) -> str:
     by = {}
     for r in rows:
         by.setdefault(key(r), {})[r["energy_gain"]] = r
-    head = ("| task | dt [s] | turn [rad] | draw | dtype | swing [J] | off: worst step gain | off: worlds > 5% | off: reported | "
-            "on: worst step gain | on: worlds > 5% | on: substeps 2/4 | on: kept gain | on: reported |")
+    head = ("| task | dt [s] | turn [rad] | draw | dtype | swing [J] | off: worst step gain | off: worlds > 5% | "
+            "off: reported | on: worst step gain | on: worlds > 5% | on: substeps 2/4 | on: kept gain | on: reported |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
 
     def pct(r, k):
