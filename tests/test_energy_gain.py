@@ -120,6 +120,26 @@ def test_a_world_whose_drive_pushes_is_not_tested(fourbar):
     assert extra > 0
 
 
+@pytest.mark.parametrize("worlds", [1, 3])
+def test_the_test_is_skipped_while_every_drive_pushes(worlds):
+    """A pushed step is not tested and leaves every energy unknown (NaN), to be computed before the
+    next tested step; one world with one drive (its own host check) as several; the steps are
+    the plain ones bit for bit."""
+    scene = mechanisms.pendulum()
+    scene.add_drive(scene.joints[0].name, mode="effort", max_effort=5.0)
+    sims = [ag.Simulator(scene, num_worlds=worlds, dt=0.01, dtype="float64", energy_gain=g) for g in (0.05, 0)]
+    for sim in sims:
+        sim.set_joint_state(np.linspace(0.5, 1.5, worlds)[:, None])
+    for control, tested in ((1.0, False), (0.0, True), (-0.5, False)):
+        for sim in sims:
+            sim.set_controls(np.full((worlds, 1), control))
+            sim.step()
+        energy = sims[0].state.energy.numpy()[:, 0]
+        assert sims[0].solver.retry.testing == tested
+        assert np.isfinite(energy).all() if tested else np.isnan(energy).all()
+        np.testing.assert_array_equal(sims[0].body_q(), sims[1].body_q())
+
+
 def test_a_scene_with_a_position_drive_is_not_tested():
     scene = mechanisms.double_pendulum()
     scene.add_drive(scene.joints[0].name, mode="position", stiffness=10.0)
@@ -128,6 +148,35 @@ def test_a_scene_with_a_position_drive_is_not_tested():
     assert ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=0).solver.retry.energy is None
     with pytest.raises(ValueError, match="energy_gain"):
         ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=-0.1)
+
+
+def test_the_tests_energies_are_the_reports_sum():
+    """EnergyCheck.measure leaves the drives' launch out (a conservative scene's drives have no
+    physical energy) and takes the point joints' energies without their derivatives: its
+    columns equal ``energies()``'s bit for bit, revolute and fixed joints, effort and velocity
+    drives pushing or not."""
+    scene = mechanisms.double_pendulum()
+    weight = scene.add_body(ag.Box(half_extents=(0.05, 0.05, 0.05)), mass=0.5, position=(0.1, 0.0, -0.75))
+    scene.add_fixed_joint("link1", weight)
+    scene.add_drive(scene.joints[0].name, mode="effort", max_effort=5.0)
+    scene.add_drive(scene.joints[1].name, mode="velocity", damping=2.0, max_effort=5.0)
+    sim = ag.Simulator(scene, num_worlds=W, dt=0.01, integrator="bdf2", dtype="float64", energy_gain=0.05)
+    x = np.zeros((W, scene.num_joints))  # (the weld's coordinate 0)
+    x[:, :2] = np.random.default_rng(0).uniform(-2.5, 2.5, (W, 2))
+    sim.set_joint_state(x)
+    sim.set_controls(np.tile([[0.0, 0.0], [1.5, -0.7]], (W // 2, 1)))
+    for _ in range(3):
+        sim.step()
+    check = sim.solver.retry.energy
+    assert {c.name for c in check.parts} >= {"revolute_joint", "fixed_joint"}
+    assert all(c.name != "drive" for c in check.parts)
+    check.measure(sim.state, sim.solver.all_active)
+    measured, report = check.E.numpy(), sim.energies()
+    assert set(report) == {name for name in sim.solver.report_cols if name != "scratch"}
+    for name, col in sim.solver.report_cols.items():
+        if name != "scratch":
+            np.testing.assert_array_equal(measured[:, col], report[name])
+    assert not report["drive"].any()
 
 
 def test_the_test_runs_by_default_at_large_steps_only():

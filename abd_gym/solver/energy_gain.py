@@ -27,21 +27,76 @@ is computed anew before a step only where a door set the state (``fresh`` SET) o
 changed it (E NaN: Simulator's setters).
 """
 import functools
+import math
 
 import numpy as np
 import warp as wp
 
-from ..constitutions import drive
+from ..constitutions import _point_joint, affine_body, drive, fixed_joint, revolute_joint
+from ..core.warp_ops import ops
 from ..sim.status import OK
 from .kernels import RESET, RESTART, SET
 
 # the energy's own rounding allowed in a step, in units of eps·Σ|E_c|
 FLOOR_EPS = 1000.0
+# fresh == SET as the bytes of an int32: a host-side test without a ufunc (fresh's values, 0 to
+# SET, are one low byte and three zero bytes, so the pattern can match only at a value's start)
+SET_BYTES = np.int32(SET).tobytes()
 
 
 def conservative(model) -> bool:
     """Whether the scene's worlds can be checked: no position drive (module docstring)."""
     return not model.num_drives or not (model.drive_mode.numpy() == drive.POSITION).any()
+
+
+# the point joints (constitution name: (joint kind, points)), whose energy measure takes without
+# the 12 × 12 Hessian blocks their own kernel builds (zeroed) at every evaluation
+POINT_JOINTS = {c.NAME: (c.KIND, c.NUM_POINTS) for c in (revolute_joint, fixed_joint)}
+
+
+@functools.lru_cache(maxsize=None)
+def point_energy(dtype):
+    """The point joints' energies alone: each joint's term of _point_joint's kernel (its energy
+    from the same point_eval_kron, added in the same order), without its derivatives."""
+    vec3, vec12 = ops(dtype).vec3, ops(dtype).vec12
+    evaluate, add_energy = _point_joint.kernel(dtype).eval_kron, ops(dtype).add_energy
+
+    @wp.kernel(module="unique")
+    def point_energy(q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32), body_a: wp.array(dtype=wp.int32),
+                     body_b: wp.array(dtype=wp.int32), pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3),
+                     npts: int, K: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), col: int,
+                     E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        e, gi, gj, uii, uij, ujj = evaluate(q[w, body_a[j]], q[w, body_b[j]], pts_a, pts_b, w, j, npts, K[w, j], 0)
+        add_energy(E, w, col, e)
+
+    return point_energy
+
+
+@functools.lru_cache(maxsize=None)
+def orthogonality_energy(dtype):
+    """The bodies' orthogonality energies alone: affine_body's body_terms in physical form (the
+    same body_grad, added in the same order) without its 12 × 12 Hessian or its inertia term."""
+    o = ops(dtype)
+    vec3, vec12, mat33 = o.vec3, o.vec12, o.mat33
+    body_grad, add_energy = affine_body.body_funcs(dtype).body_grad, o.add_energy
+
+    @wp.kernel(module="unique")
+    def orthogonality_energy(q: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
+                             free: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
+                             mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33), kv: wp.array2d(dtype=dtype),
+                             active: wp.array(dtype=wp.int32), col: int, E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        b = free[k]
+        e_inertia, e_ortho, f = body_grad(q[w, b], q_tilde[w, b], mass[w, b], mc[w, b], S[w, b], kv[w, b], 0)
+        add_energy(E, w, col, e_ortho)
+
+    return orthogonality_energy
 
 
 @functools.lru_cache(maxsize=None)
@@ -194,43 +249,61 @@ class EnergyCheck:
         cols = solver.report_cols
         self.ncols, self.gcol = len(cols) - 1, cols["gravity"]  # (every column but the scratch)
         self.E = wp.zeros((m.num_worlds, len(cols)), dtype=m.dtype, device=m.device)
+        self.parts = [c for c in solver.parts if c.name != drive.NAME]  # (measure)
         self.need = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
         self.busy = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
-        self._host = None  # CPU: (state, NumPy views of its status, fresh and energy)
-        self._control = None  # CPU: (state, NumPy views of its controls and energy)
+        self.cpu = wp.get_device(m.device).is_cpu
+        self._host = None  # CPU: HostViews of the state the views are of
         self.floor = FLOOR_EPS * float(np.finfo(m.np_dtype).eps)
         # 2/ĥ² on the joints' columns (module docstring: their stretch's share of gravity's work)
         slack = [2.0 / solver.h_eff**2 if name.endswith("_joint") else 0.0 for name in list(cols)[: self.ncols]]
         self.slack = wp.array(slack, dtype=m.dtype, device=m.device)
 
     def measure(self, state, mask):
-        """The physical energies of the worlds in mask into self.E (Solver.assemble, physical)."""
+        """The physical energies of the worlds in mask into self.E (Solver.assemble, physical),
+        but for the drives': a conservative scene's (no position drive) are 0, as the zeroed
+        column keeps them, so their launch is left out; the bodies' orthogonality and the point
+        joints' by kernels of their energies alone (orthogonality_energy, point_energy)."""
+        s, m = self.solver, self.solver.model
         self.E.zero_()
-        self.solver.assemble(state, state.q, self.E, mask, 0, physical=True)
+        for c in self.parts:
+            if c.name == affine_body.NAME:  # kinetic and gravity (body_report), orthogonality
+                cols, dim = s.report_cols, (m.num_worlds, m.num_free)
+                wp.launch(affine_body.kernels(m.dtype).body_report, dim=dim,
+                          inputs=[state.q, state.qd, m.free, m.mass, m.mc, m.S, m.gravity, self.E, cols["kinetic"],
+                                  cols["gravity"]], device=m.device)  # fmt: skip
+                wp.launch(orthogonality_energy(m.dtype), dim=dim,
+                          inputs=[state.q, s.q_tilde, m.free, m.mass, m.mc, m.S, m.kv, mask, cols["orthogonality"],
+                                  self.E], device=m.device)  # fmt: skip
+            elif c.name in POINT_JOINTS:
+                kind, npts = POINT_JOINTS[c.name]
+                wp.launch(point_energy(m.dtype), dim=(m.num_worlds, m.joint_count[kind]),
+                          inputs=[state.q, m.joint_ids[kind], m.body_a, m.body_b, m.pts_a, m.pts_b, npts, m.K, mask,
+                                  s.report_cols[c.name], self.E], device=m.device)  # fmt: skip
+            else:
+                c.launch(m, state, s, state.q, self.E, s.g, s.H, mask, 0, s.report_cols, True)
+
+    def host(self, state) -> "HostViews":
+        """CPU: the NumPy views of ``state`` the host-side checks read (made once per state)."""
+        if self._host is None or self._host.state is not state:
+            self._host = HostViews(state, self.solver.model.num_drives)
+        return self._host
 
     def any_checked(self, state) -> bool:
         """CPU (host memory): whether a world has no drive pushing (else the step is not tested, and
-        every world's energy is marked unknown, to be computed before a step that is)."""
-        nd = self.solver.model.num_drives
-        if not nd:
-            return True
-        if self._control is None or self._control[0] is not state:
-            self._control = (state, state.control.numpy(), state.energy.numpy())
-        if (self._control[1][:, :nd] == 0).all(axis=1).any():
-            return True
-        self._control[2][:, 0] = np.nan
-        return False
+        every world's energy is marked unknown, to be computed before a step that is;
+        HostViews.any_checked)."""
+        h = self._host
+        if h is None or h.state is not state:
+            h = self.host(state)
+        return h.any_checked()
 
     def before(self, state, hold, go):
         """Before a step (holding the worlds ``hold``, and every world while go[0] == 0): the energy
         of the worlds whose E_before is not known (module docstring)."""
         m = self.solver.model
-        if wp.get_device(m.device).is_cpu:  # host memory: no launch where every world's energy is known
-            if self._host is None or self._host[0] is not state:
-                self._host = (state, state.status.numpy(), state.fresh.numpy(), state.energy.numpy())
-            _, status, fresh, energy = self._host
-            if not ((status == OK) & ((fresh == SET) | np.isnan(energy[:, 0]))).any():
-                return
+        if self.cpu and not self.host(state).unknown():  # host memory: no launch where every energy is known
+            return
         wp.launch(self.k["unknown"], dim=m.num_worlds, inputs=[state.status, state.fresh, state.energy, hold, go, self.need],
                   device=m.device)  # fmt: skip
         self.measure(state, self.need)
@@ -257,3 +330,44 @@ class EnergyCheck:
                   inputs=self._common(state) + [state.status, m.dtype(self.tol), state.energy,
                                                 state.fresh, state.substeps, state.gained, idle, self.busy,
                                                 back, n, next_n], device=m.device)  # fmt: skip
+
+
+class HostViews:
+    """CPU: NumPy views of a state's arrays (host memory) for the energy test's host-side checks."""
+
+    def __init__(self, state, num_drives: int):
+        self.state = state
+        self.status, self.fresh = state.status.numpy(), state.fresh.numpy()
+        self.control = state.control.numpy()[:, :num_drives]
+        self.energy0 = state.energy.numpy()[:, 0]  # E_before, NaN where unknown
+        # one world with one drive: that control alone decides (an item compare, no reduction)
+        self.single = self.control.size == 1
+        self.control_item = self.control.reshape(-1) if self.single else None
+
+    def any_checked(self) -> bool:
+        """Whether a world has no drive pushing; where none has, its energy is marked unknown.
+        Counting the nonzero controls decides the common cases, every control nonzero (no world
+        tested) or none (every world), without a per-world reduction."""
+        if self.single:
+            if self.control_item[0] == 0:
+                return True
+            self.energy0[0] = np.nan
+            return False
+        if not self.control.size:  # no drive
+            return True
+        pushing = np.count_nonzero(self.control)
+        if pushing == 0:
+            return True
+        if pushing < self.control.size and (np.count_nonzero(self.control, axis=1) == 0).any():
+            return True
+        self.energy0.fill(np.nan)
+        return False
+
+    def unknown(self) -> bool:
+        """Whether a world OK has no known energy before its step: its state set (fresh SET) or a
+        parameter changed (E NaN).  The energies' dot product with themselves is NaN where one is
+        NaN (and only there: squares are never NaN, their sum only where inf meets -inf, which
+        squares are not), a cheaper reduction than a sum or isnan's."""
+        if not math.isnan(self.energy0.dot(self.energy0)) and SET_BYTES not in self.fresh.tobytes():
+            return False
+        return bool(((self.status == OK) & ((self.fresh == SET) | np.isnan(self.energy0))).any())

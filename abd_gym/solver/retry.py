@@ -125,7 +125,8 @@ class Retry:
         self._cpu = wp.get_device(dev).is_cpu
         self._host = None  # CPU: (state, NumPy views of its status and substeps, their bytes when all OK)
         self._graphs = {}  # CPU: (state, hold, go) -> (state, hold, go, the graph of _mark)
-        self._host_pairs = None  # CPU, with the energy test: (state, [(saved rows, state rows)] as NumPy views)
+        self._flag_host = None  # CPU: flag as a NumPy view
+        self._save_graph = None  # CPU, with the energy test: (state, the graph of _save)
 
     @property
     def ready(self) -> bool:
@@ -178,8 +179,12 @@ class Retry:
                 device = wp.get_device(m.device)
                 self._graphs[key] = (state, hold, go, graphs.capture(device, lambda: self._mark(state, hold, go))[0])
             wp.capture_launch(self._graphs[key][3])
-        else:
-            self._mark(state, hold, go)
+            if self._flag_host is None:
+                self._flag_host = self.flag.numpy()  # (a view of host memory)
+            if self._flag_host[0]:  # the branch capture_if takes, without its call
+                self._retry(state)
+            return
+        self._mark(state, hold, go)
         wp.capture_if(self.flag, on_true=self._retry, state=state)
 
     def _mark(self, state, hold, go):
@@ -194,20 +199,23 @@ class Retry:
         """Before a step, with the energy test: the state before it (every world's rows, which a
         retry restores; a held world's copy is never read back) and the energy of the worlds
         whose energy before it is not known (none that the step holds: ``hold``, ``go``)."""
-        s = self.solver
-        if self._subs is None and not wp.get_device(s.model.device).is_capturing:
-            self.prepare(state)
-        if wp.get_device(s.model.device).is_cpu:  # no test where every world's drive pushes (host memory)
+        if self._cpu:  # no test where every world's drive pushes (host memory)
             self.testing = self.energy.any_checked(state)
             if not self.testing:
                 return
+        s = self.solver
+        if self._subs is None and not wp.get_device(s.model.device).is_capturing:
+            self.prepare(state)
         self.energy.before(state, s._no_hold if hold is None else hold, s._go_all if go is None else go)
-        if wp.get_device(self.solver.model.device).is_cpu:  # host memory: NumPy copies, no launch
-            if self._host_pairs is None or self._host_pairs[0] is not state:
-                self._host_pairs = (state, [(saved.numpy(), live.numpy()) for live, saved in self._pairs])
-            for saved, live in self._host_pairs[1]:
-                np.copyto(saved, live)
+        if self._cpu:  # the copies as one replayed graph (a copy each from Python costs more than all of them)
+            if self._save_graph is None or self._save_graph[0] is not state:
+                self._save_graph = (state, graphs.capture(wp.get_device(s.model.device), self._save)[0])
+            wp.capture_launch(self._save_graph[1])
             return
+        self._save()
+
+    def _save(self):
+        """The state before the step: every array a retry puts back, copied whole."""
         for live, saved in self._pairs:
             wp.copy(saved, live)
 
