@@ -66,8 +66,8 @@ class Simulator:
     of its swing energy is retried the same way, and if it still gains at 4 substeps it is kept
     and flagged (``energy_gained``; solver/energy_gain.py); 0: no energy test; None: 0.05 where a
     step turns the scene's fastest gravity mode by more than conditioning.ENERGY_TEST_TURN (0.16
-    rad), the large steps where BDF2 can gain energy, else 0 (the test computes every tested
-    world's energy after each step: 1.7x a 64-world CPU step's time, 6x a one-world one).
+    rad), the large steps where BDF2 gains energy, else 0 (the test computes every tested world's
+    energy after each step, a cost on the CPU: docs/design.md §4.1).
 
     How the step runs on the device (kernels, memory layout, launches, graphs) is ``plan``, an
     ExecutionPlan (or a dict of its fields) whose None fields are derived from the device, the
