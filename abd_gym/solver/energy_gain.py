@@ -35,7 +35,7 @@ import warp as wp
 from ..constitutions import _point_joint, affine_body, drive, fixed_joint, revolute_joint
 from ..core.warp_ops import ops
 from ..sim.status import OK
-from .kernels import RESET, RESTART, SET
+from .kernels import RESET, RESTART, SET, next_attempt
 
 # the energy's own rounding allowed in a step, in units of eps·Σ|E_c|
 FLOOR_EPS = 1000.0
@@ -227,14 +227,8 @@ def kernels(dtype):
                 keep(mem, w, e, allow, g)
                 return
         back[w] = 1
-        if next_n > 0:
-            status[w] = OK
-            fresh[w] = RESTART
-            substeps[w] = next_n
-        else:
-            idle[w] = 1
+        if next_attempt(status, fresh, substeps, idle, w, n, next_n) != 0:
             busy[w] = 0
-            substeps[w] = n
 
     return {"unknown": unknown, "remember": remember, "judge": judge, "settle": settle}
 

@@ -24,6 +24,22 @@ SET = 3
 
 
 @wp.func
+def next_attempt(status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32),
+                 substeps: wp.array(dtype=wp.int32), idle: wp.array(dtype=wp.int32), w: int, n: int, next_n: int):  # fmt: skip
+    """A retried world whose attempt of ``n`` substeps did not come through (solver.retry): it tries
+    ``next_n`` substeps from the state before the step (an implicit Euler start: RESTART), or, with
+    next_n 0, idles with its status kept (returns 1 then: its retry is over)."""
+    if next_n > 0:
+        status[w] = OK
+        fresh[w] = RESTART
+        substeps[w] = next_n
+        return 0
+    idle[w] = 1
+    substeps[w] = n
+    return 1
+
+
+@wp.func
 def keep_restart(fresh: wp.array(dtype=wp.int32), w: int):
     """World w's step has begun: RESTART becomes RESET (one more implicit Euler step after the last
     step that ends with a limit engaged), RESET becomes 0."""

@@ -31,7 +31,7 @@ import warp as wp
 
 from ..core import graphs
 from ..sim.status import BREAKDOWN, OK, UNCONVERGED
-from .kernels import RESET, RESTART
+from .kernels import RESET, RESTART, next_attempt
 
 SUBSTEPS = (2, 4)
 # the state's arrays a retry leaves as its last attempt wrote them (the rest are put back to the
@@ -76,13 +76,7 @@ def settle(status: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32), su
         fresh[w] = RESET
         return
     back[w] = 1
-    if next_n > 0:
-        status[w] = OK
-        fresh[w] = RESTART
-        substeps[w] = next_n
-    else:
-        idle[w] = 1
-        substeps[w] = n
+    next_attempt(status, fresh, substeps, idle, w, n, next_n)
 
 
 @functools.lru_cache(maxsize=None)
