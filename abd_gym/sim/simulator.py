@@ -490,7 +490,7 @@ class Simulator:
         qd = np.concatenate([v, (_skew(w) @ R).reshape(len(idx), nb, 9)], axis=-1)
         q[:, fixed] = self.model.q0[fixed]
         qd[:, fixed] = 0.0
-        self._check_in_plane(("positions, rotations", q), ("linear_velocities, angular_velocities", qd), worlds=idx)
+        self._check_in_plane(idx, poses={"positions, rotations": q}, rates={"linear_velocities, angular_velocities": qd})
         limits = self._limit_bounds()
         before = self.get_state(idx) if limits and len(idx) else None
         self._set_q(idx, q, qd)
@@ -502,18 +502,18 @@ class Simulator:
                 self._write_state(before, idx)
                 raise
 
-    def _check_in_plane(self, *named, worlds):
-        """For a planar-reduced scene, each (name, (N, bodies, 12) array) a pose (name starting "q"
-        or "positions") or a velocity, refused where it leaves the plane (inputs.check_in_plane)."""
+    def _check_in_plane(self, worlds, poses: dict, rates: dict):
+        """For a planar-reduced scene, the body poses and rates given by name, (N, bodies, 12) each,
+        refused where they leave the plane (inputs.check_in_plane)."""
         plane = self.model.plane
         if plane is None:
             return
         movable = ~np.array([b.fixed for b in self.scene.bodies])
         items = [b.name for b in self.scene.bodies]
-        for name, a in named:
-            velocity = not (name.startswith("positions") or name in ("state['q']", "state['q_prev']", "state['q_hist']"))
-            inputs.check_in_plane(name, np.asarray(a, dtype=np.float64), worlds, items, plane.held, self.model.q0,
-                                  movable, velocity=velocity)  # fmt: skip
+        for velocity, named in ((False, poses), (True, rates)):
+            for name, a in named.items():
+                inputs.check_in_plane(name, np.asarray(a, dtype=np.float64), worlds, items, plane.held, self.model.q0,
+                                      movable, velocity=velocity)  # fmt: skip
 
     def _set_q(self, idx, q, qd):
         """Restart the worlds idx at body states q, q̇ (N, bodies, 12)."""
@@ -676,8 +676,8 @@ class Simulator:
         fixed = np.array([b.fixed for b in self.scene.bodies])
         inputs.check_rotations("state['q']", vals["q"][..., 3:].reshape(len(idx), -1, 3, 3).astype(np.float64), idx,
                                bodies, movable=~fixed)  # fmt: skip
-        self._check_in_plane(*[(f"state[{k!r}]", vals[k]) for k in ("q", "qd", "q_prev", "q_hist", "qd_hist", "qd_hist2")],
-                             worlds=idx)  # fmt: skip
+        self._check_in_plane(idx, poses={f"state[{k!r}]": vals[k] for k in ("q", "q_prev", "q_hist")},
+                             rates={f"state[{k!r}]": vals[k] for k in ("qd", "qd_hist", "qd_hist2")})  # fmt: skip
         if self.model.num_joints:
             coord = _finite_array("state['coord']", vals["coord"], vals["coord"].shape, idx, joints, "joint",
                                   self._state_bound)

@@ -27,6 +27,21 @@ from .terms import coordinate_terms, terms
 
 
 @functools.lru_cache(maxsize=None)
+def padding(spec: KernelSpec):
+    """``pad_rows(H, s, B, first, stride)``: 1 on the diagonal of the system's padding rows (KernelSpec.NR
+    ≤ i < N: a planar scene's rows to a multiple of 4) that are this thread's, i ≡ first (mod stride)."""
+    dtype, N, NR = spec.dtype, spec.N, spec.NR
+    hrow = indexing(spec).hrow
+
+    @wp.func
+    def pad_rows(H: Any, s: int, B: int, first: int, stride: int):
+        for i in range(NR + (first - NR % stride + stride) % stride, N, stride):
+            H[(hrow(i) + i) * B + s] = H[(hrow(i) + i) * B + s] + dtype(1.0)
+
+    return pad_rows
+
+
+@functools.lru_cache(maxsize=None)
 def lane_body_rows(spec: KernelSpec):
     """The lanes' body terms by rows: ``body_rows`` (a lane's rows of the bodies) and
     ``lane_bodies`` (every lane's rows, then the bodies' energies summed in body order)."""
@@ -37,8 +52,8 @@ def lane_body_rows(spec: KernelSpec):
     Terms = structs(dtype).Terms
     body_grad, hessian_parts = affine_body.kernels(dtype).body_grad, affine_body.kernels(dtype).hessian_parts
     at = indexing(spec)
-    block_sync, lane_index, hrow = at.block_sync, at.lane_index, at.hrow
-    body_row = puts(spec).body_row
+    block_sync, lane_index = at.block_sync, at.lane_index
+    body_row, pad_rows = puts(spec).body_row, padding(spec)
     zero = dtype(0.0)
 
     @wp.func
@@ -50,8 +65,7 @@ def lane_body_rows(spec: KernelSpec):
         1 on its diagonal."""
         if wp.static(NR < N):
             if derivs == HESSIAN:
-                for rho in range(NR + (first - NR % stride + stride) % stride, N, stride):
-                    H[(hrow(rho) + rho) * B + s] = H[(hrow(rho) + rho) * B + s] + dtype(1.0)
+                pad_rows(H, s, B, first, stride)
         for rho in range(first, NR, stride):
             k = rho // D
             b = t.free[k]
@@ -186,7 +200,7 @@ def assembly(spec: KernelSpec):
     """``assemble(q, qr, w, s, B, derivs, t, g, H)``: the incremental potential of world w at
     q[qr] and, per ``derivs``, its gradient and Hessian added to scratch column s (of B)."""
     dtype, G, lanes, N, NR = spec.dtype, spec.G, spec.lanes, spec.N, spec.NR
-    hrow = indexing(spec).hrow
+    pad_rows = padding(spec)
     has_rev, has_fix, has_pri = spec.has("revolute_joint"), spec.has("fixed_joint"), spec.has("prismatic_joint")
     has_rlim, has_plim, has_drive = spec.has("revolute_limit"), spec.has("prismatic_limit"), spec.has("drive")
     rev_angles = len(spec.folded(REVOLUTE)) > 0
@@ -216,10 +230,9 @@ def assembly(spec: KernelSpec):
         else:
             for k in range(t.free.shape[0]):
                 e += body_term(q, qr, w, s, B, derivs, t, g, H, k, h2)
-            if wp.static(NR < N):  # padding rows past the bodies' (KernelSpec.NR): 1 on the diagonal
+            if wp.static(NR < N):
                 if derivs == HESSIAN:
-                    for i in range(NR, N):
-                        H[(hrow(i) + i) * B + s] = H[(hrow(i) + i) * B + s] + dtype(1.0)
+                    pad_rows(H, s, B, 0, 1)
         ck = tick(t, w, 0, PHASE_ASSEMBLE_BODIES, ck)
         if wp.static(has_rev):
             for k in range(t.rev_ids.shape[0]):
