@@ -13,6 +13,7 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 import abd_gym  # noqa: F401 -- registers the ids
+from abd_gym.vector.registration import TASKS
 from abd_gym.vector.single_step import HostStep
 
 STEPS = 30
@@ -100,3 +101,43 @@ def test_nan_action_raises_and_steps_nothing():
 def test_plan_given_in_simulator_options_is_kept():
     env = gym.make("abd_gym/CartPole-v0", simulator_options={"plan": {"one_launch": False}})
     assert not env.unwrapped.sim.plan.one_launch
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_one_world_set_joint_state_as_the_checked_path_writes_it(name):
+    """A one-world CPU simulator's set_joint_state from float64 arrays (its plain-Python path) writes
+    the state that the same values as lists (the NumPy path) write, bit for bit, and the steps
+    after it are the same."""
+    sims = [gym.make(f"abd_gym/{name}").unwrapped.vector_env for _ in range(2)]
+    rng = np.random.default_rng(1)
+    x, xd = sims[0].initial_state(1, rng, {})
+    assert x.dtype == np.float64 and x.shape == (1, sims[0].scene.num_joints)
+    sims[0].sim.set_joint_state(x, xd)
+    sims[1].sim.set_joint_state(x.tolist(), xd.tolist())
+    assert sims[0].sim._world0_graph is not None and sims[1].sim._world0_graph is None  # the two paths
+    for _ in range(2):
+        a, b = (s.sim.get_state() for s in sims)
+        assert a.keys() == b.keys()
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+        for s in sims:
+            s.sim.step()
+
+
+def test_one_world_set_joint_state_refuses_what_the_checked_path_refuses():
+    """Values the plain-Python path's checks do not pass go to the NumPy path, which refuses them
+    naming the joint and writes nothing; values it passes are taken."""
+    sim = gym.make("abd_gym/CartPole-v0").unwrapped.sim
+    before = sim.get_state()
+    # the slider's limit [-2.4, 2.4] m holds 4.8 m (its range) beyond either bound
+    cases = [([[2.4 + 4.81, 0.0]], "slider"), ([[0.0, np.nan]], "hinge0"), ([[np.inf, 0.0]], "slider"),
+             ([[0.0, 0.0]], "hinge0")]  # fmt: skip
+    rates = [[[0.0, 0.0]]] * 3 + [[[0.0, np.pi / sim.dt]]]  # the last turns the hinge by pi in a step
+    for (x, joint), xd in zip(cases, rates):
+        with pytest.raises(ValueError, match=joint):
+            sim.set_joint_state(np.array(x), np.array(xd))
+        after = sim.get_state()
+        for key in before:
+            np.testing.assert_array_equal(after[key], before[key], err_msg=key)
+    sim.set_joint_state(np.array([[2.4 + 4.79, 0.0]]), np.array([[0.0, np.pi / sim.dt * 0.99]]))  # within what holds
+    assert sim.joint_coordinates()[0, 0] == pytest.approx(7.19, abs=1e-5)
