@@ -18,6 +18,19 @@ the vector env's world takes, bit for bit (tests/test_single_env.py):
   world (zero observation and reward, terminated), the reward as a Python float and the flags as
   bools; ``info`` holds the task's values and ``sim_status`` / ``sim_substeps`` /
   ``sim_energy_gained`` / ``sim_failed``, as the vector env's world 0 has them.
+
+Where the task has the one-world hooks (``Task.world_observation``, ``world_reward``,
+``world_terminated``) and no ``info`` of its own, and the simulator's controls are float32, the
+step runs in Python floats, a float32 action (the action space's dtype and shape) likewise:
+
+* the action's entries are clipped by comparison with the bounds (a NaN fails both and raises)
+  and each control is the product a × scale of two float32 values, which a double holds
+  exactly, rounded to float32 as the control array stores it: NumPy's float32 product;
+* the observation is the hook's list clipped by comparison with the float32 bounds, then
+  rounded to float32 (for bounds that are float32 values, clipping before rounding gives what
+  rounding before clipping gives); the reward and termination hooks read its float32 values.
+
+Anything else (another dtype or shape of action, another task) takes the steps above.
 """
 from __future__ import annotations
 
@@ -58,6 +71,28 @@ class HostStep:
         self.frame_skip = env.frame_skip
         self.zero_obs = np.zeros(env.single_observation_space.shape, dtype=np.float32)
         self.world = np.arange(1)  # the reset's world index
+        self.lean = self._lean_hooks(env)
+        if self.lean:
+            nj = env.sim.model.num_joints
+            self.coord = env.sim.host_view(state.coord)[0, :nj]  # the world's joint coordinates (a view)
+            self.rate = env.sim.host_view(state.coord_vel)[0, :nj]
+            self.obs_bounds = list(zip(env._obs_low.tolist(), env._obs_high.tolist()))  # float32 values
+            self.action_shape = env.single_action_space.shape
+            self.bound_low, self.bound_high = float(self.low[0, 0]), float(self.high[0, 0])
+            self.control_row = self.control[0]
+            self.scales = np.broadcast_to(self.scale, (env.action_dim,)).tolist()
+            self.flags = [memoryview(a) for a in (self.status, self.substeps, self.gained)]  # Python ints on read
+
+    def _lean_hooks(self, env) -> bool:
+        """Whether the step runs in Python floats (module docstring): the task's one-world hooks, no
+        info of its own, the default controls into float32 controls, one per action entry."""
+        task = type(env)
+        hooks = [task.world_observation, task.world_reward, task.world_terminated]
+        if any(h is not None for h in hooks) and any(h is None for h in hooks):
+            raise TypeError(f"{task.__name__} must define all of world_observation, world_reward and "
+                            "world_terminated, or none")  # fmt: skip
+        return (hooks[0] is not None and not self.own_info and self.scale is not None
+                and self.product is self.control and self.control.shape[1] == env.action_dim)  # fmt: skip
 
     def set_action(self, action):
         """The action as the clipped float32 row ``self.action`` (a NaN raises, nothing written)."""
@@ -82,6 +117,38 @@ class HostStep:
             np.multiply(a, self.scale, out=self.product)
             self.control[...] = self.product
 
+    def lean_action(self, action) -> list:
+        """A float32 action of the action space's shape clipped to its bounds, as a list of Python
+        floats, with the controls written (a NaN raises, nothing written); None for any other
+        action."""
+        if type(action) is not np.ndarray or action.dtype != np.float32 or action.shape != self.action_shape:
+            return None
+        low, high = self.bound_low, self.bound_high
+        a = action.tolist()
+        for i, x in enumerate(a):
+            if x < low:
+                a[i] = low
+            elif x > high:
+                a[i] = high
+            elif x != x:
+                raise ValueError(f"action contains NaN: {action.tolist()}; nothing was stepped")
+        row = self.control_row
+        for i, (x, s) in enumerate(zip(a, self.scales)):
+            row[i] = x * s  # exact in a double, rounded to float32 by the store
+        return a
+
+    def observation(self):
+        """(the observation as a float32 array, its values as a list): the one-world hook's list
+        clipped to the observation space, then rounded (module docstring)."""
+        obs = self.env.world_observation(self.coord.tolist(), self.rate.tolist())
+        for i, (x, (low, high)) in enumerate(zip(obs, self.obs_bounds)):
+            if x < low:
+                obs[i] = low
+            elif x > high:
+                obs[i] = high
+        row = np.array(obs, dtype=np.float32)
+        return row, row.tolist()
+
     def reset(self):
         """``(obs, info)`` of a reset without options: the vector env's reset of its world
         (``_reset_worlds``: parameters, initial state, clock, task values), without the parsing of
@@ -89,10 +156,16 @@ class HostStep:
         env = self.env
         env._reset_worlds(self.world, {})
         env._has_reset = True
+        if self.lean:
+            return self.observation()[0], {}
         return env.observation()[0], {}
 
     def step(self, action):
         """``(obs, reward, terminated, truncated, info)`` of one env step (module docstring)."""
+        if self.lean:
+            a = self.lean_action(action)
+            if a is not None:
+                return self.lean_step(a)
         env = self.env
         a = self.set_action(action)
         self.write_controls(a)
@@ -112,6 +185,22 @@ class HostStep:
         if failed:
             return self.zero_obs.copy(), 0.0, True, False, info
         return row, reward, terminated, False, info
+
+    def lean_step(self, a: list):
+        """``step`` after ``lean_action`` wrote the controls of the clipped action ``a``: the physics,
+        the clock and the outcome from the one-world hooks (module docstring)."""
+        env = self.env
+        self.sim.step(self.frame_skip)
+        self.elapsed[0] += 1
+        row, obs = self.observation()
+        status, substeps, gained = self.flags
+        s = sum(obs)  # NaN just where an entry is (clipped: none is inf, and the sum is finite)
+        failed = status[0] != 0 or s != s
+        info = {"sim_status": status[0], "sim_substeps": substeps[0], "sim_energy_gained": gained[0] != 0,
+                "sim_failed": failed}  # fmt: skip
+        if failed:
+            return self.zero_obs.copy(), 0.0, True, False, info
+        return row, env.world_reward(obs, a), bool(env.world_terminated(obs)), False, info
 
 
 def world_info(info: dict) -> dict:

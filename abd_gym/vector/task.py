@@ -5,6 +5,8 @@ array helpers of the env's backend).  The hooks, their shapes and units are list
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from ..sim.scene import Scene
@@ -100,6 +102,18 @@ class Task:
     def render_extras(self, canvas, world: int):
         """Draw task-specific marks (targets, end stops) on a render canvas, over the bodies."""
 
+    # ================================================================== one world on the host
+    # Optional: ``observe``, ``reward`` and ``terminated`` of one world in plain Python floats,
+    # which ABDEnv's CPU step (single_step.HostStep) calls instead of the batched hooks, whose
+    # NumPy calls on arrays of one row cost more than the physics.  A task gives all three or
+    # none; each must give what its batched hook gives for that world, value for value
+    # (tests/test_single_env.py checks every task that has them).  Thresholds compare as NumPy
+    # compares a float32 observation with a Python number: against the number rounded to float32
+    # (``float32_value``).
+    world_observation = None  # (q, v: lists of the joint coordinates and rates) -> list: observe()'s row
+    world_reward = None  # (obs, action: lists of float32 values, clipped) -> float: reward()'s value as float32
+    world_terminated = None  # (obs: list of float32 values, clipped) -> bool: terminated()'s value
+
     # ================================================================== array helpers
     def asarray(self, values, dtype="float"):
         """Host values as a backend array (on the simulator's device for torch); ``dtype`` "float"
@@ -150,3 +164,10 @@ class Task:
         if self.xp is np:  # np.clip's arithmetic (NaN kept) without its Python wrapper
             return np.minimum(np.maximum(obs, self._obs_low), self._obs_high)
         return self.xp.clip(obs, self._obs_low, self._obs_high)
+
+
+@functools.lru_cache(maxsize=256)
+def float32_value(x: float) -> float:
+    """``x`` rounded to float32, as a Python float: the number a float32 array is compared with
+    where NumPy compares it with the Python number ``x`` (NEP 50)."""
+    return float(np.float32(x))
