@@ -7,6 +7,8 @@ are compared here bit for bit: observations, rewards, flags and info, over rando
 (out-of-range ones included), past terminations, for a task with the default controls, one with
 its own controls hook (TwoLinkReacher-v0), float64 physics and failed worlds.
 """
+from unittest import mock
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -55,9 +57,13 @@ def test_single_env_steps_as_the_vector_envs_world_bit_for_bit(task, kwargs):
     single, vector = _pair(task, **kwargs)
     assert isinstance(single._host_step, HostStep)
     assert single._host_step.lean == (task in LEAN and not kwargs)  # the Python-float step where a task has it
+    if single._host_step.lean:  # every step of _compare's float32 actions takes it
+        single._host_step.lean_step = mock.Mock(wraps=single._host_step.lean_step)
     assert single.sim.plan.one_launch and not vector.sim.plan.one_launch  # two ways of launching one step
     infos = _compare(single, vector)
     assert type(infos[0]["sim_status"]) is int and type(infos[0]["sim_failed"]) is bool
+    if single._host_step.lean:
+        assert single._host_step.lean_step.call_count == STEPS
     single.reset(seed=5)
     vector.reset(seed=5)
     _compare(single, vector, steps=10, seed=1)  # after a reset as well
@@ -199,3 +205,27 @@ def test_initial_states_are_the_draws_of_the_tasks_distribution(lean_envs):
     x, xd = lean_envs["InvertedPendulum-v5"].initial_state(3, rng, {})
     np.testing.assert_array_equal(x, ref.uniform(-0.01, 0.01, size=(3, 2)))
     np.testing.assert_array_equal(xd, ref.uniform(-0.01, 0.01, size=(3, 2)))
+
+
+@pytest.mark.parametrize("num_envs", [1, 2])
+def test_stepper_steps_as_step_bit_for_bit(num_envs):
+    """Simulator.stepper(k) (the captured step's replay and the clock) against step(k): the whole
+    state, the clock included, after each of a few steps with changing controls."""
+    from abd_gym.envs.cartpole import CartPoleVectorEnv
+
+    envs = [CartPoleVectorEnv(num_envs, autoreset_mode=AutoresetMode.DISABLED) for _ in range(2)]
+    for env in envs:
+        env.reset(seed=2)
+    a, b = envs[0].sim, envs[1].sim
+    assert a.stepper(2) is None  # before step(2) has captured it
+    for t in range(5):
+        controls = np.full((num_envs, 1), 3.0 * (t - 2))
+        for sim in (a, b):
+            sim.set_controls(controls)
+        a.step(2)
+        stepper = b.stepper(2)
+        b.step(2) if stepper is None else stepper()
+        sa, sb = a.get_state(), b.get_state()
+        for key in sa:
+            np.testing.assert_array_equal(sa[key], sb[key], err_msg=f"step {t}: {key}")
+    assert b.stepper(2) is not None

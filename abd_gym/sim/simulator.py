@@ -202,6 +202,31 @@ class Simulator:
         if chunks and all(k in self._graph for k in chunks) and len(self._replays) < MAX_REPLAYS:
             self._replays[num_steps] = (tuple(pg for k in chunks for pg in self._graph[k]), chunks)
 
+    def stepper(self, num_steps: int = 1):
+        """A function of no arguments that does what ``step(num_steps)`` does, bit for bit: the
+        replay of the graphs (and the phases a graph cannot hold) that ``step`` captured for it, and
+        the clock, without ``step``'s check of its argument and lookup of the capture.  None until
+        ``step(num_steps)`` has captured them (its second call, where ``plan.use_graph``); for a
+        caller that steps by the same count every time (a single env's frame skip)."""
+        replay = self._replays.get(num_steps)
+        if replay is None:
+            return None
+        state, launch = self.state, wp.capture_launch
+        calls = tuple((launch, graph) if graph is not None else (phase, state) for phase, graph in replay[0])
+        increments = tuple(k * self.dt for k in replay[1])
+        time, one = state.time, self.num_worlds == 1
+
+        def step():
+            for call, argument in calls:
+                call(argument)
+            for dt in increments:
+                if one:
+                    time[0] += dt
+                else:
+                    np.add(time, dt, out=time)  # step's time += dt
+
+        return step
+
     def launch_step(self, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
         """``num_steps`` steps as direct launches of the step's kernels, without the simulator's own
         graphs and without advancing the host clock ``state.time``: for a caller that captures the
@@ -614,8 +639,8 @@ class Simulator:
             kernel, dim, args = kinematics.restart_launch(*self._tree(), self.state, self.model, self.solver,
                                                           self._one_world(), buffer, 1, self.dt)  # fmt: skip
             wp.launch(kernel, dim=dim, inputs=args, device=self.device)  # (loads the kernel)
-            self._world0_graph = (graphs.capture(self.device, lambda: wp.launch(kernel, dim=dim, inputs=args,
-                                                                                device=self.device))[0], args)  # fmt: skip
+            graph = graphs.capture(self.device, lambda: wp.launch(kernel, dim=dim, inputs=args, device=self.device))[0]
+            self._world0_graph = (graph, args)
         else:
             wp.capture_launch(self._world0_graph[0])
         self.state.time[0] = 0.0

@@ -12,7 +12,8 @@ the vector env's world takes, bit for bit (tests/test_single_env.py):
 * the action: float32, clipped to the action space, ``× action_scale`` into the drives' controls
   (the default ``controls`` hook; a task's own goes through ``Simulator.set_controls``); NaN
   raises ``ValueError`` before anything is written;
-* the physics: ``Simulator.step(frame_skip)``, then the episode clock;
+* the physics: ``Simulator.step(frame_skip)`` (replayed through ``Simulator.stepper`` once
+  captured), then the episode clock;
 * a reset without options: the vector env's ``_reset_worlds`` of the world, then its observation;
 * the outcome: ``observation()`` (float32, clipped), the status and the NaN check of a failed
   world (zero observation and reward, terminated), the reward as a Python float and the flags as
@@ -39,6 +40,8 @@ import math
 import numpy as np
 
 from .task import Task
+
+FLOAT32 = np.dtype(np.float32)  # (NumPy's one instance: an identity test; another float32 byte order is not it)
 
 
 class HostStep:
@@ -72,6 +75,7 @@ class HostStep:
         self.zero_obs = np.zeros(env.single_observation_space.shape, dtype=np.float32)
         self.world = np.arange(1)  # the reset's world index
         self.lean = self._lean_hooks(env)
+        self.physics = None  # Simulator.stepper(frame_skip), once the simulator has captured the step
         if self.lean:
             nj = env.sim.model.num_joints
             self.coord = env.sim.host_view(state.coord)[0, :nj]  # the world's joint coordinates (a view)
@@ -117,36 +121,12 @@ class HostStep:
             np.multiply(a, self.scale, out=self.product)
             self.control[...] = self.product
 
-    def lean_action(self, action) -> list:
-        """A float32 action of the action space's shape clipped to its bounds, as a list of Python
-        floats, with the controls written (a NaN raises, nothing written); None for any other
-        action."""
-        if type(action) is not np.ndarray or action.dtype != np.float32 or action.shape != self.action_shape:
-            return None
-        low, high = self.bound_low, self.bound_high
-        a = action.tolist()
-        for i, x in enumerate(a):
-            if x < low:
-                a[i] = low
-            elif x > high:
-                a[i] = high
-            elif x != x:
-                raise ValueError(f"action contains NaN: {action.tolist()}; nothing was stepped")
-        row = self.control_row
-        for i, (x, s) in enumerate(zip(a, self.scales)):
-            row[i] = x * s  # exact in a double, rounded to float32 by the store
-        return a
-
     def observation(self):
         """(the observation as a float32 array, its values as a list): the one-world hook's list
         clipped to the observation space, then rounded (module docstring)."""
         obs = self.env.world_observation(self.coord.tolist(), self.rate.tolist())
-        for i, (x, (low, high)) in enumerate(zip(obs, self.obs_bounds)):
-            if x < low:
-                obs[i] = low
-            elif x > high:
-                obs[i] = high
-        row = np.array(obs, dtype=np.float32)
+        row = np.array([low if x < low else high if x > high else x for x, (low, high) in zip(obs, self.obs_bounds)],
+                       dtype=np.float32)  # fmt: skip
         return row, row.tolist()
 
     def reset(self):
@@ -162,15 +142,12 @@ class HostStep:
 
     def step(self, action):
         """``(obs, reward, terminated, truncated, info)`` of one env step (module docstring)."""
-        if self.lean:
-            a = self.lean_action(action)
-            if a is not None:
-                return self.lean_step(a)
+        if self.lean and type(action) is np.ndarray and action.dtype is FLOAT32 and action.shape == self.action_shape:
+            return self.lean_step(action)
         env = self.env
         a = self.set_action(action)
         self.write_controls(a)
-        self.sim.step(self.frame_skip)
-        self.elapsed[0] += 1  # (one world: an item's add costs less than the array's)
+        self.advance()
         obs = env.observation()
         status = int(self.status[0])
         row = obs[0]  # clipped: a non-finite entry is NaN, and Σ o² is NaN just where one is
@@ -186,12 +163,37 @@ class HostStep:
             return self.zero_obs.copy(), 0.0, True, False, info
         return row, reward, terminated, False, info
 
-    def lean_step(self, a: list):
-        """``step`` after ``lean_action`` wrote the controls of the clipped action ``a``: the physics,
-        the clock and the outcome from the one-world hooks (module docstring)."""
-        env = self.env
-        self.sim.step(self.frame_skip)
-        self.elapsed[0] += 1
+    def advance(self):
+        """The physics of an env step, ``Simulator.step(frame_skip)``, replayed through
+        ``Simulator.stepper`` once the simulator has captured it, then the episode clock."""
+        if self.physics is None:
+            self.sim.step(self.frame_skip)
+            self.physics = self.sim.stepper(self.frame_skip)
+        else:
+            self.physics()
+        self.elapsed[0] += 1  # (one world: an item's add costs less than the array's)
+
+    def lean_step(self, action: np.ndarray):
+        """``step`` of a float32 action of the action space's shape, in Python floats (module
+        docstring): the action clipped by comparison (a NaN raises, nothing written), the controls,
+        the physics, the clock and the outcome from the one-world hooks."""
+        low, high = self.bound_low, self.bound_high
+        a = action.tolist()
+        for i, x in enumerate(a):
+            if x < low:
+                a[i] = low
+            elif x > high:
+                a[i] = high
+            elif x != x:
+                raise ValueError(f"action contains NaN: {action.tolist()}; nothing was stepped")
+        controls = self.control_row
+        for i, (x, s) in enumerate(zip(a, self.scales)):
+            controls[i] = x * s  # exact in a double, rounded to float32 by the store
+        if self.physics is None:
+            self.advance()
+        else:  # advance's replay
+            self.physics()
+            self.elapsed[0] += 1
         row, obs = self.observation()
         status, substeps, gained = self.flags
         s = sum(obs)  # NaN just where an entry is (clipped: none is inf, and the sum is finite)
@@ -200,6 +202,7 @@ class HostStep:
                 "sim_failed": failed}  # fmt: skip
         if failed:
             return self.zero_obs.copy(), 0.0, True, False, info
+        env = self.env
         return row, env.world_reward(obs, a), bool(env.world_terminated(obs)), False, info
 
 
