@@ -57,13 +57,12 @@ def test_single_env_steps_as_the_vector_envs_world_bit_for_bit(task, kwargs):
     single, vector = _pair(task, **kwargs)
     assert isinstance(single._host_step, HostStep)
     assert single._host_step.lean == (task in LEAN and not kwargs)  # the Python-float step where a task has it
-    if single._host_step.lean:  # every step of _compare's float32 actions takes it
-        single._host_step.lean_step = mock.Mock(wraps=single._host_step.lean_step)
+    single._host_step.numpy_step = mock.Mock(wraps=single._host_step.numpy_step)
     assert single.sim.plan.one_launch and not vector.sim.plan.one_launch  # two ways of launching one step
     infos = _compare(single, vector)
     assert type(infos[0]["sim_status"]) is int and type(infos[0]["sim_failed"]) is bool
-    if single._host_step.lean:
-        assert single._host_step.lean_step.call_count == STEPS
+    # every step of _compare's float32 actions takes the Python-float step where the task has it
+    assert single._host_step.numpy_step.call_count == (0 if single._host_step.lean else STEPS)
     single.reset(seed=5)
     vector.reset(seed=5)
     _compare(single, vector, steps=10, seed=1)  # after a reset as well
@@ -113,13 +112,15 @@ def test_plan_given_in_simulator_options_is_kept():
 
 def test_lean_step_takes_other_actions_as_the_vector_env_does():
     """Actions that are not float32 arrays of the action space's shape (float64, a list, a (1, 1)
-    array) take the NumPy step; both give the vector env's world's steps."""
+    array, float16) take the NumPy step; both give the vector env's world's steps."""
     single, vector = _pair("CartPole-v0")
+    single._host_step.numpy_step = mock.Mock(wraps=single._host_step.numpy_step)
     for t, a in enumerate([np.array([0.3]), [0.7], np.array([[-2.0]], dtype=np.float32), np.array([0.1], np.float16)]):
         obs, reward, terminated, _, _ = single.step(a)
         v_obs, v_reward, v_term, _, _ = vector.step(np.asarray(a, dtype=np.float32).reshape(1, 1))
         np.testing.assert_array_equal(obs, v_obs[0], err_msg=f"action {t}")
         assert (reward, terminated) == (float(v_reward[0]), bool(v_term[0])), t
+    assert single._host_step.numpy_step.call_count == 4
 
 
 @pytest.fixture(scope="module")

@@ -141,9 +141,42 @@ class HostStep:
         return env.observation()[0], {}
 
     def step(self, action):
-        """``(obs, reward, terminated, truncated, info)`` of one env step (module docstring)."""
-        if self.lean and type(action) is np.ndarray and action.dtype is FLOAT32 and action.shape == self.action_shape:
-            return self.lean_step(action)
+        """``(obs, reward, terminated, truncated, info)`` of one env step (module docstring): in Python
+        floats for a float32 action of the action space's shape where the task has the one-world
+        hooks, else ``numpy_step``."""
+        if not (self.lean and type(action) is np.ndarray and action.dtype is FLOAT32
+                and action.shape == self.action_shape):  # fmt: skip
+            return self.numpy_step(action)
+        low, high = self.bound_low, self.bound_high
+        a = action.tolist()
+        for i, x in enumerate(a):  # clipped by comparison; a NaN fails both and raises, nothing written
+            if x < low:
+                a[i] = low
+            elif x > high:
+                a[i] = high
+            elif x != x:
+                raise ValueError(f"action contains NaN: {action.tolist()}; nothing was stepped")
+        controls = self.control_row
+        for i, (x, s) in enumerate(zip(a, self.scales)):
+            controls[i] = x * s  # exact in a double, rounded to float32 by the store
+        if self.physics is None:
+            self.advance()
+        else:  # advance's replay
+            self.physics()
+            self.elapsed[0] += 1
+        row, obs = self.observation()
+        status, substeps, gained = self.flags
+        s = sum(obs)  # NaN just where an entry is (clipped: none is inf, and the sum is finite)
+        failed = status[0] != 0 or s != s
+        info = {"sim_status": status[0], "sim_substeps": substeps[0], "sim_energy_gained": gained[0] != 0,
+                "sim_failed": failed}  # fmt: skip
+        if failed:
+            return self.zero_obs.copy(), 0.0, True, False, info
+        env = self.env
+        return row, env.world_reward(obs, a), bool(env.world_terminated(obs)), False, info
+
+    def numpy_step(self, action):
+        """``step`` of any action, through the task's batched hooks (module docstring)."""
         env = self.env
         a = self.set_action(action)
         self.write_controls(a)
@@ -172,38 +205,6 @@ class HostStep:
         else:
             self.physics()
         self.elapsed[0] += 1  # (one world: an item's add costs less than the array's)
-
-    def lean_step(self, action: np.ndarray):
-        """``step`` of a float32 action of the action space's shape, in Python floats (module
-        docstring): the action clipped by comparison (a NaN raises, nothing written), the controls,
-        the physics, the clock and the outcome from the one-world hooks."""
-        low, high = self.bound_low, self.bound_high
-        a = action.tolist()
-        for i, x in enumerate(a):
-            if x < low:
-                a[i] = low
-            elif x > high:
-                a[i] = high
-            elif x != x:
-                raise ValueError(f"action contains NaN: {action.tolist()}; nothing was stepped")
-        controls = self.control_row
-        for i, (x, s) in enumerate(zip(a, self.scales)):
-            controls[i] = x * s  # exact in a double, rounded to float32 by the store
-        if self.physics is None:
-            self.advance()
-        else:  # advance's replay
-            self.physics()
-            self.elapsed[0] += 1
-        row, obs = self.observation()
-        status, substeps, gained = self.flags
-        s = sum(obs)  # NaN just where an entry is (clipped: none is inf, and the sum is finite)
-        failed = status[0] != 0 or s != s
-        info = {"sim_status": status[0], "sim_substeps": substeps[0], "sim_energy_gained": gained[0] != 0,
-                "sim_failed": failed}  # fmt: skip
-        if failed:
-            return self.zero_obs.copy(), 0.0, True, False, info
-        env = self.env
-        return row, env.world_reward(obs, a), bool(env.world_terminated(obs)), False, info
 
 
 def world_info(info: dict) -> dict:
