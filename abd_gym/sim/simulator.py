@@ -26,6 +26,8 @@ from .state import State
 from .status import WorldStatus
 
 
+FLOAT64 = np.dtype(np.float64)  # (NumPy's one instance: an identity test)
+
 # step counts whose graphs ``step`` keeps in a list to replay (an env's frame skip; a few are enough)
 MAX_REPLAYS = 8
 
@@ -612,9 +614,8 @@ class Simulator:
         written into a kept array that a captured graph of the restart launch reads.  Returns
         False, having written nothing, for any other input, which ``set_joint_state`` then takes
         (and refuses, naming the joint, where it must)."""
-        if not (type(coordinates) is np.ndarray and type(velocities) is np.ndarray
-                and coordinates.dtype == np.float64 and velocities.dtype == np.float64
-                and coordinates.shape == velocities.shape == self._world0_restart[0]):  # fmt: skip
+        if not (type(coordinates) is np.ndarray and type(velocities) is np.ndarray and coordinates.dtype is FLOAT64
+                and velocities.dtype is FLOAT64 and coordinates.shape == velocities.shape == self._world0_restart[0]):  # fmt: skip
             return False
         if worlds is not None and not (type(worlds) is np.ndarray and worlds.shape == (1,) and worlds.dtype.kind in "iu"
                                        and worlds[0] == 0):  # fmt: skip
@@ -622,19 +623,20 @@ class Simulator:
         if self._joint_bounds is None:  # kept until set_limit changes the limits
             self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), self._joint_names()[1], 1)
         _, buffer, values, checks = self._world0_restart
-        if checks[0] is not self._joint_bounds:
+        if checks[0] is not self._joint_bounds:  # each joint's (low, high, turn, whether it is fixed)
             lower, upper, turn = self._joint_bounds
-            checks[:] = [self._joint_bounds, *zip(lower[0].tolist(), upper[0].tolist(), turn.tolist())]
+            fixed = self._joint_names()[2]
+            fixed = [False] * len(turn) if fixed is None else fixed.tolist()
+            checks[:] = [self._joint_bounds, *zip(lower[0].tolist(), upper[0].tolist(), turn.tolist(), fixed)]
         x, xd = coordinates[0].tolist(), velocities[0].tolist()
         half, dt = 0.5 * self._state_bound, self.dt
-        for c, r, (low, high, turn) in zip(x, xd, checks[1:]):
+        for c, r, (low, high, turn, _) in zip(x, xd, checks[1:]):
             if not (-half < c < half and -half < r < half and low <= c <= high and abs(r) * dt < turn):
                 return False
-        fixed = self._joint_names()[2]
         nj = len(x)
-        for j in range(nj):
-            values[j] = 0.0 if fixed is not None and fixed[j] else x[j]  # rounded to the model's dtype
-            values[nj + j] = xd[j]
+        for j, (c, r, check) in enumerate(zip(x, xd, checks[1:])):
+            values[j] = 0.0 if check[3] else c  # rounded to the model's dtype by the store
+            values[nj + j] = r
         if self._world0_graph is None:
             kernel, dim, args = kinematics.restart_launch(*self._tree(), self.state, self.model, self.solver,
                                                           self._one_world(), buffer, 1, self.dt)  # fmt: skip
