@@ -230,3 +230,12 @@ def test_stepper_steps_as_step_bit_for_bit(num_envs):
         for key in sa:
             np.testing.assert_array_equal(sa[key], sb[key], err_msg=f"step {t}: {key}")
     assert b.stepper(2) is not None
+
+
+def test_a_task_with_some_world_hooks_is_refused():
+    """A task gives all three one-world hooks or none: HostStep refuses one with some, naming them."""
+    from abd_gym.envs.cartpole import CartPoleVectorEnv
+
+    partial = type("PartialHooks", (CartPoleVectorEnv,), {"world_reward": None})
+    with pytest.raises(TypeError, match="world_observation, world_reward and world_terminated"):
+        HostStep(partial(1, autoreset_mode=AutoresetMode.DISABLED))
