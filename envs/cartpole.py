@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 import abd_gym as ag
-from abd_gym.vector.task import float32_value
+from abd_gym.vector.task import float32_of
 from abd_gym.vector.vector_env import ABDEnv, ABDVectorEnv
 
 
@@ -98,7 +98,7 @@ class CartPoleVectorEnv(ABDVectorEnv):
         return 1.0
 
     def world_terminated(self, obs):
-        return abs(obs[0]) > float32_value(self.x_threshold) or abs(obs[2]) > float32_value(self.theta_threshold)
+        return abs(obs[0]) > float32_of[self.x_threshold] or abs(obs[2]) > float32_of[self.theta_threshold]
 
     def render_extras(self, canvas, world):
         draw_track(canvas, self.x_threshold)

@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from abd_gym.vector.task import float32_value
+from abd_gym.vector.task import float32_of
 from abd_gym.vector.vector_env import ABDEnv
 
 from abd_gym.envs.gymnasium_mjcf import GymnasiumMjcfEnv
@@ -76,7 +76,7 @@ class InvertedPendulumVectorEnv(GymnasiumMjcfEnv):
         return q + v
 
     def world_terminated(self, obs):
-        return abs(obs[1]) > float32_value(self.theta_threshold)
+        return abs(obs[1]) > float32_of[self.theta_threshold]
 
     def world_reward(self, obs, action):
         return 0.0 if self.world_terminated(obs) else 1.0

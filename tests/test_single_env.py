@@ -153,6 +153,13 @@ def test_world_hooks_give_the_batched_hooks_values(task, lean_envs):
         o, a = obs[i].tolist(), actions[i].tolist()
         assert env.world_reward(o, a) == float(reward[i]) and type(env.world_reward(o, a)) is float, obs[i]
         assert bool(env.world_terminated(o)) == bool(terminated[i]), obs[i]
+    env.theta_threshold = 0.05  # a threshold set on the env is read at the next call, as the batched hooks read it
+    try:
+        terminated = env.terminated(obs)
+        assert [bool(env.world_terminated(o)) for o in obs.tolist()] == terminated.tolist()
+        assert terminated.any() and not terminated.all()
+    finally:
+        del env.theta_threshold
 
 
 @pytest.mark.parametrize("name", TASKS)

@@ -78,8 +78,9 @@ class HostStep:
         self.physics = None  # Simulator.stepper(frame_skip), once the simulator has captured the step
         if self.lean:
             nj = env.sim.model.num_joints
-            self.coord = env.sim.host_view(state.coord)[0, :nj]  # the world's joint coordinates (a view)
-            self.rate = env.sim.host_view(state.coord_vel)[0, :nj]
+            # the world's joint coordinates and rates (memoryviews of the simulator's memory)
+            self.coord = memoryview(env.sim.host_view(state.coord)[0, :nj])
+            self.rate = memoryview(env.sim.host_view(state.coord_vel)[0, :nj])
             self.obs_bounds = list(zip(env._obs_low.tolist(), env._obs_high.tolist()))  # float32 values
             self.action_shape = env.single_action_space.shape
             self.bound_low, self.bound_high = float(self.low[0, 0]), float(self.high[0, 0])
@@ -156,15 +157,19 @@ class HostStep:
                 a[i] = high
             elif x != x:
                 raise ValueError(f"action contains NaN: {action.tolist()}; nothing was stepped")
-        controls = self.control_row
-        for i, (x, s) in enumerate(zip(a, self.scales)):
-            controls[i] = x * s  # exact in a double, rounded to float32 by the store
+        controls, scales = self.control_row, self.scales
+        for i, x in enumerate(a):
+            controls[i] = x * scales[i]  # exact in a double, rounded to float32 by the store
         if self.physics is None:
             self.advance()
         else:  # advance's replay
             self.physics()
             self.elapsed[0] += 1
-        row, obs = self.observation()
+        env = self.env
+        obs = env.world_observation(self.coord.tolist(), self.rate.tolist())  # observation(), inline
+        row = np.array([low if x < low else high if x > high else x for x, (low, high) in zip(obs, self.obs_bounds)],
+                       dtype=np.float32)  # fmt: skip
+        obs = row.tolist()
         status, substeps, gained = self.flags
         s = sum(obs)  # NaN just where an entry is (clipped: none is inf, and the sum is finite)
         failed = status[0] != 0 or s != s
@@ -172,7 +177,6 @@ class HostStep:
                 "sim_failed": failed}  # fmt: skip
         if failed:
             return self.zero_obs.copy(), 0.0, True, False, info
-        env = self.env
         return row, env.world_reward(obs, a), bool(env.world_terminated(obs)), False, info
 
     def numpy_step(self, action):

@@ -5,8 +5,6 @@ array helpers of the env's backend).  The hooks, their shapes and units are list
 """
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
 from ..sim.scene import Scene
@@ -109,7 +107,7 @@ class Task:
     # none; each must give what its batched hook gives for that world, value for value
     # (tests/test_single_env.py checks every task that has them).  Thresholds compare as NumPy
     # compares a float32 observation with a Python number: against the number rounded to float32
-    # (``float32_value``).
+    # (``float32_of``).
     world_observation = None  # (q, v: lists of the joint coordinates and rates) -> list: observe()'s row
     world_reward = None  # (obs, action: lists of float32 values, clipped) -> float: reward()'s value as float32
     world_terminated = None  # (obs: list of float32 values, clipped) -> bool: terminated()'s value
@@ -166,8 +164,16 @@ class Task:
         return self.xp.clip(obs, self._obs_low, self._obs_high)
 
 
-@functools.lru_cache(maxsize=256)
-def float32_value(x: float) -> float:
-    """``x`` rounded to float32, as a Python float: the number a float32 array is compared with
-    where NumPy compares it with the Python number ``x`` (NEP 50)."""
-    return float(np.float32(x))
+class Float32Values(dict):
+    """``{x: x rounded to float32, as a Python float}``, each made on its first look-up (a dict's
+    look-up: the one-world hooks read it every step): ``float32_of[x]`` is the number a float32
+    array is compared with where NumPy compares it with the Python number ``x`` (NEP 50)."""
+
+    def __missing__(self, x):
+        if len(self) >= 1024:  # thresholds set anew without end: kept bounded
+            self.clear()
+        value = self[x] = float(np.float32(x))
+        return value
+
+
+float32_of = Float32Values()
