@@ -22,7 +22,7 @@ the vector env's world takes, bit for bit (tests/test_single_env.py):
 
 Where the task has the one-world hooks (``Task.world_observation``, ``world_reward``,
 ``world_terminated``) and no ``info`` of its own, and the simulator's controls are float32, the
-step runs in Python floats, a float32 action (the action space's dtype and shape) likewise:
+step of a float32 action of the action space's shape runs in Python floats:
 
 * the action's entries are clipped by comparison with the bounds (a NaN fails both and raises)
   and each control is the product a × scale of two float32 values, which a double holds
@@ -81,7 +81,7 @@ class HostStep:
             # the world's joint coordinates and rates (memoryviews of the simulator's memory)
             self.coord = memoryview(env.sim.host_view(state.coord)[0, :nj])
             self.rate = memoryview(env.sim.host_view(state.coord_vel)[0, :nj])
-            self.obs_bounds = list(zip(env._obs_low.tolist(), env._obs_high.tolist()))  # float32 values
+            self.obs_low, self.obs_high = env._obs_low.tolist(), env._obs_high.tolist()  # float32 values
             self.action_shape = env.single_action_space.shape
             self.bound_low, self.bound_high = float(self.low[0, 0]), float(self.high[0, 0])
             self.control_row = self.control[0]
@@ -125,10 +125,20 @@ class HostStep:
     def observation(self):
         """(the observation as a float32 array, its values as a list): the one-world hook's list
         clipped to the observation space, then rounded (module docstring)."""
-        obs = self.env.world_observation(self.coord.tolist(), self.rate.tolist())
-        row = np.array([low if x < low else high if x > high else x for x, (low, high) in zip(obs, self.obs_bounds)],
-                       dtype=np.float32)  # fmt: skip
+        row = np.array(self.clip(self.env.world_observation(self.coord.tolist(), self.rate.tolist())), dtype=np.float32)
         return row, row.tolist()
+
+    def clip(self, obs: list) -> list:
+        """``obs`` clipped in place to the observation space by comparison (a NaN fails both: kept)."""
+        low, high = self.obs_low, self.obs_high
+        i = 0
+        for x in obs:
+            if x < low[i]:
+                obs[i] = low[i]
+            elif x > high[i]:
+                obs[i] = high[i]
+            i += 1
+        return obs
 
     def reset(self):
         """``(obs, info)`` of a reset without options: the vector env's reset of its world
@@ -166,10 +176,8 @@ class HostStep:
             self.physics()
             self.elapsed[0] += 1
         env = self.env
-        obs = env.world_observation(self.coord.tolist(), self.rate.tolist())  # observation(), inline
-        row = np.array([low if x < low else high if x > high else x for x, (low, high) in zip(obs, self.obs_bounds)],
-                       dtype=np.float32)  # fmt: skip
-        obs = row.tolist()
+        row = np.array(self.clip(env.world_observation(self.coord.tolist(), self.rate.tolist())), dtype=np.float32)
+        obs = row.tolist()  # (observation(), inline)
         status, substeps, gained = self.flags
         s = sum(obs)  # NaN just where an entry is (clipped: none is inf, and the sum is finite)
         failed = status[0] != 0 or s != s
