@@ -125,7 +125,7 @@ class Simulator:
         self._world0 = None  # a one-world simulator's device indices [0] (_one_world)
         # a one-world CPU simulator's set_joint_state in plain Python (_restart_world0): the
         # coordinates' shape, the kept (1, 2, joints) array of coordinates and rates, a flat view
-        # of it, and [the joint bounds the checks were made from, each joint's (low, high, turn)]
+        # of it, and [the joint bounds the checks were made from, each joint's (low, high, turn, fixed)]
         self._world0_restart = None
         self._world0_graph = None  # (the restart launch's graph reading that array, its arguments)
         self._joints = None  # set_joint_state's joint names and revolute mask (_joint_names)
@@ -614,8 +614,9 @@ class Simulator:
         written into a kept array that a captured graph of the restart launch reads.  Returns
         False, having written nothing, for any other input, which ``set_joint_state`` then takes
         (and refuses, naming the joint, where it must)."""
+        shape = self._world0_restart[0]
         if not (type(coordinates) is np.ndarray and type(velocities) is np.ndarray and coordinates.dtype is FLOAT64
-                and velocities.dtype is FLOAT64 and coordinates.shape == velocities.shape == self._world0_restart[0]):  # fmt: skip
+                and velocities.dtype is FLOAT64 and coordinates.shape == velocities.shape == shape):  # fmt: skip
             return False
         if worlds is not None and not (type(worlds) is np.ndarray and worlds.shape == (1,) and worlds.dtype.kind in "iu"
                                        and worlds[0] == 0):  # fmt: skip
