@@ -246,3 +246,11 @@ def test_a_task_with_some_world_hooks_is_refused():
     partial = type("PartialHooks", (CartPoleVectorEnv,), {"world_reward": None})
     with pytest.raises(TypeError, match="world_observation, world_reward and world_terminated"):
         HostStep(partial(1, autoreset_mode=AutoresetMode.DISABLED))
+
+
+def test_a_world_observation_of_another_length_is_refused():
+    from abd_gym.envs.cartpole import CartPoleVectorEnv
+
+    short = type("ShortObservation", (CartPoleVectorEnv,), {"world_observation": lambda self, q, v: q + v[:1]})
+    with pytest.raises(ValueError, match="world_observation gives 3 values, the observation space has 4"):
+        HostStep(short(1, autoreset_mode=AutoresetMode.DISABLED))

@@ -87,6 +87,10 @@ class HostStep:
             self.control_row = self.control[0]
             self.scales = np.broadcast_to(self.scale, (env.action_dim,)).tolist()
             self.flags = [memoryview(a) for a in (self.status, self.substeps, self.gained)]  # Python ints on read
+            n = len(env.world_observation(self.coord.tolist(), self.rate.tolist()))
+            if n != len(self.obs_low):
+                raise ValueError(f"{type(env).__name__}.world_observation gives {n} values, the observation space "
+                                 f"has {len(self.obs_low)}")  # fmt: skip
 
     def _lean_hooks(self, env) -> bool:
         """Whether the step runs in Python floats (module docstring): the task's one-world hooks, no
@@ -97,7 +101,8 @@ class HostStep:
             raise TypeError(f"{task.__name__} must define all of world_observation, world_reward and "
                             "world_terminated, or none")  # fmt: skip
         return (hooks[0] is not None and not self.own_info and self.scale is not None
-                and self.product is self.control and self.control.shape[1] == env.action_dim)  # fmt: skip
+                and self.product is self.control and self.control.shape[1] == env.action_dim
+                and len(env.single_observation_space.shape) == 1)  # fmt: skip
 
     def set_action(self, action):
         """The action as the clipped float32 row ``self.action`` (a NaN raises, nothing written)."""
