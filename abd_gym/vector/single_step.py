@@ -69,7 +69,7 @@ class HostStep:
         self.status = env.sim.host_view(state.status)
         self.substeps = env.sim.host_view(state.substeps)
         self.gained = env.sim.host_view(state.gained)
-        self.elapsed = env.episodes.elapsed
+        self.elapsed = memoryview(env.episodes.elapsed)  # the episode clock (an int on read)
         self.own_info = type(env).info is not Task.info  # the default info hook has no values
         self.frame_skip = env.frame_skip
         self.zero_obs = np.zeros(env.single_observation_space.shape, dtype=np.float32)
@@ -221,7 +221,7 @@ class HostStep:
             self.physics = self.sim.stepper(self.frame_skip)
         else:
             self.physics()
-        self.elapsed[0] += 1  # (one world: an item's add costs less than the array's)
+        self.elapsed[0] += 1
 
 
 def world_info(info: dict) -> dict:
