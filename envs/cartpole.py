@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 import abd_gym as ag
+from abd_gym.vector.task import float32_of
 from abd_gym.vector.vector_env import ABDEnv, ABDVectorEnv
 
 
@@ -78,7 +79,7 @@ class CartPoleVectorEnv(ABDVectorEnv):
     def initial_state(self, n, rng, options):
         low, high = float(options.get("low", -0.05)), float(options.get("high", 0.05))
         s = rng.uniform(low, high, size=(n, 4))
-        return s[:, [0, 2]], s[:, [1, 3]]
+        return s[:, 0::2], s[:, 1::2]
 
     def observe(self):
         q, v = self.coords(), self.velocities()
@@ -89,6 +90,15 @@ class CartPoleVectorEnv(ABDVectorEnv):
 
     def terminated(self, obs):
         return (self.xp.abs(obs[:, 0]) > self.x_threshold) | (self.xp.abs(obs[:, 2]) > self.theta_threshold)
+
+    def world_observation(self, q, v):
+        return [q[0], v[0], q[1], v[1]]
+
+    def world_reward(self, obs, action):
+        return 1.0
+
+    def world_terminated(self, obs):
+        return abs(obs[0]) > float32_of[self.x_threshold] or abs(obs[2]) > float32_of[self.theta_threshold]
 
     def render_extras(self, canvas, world):
         draw_track(canvas, self.x_threshold)

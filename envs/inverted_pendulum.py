@@ -27,6 +27,7 @@ import math
 
 import numpy as np
 
+from abd_gym.vector.task import float32_of
 from abd_gym.vector.vector_env import ABDEnv
 
 from abd_gym.envs.gymnasium_mjcf import GymnasiumMjcfEnv
@@ -59,7 +60,8 @@ class InvertedPendulumVectorEnv(GymnasiumMjcfEnv):
 
     def initial_state(self, n, rng, options):
         s = self.reset_noise_scale
-        return rng.uniform(-s, s, size=(n, 2)), rng.uniform(-s, s, size=(n, 2))
+        x = rng.uniform(-s, s, size=(2, n, 2))  # the coordinates' draws, then the rates'
+        return x[0], x[1]
 
     def observe(self):
         return self.xp.concatenate([self.coords(), self.velocities()], axis=1)
@@ -69,6 +71,15 @@ class InvertedPendulumVectorEnv(GymnasiumMjcfEnv):
 
     def reward(self, obs, actions):
         return self.f32(~self.terminated(obs))
+
+    def world_observation(self, q, v):
+        return q + v
+
+    def world_terminated(self, obs):
+        return abs(obs[1]) > float32_of[self.theta_threshold]
+
+    def world_reward(self, obs, action):
+        return 0.0 if self.world_terminated(obs) else 1.0
 
     def render_extras(self, canvas, world):
         draw_rail(canvas)

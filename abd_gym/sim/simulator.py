@@ -26,6 +26,8 @@ from .state import State
 from .status import WorldStatus
 
 
+FLOAT64 = np.dtype(np.float64)  # (NumPy's one instance: an identity test)
+
 # step counts whose graphs ``step`` keeps in a list to replay (an env's frame skip; a few are enough)
 MAX_REPLAYS = 8
 
@@ -121,6 +123,11 @@ class Simulator:
                                for a in ("lower", "upper", "strength")] for kind, ids in m.limit_joints.items()}  # fmt: skip
         self._set_mask = None
         self._world0 = None  # a one-world simulator's device indices [0] (_one_world)
+        # a one-world CPU simulator's set_joint_state in plain Python (_restart_world0): the
+        # coordinates' shape, the kept (1, 2, joints) array of coordinates and rates, a flat view
+        # of it, and [the joint bounds the checks were made from, each joint's (low, high, turn, fixed)]
+        self._world0_restart = None
+        self._world0_graph = None  # (the restart launch's graph reading that array, its arguments)
         self._joints = None  # set_joint_state's joint names and revolute mask (_joint_names)
         self._joint_bounds = None  # set_joint_state's bounds (inputs.joint_state_bounds), until set_limit
         self._tree_plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
@@ -132,6 +139,9 @@ class Simulator:
         self._graph = {}  # steps a launch -> the captured step: [(phase, graph or None)]
         self._replays = {}  # steps a call -> its (phase, graph) pairs, once every launch of it is captured (step)
         self._warm = False
+        if self.device.is_cpu and self.num_worlds == 1 and self.model.num_joints:
+            buffer = wp.zeros((1, 2, self.model.num_joints), dtype=self.model.dtype, device=self.device)
+            self._world0_restart = ((1, self.model.num_joints), buffer, buffer.numpy().reshape(-1), [None])
         self.reset()
 
     @property
@@ -193,6 +203,31 @@ class Simulator:
             self.state.time += k * self.dt
         if chunks and all(k in self._graph for k in chunks) and len(self._replays) < MAX_REPLAYS:
             self._replays[num_steps] = (tuple(pg for k in chunks for pg in self._graph[k]), chunks)
+
+    def stepper(self, num_steps: int = 1):
+        """A function of no arguments that does what ``step(num_steps)`` does, bit for bit: the
+        replay of the graphs (and the phases a graph cannot hold) that ``step`` captured for it, and
+        the clock, without ``step``'s check of its argument and lookup of the capture.  None until
+        ``step(num_steps)`` has captured them (its second call, where ``plan.use_graph``); for a
+        caller that steps by the same count every time (a single env's frame skip)."""
+        replay = self._replays.get(num_steps)
+        if replay is None:
+            return None
+        state, launch = self.state, wp.capture_launch
+        calls = tuple((launch, graph) if graph is not None else (phase, state) for phase, graph in replay[0])
+        increments = tuple(k * self.dt for k in replay[1])
+        time, one = state.time, self.num_worlds == 1
+
+        def step():
+            for call, argument in calls:
+                call(argument)
+            for dt in increments:
+                if one:
+                    time[0] += dt
+                else:
+                    np.add(time, dt, out=time)  # step's time += dt
+
+        return step
 
     def launch_step(self, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None):
         """``num_steps`` steps as direct launches of the step's kernels, without the simulator's own
@@ -544,6 +579,8 @@ class Simulator:
         non-finite or overflowing value, a limited joint beyond its limit's [lower, upper] by more
         than the limit holds (a penetration a step produced is accepted: inputs.check_within_limits),
         a revolute rate that turns the joint by π or more in one step."""
+        if self._world0_restart is not None and self._restart_world0(coordinates, velocities, worlds):
+            return
         idx = self._worlds(worlds)
         m = self.model
         nj, N = m.num_joints, len(idx)
@@ -568,6 +605,49 @@ class Simulator:
         self._replay("restart", *kinematics.restart_launch(*self._tree(), self.state, m, self.solver, idx_dev, xx, N,
                                                            self.dt))  # fmt: skip
         self.state.time[idx] = 0.0
+
+    def _restart_world0(self, coordinates, velocities, worlds) -> bool:
+        """``set_joint_state`` of a one-world CPU simulator from float64 arrays (1, joints) of
+        coordinates and rates, for world 0 (``worlds`` None or [0]), where each value passes, in
+        plain Python floats, the checks that ``set_joint_state`` makes (finite, within half the
+        state bound, within the joint's bounds, |rate|·dt below the joint's turn): the values
+        written into a kept array that a captured graph of the restart launch reads.  Returns
+        False, having written nothing, for any other input, which ``set_joint_state`` then takes
+        (and refuses, naming the joint, where it must)."""
+        shape = self._world0_restart[0]
+        if not (type(coordinates) is np.ndarray and type(velocities) is np.ndarray and coordinates.dtype is FLOAT64
+                and velocities.dtype is FLOAT64 and coordinates.shape == velocities.shape == shape):  # fmt: skip
+            return False
+        if worlds is not None and not (type(worlds) is np.ndarray and worlds.shape == (1,) and worlds.dtype.kind in "iu"
+                                       and worlds[0] == 0):  # fmt: skip
+            return False
+        if self._joint_bounds is None:  # kept until set_limit changes the limits
+            self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), self._joint_names()[1], 1)
+        _, buffer, values, checks = self._world0_restart
+        if checks[0] is not self._joint_bounds:  # each joint's (low, high, turn, whether it is fixed)
+            lower, upper, turn = self._joint_bounds
+            fixed = self._joint_names()[2]
+            fixed = [False] * len(turn) if fixed is None else fixed.tolist()
+            checks[:] = [self._joint_bounds, *zip(lower[0].tolist(), upper[0].tolist(), turn.tolist(), fixed)]
+        x, xd = coordinates[0].tolist(), velocities[0].tolist()
+        half, dt = 0.5 * self._state_bound, self.dt
+        for c, r, (low, high, turn, _) in zip(x, xd, checks[1:]):
+            if not (-half < c < half and -half < r < half and low <= c <= high and abs(r) * dt < turn):
+                return False
+        nj = len(x)
+        for j, (c, r, check) in enumerate(zip(x, xd, checks[1:])):
+            values[j] = 0.0 if check[3] else c  # rounded to the model's dtype by the store
+            values[nj + j] = r
+        if self._world0_graph is None:
+            kernel, dim, args = kinematics.restart_launch(*self._tree(), self.state, self.model, self.solver,
+                                                          self._one_world(), buffer, 1, self.dt)  # fmt: skip
+            wp.launch(kernel, dim=dim, inputs=args, device=self.device)  # (loads the kernel)
+            graph = graphs.capture(self.device, lambda: wp.launch(kernel, dim=dim, inputs=args, device=self.device))[0]
+            self._world0_graph = (graph, args)
+        else:
+            wp.capture_launch(self._world0_graph[0])
+        self.state.time[0] = 0.0
+        return True
 
     def _one_world(self) -> wp.array:
         """The device indices [0] of a one-world simulator (every nonempty ``worlds`` of it), kept:

@@ -100,6 +100,18 @@ class Task:
     def render_extras(self, canvas, world: int):
         """Draw task-specific marks (targets, end stops) on a render canvas, over the bodies."""
 
+    # ================================================================== one world on the host
+    # Optional: ``observe``, ``reward`` and ``terminated`` of one world in plain Python floats,
+    # which ABDEnv's CPU step (single_step.HostStep) calls instead of the batched hooks, whose
+    # NumPy calls on arrays of one row cost more than the physics.  A task gives all three or
+    # none; each must give what its batched hook gives for that world, value for value
+    # (tests/test_single_env.py checks every task that has them).  Thresholds compare as NumPy
+    # compares a float32 observation with a Python number: against the number rounded to float32
+    # (``float32_of``).
+    world_observation = None  # (q, v: lists of the joint coordinates and rates) -> list: observe()'s row
+    world_reward = None  # (obs, action: lists of float32 values, clipped) -> float: reward()'s value as float32
+    world_terminated = None  # (obs: list of float32 values, clipped) -> bool: terminated()'s value
+
     # ================================================================== array helpers
     def asarray(self, values, dtype="float"):
         """Host values as a backend array (on the simulator's device for torch); ``dtype`` "float"
@@ -150,3 +162,18 @@ class Task:
         if self.xp is np:  # np.clip's arithmetic (NaN kept) without its Python wrapper
             return np.minimum(np.maximum(obs, self._obs_low), self._obs_high)
         return self.xp.clip(obs, self._obs_low, self._obs_high)
+
+
+class Float32Values(dict):
+    """``{x: x rounded to float32, as a Python float}``, each made on its first look-up (a dict's
+    look-up: the one-world hooks read it every step): ``float32_of[x]`` is the number a float32
+    array is compared with where NumPy compares it with the Python number ``x`` (NEP 50)."""
+
+    def __missing__(self, x):
+        if len(self) >= 1024:  # thresholds set anew without end: kept bounded
+            self.clear()
+        value = self[x] = float(np.float32(x))
+        return value
+
+
+float32_of = Float32Values()

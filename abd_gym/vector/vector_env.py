@@ -188,6 +188,9 @@ class ABDVectorEnv(Task, VectorEnv):
     * ``reset_task(idx, rng, options)``: task state of the worlds ``idx`` (host int array) at a
       reset; default: write ``draw_task``'s values.  A task that overrides it resets on the host.
     * ``info(obs) -> {key: (N,) array}``: per-step info values; default none.
+    * ``world_observation(q, v)``, ``world_reward(obs, action)``, ``world_terminated(obs)``:
+      optional, all three or none: one world's observe / reward / terminated in plain Python
+      floats, which the single env's CPU step calls instead (``Task``; the same values).
     * ``render_extras(canvas, world)``: marks (targets, end stops) drawn over the bodies.
 
     What hooks read: ``coords()`` / ``velocities()`` (N, num_joints) joint coordinates and rates,
