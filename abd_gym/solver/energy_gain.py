@@ -20,7 +20,8 @@ tol of the run's swing energy.  The allowance A of a state is what the energy ca
 rounding, ``floor`` (1000 eps of the dtype) times Σ|E_c|, and its joints' stretch, 2/ĥ² times
 their energy: a joint's penalty sits outside ĥ² in the step (docs/design.md §2), so a load F
 stretches it by C = Fĥ²/K and stores E_joint = F²ĥ⁴/2K while doing work F·C = 2E_joint/ĥ² on it,
-the energy a step, or its retry at a smaller step, moves between gravity and the joints.
+the energy a step moves between gravity and the joints as the load changes (a retry's substeps
+keep the joints' stiffness, constitutions/_joint_step.py, so they do not release the stretch).
 
 ``State.energy`` (W, 4) keeps, after each step, E, V_low, S and A as the next step's "before"; it
 is computed anew before a step only where a door set the state (``fresh`` SET) or a parameter
