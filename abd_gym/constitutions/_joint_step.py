@@ -7,9 +7,9 @@ implicit Euler step (ĥ = h), and a retried step is taken as substeps (ĥ = h/2,
 those under BDF2).  With K as it is, such a step's joints are (ĥ₀/ĥ)² as stiff as the others',
 so under a load F they stretch by Fĥ²/K instead of Fĥ₀²/K, and the next step of length ĥ₀ moves
 that difference of stretch back against the load: gravity's work F²|ĥ² − ĥ₀²|/K comes out of or
-into the total energy with nothing acting (a four-bar near rest at dt 0.1 s: half its swing
-energy in the step after its implicit Euler first step).  A step of length ĥ therefore takes
-K·(ĥ/ĥ₀)², the stiffness K/ĥ₀² of every other step.  ĥ₀ is the simulator's effective step
+into the total energy with nothing acting, a large share of the swing energy of a world near rest
+(docs/design.md §2).  A step of length ĥ therefore takes K·(ĥ/ĥ₀)², the stiffness K/ĥ₀² of
+every other step.  ĥ₀ is the simulator's effective step
 (``Solver.h_joint``: its own ĥ, its parent's for a retry's substep solver); a step within 0.1%
 of it (rounding of 2h/3) takes K itself, so the simulator's ordinary steps are untouched.
 """
