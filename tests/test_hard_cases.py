@@ -98,12 +98,12 @@ def test_mixed_mass_3d_chain_converges_at_the_defaults():
 def test_mixed_mass_3d_chain_converges_in_float32():
     """The same chain in float32 (its K/m past what float32 solves reliably: the simulator warns),
     BDF2, 16 worlds, 25 steps: every step converges, a world whose iterates from the guess end
-    where no Hessian's step finds a decrease starting again from the prediction q̃ (without that
-    retry world 2's 24th step was rejected)."""
+    where no Hessian's step finds a decrease starting again from the prediction q̃ (from seed 4,
+    worlds 1 and 15 take that retry, at steps 2 and 5)."""
     scene = mechanisms.alternating_chain(30, length=0.1, masses=mechanisms.mixed_masses(30))
     with pytest.warns(RuntimeWarning, match="float32 solves reliably"):
         sim = ag.Simulator(scene, num_worlds=16, dt=0.01, integrator="bdf2")
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(4)
     sim.set_joint_state(rng.uniform(-1, 1, (16, 30)), rng.uniform(-2, 2, (16, 30)))
     retried = np.zeros(16, bool)
     for _ in range(25):

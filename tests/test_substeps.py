@@ -52,7 +52,8 @@ def test_failed_worlds_are_retried_and_the_others_are_untouched(integrator):
 def test_a_retried_step_is_the_substeps_step(n):
     """Implicit Euler: a world retried as n substeps ends where a simulator of dt/n ends after n
     steps from the same state (get_state before the step), to Newton's stop ‖Δq‖∞ < tol·h = 1e-6 m
-    (the retry starts each substep from its own guess)."""
+    (the retry starts each substep from its own guess), the simulator's joints at strength γ/n²:
+    a substep keeps the joints' stiffness K/dt² of the step it replaces (constitutions/_joint_step.py)."""
     sim = _sim()
     for _ in range(5):
         saved = sim.get_state()
@@ -63,6 +64,7 @@ def test_a_retried_step_is_the_substeps_step(n):
     assert len(worlds)
     ref = ag.Simulator(mechanisms.double_pendulum(), num_worlds=W, dt=DT / n, integrator="implicit_euler",
                        dtype="float64", retry=False)  # fmt: skip
+    ref.set_joint_strength(np.tile(ref.scene.strength_ratios() / n**2, (W, 1)))
     ref.set_state(saved)
     ref.step(n)
     good = worlds[ref.world_status()[worlds] == WorldStatus.OK]

@@ -12,6 +12,7 @@ import warp as wp
 
 from ..core import affine
 from ..core.warp_ops import HESSIAN, ops
+from . import _joint_step
 
 
 def point_joint_np(q, points_i, points_j, K):
@@ -32,6 +33,7 @@ def kernel(dtype):
     vec3, vec4, vec12, mat12, mat44 = o.vec3, o.vec4, o.vec12, o.mat12, o.mat44
     point, JT, kron3, add_energy, scatter_pair = o.point, o.JT, o.kron3, o.add_energy, o.scatter_pair
     one, half = dtype(1.0), dtype(0.5)
+    joint_k = _joint_step.funcs(dtype)
 
     @wp.func
     def point_eval_kron(
@@ -83,7 +85,7 @@ def kernel(dtype):
         q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32),
         body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
         pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3), npts: int, K: wp.array2d(dtype=dtype),
-        active: wp.array(dtype=wp.int32), derivs: int, col: int,
+        h_step: wp.array(dtype=dtype), h_joint: dtype, active: wp.array(dtype=wp.int32), derivs: int, col: int,
         E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
     ):  # fmt: skip
         w, k = wp.tid()
@@ -92,7 +94,8 @@ def kernel(dtype):
         j = ids[k]
         bi = body_a[j]
         bj = body_b[j]
-        e, gi, gj, hii, hij, hjj = point_eval(q[w, bi], q[w, bj], pts_a, pts_b, w, j, npts, K[w, j], derivs)
+        e, gi, gj, hii, hij, hjj = point_eval(q[w, bi], q[w, bj], pts_a, pts_b, w, j, npts,
+                                              joint_k(K, h_step, h_joint, w, j), derivs)  # fmt: skip
         add_energy(E, w, col, e)
         if derivs != 0:
             scatter_pair(g, H, w, dof[bi], dof[bj], gi, gj, hii, hij, hjj)
@@ -100,7 +103,10 @@ def kernel(dtype):
     return SimpleNamespace(kernel=point_joint, eval=point_eval, eval_kron=point_eval_kron)
 
 
-def launch_points(model, kind, npts, q, E, g, H, active, derivs, col):
+def launch_points(model, ctx, kind, npts, q, E, g, H, active, derivs, col, physical):
+    """The point joints of ``kind``; in a step (not ``physical``), each world's K for its step's
+    length (_joint_step)."""
     wp.launch(kernel(model.dtype).kernel, dim=(model.num_worlds, model.joint_count[kind]),
               inputs=[q, model.joint_ids[kind], model.body_a, model.body_b, model.dof, model.pts_a, model.pts_b,
-                      npts, model.K, active, derivs, col, E, g, H], device=model.device)  # fmt: skip
+                      npts, model.K, ctx.h_step, 0.0 if physical else ctx.h_joint, active, derivs, col, E, g, H],
+              device=model.device)  # fmt: skip

@@ -18,7 +18,7 @@ def terms(model, physical=False):
 
 
 def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
-    launch_points(model, KIND, NUM_POINTS, q, E, g, H, active, derivs, cols[NAME])
+    launch_points(model, ctx, KIND, NUM_POINTS, q, E, g, H, active, derivs, cols[NAME], physical)
 
 
 CONSTITUTION = Constitution(NAME, UID, JOINT, point_joint_np, terms, launch, work=13.0, joint=KIND)

@@ -18,6 +18,7 @@ import warp as wp
 
 from ..core import affine
 from ..core.warp_ops import HESSIAN, ops
+from . import _joint_step
 from .protocol import JOINT, Constitution
 
 UID = 20
@@ -47,6 +48,7 @@ def prismatic_joint_np(q, ci, cj, ti, tj, ni, nj, bi, bj, K):
 @functools.lru_cache(maxsize=None)
 def kernel(dtype):
     o = ops(dtype)
+    joint_k = _joint_step.funcs(dtype)
     vec3, vec4, vec12, mat12 = o.vec3, o.vec4, o.vec12, o.mat12
     point, direction, JT, skew_row, kron3 = o.point, o.direction, o.JT, o.skew_row, o.kron3
     add_energy, scatter_pair = o.add_energy, o.scatter_pair
@@ -132,8 +134,8 @@ def kernel(dtype):
         body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32), dof: wp.array(dtype=wp.int32),
         c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3), t_b: wp.array2d(dtype=vec3),
         n_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
-        K: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), derivs: int, col: int,
-        E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
+        K: wp.array2d(dtype=dtype), h_step: wp.array(dtype=dtype), h_joint: dtype, active: wp.array(dtype=wp.int32),
+        derivs: int, col: int, E: wp.array2d(dtype=dtype), g: wp.array2d(dtype=dtype), H: wp.array3d(dtype=dtype),
     ):  # fmt: skip
         w, k = wp.tid()
         if active[w] == 0:
@@ -142,7 +144,8 @@ def kernel(dtype):
         bi = body_a[j]
         bj = body_b[j]
         e, gi, gj, hii, hij, hjj = prismatic_eval(q[w, bi], q[w, bj], c_a[w, j], c_b[w, j], t_a[w, j], t_b[w, j],
-                                                  n_a[w, j], n_b[w, j], b_a[w, j], b_b[w, j], K[w, j], derivs,
+                                                  n_a[w, j], n_b[w, j], b_a[w, j], b_b[w, j],
+                                                  joint_k(K, h_step, h_joint, w, j), derivs,
                                                   wp.where(dof[bi] >= 0, 1, 0), wp.where(dof[bj] >= 0, 1, 0))  # fmt: skip
         add_energy(E, w, col, e)
         if derivs != 0:
@@ -159,7 +162,8 @@ def launch(model, state, ctx, q, E, g, H, active, derivs, cols, physical=False):
     m = model
     wp.launch(kernel(m.dtype).kernel, dim=(m.num_worlds, m.joint_count[KIND]),
               inputs=[q, m.joint_ids[KIND], m.body_a, m.body_b, m.dof, m.c_a, m.c_b, m.t_a, m.t_b, m.n_a, m.n_b,
-                      m.b_a, m.b_b, m.K, active, derivs, cols[NAME], E, g, H], device=m.device)  # fmt: skip
+                      m.b_a, m.b_b, m.K, ctx.h_step, 0.0 if physical else ctx.h_joint, active, derivs, cols[NAME], E, g,
+                      H], device=m.device)  # fmt: skip
 
 
 CONSTITUTION = Constitution(NAME, UID, JOINT, prismatic_joint_np, terms, launch, work=13.0, joint=KIND)

@@ -5,10 +5,11 @@ by the scene's topology (``tree_plan``, built once): a revolute child turns by x
 axis through its anchor, a prismatic child slides by x along the axis, a fixed child keeps its
 scene pose relative to its parent; rates add ω = ẋ t (revolute) or v = ẋ t (prismatic) to the
 parent's rigid motion.  Bodies no tree joint reaches keep their scene pose at rest; a joint between
-two placed bodies closes a loop and is left to the solver.  One kernel does every listed world
-and writes q, q̇, the restart history (``rows.restart_q``) and the joints' coordinates and angle
-history, so a reset costs one launch, not a host computation and a transfer of every body's state
-(nor, on a GPU, the launches of a step's bracketing kernels: the vector env's autoreset runs it
+two placed bodies closes a loop and is not placed: the coordinates given must close it (a task's
+reset computes them from its loop's kinematics), or its gap holds the joint's penalty.  One
+kernel does every listed world and writes q, q̇, the restart history (``rows.restart_q``) and the
+joints' coordinates and angle history, so a reset costs one launch, not a host computation and a
+transfer of every body's state (nor, on a GPU, the launches of a step's bracketing kernels: the vector env's autoreset runs it
 in each step).
 """
 

@@ -573,7 +573,8 @@ class Simulator:
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
         """Forward kinematics for tree mechanisms (kinematics.py, on the device): joint coordinates
         (N, num_joints) [rad, m] and rates, from the scene's zero pose.  Joints that close a loop
-        are left to the solver.
+        are not placed: the coordinates given must close it (a gap left holds the joint's penalty,
+        which the first steps release; docs/design.md §5).
 
         Refused with a ValueError naming the joint, the world and the value (nothing is written): a
         non-finite or overflowing value, a limited joint beyond its limit's [lower, upper] by more

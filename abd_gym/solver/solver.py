@@ -143,7 +143,8 @@ class Solver:
     """Every world's implicit step of ``dt`` [s] with the numerical method ``settings``, laid out
     on the device as ``plan`` says (an ExecutionPlan, resolved here for ``model``: Solver.plan)."""
 
-    def __init__(self, model, dt: float, settings: SolverSettings, plan: ExecutionPlan | None = None, retry=True):
+    def __init__(self, model, dt: float, settings: SolverSettings, plan: ExecutionPlan | None = None, retry=True,
+                 h_joint: float | None = None):
         self.model, self.settings = model, settings
         self.plan = plan = resolve_plan(plan, model)
         self.dt = float(dt)
@@ -151,6 +152,9 @@ class Solver:
         # the effective step ĥ (dt, or 2dt/3 under BDF2): physical potentials sit inside h_eff²,
         # velocities are Δq/h_eff
         self.h_eff = self.dt * (2.0 / 3.0 if self.bdf2 else 1.0)
+        # the step whose joint stiffness K/ĥ² every step keeps (constitutions/_joint_step.py): h_eff,
+        # or a retry's parent's
+        self.h_joint = self.h_eff if h_joint is None else float(h_joint)
         W, n, dev, scalar = model.num_worlds, model.system_size, model.device, model.dtype
         # per world, set by each step (open_step): h_eff, or dt for a BDF2 world's first step
         self.h_step = wp.full(W, self.h_eff, dtype=scalar, device=dev)
@@ -238,7 +242,7 @@ class Solver:
         if retry and settings.retry:
             check = settings.energy_gain > 0 and energy_gain.conservative(model)
             energy = energy_gain.EnergyCheck(self, settings.energy_gain) if check else None
-            self.retry = Retry(self, functools.partial(Solver, retry=False), energy)
+            self.retry = Retry(self, functools.partial(Solver, retry=False, h_joint=self.h_joint), energy)
 
     @property
     def reuse_factor(self) -> bool:
@@ -546,7 +550,7 @@ class Solver:
         t.ang_joint = m.int_array(jt["joints"][REVOLUTE])
         for (name, kind), a in jt["folds"].items():
             setattr(t, f"fold_{name}_{kind}", self._fold_array(a))
-        t.h_step = self.h_step
+        t.h_step, t.h_joint = self.h_step, m.dtype(self.h_joint)
         t.rev_ids, t.fix_ids, t.pri_ids = m.joint_ids[REVOLUTE], m.joint_ids[FIXED], m.joint_ids[PRISMATIC]
         t.rlim_ids, t.plim_ids = m.limit_joint_ids[REVOLUTE], m.limit_joint_ids[PRISMATIC]
         t.rlim_lo, t.rlim_up, t.rlim_s = m.limit_params[REVOLUTE]

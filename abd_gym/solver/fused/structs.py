@@ -54,6 +54,7 @@ def structs(dtype):
         S: wp.array2d(dtype=mat33)
         kv: wp.array2d(dtype=dtype)
         h_step: wp.array(dtype=dtype)  # each world's effective step (Solver.h_step)
+        h_joint: dtype  # the step whose joint stiffness K/ĥ² every step keeps (Solver.h_joint)
         body_a: wp.array(dtype=wp.int32)
         body_b: wp.array(dtype=wp.int32)
         joint_kind: wp.array(dtype=wp.int32)

@@ -19,7 +19,7 @@ from typing import Any
 import warp as wp
 
 from ...core.angles import angle_ops
-from ...constitutions import _point_joint, affine_body, drive, prismatic_joint, prismatic_limit, revolute_limit
+from ...constitutions import _joint_step, _point_joint, affine_body, drive, prismatic_joint, prismatic_limit, revolute_limit
 from ...sim.scene import PRISMATIC, REVOLUTE
 from ...core.warp_ops import HESSIAN, ops
 from .layout import KernelSpec
@@ -58,6 +58,7 @@ def terms(spec: KernelSpec):
     put_grad, put_body, put_kron_pair, put_outer_pair = p.put_grad, p.put_body, p.put_kron_pair, p.put_outer_pair
     prismatic_hessian = prismatic_puts(spec).prismatic_hessian
     zero = dtype(0.0)
+    joint_k = _joint_step.funcs(dtype)
 
     @wp.func
     def body_term(q: wp.array2d(dtype=vec12), qr: int, w: int, s: int, B: int, derivs: int, t: Terms, g: Any, H: Any,
@@ -81,7 +82,7 @@ def terms(spec: KernelSpec):
                    H: Any, j: int, points: int):  # fmt: skip
         """A revolute (2 points) or fixed (4 points) joint j."""
         ej, gi, gj, uii, uij, ujj = point_eval_kron(q[qr, t.body_a[j]], q[qr, t.body_b[j]], t.pts_a, t.pts_b, w, j,
-                                                    points, t.K[w, j], derivs)  # fmt: skip
+                                                    points, joint_k(t.K, t.h_step, t.h_joint, w, j), derivs)  # fmt: skip
         if derivs != 0:
             put_kron_pair(g, H, s, B, derivs, t.dof[t.body_a[j]], t.dof[t.body_b[j]], gi, gj, uii, uij, ujj)
         return ej
@@ -101,9 +102,10 @@ def terms(spec: KernelSpec):
         ca = t.c_a[w, j]
         cb = t.c_b[w, j]
         ta = t.t_a[w, j]
+        kk = joint_k(t.K, t.h_step, t.h_joint, w, j)
         # the Hessian goes straight into H (prismatic_hessian), so the evaluator builds none
         ej, gi, gj = prismatic_grad(qi, qj, ca, cb, ta, t.t_b[w, j], t.n_a[w, j], t.n_b[w, j], t.b_a[w, j],
-                                    t.b_b[w, j], t.K[w, j], derivs)  # fmt: skip
+                                    t.b_b[w, j], kk, derivs)  # fmt: skip
         de = zero
         dde = zero
         gxi = vec12()
@@ -127,7 +129,7 @@ def terms(spec: KernelSpec):
             put_grad(g, s, B, oj, gj)
             if derivs == HESSIAN:
                 prismatic_hessian(H, s, B, oi, oj, qi, qj, ca, cb, ta, t.t_b[w, j], t.n_a[w, j], t.n_b[w, j],
-                                  t.b_a[w, j], t.b_b[w, j], t.K[w, j])  # fmt: skip
+                                  t.b_a[w, j], t.b_b[w, j], kk)  # fmt: skip
                 if wp.static(len(folds) > 0):
                     if dde != zero:
                         put_outer_pair(H, s, B, oi, oj, gxi, gxj, dde)
