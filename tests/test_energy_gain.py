@@ -39,6 +39,7 @@ def test_no_world_gains_more_than_five_percent_in_a_step(large_dt):
 
 
 def _sim(scene, dt=DT, **kw):
+    kw.setdefault("retry", True)  # the default on the CPU; on a GPU the retry is asked for
     sim = ag.Simulator(scene, num_worlds=W, dt=dt, integrator="bdf2", dtype="float64", **kw)
     rng = np.random.default_rng(0)
     sim.set_joint_state(rng.uniform(-2.5, 2.5, (W, 2)))
@@ -100,6 +101,7 @@ def fourbar():
 
 def _fourbar_sim(fourbar, torque, **kw):
     case, scene = fourbar
+    kw.setdefault("retry", True)  # the default on the CPU; on a GPU the retry is asked for
     sim = ag.Simulator(scene, num_worlds=W, dt=0.05, integrator="bdf2", dtype="float64", **kw)
     sim.set_joint_state(*case.state(np.random.default_rng(0), W))
     sim.set_controls(np.full((W, 1), torque))
@@ -129,7 +131,7 @@ def test_the_test_is_skipped_while_every_drive_pushes(worlds):
     the plain ones bit for bit."""
     scene = mechanisms.pendulum()
     scene.add_drive(scene.joints[0].name, mode="effort", max_effort=5.0)
-    sims = [ag.Simulator(scene, num_worlds=worlds, dt=0.01, dtype="float64", energy_gain=g) for g in (0.05, 0)]
+    sims = [ag.Simulator(scene, num_worlds=worlds, dt=0.01, dtype="float64", energy_gain=g, retry=True) for g in (0.05, 0)]
     for sim in sims:
         sim.set_joint_state(np.linspace(0.5, 1.5, worlds)[:, None])
     for control, tested in ((1.0, False), (0.0, True), (-0.5, False)):
@@ -145,9 +147,9 @@ def test_the_test_is_skipped_while_every_drive_pushes(worlds):
 def test_a_scene_with_a_position_drive_is_not_tested():
     scene = mechanisms.double_pendulum()
     scene.add_drive(scene.joints[0].name, mode="position", stiffness=10.0)
-    assert ag.Simulator(scene, num_worlds=2, energy_gain=0.05).solver.retry.energy is None
-    assert ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=0.05).solver.retry.energy is not None
-    assert ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=0).solver.retry.energy is None
+    assert ag.Simulator(scene, num_worlds=2, energy_gain=0.05, retry=True).solver.retry.energy is None
+    assert ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=0.05, retry=True).solver.retry.energy is not None
+    assert ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=0, retry=True).solver.retry.energy is None
     with pytest.raises(ValueError, match="energy_gain"):
         ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, energy_gain=-0.1)
 
@@ -162,7 +164,7 @@ def test_the_tests_energies_are_the_reports_sum():
     scene.add_fixed_joint("link1", weight)
     scene.add_drive(scene.joints[0].name, mode="effort", max_effort=5.0)
     scene.add_drive(scene.joints[1].name, mode="velocity", damping=2.0, max_effort=5.0)
-    sim = ag.Simulator(scene, num_worlds=W, dt=0.01, integrator="bdf2", dtype="float64", energy_gain=0.05)
+    sim = ag.Simulator(scene, num_worlds=W, dt=0.01, integrator="bdf2", dtype="float64", energy_gain=0.05, retry=True)
     x = np.zeros((W, scene.num_joints))  # (the weld's coordinate 0)
     x[:, :2] = np.random.default_rng(0).uniform(-2.5, 2.5, (W, 2))
     sim.set_joint_state(x)

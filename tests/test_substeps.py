@@ -22,6 +22,7 @@ def _start():
 
 
 def _sim(dt=DT, integrator="implicit_euler", **kw):
+    kw.setdefault("retry", True)  # the default on the CPU; on a GPU the retry is asked for
     sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=W, dt=dt, integrator=integrator, dtype="float64", **kw)
     sim.set_joint_state(*_start())
     return sim
