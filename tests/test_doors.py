@@ -179,11 +179,11 @@ def test_bad_constructor_arguments_are_refused(arg, values):
 
 def test_real_numpy_scalars_are_accepted(sim):
     """np.float32, np.int64 and 0-d arrays are numbers like any other."""
-    s = ag.Simulator(mechanisms.pendulum(), num_worlds=np.int64(2), dt=np.float32(0.01), tol=np.float64(1e-5),
+    s = ag.Simulator(_scene(), num_worlds=np.int64(2), dt=np.float32(0.01), tol=np.float64(1e-5),
                      max_iterations=np.int32(20))  # fmt: skip
     assert s.dt == pytest.approx(0.01) and s.num_worlds == 2
     s.step(np.int64(1))
-    s.set_joint_state(np.float32([[0.1], [0.2]]), worlds=np.array([0, 1], dtype=np.uint8))
+    s.set_joint_state(np.float32([[0.1, 0.0], [0.2, 0.0]]), worlds=np.array([0, 1], dtype=np.uint8))
 
 
 @pytest.mark.parametrize("value", [np.nan, np.inf, 1 + 1j, "x", [1, 2]], ids=repr)

@@ -90,9 +90,9 @@ def test_lane_split_step_matches_one_thread_per_world(lanes, groups, request):
     CPU (None, 2) is the one-lane case again."""
     import warp as wp
 
+    ref, sim0 = _run(True, dtype="float64")  # (before cpu_blocks: the thread per world's kernel as built elsewhere)
     if lanes:
         request.getfixturevalue("cpu_blocks")
-    ref, sim0 = _run(True, dtype="float64")
     out, sim = _run(True, dtype="float64", scratch="lanes", block_dim=lanes, lane_groups=groups)
     from abd_gym.solver.plan import default_lane_groups
 
@@ -130,7 +130,7 @@ def test_lane_widths_are_the_same_step(cpu_blocks):
         np.testing.assert_array_equal(sim.newton_iterations(), sim0.newton_iterations())
 
 
-def test_lane_split_step_on_a_closed_loop(cpu_blocks):
+def test_lane_split_step_on_a_closed_loop(request):
     """The lane-split step (a GPU's default up to 36 unknowns) on SliderCrank-v0's closed loop of
     three bodies and four joints against one thread per world: on a GPU 32 lanes factor with two
     rows a lane in registers, 16 with three, 8 (over 24 unknowns) in shared memory; the same steps
@@ -155,6 +155,7 @@ def test_lane_split_step_on_a_closed_loop(cpu_blocks):
         return sim.joint_coordinates(), sim
 
     ref, _ = run("global")
+    request.getfixturevalue("cpu_blocks")  # (after the reference: its kernel is the one built without them)
     cuda = wp.get_device(env.sim.device).is_cuda
     for lanes in (32, 16, 8) if cuda else (8,):
         out, sim = run("lanes", lanes)
@@ -472,15 +473,18 @@ def test_concurrent_cpu_launches_are_the_same_step(one_launch, energy_gain):
                                                       ("global", "float64", "bdf2"),
                                                       ("shared", "float32", "bdf2"),
                                                       ("lanes", "float32", "implicit_euler")])  # fmt: skip
-def test_one_launch_step_is_the_bracketed_step(scratch, dtype, integrator, cpu_blocks):
+def test_one_launch_step_is_the_bracketed_step(scratch, dtype, integrator, request):
     """one_launch (the fused kernel opens and closes each world's step: finite check, references,
     prediction, velocities, coordinates) against the same kernels launched around it: the same
     functions in the same order per world (the one launch's close also leaves the next step's joint
     references, close_joint, which the kernels' open computes from the same q), so the same
     trajectories, joint coordinates and rates bit for bit, through controls, limits, a reset and a
     failure; BDF2 included (its step sizes and anchors); with lanes on eight CPU fibers, split a
-    body or a joint per lane."""
+    body or a joint per lane (cooperative CPU blocks for the lanes only: a thread per world's
+    kernel needs none, and is then the one the other tests build)."""
     block = 8 if scratch == "lanes" else None
+    if scratch == "lanes":
+        request.getfixturevalue("cpu_blocks")
     one, sim1 = _run(True, dtype=dtype, scratch=scratch, one_launch=True, integrator=integrator, block_dim=block)
     two, sim2 = _run(True, dtype=dtype, scratch=scratch, one_launch=False, integrator=integrator, block_dim=block)
     assert len(sim1._graph) == 1 and sim1.solver.one_launch and not sim2.solver.one_launch

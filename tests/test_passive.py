@@ -214,7 +214,9 @@ def test_fused_assembly_folds_the_passive_terms(scene):
     before = wp.config.enable_cpu_blocks
     wp.config.enable_cpu_blocks = True
     try:
-        _fused_matches_staged(scene, ag.ExecutionPlan(scratch="lanes", block_dim=8, one_launch=False))
+        # (the lanes' step in one launch, as test_every_execution_path_gives_the_same_trajectory
+        # builds it: the assembly is the same function either way)
+        _fused_matches_staged(scene, ag.ExecutionPlan(scratch="lanes", block_dim=8))
     finally:
         wp.config.enable_cpu_blocks = before
 
@@ -369,12 +371,15 @@ def test_every_execution_path_gives_the_same_trajectory(scene):
 
     ref = _trajectory(scene, ag.ExecutionPlan(fused=False))
     assert np.abs(ref[:, 1]).max() > 0
+    for plan in (dict(scratch="global", one_launch=False), dict(scratch="global", one_launch=True)):
+        np.testing.assert_allclose(_trajectory(scene, ag.ExecutionPlan(**plan)), ref, atol=1e-9, err_msg=str(plan))
+    # cooperative CPU blocks for the lanes only (a thread per world's kernels are then the ones
+    # test_fused_assembly_folds_the_passive_terms builds)
     before = wp.config.enable_cpu_blocks
     wp.config.enable_cpu_blocks = True
     try:
-        for plan in (dict(scratch="global", one_launch=False), dict(scratch="global", one_launch=True),
-                     dict(scratch="lanes", block_dim=8)):  # fmt: skip
-            np.testing.assert_allclose(_trajectory(scene, ag.ExecutionPlan(**plan)), ref, atol=1e-9, err_msg=str(plan))
+        plan = dict(scratch="lanes", block_dim=8)
+        np.testing.assert_allclose(_trajectory(scene, ag.ExecutionPlan(**plan)), ref, atol=1e-9, err_msg=str(plan))
     finally:
         wp.config.enable_cpu_blocks = before
 
