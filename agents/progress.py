@@ -23,7 +23,8 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 from stable_baselines3.common.vec_env import sync_envs_normalization
 
-__all__ = ["ProgressLines", "SaveVecNormalize", "ThresholdEval", "mean_episode_return", "stdout_is_terminal"]
+__all__ = ["ProgressLines", "SaveVecNormalize", "ThresholdEval", "evaluations_in_a_row", "mean_episode_return",
+           "stdout_is_terminal"]
 
 
 def stdout_is_terminal() -> bool:
@@ -173,8 +174,8 @@ class ThresholdEval(EvalCallback):
             self.stopped_step = int(self.num_timesteps)
             if self.write is not None:
                 prefix = f"{self.name}: " if self.name else ""
-                self.write(f"{prefix}stopping at {self.num_timesteps:,} steps: solved in {self.solved_streak} "
-                           "evaluations in a row (stop_when_solved)")  # fmt: skip
+                self.write(f"{prefix}stopping at {self.num_timesteps:,} steps: solved in "
+                           f"{evaluations_in_a_row(self.solved_streak)} (stop_when_solved)")  # fmt: skip
             keep_going = False
         return keep_going
 
@@ -200,6 +201,11 @@ class ThresholdEval(EvalCallback):
                 f"{prefix}eval at {self.num_timesteps:,} steps: return {mean:.1f} ± {np.std(returns):.1f} "
                 f"over {len(returns)} episodes{thr}"
             )
+
+
+def evaluations_in_a_row(n: int) -> str:
+    """``1 evaluation`` or ``N evaluations in a row``: how many solved evaluations stopped a run."""
+    return "1 evaluation" if n == 1 else f"{n} evaluations in a row"
 
 
 class SaveVecNormalize(BaseCallback):

@@ -349,7 +349,10 @@ def main(argv: list[str] | None = None) -> int:
     if summary["threshold_step"] is not None:
         print(f"threshold first reached at {summary['threshold_step']:,} steps, {summary['threshold_time_s']:.1f} s")
     if summary["stopped_step"] is not None:
-        print(f"stopped at {summary['stopped_step']:,} steps: solved in {cfg['stop_when_solved']} evaluations in a row")
+        from abd_gym.agents.progress import evaluations_in_a_row
+
+        streak = evaluations_in_a_row(cfg["stop_when_solved"])
+        print(f"stopped at {summary['stopped_step']:,} steps: solved in {streak}")
     print(f"run directory: {summary['run_dir']}")
     if summary["final_below_best"]:
         best = summary["best_model"]

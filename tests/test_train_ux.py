@@ -125,6 +125,13 @@ def test_stop_when_solved_validated():
         validate_config({**base, "stop_when_solved": 2})
 
 
+def test_stop_lines_name_the_solved_evaluations():
+    from abd_gym.agents.progress import evaluations_in_a_row
+
+    assert evaluations_in_a_row(1) == "1 evaluation"
+    assert evaluations_in_a_row(3) == "3 evaluations in a row"
+
+
 def test_stop_when_solved_ends_training_after_solved_evaluations_in_a_row(tmp_path, capsys, monkeypatch):
     # Every CartPole episode pays at least 1, so every evaluation is solved with a margin against a
     # threshold of 1: two evaluations (at 128 and 256 env steps) end the 512-step run at 256.
