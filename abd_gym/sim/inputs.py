@@ -67,9 +67,10 @@ def finite_array(name, values, shape, worlds=None, items=None, item="index", bou
         except ValueError:
             raise ValueError(f"{name} must have shape {shape}, got {np.shape(values)}") from None
     # the common case in one product: Σ a² is NaN or inf where an entry is, and below (bound/2)²
-    # only where every |entry| is below the bound (by a margin that rounding cannot cross)
+    # only where every |entry| is below the bound (by a margin that rounding cannot cross); vdot,
+    # unlike dot, does not warn where Σ a² overflows (huge entries, refused below by name)
     flat = a.ravel()
-    if flat.dot(flat) < (0.25 * bound * bound if bound < math.inf else math.inf):
+    if np.vdot(flat, flat) < (0.25 * bound * bound if bound < math.inf else math.inf):
         return a
     bad = ~np.isfinite(a)
     if bound < math.inf:
