@@ -241,7 +241,8 @@ def test_bad_scene_arguments_are_refused(value):
 def test_per_world_parameters_rerun_the_conditioning_warnings():
     """A mass ratio of 1e6 set after the build (float32): the build's warning, for the world touched."""
     sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=W, dt=0.01)
-    with pytest.warns(RuntimeWarning, match=r"joint 'revolute1' in worlds \[1\]: K/m up to 1e\+08"):
+    with pytest.warns(RuntimeWarning, match=r"joint 'revolute1' in worlds \[1\]: K/m up to 1e\+08"), \
+            pytest.warns(RuntimeWarning, match=r"body 'link1' in worlds \[1\]: mass 1e-06 kg"):
         sim.set_body_mass([[1.0, 1e-6]], bodies=["link0", "link1"], worlds=[1])
     with pytest.warns(RuntimeWarning, match=r"joint 'revolute0' in worlds \[0, 2\]"):
         sim.set_joint_strength([[1e7, 100.0], [1e7, 100.0]], worlds=[0, 2])

@@ -86,6 +86,8 @@ def test_slider_force_motor(integrator):
         assert np.all(np.abs(sim.joint_coordinates()[:, 0] - 0.5 * a * (n * h) ** 2) <= np.abs(a) * h**2)
 
 
+# the build warns that dt turns the stiff drive's mode past 1 rad (conditioning): the point here
+@pytest.mark.filterwarnings("ignore:dt 0.01 s is beyond what the position drive")
 @pytest.mark.parametrize("stiffness,damping", [(50.0, 5.0), (1e7, 1e4)])
 def test_position_drive_reaches_target_and_is_stable_at_large_gains(stiffness, damping):
     """An implicit PD holds any gain at dt = 0.01 (the explicit limit here would be k < 4I/h² = 1600)."""
@@ -100,6 +102,7 @@ def test_position_drive_reaches_target_and_is_stable_at_large_gains(stiffness, d
     assert sim.energies()["drive"].max() < 1e-3 * stiffness
 
 
+@pytest.mark.filterwarnings("ignore:dt 0.01 s is beyond what the position drive")
 def test_pd_force_respects_effort_limit():
     """A stiff PD far from its target applies max_effort: ω grows as max_effort·t/I (within the
     O((ωh)²) rotational dissipation of the step, ωh ≤ 0.025 here)."""
