@@ -175,14 +175,9 @@ class HostStep:
         controls, scales = self.control_row, self.scales
         for i, x in enumerate(a):
             controls[i] = x * scales[i]  # exact in a double, rounded to float32 by the store
-        if self.physics is None:
-            self.advance()
-        else:  # advance's replay
-            self.physics()
-            self.elapsed[0] += 1
+        self.advance()
         env = self.env
-        row = np.array(self.clip(env.world_observation(self.coord.tolist(), self.rate.tolist())), dtype=np.float32)
-        obs = row.tolist()  # (observation(), inline)
+        row, obs = self.observation()
         status, substeps, gained = self.flags
         s = sum(obs)  # NaN just where an entry is (clipped: none is inf, and the sum is finite)
         failed = status[0] != 0 or s != s
