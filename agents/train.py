@@ -87,8 +87,8 @@ def train(
 
     With ``return_model`` the trained model comes back too: ``(summary, model)``.
     ``torch_threads``: CPU threads for torch (None: torch's default).  One thread is the default,
-    as in the zoo: the policies are small MLPs, and on a busy 2-core machine two torch threads
-    made a CartPole PPO run 20x slower than one.
+    as in the zoo: the policies are small MLPs, too small to split across threads, and a second
+    thread contends with the env for a busy machine's cores (results/solver_notes.md).
     """
     if torch_threads is not None:
         import torch

@@ -140,7 +140,7 @@ def thread_kernel(spec: KernelSpec):
         are.  On the CPU ranges of threads and worlds run as concurrent launches, each with its own
         scratch (g, H, dq: Tw columns), its own run of worlds and its own queue (2 words); s0 + c is
         the thread's row of q_trial.  (One step a launch: a loop of steps around a world's step
-        made the step slower at large batches.)"""
+        is slower at large batches.)"""
         c = wp.tid()
         s = c + s0
         if wp.static(in_smem):
