@@ -118,7 +118,7 @@ class Model:
         self.first_np = np.concatenate([self.first_np, pad]) if self.envelope else np.zeros(self.system_size, np.int32)
         # three or more free bodies, each coupled to the one before it at most (chains, and loops
         # closed through the ground: the four-bar, the slider-crank): the Hessian lies in its block
-        # band, which the fused step stores packed (solver_kernels.h_words, plan.plan_band)
+        # band, which the fused step stores packed (solver.kernels.h_words, plan.plan_band)
         # (12 unknowns a body: the band's 12-row blocks are what its 4 × 4 tiles step over)
         self.banded = D == 12 and len(block_first) >= 3 and all(f >= D * (b - 1) for b, f in enumerate(block_first))
         # a joint whose K/m is past conditioning.STIFF_JOINT: Newton may assemble the exact orthogonality

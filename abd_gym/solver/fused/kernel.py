@@ -234,7 +234,7 @@ def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False,
     for CUDA (``cuda``), the block's ``block`` threads' g, H, Δq in its shared memory, one column
     per thread (on the CPU the packed columns stay in the global arrays);
     ``band`` (a thread per world, a scene with Model.banded): only H's block band, packed
-    (solver_kernels.h_words: 2,076 words for a 10-link chain's 120 unknowns, against 7,260 for the
+    (solver.kernels.h_words: 2,076 words for a 10-link chain's 120 unknowns, against 7,260 for the
     triangle and 14,400 square), and the dense factor's loops within it;
     "lanes": a block of ``block`` lanes per world, its system packed (see the package's docstring).
     ``cuda``: built for a GPU (the lane-split step then keeps its scratch in shared memory).
