@@ -462,7 +462,8 @@ def stepping(spec: KernelSpec):
 @functools.lru_cache(maxsize=None)
 def iteration(spec: KernelSpec):
     """``iterate``: one Newton iteration of a world's solve (zero, assemble, factor and solve, take
-    the step), in the layout ``spec`` builds for."""
+    the step), in the layout ``spec`` builds for.  One function: a function of its own for any of
+    its stages changes the generated machine code (results/solver_notes.md)."""
     dtype, N, NF, TRI, LANES, G, RL = spec.dtype, spec.N, spec.NF, spec.TRI, spec.LANES, spec.G, spec.RL
     lanes, compact, envelope, warp_regs = spec.lanes, spec.compact, spec.envelope, spec.warp_regs
     packed = spec.packed and not envelope
