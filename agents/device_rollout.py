@@ -82,8 +82,8 @@ def rollout_path(cfg: dict[str, Any]) -> tuple[str, str]:
     The device path needs PPO and an env that takes ``backend="torch"`` (the abd_gym envs); a
     VecNormalize config normalises on the device (:mod:`.device_normalize`).  The config's
     ``rollout``: ``auto`` takes the device path where it applies on a GPU, and SB3's path on the
-    CPU, where the device path's per-step tensor operations cost more than SB3's NumPy (CartPole-v0
-    PPO trains 19% slower on it, Acrobot-v0 with VecNormalize 25%, on a 2-core CPU); ``sb3`` forces
+    CPU, where the device path's per-step tensor operations cost more than SB3's NumPy
+    (results/solver_notes.md); ``sb3`` forces
     SB3's path; ``device`` forces the device path, and raises a ``ValueError`` with the reason where
     it does not apply.
     """

@@ -28,8 +28,8 @@ lengths of the rollout's last ``tail_size`` finished episodes in :attr:`tail` (w
 :meth:`act`, :meth:`record`, :meth:`record_act` and :meth:`finish` are each one graph replay on a
 GPU (:class:`~.cuda_graph.GraphedCall`), eager on the CPU, with the same arithmetic either way.  The
 buffer's storage keeps its addresses from one rollout to the next (:meth:`TensorRolloutBuffer.reset`).
-As Torch operations the record is ~30 kernels, 74 µs of a step's GPU time on an H100 at 4,096
-CartPole-v0 worlds, and GAE ~100, 0.21 ms of a 16-step rollout; each kernel here takes a few µs.
+As Torch operations the record and GAE are tens of small kernels each, launched from Python; here
+each is one Warp kernel (their cost as measured: results/solver_notes.md).
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """PPO's minibatch step (loss, backward pass, gradient clipping, Adam) captured as one CUDA graph.
 
-SB3's minibatch step launches ~150 small kernels from Python: ~4.5 ms on an H100/H200 whatever the
-batch, far more than the GPU's work on a few thousand samples.  :class:`GraphedMinibatchStep`
+SB3's minibatch step launches about 150 small kernels from Python, whose launch time, whatever the
+batch, is far more than the GPU's work on a few thousand samples (results/solver_notes.md).  :class:`GraphedMinibatchStep`
 records the step once and replays it, so a minibatch costs one graph launch and two index copies.
 
 A graph replays fixed shapes at fixed addresses, which fixes four things:

@@ -87,17 +87,16 @@ def train(
 
     With ``return_model`` the trained model comes back too: ``(summary, model)``.
     ``torch_threads``: CPU threads for torch (None: torch's default).  One thread is the default,
-    as in the zoo: the policies are small MLPs, and on a busy 2-core machine two torch threads
-    made a CartPole PPO run 20x slower than one.
+    as in the zoo: the policies are small MLPs, too small to split across threads, and a second
+    thread contends with the env for a busy machine's cores (results/solver_notes.md).
     """
     if torch_threads is not None:
         import torch
 
         torch.set_num_threads(max(int(torch_threads), 1))
-    from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from abd_gym.agents.progress import ProgressLines, stdout_is_terminal
+    from abd_gym.agents.progress import stdout_is_terminal
 
     cfg = validate_config(cfg)
     resolve_device(cfg["device"])  # ValueError naming the devices there are, before the run folder is made
@@ -121,22 +120,10 @@ def train(
         print("abd-gym-train: tensorboard is not installed; no TensorBoard logs", file=sys.stderr)
     model = build_model(cfg, env, tensorboard_log=tb, verbose=verbose, rollout=rollout)
     n_envs = cfg["n_envs"]
-    checkpoint_freq = cfg["checkpoint_freq"] or max(cfg["n_timesteps"] // 4, 1)
-    callbacks = [
-        CheckpointCallback(
-            save_freq=max(checkpoint_freq // n_envs, 1),
-            save_path=str(run_dir / "checkpoints"),
-            name_prefix="model",
-            save_vecnormalize=True,
-        )
-    ]
     threshold = reward_threshold(cfg["env_id"])
     bar = bool(progress_bar) and stdout_is_terminal()
-    if not bar:
-        callbacks.append(ProgressLines(cfg["n_timesteps"], name=config_name))
     periodic = _periodic_eval(cfg, env, run_dir, threshold, config_name) if cfg["eval_freq"] > 0 else None
-    if periodic is not None:
-        callbacks.append(periodic)
+    callbacks = _callbacks(cfg, run_dir, config_name, bar, periodic)
 
     started = datetime.now().isoformat(timespec="seconds")
     t0 = time.perf_counter()
@@ -188,13 +175,8 @@ def train(
         "evaluator": result["evaluator"],
         "eval_wall_time_s": round(eval_wall, 2),
         "eval_freq": cfg["eval_freq"],
-        "periodic_evaluations": periodic.n_evaluations if periodic is not None else 0,
-        "periodic_eval_time_s": round(periodic.eval_time_s, 2) if periodic is not None else 0.0,
-        "best_periodic_return": _finite_or_none(periodic.best_mean_reward) if periodic is not None else None,
-        "threshold_step": periodic.threshold_step if periodic is not None else None,
-        "threshold_time_s": periodic.threshold_time_s if periodic is not None else None,
+        **_periodic_summary(periodic),
         "stop_when_solved": cfg["stop_when_solved"],
-        "stopped_step": periodic.stopped_step if periodic is not None else None,
         "best_model": best,
         "final_below_best": below,
         "use_model": use_model,
@@ -214,6 +196,35 @@ def train(
         pass
     env.close()
     return (summary, model) if return_model else summary
+
+
+def _callbacks(cfg: dict[str, Any], run_dir: Path, name: str, bar: bool, periodic: ThresholdEval | None) -> list:
+    """The training's callbacks: checkpoints (a quarter of the run apart unless the config says),
+    progress lines where SB3's bar is not shown (``bar``), and the periodic evaluation if any."""
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    from abd_gym.agents.progress import ProgressLines
+
+    checkpoint_freq = cfg["checkpoint_freq"] or max(cfg["n_timesteps"] // 4, 1)
+    callbacks = [CheckpointCallback(save_freq=max(checkpoint_freq // cfg["n_envs"], 1),
+                                    save_path=str(run_dir / "checkpoints"), name_prefix="model",
+                                    save_vecnormalize=True)]  # fmt: skip
+    if not bar:
+        callbacks.append(ProgressLines(cfg["n_timesteps"], name=name))
+    if periodic is not None:
+        callbacks.append(periodic)
+    return callbacks
+
+
+def _periodic_summary(periodic: ThresholdEval | None) -> dict[str, Any]:
+    """The summary's entries from the periodic evaluation, or their values without one."""
+    if periodic is None:
+        return {"periodic_evaluations": 0, "periodic_eval_time_s": 0.0, "best_periodic_return": None,
+                "threshold_step": None, "threshold_time_s": None, "stopped_step": None}  # fmt: skip
+    return {"periodic_evaluations": periodic.n_evaluations, "periodic_eval_time_s": round(periodic.eval_time_s, 2),
+            "best_periodic_return": _finite_or_none(periodic.best_mean_reward),
+            "threshold_step": periodic.threshold_step, "threshold_time_s": periodic.threshold_time_s,
+            "stopped_step": periodic.stopped_step}  # fmt: skip
 
 
 def _periodic_eval(cfg: dict[str, Any], env, run_dir: Path, threshold: float | None, name: str) -> ThresholdEval:

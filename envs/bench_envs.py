@@ -24,8 +24,8 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
                          simulator_options: dict | None = None):  # fmt: skip
     """World-steps per second (``num_envs × steps / seconds``) of ``steps`` calls of ``step``; with
     ``repeat``, the fastest of ``repeat`` consecutive windows of ``steps`` calls in one env (each
-    rate below likewise): on a GPU a small batch's env rate is set by the host's Python, and single
-    windows were seen to vary by 2x from one run to the next.
+    rate below likewise): on a GPU a small batch's env rate is set by the host's Python, so one
+    window's rate varies from run to run with the host's load.
 
     ``task_id``: a registered id, with or without the ``abd_gym/`` namespace.  ``simulator_options``:
     more Simulator settings for the env (e.g. ``{"plan": ExecutionPlan(scratch="shared")}``).
@@ -40,8 +40,8 @@ def env_steps_per_second(task_id: str, num_envs: int, steps: int, device: str | 
       so an upper bound on the simulator's rate.  With the env's step graph (Torch on a GPU), by
       device timestamps around the physics inside that graph (abd_gym.core.timestamps); else each
       ``sim.step`` call between CUDA events on a GPU (which also time the device's waits for the
-      host's launches: on an H100, 119–127 µs against 102 µs inside the graph for 1,024
-      CartPole-v0 worlds), or by the host clock on the CPU.
+      host's launches, so they read longer than the timestamps inside a graph), or by the host
+      clock on the CPU.
     """
     if "/" not in task_id:
         task_id = f"abd_gym/{task_id}"

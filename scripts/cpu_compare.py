@@ -4,7 +4,7 @@
     python scripts/cpu_compare.py [--cases pendulum,cartpole_task,...] [--worlds 1,64,1024]
         [--steps 50] [--repeat 3] [--threads N] [--integrators Euler,RK4] [--planar auto,off] [--json PATH]
 
-Both engines step the case's random starts (``peer_cases.CASES``, seed 0) with dt = 0.01 s.
+Both engines step the case's random starts (``abd_gym.bench.cases.CASES``, seed 0) with dt = 0.01 s.
 abd_gym: ``bench compare``'s timing on the CPU device (float32, its default plan: the fused
 step's worlds split over as many concurrent launches as the machine has cores), best of
 ``--repeat``.  MuJoCo C (the ``mujoco`` package): ``mujoco.rollout`` over the same worlds with one

@@ -1,4 +1,4 @@
-"""``python -m abd_gym.bench compare``: every mechanism of ``peer_cases.CASES`` in abd_gym and in
+"""``python -m abd_gym.bench compare``: every mechanism of ``cases.CASES`` in abd_gym and in
 MuJoCo Warp (optional: ``pip install mujoco mujoco-warp``), same device, same worlds, one process.
 
 Speed: both step with dt = 0.01 from the case's random starts; MuJoCo Warp runs once per
@@ -34,7 +34,7 @@ ACCURACY_DURATION = 1.0  # s
 
 
 def random_states(case, n, seed=0):
-    """Joint coordinates (n, joints) of ``case``'s random starts (peer_cases.CASES)."""
+    """Joint coordinates (n, joints) of ``case``'s random starts (cases.CASES)."""
     return CASES[case].states(n, seed)[0]
 
 
@@ -254,7 +254,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=None)
     ap.add_argument("--dt", type=float, default=0.01)
     ap.add_argument("--ours-only", default=None, help="world counts run in abd_gym alone (default 1048576 on GPU)")
-    ap.add_argument("--cases", default=",".join(CASES), help="peer_cases.CASES names (default: all)")
+    ap.add_argument("--cases", default=",".join(CASES), help="cases.CASES names (default: all)")
     ap.add_argument("--scratch", default="auto", help="comma-separated layouts of our fused step: auto (the "
                     "simulator's default), global, shared, lanes (each timed against the same MuJoCo Warp run)")
     ap.add_argument("--planar", default="auto", help="comma-separated forms of our step: auto (a planar scene's 6 "

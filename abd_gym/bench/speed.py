@@ -1,10 +1,10 @@
 """Benchmark: steps per second against number of worlds, with the accuracy of each run.
 
     python -m abd_gym.bench [--device cpu|cuda:0] [--worlds 1,16,256] [--steps 50] [--out DIR]
-    python -m abd_gym.bench compare ...    (against MuJoCo Warp: bench_compare.py)
-    python -m abd_gym.bench accuracy ...   (speed against error: bench_accuracy.py)
+    python -m abd_gym.bench compare ...    (against MuJoCo Warp: compare.py)
+    python -m abd_gym.bench accuracy ...   (speed against error: accuracy.py)
     python -m abd_gym.bench threads ...    (fused step's thread count and block size: sweep_threads)
-    python -m abd_gym.bench robustness ... (hard cases with default settings: bench_robustness.py)
+    python -m abd_gym.bench robustness ... (hard cases with default settings: robustness.py)
     python -m abd_gym.bench single ...     (one gym.make env against Gymnasium's own: single.py)
 
 For a double pendulum and a cart-pole it times ``Simulator.step`` (after warm-up, synchronised)

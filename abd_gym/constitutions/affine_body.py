@@ -11,8 +11,7 @@ uses R⁺, R's positive part (R itself where R ⪰ 0, the Hessian then exact; el
 eigenvalues in closed form, ``psd_part``), so the Hessian stays PSD and is exact in R's positive
 directions.  R is tiny (|R| ~ 1e-5) but 4κv·h²·R is not: along a thin link's slender directions it
 exceeds the inertia's second moments, so dropping the whole R term when one eigenvalue is
-negative leaves Newton converging linearly (~0.92 an iteration on double pendulums at dt 0.05,
-50 iterations unconverged).
+negative leaves Newton converging only linearly (its rate: results/solver_notes.md).
 """
 
 import functools

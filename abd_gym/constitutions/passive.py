@@ -9,7 +9,7 @@ with a the armature [kg·m² or kg], d the damping [N·m·s/rad or N·s/m], ĥ t
 2h/3 for BDF2), x̂ the step's anchor (``State.x_anchor``: xⁿ, or (4xⁿ − xⁿ⁻¹)/3) and v̂ its predicted
 rate (``State.v_anchor``: ẋⁿ, or (4ẋⁿ − ẋⁿ⁻¹)/3).  x − x̂ = ĥ ẋⁿ⁺¹ (both integrators' rate), so
 E′ = a(ẋⁿ⁺¹ − v̂)/ĥ + d ẋⁿ⁺¹: the armature is an inertia on x, predicted exactly as the bodies'
-inertia predicts q̃ (solver_kernels.predict_body), and the damper the force −d ẋⁿ⁺¹.  A quadratic:
+inertia predicts q̃ (solver.kernels.predict_body), and the damper the force −d ẋⁿ⁺¹.  A quadratic:
 E″ = a/ĥ² + d/ĥ.  The terms below return ĥ²·(E, E′, E″).
 
 ``energies()["kinetic"]`` includes the armature's ½ a ẋ²; the damper's work is dissipated.

@@ -34,7 +34,7 @@ def funcs(dtype, passive=False):
 @functools.lru_cache(maxsize=None)
 def restart_funcs(dtype):
     """(limit_engaged, restart_engaged): a BDF2 world's history restarts where a limit is engaged
-    (solver_kernels.open_body)."""
+    (solver.kernels.open_body)."""
     return _restart(dtype)
 
 
@@ -55,7 +55,7 @@ def _anchors(dtype):
     def rate_anchor(velocity: wp.array2d(dtype=dtype), velocity_hist: wp.array2d(dtype=dtype),
                     v_anchor: wp.array2d(dtype=dtype), bdf2_step: bool, w: int, j: int):  # fmt: skip
         """The passive terms' predicted rate v̂ of a step [rad/s or m/s]: ẋⁿ, or (4ẋⁿ − ẋⁿ⁻¹)/3 =
-        ẋⁿ + (ẋⁿ − ẋⁿ⁻¹)/3 for a BDF2 step (the bodies' v̂, solver_kernels.predict_body)."""
+        ẋⁿ + (ẋⁿ − ẋⁿ⁻¹)/3 for a BDF2 step (the bodies' v̂, solver.kernels.predict_body)."""
         v = velocity[w, j]
         if bdf2_step:
             v = v + (v - velocity_hist[w, j]) / dtype(3.0)
@@ -78,12 +78,17 @@ def _anchors(dtype):
 
 
 @functools.lru_cache(maxsize=None)
+def _joint_math(dtype):
+    """(vec3, vec12, cos_sin, delta_theta, displacement, theta_grad, displacement_grad): the vector
+    types and the joint-coordinate functions (core.angles) the factories below build on."""
+    o, a = ops(dtype), angle_ops(dtype)
+    return o.vec3, o.vec12, a.cos_sin, a.delta_theta, a.displacement, a.theta_grad, a.displacement_grad
+
+
+@functools.lru_cache(maxsize=None)
 def _begin(dtype, passive):
     """(begin_joint, begin_step): a joint's references and anchors before a step."""
-    o = ops(dtype)
-    a = angle_ops(dtype)
-    vec3, vec12 = o.vec3, o.vec12
-    cos_sin, delta_theta = a.cos_sin, a.delta_theta
+    vec3, vec12, cos_sin, delta_theta, *_ = _joint_math(dtype)
     anchor, rate_anchor, _ = _anchors(dtype)
 
     @wp.func
@@ -134,11 +139,7 @@ def _begin(dtype, passive):
 @functools.lru_cache(maxsize=None)
 def _coordinates(dtype, passive):
     """(joint_coordinates, coordinates): a joint's coordinate and rate after a step."""
-    o = ops(dtype)
-    a = angle_ops(dtype)
-    vec3, vec12 = o.vec3, o.vec12
-    cos_sin, delta_theta, displacement = a.cos_sin, a.delta_theta, a.displacement
-    theta_grad, displacement_grad = a.theta_grad, a.displacement_grad
+    vec3, vec12, cos_sin, delta_theta, displacement, theta_grad, displacement_grad = _joint_math(dtype)
     step_rate = _anchors(dtype)[2]
 
     @wp.func
@@ -215,10 +216,7 @@ def _coordinates(dtype, passive):
 @functools.lru_cache(maxsize=None)
 def _close_joint(dtype, passive):
     """close_joint: the fused step's close of a joint, which also opens its next step."""
-    o = ops(dtype)
-    a = angle_ops(dtype)
-    vec3, vec12 = o.vec3, o.vec12
-    cos_sin, delta_theta, displacement = a.cos_sin, a.delta_theta, a.displacement
+    vec3, vec12, cos_sin, delta_theta, displacement, *_ = _joint_math(dtype)
     anchor, rate_anchor, step_rate = _anchors(dtype)
 
     @wp.func
@@ -294,7 +292,7 @@ def _restart(dtype):
         plim_up: wp.array2d(dtype=dtype), num_plim: int,
     ):  # fmt: skip
         """A healthy world w with a limit engaged at the end of its step restarts its BDF2 history
-        (fresh[w] = RESTART; solver_kernels.open_body)."""
+        (fresh[w] = RESTART; solver.kernels.open_body)."""
         w = wp.tid()
         if status[w] != 0:
             return

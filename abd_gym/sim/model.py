@@ -64,10 +64,20 @@ class Model:
         self.device = resolve_device(device)
         o = ops(self.dtype)
         self.vec3, self.vec12, self.mat33 = o.vec3, o.vec12, o.mat33
-        bodies, joints = scene.bodies, scene.joints
+        dof, free = self._bodies(scene, reduce)
+        self._joints(scene)
+        self._sparsity(scene, dof, free)
+        self._joint_frames(scene)
+        self._limits(scene.joints)
+        self._drives(scene.drives)
+        self._passive(scene.joints)
 
-        # ---- bodies: the plane a planar scene moves in (sim/planar.py; ``reduce`` False: none, the
-        # staged reference step's 12 unknowns a body), and dof offsets (fixed bodies carry no unknowns)
+    def _bodies(self, scene, reduce):
+        """The bodies' unknowns and their per-world mass moments; returns (each body's first
+        unknown, -1 for a fixed body; the free bodies' indices)."""
+        # the plane a planar scene moves in (sim/planar.py; ``reduce`` False: none, the staged
+        # reference step's 12 unknowns a body), and dof offsets (fixed bodies carry no unknowns)
+        bodies = scene.bodies
         self.plane = planar.plane_of(scene) if reduce else None
         D = self.body_dofs = 6 if self.plane else 12  # unknowns a free body
         self.axis = self.plane.axis if self.plane else -1  # the plane's normal axis, -1: none
@@ -93,18 +103,26 @@ class Model:
         self.kv = self._world(self.base_kv)
         self.q0 = np.stack([b.q() for b in bodies])  # (bodies, 12) float64 initial pose
         self.qd0 = np.stack([b.qdot() for b in bodies])
+        return dof, free
 
-        # ---- joints: frames in each body's local coordinates at creation (q_ref)
-        nj = self.num_joints = len(joints)
+    def _joints(self, scene):
+        """The joints' bodies and kinds."""
+        joints = scene.joints
+        self.num_joints = len(joints)
         self.joint_kind_np = np.array([_KIND_CODE[j.kind] for j in joints], dtype=np.int32)
         self.body_a = self.int_array([j.body_a for j in joints])
         self.body_b = self.int_array([j.body_b for j in joints])
         self.joint_kind = self.int_array(self.joint_kind_np)
+
+    def _sparsity(self, scene, dof, free):
+        """Where the Hessian of a world's system is zero (its envelope, its block band) and the
+        system's size; whether a joint is stiff enough for the exact Hessian."""
         # the Hessian's envelope: row i's first non-zero column, from the body pairs the joints (and
         # their limits and drives) couple; a chain in scene order is block-banded, and Cholesky
         # fills nothing outside the envelope, so a 20-link chain factors in O(n·D²), not O(n³)
+        D = self.body_dofs
         block_first = [dof[k] for k in free]
-        for j in joints:
+        for j in scene.joints:
             da, db = dof[j.body_a], dof[j.body_b]
             if da >= 0 and db >= 0:
                 lo, hi = min(da, db), max(da, db)
@@ -118,13 +136,18 @@ class Model:
         self.first_np = np.concatenate([self.first_np, pad]) if self.envelope else np.zeros(self.system_size, np.int32)
         # three or more free bodies, each coupled to the one before it at most (chains, and loops
         # closed through the ground: the four-bar, the slider-crank): the Hessian lies in its block
-        # band, which the fused step stores packed (solver_kernels.h_words, plan.plan_band)
+        # band, which the fused step stores packed (solver.kernels.h_words, plan.plan_band)
         # (12 unknowns a body: the band's 12-row blocks are what its 4 × 4 tiles step over)
         self.banded = D == 12 and len(block_first) >= 3 and all(f >= D * (b - 1) for b, f in enumerate(block_first))
         # a joint whose K/m is past conditioning.STIFF_JOINT: Newton may assemble the exact orthogonality
         # Hessian (fused.kernel's ``exact``)
         self.stiff = bool(np.max(conditioning.joint_numbers(scene), initial=0.0) > conditioning.STIFF_JOINT)
         self.first = self.int_array(self.first_np)
+
+    def _joint_frames(self, scene):
+        """Each joint's frames, points and stiffness in its bodies' local coordinates at creation
+        (q_ref), and its reference cos/sin."""
+        bodies, joints, nj = scene.bodies, scene.joints, self.num_joints
         frames = np.zeros((8, max(nj, 1), 3))
         pts = np.zeros((2, max(nj, 1), 4, 3))
         K = np.zeros(max(nj, 1))
@@ -158,7 +181,8 @@ class Model:
         self.joint_ids = {kind: self.int_array(scene.joints_of(kind)) for kind in (REVOLUTE, PRISMATIC, FIXED)}
         self.joint_count = {kind: len(scene.joints_of(kind)) for kind in (REVOLUTE, PRISMATIC, FIXED)}
 
-        # ---- limits (per kind, in joint order)
+    def _limits(self, joints):
+        """The limits per joint kind, in joint order."""
         self.limit_joints, self.limit_params = {}, {}
         for kind in (REVOLUTE, PRISMATIC):
             ids = [k for k, j in enumerate(joints) if j.kind == kind and j.has_limit]
@@ -167,8 +191,8 @@ class Model:
             self.limit_params[kind] = [self._world(v.reshape(-1)) for v in vals.reshape(3, -1)]
         self.limit_joint_ids = {kind: self.int_array(v) for kind, v in self.limit_joints.items()}
 
-        # ---- drives
-        drives = scene.drives
+    def _drives(self, drives):
+        """The drives' joints, modes and per-world gains."""
         self.num_drives = len(drives)
         self.drive_joint = self.int_array([d.joint for d in drives])
         self.drive_mode = self.int_array([drive_mod.MODES[d.mode] for d in drives])
@@ -176,7 +200,8 @@ class Model:
         self.drive_damping = self._world(np.array([d.damping for d in drives]))
         self.drive_max_effort = self._world(np.array([min(d.max_effort, 1e30) for d in drives]))
 
-        # ---- passive joint terms (constitutions.passive): one per joint with damping or armature
+    def _passive(self, joints):
+        """The passive joint terms (constitutions.passive): one per joint with damping or armature."""
         passive = [k for k, j in enumerate(joints) if j.has_passive]
         self.num_passive = len(passive)
         self.passive_joint = self.int_array(passive)

@@ -6,6 +6,7 @@ Getters return NumPy by default; ``backend="warp"`` gives the device array itsel
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import warnings
@@ -30,6 +31,17 @@ FLOAT64 = np.dtype(np.float64)  # (NumPy's one instance: an identity test)
 
 # step counts whose graphs ``step`` keeps in a list to replay (an env's frame skip; a few are enough)
 MAX_REPLAYS = 8
+
+
+@dataclasses.dataclass
+class _World0Restart:
+    """What a one-world CPU simulator keeps for set_joint_state in plain Python (_restart_world0)."""
+
+    shape: tuple  # the coordinates' and rates' shape, (1, joints)
+    buffer: wp.array  # (1, 2, joints): the coordinates and rates the restart launch's graph reads
+    values: np.ndarray  # a flat host view of buffer
+    bounds: tuple | None = None  # the joint bounds (Simulator._joint_bounds) the checks were made from
+    checks: list = dataclasses.field(default_factory=list)  # each joint's (low, high, turn, fixed)
 
 
 def _skew(w):
@@ -123,11 +135,8 @@ class Simulator:
                                for a in ("lower", "upper", "strength")] for kind, ids in m.limit_joints.items()}  # fmt: skip
         self._set_mask = None
         self._world0 = None  # a one-world simulator's device indices [0] (_one_world)
-        # a one-world CPU simulator's set_joint_state in plain Python (_restart_world0): the
-        # coordinates' shape, the kept (1, 2, joints) array of coordinates and rates, a flat view
-        # of it, and [the joint bounds the checks were made from, each joint's (low, high, turn, fixed)]
-        self._world0_restart = None
-        self._world0_graph = None  # (the restart launch's graph reading that array, its arguments)
+        self._world0_restart = None  # a one-world CPU simulator's _World0Restart
+        self._world0_graph = None  # (the restart launch's graph reading _World0Restart.buffer, its arguments)
         self._joints = None  # set_joint_state's joint names and revolute mask (_joint_names)
         self._joint_bounds = None  # set_joint_state's bounds (inputs.joint_state_bounds), until set_limit
         self._tree_plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
@@ -141,7 +150,7 @@ class Simulator:
         self._warm = False
         if self.device.is_cpu and self.num_worlds == 1 and self.model.num_joints:
             buffer = wp.zeros((1, 2, self.model.num_joints), dtype=self.model.dtype, device=self.device)
-            self._world0_restart = ((1, self.model.num_joints), buffer, buffer.numpy().reshape(-1), [None])
+            self._world0_restart = _World0Restart((1, self.model.num_joints), buffer, buffer.numpy().reshape(-1))
         self.reset()
 
     @property
@@ -615,33 +624,33 @@ class Simulator:
         written into a kept array that a captured graph of the restart launch reads.  Returns
         False, having written nothing, for any other input, which ``set_joint_state`` then takes
         (and refuses, naming the joint, where it must)."""
-        shape = self._world0_restart[0]
+        kept = self._world0_restart
         if not (type(coordinates) is np.ndarray and type(velocities) is np.ndarray and coordinates.dtype is FLOAT64
-                and velocities.dtype is FLOAT64 and coordinates.shape == velocities.shape == shape):  # fmt: skip
+                and velocities.dtype is FLOAT64 and coordinates.shape == velocities.shape == kept.shape):  # fmt: skip
             return False
         if worlds is not None and not (type(worlds) is np.ndarray and worlds.shape == (1,) and worlds.dtype.kind in "iu"
                                        and worlds[0] == 0):  # fmt: skip
             return False
         if self._joint_bounds is None:  # kept until set_limit changes the limits
             self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), self._joint_names()[1], 1)
-        _, buffer, values, checks = self._world0_restart
-        if checks[0] is not self._joint_bounds:  # each joint's (low, high, turn, whether it is fixed)
+        if kept.bounds is not self._joint_bounds:
             lower, upper, turn = self._joint_bounds
             fixed = self._joint_names()[2]
             fixed = [False] * len(turn) if fixed is None else fixed.tolist()
-            checks[:] = [self._joint_bounds, *zip(lower[0].tolist(), upper[0].tolist(), turn.tolist(), fixed)]
+            kept.bounds = self._joint_bounds
+            kept.checks = list(zip(lower[0].tolist(), upper[0].tolist(), turn.tolist(), fixed))
         x, xd = coordinates[0].tolist(), velocities[0].tolist()
         half, dt = 0.5 * self._state_bound, self.dt
-        for c, r, (low, high, turn, _) in zip(x, xd, checks[1:]):
+        for c, r, (low, high, turn, _) in zip(x, xd, kept.checks):
             if not (-half < c < half and -half < r < half and low <= c <= high and abs(r) * dt < turn):
                 return False
         nj = len(x)
-        for j, (c, r, check) in enumerate(zip(x, xd, checks[1:])):
-            values[j] = 0.0 if check[3] else c  # rounded to the model's dtype by the store
-            values[nj + j] = r
+        for j, (c, r, check) in enumerate(zip(x, xd, kept.checks)):
+            kept.values[j] = 0.0 if check[3] else c  # rounded to the model's dtype by the store
+            kept.values[nj + j] = r
         if self._world0_graph is None:
             kernel, dim, args = kinematics.restart_launch(*self._tree(), self.state, self.model, self.solver,
-                                                          self._one_world(), buffer, 1, self.dt)  # fmt: skip
+                                                          self._one_world(), kept.buffer, 1, self.dt)  # fmt: skip
             wp.launch(kernel, dim=dim, inputs=args, device=self.device)  # (loads the kernel)
             graph = graphs.capture(self.device, lambda: wp.launch(kernel, dim=dim, inputs=args, device=self.device))[0]
             self._world0_graph = (graph, args)

@@ -29,13 +29,13 @@ class State:
         self.coord_vel_hist, self.v_anchor = (wp.zeros((W, nj), dtype=scalar, device=dev) for _ in range(2))
         self.control = wp.zeros((W, nd), dtype=scalar, device=dev)
         # q̇ⁿ⁻², whether its third-order extrapolation guesses a body's next step, the last step's
-        # controls and the steps in a row with the same (solver_kernels.predict_body, open_body)
+        # controls and the steps in a row with the same (solver.kernels.predict_body, open_body)
         self.qd_hist2 = wp.zeros_like(self.q)
         self.order3 = wp.zeros((W, nb), dtype=wp.int32, device=dev)
         self.control_prev = wp.zeros_like(self.control)
         self.calm = wp.zeros(W, dtype=wp.int32, device=dev)
         self.status = wp.zeros(W, dtype=wp.int32, device=dev)
-        # nonzero: the world's next step is an implicit Euler step even under BDF2 (solver_kernels.
+        # nonzero: the world's next step is an implicit Euler step even under BDF2 (solver.kernels.
         # open_body): RESET (1), it has no past step (new, or its state was just set) or a limit
         # released one step ago; RESTART (2), a limit was engaged at the end of its last step
         self.fresh = wp.ones(W, dtype=wp.int32, device=dev)

@@ -162,11 +162,8 @@ def _noise_funcs(dtype):
 
 
 @functools.lru_cache(maxsize=None)
-def _predict_funcs(dtype):
-    """A step's prediction and initial guess (predict_body, predict, limit_reach); its opening
-    (open_body, open_step) from ``_open_funcs``."""
-    vec3, vec12, zero, one, EPS = _scalars(dtype)
-    retract = affine_body.kernels(dtype).retract
+def _reach_func(dtype):
+    """limit_reach: the fraction of the extrapolated step a world's limits leave its guess."""
 
     @wp.func
     def limit_reach(coord: wp.array2d(dtype=dtype), rate: wp.array2d(dtype=dtype), lim_ids: wp.array(dtype=wp.int32),
@@ -199,6 +196,17 @@ def _predict_funcs(dtype):
                 if move > reach:
                     b = wp.min(b, reach / move)
         return b
+
+    return limit_reach
+
+
+@functools.lru_cache(maxsize=None)
+def _predict_funcs(dtype):
+    """A step's prediction and initial guess (predict_body, predict; limit_reach from
+    ``_reach_func``); its opening (open_body, open_step) from ``_open_funcs``."""
+    vec3, vec12, zero, one, EPS = _scalars(dtype)
+    retract = affine_body.kernels(dtype).retract
+    limit_reach = _reach_func(dtype)
 
     @wp.func
     def predict_body(

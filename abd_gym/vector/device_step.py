@@ -322,8 +322,8 @@ class DeviceStep:
         # the worlds the device just reset (last step's ended ones, known on the host now): their
         # info is a reset's (none), their clock restarts, they took a row of their queues; this
         # read raises if the device refused the last step
-        # (whole-mask NumPy operations: a few calls a step, each cheaper on 1,024 worlds than the
-        # index list and fancy indexing they replace)
+        # (whole-mask NumPy operations: a few calls a step, each cheaper on a large batch than an
+        # index list and fancy indexing)
         mask = self.pending_now()
         if replayed:
             self.sim.tick(env.frame_skip)

@@ -19,7 +19,7 @@ class Pinned:
     addressing a kernel reads and writes page-locked host memory by its host pointer).
 
     ``flags`` (3, 2, N): rows done and bad of a step, slots 0 and 1 written by the step graphs
-    (env_kernels' mailed finish_step), slot 2 by a copy; ``mail`` (2, 2) the graphs' slots' device
+    (vector.kernels' mailed finish_step), slot 2 by a copy; ``mail`` (2, 2) the graphs' slots' device
     pointers of the actions and of the fresh outputs; ``event``: recorded after the step that
     writes the flags.  ``*_np``, ``*_t``, ``*_dev``: the NumPy, Torch and Warp views."""
 

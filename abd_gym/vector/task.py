@@ -12,7 +12,7 @@ from ..sim.scene import Scene
 
 class Task:
     """The task hooks and their reads; mixed into ABDVectorEnv, whose constructor sets what they
-    read: ``scene``, ``sim``, ``arrays`` (env_arrays.Backend), ``xp``, ``backend``, ``episodes``
+    read: ``scene``, ``sim``, ``arrays`` (vector.arrays.Backend), ``xp``, ``backend``, ``episodes``
     (episodes.Episodes), ``num_envs`` and ``step_dt``."""
 
     def _init_task_arrays(self, observation_high: np.ndarray):

@@ -7,7 +7,7 @@ Kronecker factors and bodies' from their parts, neither built as a 12 × 12 matr
 gradient only, as their blocks are zero; an iteration that reuses the last Cholesky factor
 assembles the gradient only and leaves H, which holds the factor; ``Solver.fused_system`` checks
 this assembly against the staged one), without atomics (a thread owns its scratch column of the
-flat ``g``/``H``/``dq``, indexed as in ``solver_kernels``), without per-iteration
+flat ``g``/``H``/``dq``, indexed as in ``solver.kernels``), without per-iteration
 launches, and with the code of absent constitutions compiled out (``wp.static`` on what the scene
 has).  ``Solver(fused=True)`` uses it.
 

@@ -108,7 +108,7 @@ def world_bracket(spec: KernelSpec):
                     if wp.static(has_plim):
                         engaged += limit_engaged(k.coord, t.plim_ids, t.plim_lo, t.plim_up, t.plim_ids.shape[0], w)
                     if engaged != 0:
-                        k.fresh[w] = RESTART  # (solver_kernels.open_body)
+                        k.fresh[w] = RESTART  # (solver.kernels.open_body)
         tick(t, w, lane, PHASE_CLOSE_JOINTS, c)  # (lane 0's joints: no barrier follows them)
 
     return SimpleNamespace(open_world=open_world, close_world=close_world)

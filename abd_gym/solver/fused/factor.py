@@ -13,6 +13,133 @@ from types import SimpleNamespace
 from .layout import KernelSpec, indexing
 
 
+def _prelude(ctype: str, n: int, lanes: int) -> str:
+    """The declarations the pieces read: the scalar type, the compile-time sizes (R rows a lane),
+    the shuffle mask of the world's segment of the warp, and the lane's registers."""
+    L = int(lanes)
+    R = -(-int(n) // L)
+    return f"""typedef {ctype} T;
+const int N = {int(n)};
+const int L = {L};
+const int R = {R};
+const unsigned MASK = {"0xffffffffu" if L == 32 else f"((1u << {L}) - 1u) << ((threadIdx.x & 31u) & ~{L - 1}u)"};
+T* Hs = H.data;
+const int l = lane;
+T h[R][N];
+T dinv[R];
+"""
+
+
+# regs_ldl_solve's CUDA body (warp_ldl_solve) in the order it runs, after _prelude's declarations
+# (T, the sizes N, L, R, the segment's MASK, H's data Hs, the lane l, its rows h and their 1/D in
+# dinv); each piece is plain CUDA, the sizes being compile-time constants.
+
+# the lane's rows of H into registers, and their 1/D where H holds a factor to reuse
+_LOAD_ROWS = """\
+#pragma unroll
+for (int r = 0; r < R; ++r) {
+    const int i = l + r * L;
+    const int ri = (i * (i + 1)) >> 1;
+#pragma unroll
+    for (int k = 0; k < N; ++k) {
+        h[r][k] = T(0);
+        if (i < N && k <= i) h[r][k] = Hs[ri + k];
+    }
+    dinv[r] = i < N ? Hs[ri + i] : T(0);  // 1/D_i, where a reused factor holds it
+}
+"""
+
+# with ``factor``: column j's pivot and multipliers shuffled from its lanes, each lane's rows
+# updated; ok 0 at a pivot not positive and finite; the factor written back to H
+_FACTOR = """\
+int ok = 1;
+if (factor) {
+#pragma unroll
+    for (int r = 0; r < R; ++r) dinv[r] = T(0);
+#pragma unroll
+    for (int j = 0; j < N; ++j) {
+        const T dj = __shfl_sync(MASK, h[j / L][j], j % L, L);
+        if (!(dj > T(0)) || !isfinite(dj)) ok = 0;
+        const T inv = T(1) / dj;
+        T cj[R];
+#pragma unroll
+        for (int r = 0; r < R; ++r) {
+            if (l + r * L == j) dinv[r] = inv;
+            cj[r] = h[r][j] * inv;
+        }
+#pragma unroll
+        for (int k = j + 1; k < N; ++k) {
+            const T hk = __shfl_sync(MASK, h[k / L][j], k % L, L);
+#pragma unroll
+            for (int r = 0; r < R; ++r) {
+                if (l + r * L >= k) h[r][k] -= cj[r] * hk;
+            }
+        }
+    }
+    if (!ok) return 0;
+#pragma unroll
+    for (int r = 0; r < R; ++r) {
+        const int i = l + r * L;
+        const int ri = (i * (i + 1)) >> 1;
+        if (i < N) {
+#pragma unroll
+            for (int k = 0; k < N; ++k) {
+                if (k < i) Hs[ri + k] = h[r][k];
+            }
+            Hs[ri + i] = dinv[r];
+        }
+    }
+    __syncwarp(MASK);
+}
+"""
+
+# each lane's columns of the factor (the rows' entries above the diagonal) and y = −g
+_LOAD_COLUMNS = """\
+T c[R][N];
+T y[R];
+#pragma unroll
+for (int r = 0; r < R; ++r) {
+    const int i = l + r * L;
+#pragma unroll
+    for (int k = 0; k < N; ++k) {
+        c[r][k] = T(0);
+        if (i < N && k > i) c[r][k] = Hs[((k * (k + 1)) >> 1) + i];
+    }
+    y[r] = i < N ? -g.data[i] : T(0);
+}
+"""
+
+# L y = −g, y_j / D_j shuffled from row j's lane
+_FORWARD = """\
+#pragma unroll
+for (int j = 0; j < N; ++j) {
+    const T tj = __shfl_sync(MASK, y[j / L] * dinv[j / L], j % L, L);
+#pragma unroll
+    for (int r = 0; r < R; ++r) {
+        if (l + r * L > j) y[r] -= h[r][j] * tj;
+    }
+}
+"""
+
+# Lᵀ Δq = D⁻¹ y from the last row, x_k shuffled to the rows above it; Δq to dq
+_BACKWARD = """\
+#pragma unroll
+for (int k = N - 1; k >= 0; --k) {
+    const T xk = __shfl_sync(MASK, y[k / L] * dinv[k / L], k % L, L);
+#pragma unroll
+    for (int r = 0; r < R; ++r) {
+        if (l + r * L < k) y[r] -= c[r][k] * xk;
+    }
+}
+#pragma unroll
+for (int r = 0; r < R; ++r) {
+    if (l + r * L < N) dq.data[l + r * L] = y[r] * dinv[r];
+}
+__syncwarp(MASK);
+return ok;
+"""
+
+
 @functools.lru_cache(maxsize=None)
 def warp_ldl_solve(dtype, n: int, lanes: int = 32):
     """A native CUDA function: the lane-split step's L D Lᵀ factor and substitutions for one world
@@ -33,107 +160,8 @@ def warp_ldl_solve(dtype, n: int, lanes: int = 32):
     broadcast pivot decides it on every lane).  Every loop is unrolled over the compile-time n, so
     the rows stay in registers.  CUDA only (the CPU's lanes use ldl_lanes and solve_lanes)."""
     ctype = "float" if dtype == wp.float32 else "double"
-    L = int(lanes)
-    R = -(-int(n) // L)
-    snippet = f"""
-#if defined(__CUDA_ARCH__)
-typedef {ctype} T;
-const int N = {int(n)};
-const int L = {L};
-const int R = {R};
-const unsigned MASK = {"0xffffffffu" if L == 32 else f"((1u << {L}) - 1u) << ((threadIdx.x & 31u) & ~{L - 1}u)"};
-T* Hs = H.data;
-const int l = lane;
-T h[R][N];
-T dinv[R];
-#pragma unroll
-for (int r = 0; r < R; ++r) {{
-    const int i = l + r * L;
-    const int ri = (i * (i + 1)) >> 1;
-#pragma unroll
-    for (int k = 0; k < N; ++k) {{
-        h[r][k] = T(0);
-        if (i < N && k <= i) h[r][k] = Hs[ri + k];
-    }}
-    dinv[r] = i < N ? Hs[ri + i] : T(0);  // 1/D_i, where a reused factor holds it
-}}
-int ok = 1;
-if (factor) {{
-#pragma unroll
-    for (int r = 0; r < R; ++r) dinv[r] = T(0);
-#pragma unroll
-    for (int j = 0; j < N; ++j) {{
-        const T dj = __shfl_sync(MASK, h[j / L][j], j % L, L);
-        if (!(dj > T(0)) || !isfinite(dj)) ok = 0;
-        const T inv = T(1) / dj;
-        T cj[R];
-#pragma unroll
-        for (int r = 0; r < R; ++r) {{
-            if (l + r * L == j) dinv[r] = inv;
-            cj[r] = h[r][j] * inv;
-        }}
-#pragma unroll
-        for (int k = j + 1; k < N; ++k) {{
-            const T hk = __shfl_sync(MASK, h[k / L][j], k % L, L);
-#pragma unroll
-            for (int r = 0; r < R; ++r) {{
-                if (l + r * L >= k) h[r][k] -= cj[r] * hk;
-            }}
-        }}
-    }}
-    if (!ok) return 0;
-#pragma unroll
-    for (int r = 0; r < R; ++r) {{
-        const int i = l + r * L;
-        const int ri = (i * (i + 1)) >> 1;
-        if (i < N) {{
-#pragma unroll
-            for (int k = 0; k < N; ++k) {{
-                if (k < i) Hs[ri + k] = h[r][k];
-            }}
-            Hs[ri + i] = dinv[r];
-        }}
-    }}
-    __syncwarp(MASK);
-}}
-T c[R][N];
-T y[R];
-#pragma unroll
-for (int r = 0; r < R; ++r) {{
-    const int i = l + r * L;
-#pragma unroll
-    for (int k = 0; k < N; ++k) {{
-        c[r][k] = T(0);
-        if (i < N && k > i) c[r][k] = Hs[((k * (k + 1)) >> 1) + i];
-    }}
-    y[r] = i < N ? -g.data[i] : T(0);
-}}
-#pragma unroll
-for (int j = 0; j < N; ++j) {{
-    const T tj = __shfl_sync(MASK, y[j / L] * dinv[j / L], j % L, L);
-#pragma unroll
-    for (int r = 0; r < R; ++r) {{
-        if (l + r * L > j) y[r] -= h[r][j] * tj;
-    }}
-}}
-#pragma unroll
-for (int k = N - 1; k >= 0; --k) {{
-    const T xk = __shfl_sync(MASK, y[k / L] * dinv[k / L], k % L, L);
-#pragma unroll
-    for (int r = 0; r < R; ++r) {{
-        if (l + r * L < k) y[r] -= c[r][k] * xk;
-    }}
-}}
-#pragma unroll
-for (int r = 0; r < R; ++r) {{
-    if (l + r * L < N) dq.data[l + r * L] = y[r] * dinv[r];
-}}
-__syncwarp(MASK);
-return ok;
-#else
-return 0;
-#endif
-"""
+    body = _prelude(ctype, n, lanes) + _LOAD_ROWS + _FACTOR + _LOAD_COLUMNS + _FORWARD + _BACKWARD
+    snippet = "\n#if defined(__CUDA_ARCH__)\n" + body + "#else\nreturn 0;\n#endif\n"
 
     @wp.func_native(snippet)
     def regs_ldl_solve(H: wp.array(dtype=dtype), g: wp.array(dtype=dtype), dq: wp.array(dtype=dtype), lane: int,
@@ -141,7 +169,6 @@ return 0;
         ...
 
     return regs_ldl_solve
-
 
 
 @functools.lru_cache(maxsize=None)

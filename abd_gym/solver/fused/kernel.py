@@ -140,7 +140,7 @@ def thread_kernel(spec: KernelSpec):
         are.  On the CPU ranges of threads and worlds run as concurrent launches, each with its own
         scratch (g, H, dq: Tw columns), its own run of worlds and its own queue (2 words); s0 + c is
         the thread's row of q_trial.  (One step a launch: a loop of steps around a world's step
-        made the step slower at large batches.)"""
+        is slower at large batches.)"""
         c = wp.tid()
         s = c + s0
         if wp.static(in_smem):
@@ -234,7 +234,7 @@ def fused_kernel(dtype, own=(), folds=(), scratch="global", n=0, envelope=False,
     for CUDA (``cuda``), the block's ``block`` threads' g, H, Δq in its shared memory, one column
     per thread (on the CPU the packed columns stay in the global arrays);
     ``band`` (a thread per world, a scene with Model.banded): only H's block band, packed
-    (solver_kernels.h_words: 2,076 words for a 10-link chain's 120 unknowns, against 7,260 for the
+    (solver.kernels.h_words: 2,076 words for a 10-link chain's 120 unknowns, against 7,260 for the
     triangle and 14,400 square), and the dense factor's loops within it;
     "lanes": a block of ``block`` lanes per world, its system packed (see the package's docstring).
     ``cuda``: built for a GPU (the lane-split step then keeps its scratch in shared memory).

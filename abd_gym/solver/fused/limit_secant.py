@@ -140,8 +140,8 @@ def limit_secant(spec: KernelSpec):
     def solve_in_place(L: Any, v: Any, s: int, T: int, t: Terms, n: int):
         """v ← −(L Lᵀ)⁻¹v through the Cholesky factor in L (n = N rows, read at run time), row by row
         within each row's stored columns: compact loops, where the Newton step's substitutions
-        (solver_kernels.solve_dense, four rows at a time) would add ~30 KB of code for a solve that
-        few iterations take."""
+        (solver.kernels' solve_dense, four rows at a time) would add their unrolled code to the
+        kernel for a solve that few iterations take."""
         for i in range(n):  # L y = −v
             r = h_row(i, N)
             acc = -v[i * T + s]

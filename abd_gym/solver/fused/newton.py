@@ -370,7 +370,7 @@ def stepping(spec: KernelSpec):
     def whole_step(e0: dtype, gdq: dtype, dmax: dtype, floor: dtype, noise: dtype, chord: int):
         """(skip, done): take the Newton step whole, without a line search, when it is under the
         tolerance or when its predicted decrease −gᵀΔq is below what the energy's float rounding
-        can resolve (the search could only halve it on noise; ``noise``: solver_kernels.energy_noise);
+        can resolve (the search could only halve it on noise; ``noise``: solver.kernels.energy_noise);
         done: the solve ends with it.  A step from a reused factor (chord) converges linearly: only
         one under the tolerance ends it."""
         unresolved = -gdq <= dtype(1600.0) * EPS * wp.abs(e0) or -gdq <= noise
@@ -462,7 +462,8 @@ def stepping(spec: KernelSpec):
 @functools.lru_cache(maxsize=None)
 def iteration(spec: KernelSpec):
     """``iterate``: one Newton iteration of a world's solve (zero, assemble, factor and solve, take
-    the step), in the layout ``spec`` builds for."""
+    the step), in the layout ``spec`` builds for.  One function: a function of its own for any of
+    its stages changes the generated machine code (results/solver_notes.md)."""
     dtype, N, NF, TRI, LANES, G, RL = spec.dtype, spec.N, spec.NF, spec.TRI, spec.LANES, spec.G, spec.RL
     lanes, compact, envelope, warp_regs = spec.lanes, spec.compact, spec.envelope, spec.warp_regs
     packed = spec.packed and not envelope
