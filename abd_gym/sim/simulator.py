@@ -14,12 +14,14 @@ import numpy as np
 import warp as wp
 
 from . import conditioning, inputs, kinematics
+from .loops import LoopCheck
 from ..core import graphs, launches, rows
 from .coordinates import FIXED_CODE
 from .inputs import check_body_spin, check_joint_state, check_within_limits
 from .inputs import finite_array as _finite_array
 from .model import Model
 from ..solver.plan import ExecutionPlan, as_plan
+from ..solver.retry import SUBSTEPS
 from .scene import REVOLUTE, Scene
 from ..solver.solver import Solver, SolverSettings
 from .state import State
@@ -130,7 +132,11 @@ class Simulator:
         self._world0_graph = None  # (the restart launch's graph reading that array, its arguments)
         self._joints = None  # set_joint_state's joint names and revolute mask (_joint_names)
         self._joint_bounds = None  # set_joint_state's bounds (inputs.joint_state_bounds), until set_limit
+        # a revolute rate's largest |rate|·dt: what a step, or the retry's finest substeps, produce
+        settings = self.solver.settings
+        self._turn = inputs.max_turn(settings.integrator, max(SUBSTEPS) if settings.retry else 1)
         self._tree_plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
+        self._loops = LoopCheck.for_scene(scene, self.model)  # the closing joints' gaps, or None: no loop
         self._torch_views = {}
         self._host_views = {}
         self._host_copies = {}  # view's NumPy copies on the CPU: id -> (array, host view, the copy's dtype)
@@ -143,6 +149,12 @@ class Simulator:
             buffer = wp.zeros((1, 2, self.model.num_joints), dtype=self.model.dtype, device=self.device)
             self._world0_restart = ((1, self.model.num_joints), buffer, buffer.numpy().reshape(-1), [None])
         self.reset()
+
+    @property
+    def loops(self):
+        """The check of the coordinates of the scene's closed loops (sim.loops.LoopCheck: ``gaps``,
+        ``check``), or None where no joint closes a loop."""
+        return self._loops
 
     @property
     def plane(self):
@@ -573,13 +585,15 @@ class Simulator:
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
         """Forward kinematics for tree mechanisms (kinematics.py, on the device): joint coordinates
         (N, num_joints) [rad, m] and rates, from the scene's zero pose.  Joints that close a loop
-        are not placed: the coordinates given must close it (a gap left holds the joint's penalty,
-        which the first steps release; docs/design.md §5).
+        are not placed: the coordinates given must close it, to within ``loops.LOOP_TOL`` of the
+        closing joint's half_length (a state a step produced reopens it by the joints' stretch
+        only; docs/design.md §5).
 
         Refused with a ValueError naming the joint, the world and the value (nothing is written): a
         non-finite or overflowing value, a limited joint beyond its limit's [lower, upper] by more
         than the limit holds (a penetration a step produced is accepted: inputs.check_within_limits),
-        a revolute rate that turns the joint by π or more in one step."""
+        a revolute rate that turns the joint by π or more in one step, coordinates that leave a
+        closed loop open (``loops.LoopCheck``: naming the closing joint and the gap)."""
         if self._world0_restart is not None and self._restart_world0(coordinates, velocities, worlds):
             return
         idx = self._worlds(worlds)
@@ -592,9 +606,11 @@ class Simulator:
         if N == 0:
             return
         if self._joint_bounds is None:  # kept until set_limit changes the limits
-            self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), revolute, self.num_worlds)
+            self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), revolute, self.num_worlds, self._turn)
         if not inputs.joint_state_ok(x, xd, idx, self.dt, self._joint_bounds):
-            check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds())  # raises, naming the joint
+            check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds(), self._turn)  # names the joint
+        if self._loops is not None:
+            self._loops.check("coordinates", x, idx)
         idx_dev = self._one_world() if self.num_worlds == 1 else rows.indices(idx, self._stage)
         # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
         # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
@@ -611,7 +627,8 @@ class Simulator:
         """``set_joint_state`` of a one-world CPU simulator from float64 arrays (1, joints) of
         coordinates and rates, for world 0 (``worlds`` None or [0]), where each value passes, in
         plain Python floats, the checks that ``set_joint_state`` makes (finite, within half the
-        state bound, within the joint's bounds, |rate|·dt below the joint's turn): the values
+        state bound, within the joint's bounds, |rate|·dt below the joint's turn; a closed loop
+        closed): the values
         written into a kept array that a captured graph of the restart launch reads.  Returns
         False, having written nothing, for any other input, which ``set_joint_state`` then takes
         (and refuses, naming the joint, where it must)."""
@@ -623,7 +640,7 @@ class Simulator:
                                        and worlds[0] == 0):  # fmt: skip
             return False
         if self._joint_bounds is None:  # kept until set_limit changes the limits
-            self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), self._joint_names()[1], 1)
+            self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), self._joint_names()[1], 1, self._turn)
         _, buffer, values, checks = self._world0_restart
         if checks[0] is not self._joint_bounds:  # each joint's (low, high, turn, whether it is fixed)
             lower, upper, turn = self._joint_bounds
@@ -635,6 +652,8 @@ class Simulator:
         for c, r, (low, high, turn, _) in zip(x, xd, checks[1:]):
             if not (-half < c < half and -half < r < half and low <= c <= high and abs(r) * dt < turn):
                 return False
+        if self._loops is not None and not self._loops.closed(coordinates):
+            return False
         nj = len(x)
         for j, (c, r, check) in enumerate(zip(x, xd, checks[1:])):
             values[j] = 0.0 if check[3] else c  # rounded to the model's dtype by the store

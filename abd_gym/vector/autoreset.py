@@ -149,6 +149,8 @@ class NextEpisodes:
                                ("task values", drawn[2] if self.task_width else None, (n, self.task_width))):  # fmt: skip
             if a is not None and (a.shape != shape or not np.all(np.isfinite(a))):
                 raise ValueError(f"the task's initial {name} must be finite with shape {shape}, got {a.shape}")
+        if self.sim.loops is not None:  # a closed loop's coordinates must close it, as set_joint_state checks
+            self.sim.loops.check("the task's initial coordinates", x, w)
         # as set_joint_state: a fixed joint's coordinate is 0; a scene without joints has one 0 column
         xx = np.zeros((n, 2, self.queue.shape[2]), dtype=m.np_dtype)
         xx[:, 0, :nj] = np.where(self._fixed[None, :], 0.0, x)
