@@ -157,8 +157,8 @@ def test_a_scene_with_a_position_drive_is_not_tested():
 def test_the_tests_energies_are_the_reports_sum():
     """EnergyCheck.measure leaves the drives' launch out (a conservative scene's drives have no
     physical energy) and takes the point joints' energies without their derivatives: its
-    columns equal ``energies()``'s bit for bit, revolute and fixed joints, effort and velocity
-    drives pushing or not."""
+    columns, each times its scale to J, equal ``energies()``'s bit for bit, revolute and fixed
+    joints, effort and velocity drives pushing or not."""
     scene = mechanisms.double_pendulum()
     weight = scene.add_body(ag.Box(half_extents=(0.05, 0.05, 0.05)), mass=0.5, position=(0.1, 0.0, -0.75))
     scene.add_fixed_joint("link1", weight)
@@ -177,9 +177,11 @@ def test_the_tests_energies_are_the_reports_sum():
     check.measure(sim.state, sim.solver.all_active)
     measured, report = check.E.numpy(), sim.energies()
     assert set(report) == {name for name in sim.solver.report_cols if name != "scratch"}
+    scale = check.scale.numpy()  # to J: a joint's column over ĥ₀², every other 1
+    np.testing.assert_array_equal(scale, sim.solver.report_scale)
     for name, col in sim.solver.report_cols.items():
         if name != "scratch":
-            np.testing.assert_array_equal(measured[:, col], report[name])
+            np.testing.assert_array_equal(measured[:, col] * scale[col], report[name])
     assert not report["drive"].any()
 
 

@@ -360,8 +360,11 @@ class Simulator:
 
     def energies(self) -> dict:
         """Each term's own energy [J] per world: "kinetic" (the joints' armature's ½aẋ² included),
-        "gravity", "orthogonality" and the joint, limit and drive terms the scene has (K/2 Σ‖C‖² for
-        joints, the seed's E(x) for limits)."""
+        "gravity", "orthogonality" and the joint, limit and drive terms the scene has.  A joint's is
+        its physical energy K/(2ĥ₀²) Σ‖C‖²: the seed's K/2 Σ‖C‖² is a term of the incremental
+        potential outside ĥ² (J·s²), so its stiffness is K/ĥ₀² with ĥ₀ the simulator's step (dt,
+        2dt/3 under BDF2), which every step keeps (docs/design.md §2), and totals compare across
+        dt.  A limit's is the seed's E(x) as it is."""
         return self.solver.energies(self.state)
 
     def joint_violation(self, joints=None) -> np.ndarray:

@@ -18,7 +18,8 @@ world has had (its kinetic plus elastic energy at its lowest point), which does 
 swing energy of the whole run while no step gains, so the test is at least as strict as a gain of
 tol of the run's swing energy.  The allowance A of a state is what the energy cannot resolve: its
 rounding, ``floor`` (1000 eps of the dtype) times Σ|E_c|.  E is the robustness report's total (a
-joint counted as K/2 Σ‖C‖²), so the test holds a step to the report's criterion.  It leaves no
+joint counted as its physical energy K/(2ĥ₀²) Σ‖C‖², Solver.report_scale), so the test holds a
+step to the report's criterion.  It leaves no
 room for the joints' stretch: every step keeps the joints' stiffness (constitutions/_joint_step.py),
 so a retry's substeps do not release the stretch a step made.
 
@@ -104,14 +105,15 @@ def kernels(dtype):
     """The test's kernels for a scalar dtype."""
 
     @wp.func
-    def total(E: wp.array2d(dtype=dtype), w: int, ncols: int, floor: dtype):
+    def total(E: wp.array2d(dtype=dtype), scale: wp.array(dtype=dtype), w: int, ncols: int, floor: dtype):
         """(Σ E_c, the gain the test leaves unresolved: floor·Σ|E_c|) of world w's first ncols
-        columns."""
+        columns, each column c its physical energy scale[c]·E[w, c] (Solver.report_scale)."""
         e = dtype(0.0)
         allow = dtype(0.0)
         for c in range(ncols):
-            e += E[w, c]
-            allow += floor * wp.abs(E[w, c])
+            ec = scale[c] * E[w, c]
+            e += ec
+            allow += floor * wp.abs(ec)
         return e, allow
 
     @wp.func
@@ -154,13 +156,13 @@ def kernels(dtype):
             need[w] = 1
 
     @wp.kernel
-    def remember(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, floor: dtype,
+    def remember(E: wp.array2d(dtype=dtype), scale: wp.array(dtype=dtype), ncols: int, gcol: int, floor: dtype,
                  need: wp.array(dtype=wp.int32), mem: wp.array2d(dtype=dtype)):  # fmt: skip
         """The energy, gravity potential, swing and allowance of the worlds ``need`` marks, as of
         before their step."""
         w = wp.tid()
         if need[w] != 0:
-            e, allow = total(E, w, ncols, floor)
+            e, allow = total(E, scale, w, ncols, floor)
             g = E[w, gcol]
             mem[w, 0] = e
             mem[w, 1] = g
@@ -168,7 +170,7 @@ def kernels(dtype):
             mem[w, 3] = allow
 
     @wp.kernel
-    def judge(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, floor: dtype,
+    def judge(E: wp.array2d(dtype=dtype), scale: wp.array(dtype=dtype), ncols: int, gcol: int, floor: dtype,
               control: wp.array2d(dtype=dtype), nd: int,
               status: wp.array(dtype=wp.int32), hold: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32),
               tol: dtype, mem: wp.array2d(dtype=dtype),
@@ -188,7 +190,7 @@ def kernels(dtype):
             return
         if status[w] != OK:
             return
-        e, allow = total(E, w, ncols, floor)
+        e, allow = total(E, scale, w, ncols, floor)
         g = E[w, gcol]
         if pushed(control, w, nd) == 0 and gains(mem, w, e, allow, g, tol):
             idle[w] = 0
@@ -200,7 +202,7 @@ def kernels(dtype):
         keep(mem, w, e, allow, g)
 
     @wp.kernel
-    def settle(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, floor: dtype,
+    def settle(E: wp.array2d(dtype=dtype), scale: wp.array(dtype=dtype), ncols: int, gcol: int, floor: dtype,
                control: wp.array2d(dtype=dtype), nd: int,
                status: wp.array(dtype=wp.int32), tol: dtype, mem: wp.array2d(dtype=dtype),
                fresh: wp.array(dtype=wp.int32), substeps: wp.array(dtype=wp.int32),
@@ -216,7 +218,7 @@ def kernels(dtype):
         if idle[w] != 0:
             return
         if status[w] == OK:
-            e, allow = total(E, w, ncols, floor)
+            e, allow = total(E, scale, w, ncols, floor)
             g = E[w, gcol]
             bad = pushed(control, w, nd) == 0 and gains(mem, w, e, allow, g, tol)
             if not bad or next_n == 0:
@@ -243,6 +245,7 @@ class EnergyCheck:
         cols = solver.report_cols
         self.ncols, self.gcol = len(cols) - 1, cols["gravity"]  # (every column but the scratch)
         self.E = wp.zeros((m.num_worlds, len(cols)), dtype=m.dtype, device=m.device)
+        self.scale = wp.array(solver.report_scale, dtype=m.dtype, device=m.device)  # each column's to J
         self.parts = [c for c in solver.parts if c.name != drive.NAME]  # (measure)
         self.need = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
         self.busy = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
@@ -298,12 +301,13 @@ class EnergyCheck:
         wp.launch(self.k["unknown"], dim=m.num_worlds, inputs=[state.status, state.fresh, state.energy, hold, go, self.need],
                   device=m.device)  # fmt: skip
         self.measure(state, self.need)
-        wp.launch(self.k["remember"], dim=m.num_worlds, inputs=[self.E, self.ncols, self.gcol, m.dtype(self.floor),
-                                                                self.need, state.energy], device=m.device)  # fmt: skip
+        wp.launch(self.k["remember"], dim=m.num_worlds,
+                  inputs=[self.E, self.scale, self.ncols, self.gcol, m.dtype(self.floor), self.need, state.energy],
+                  device=m.device)  # fmt: skip
 
     def _common(self, state):
         m = self.solver.model
-        return [self.E, self.ncols, self.gcol, m.dtype(self.floor), state.control, m.num_drives]
+        return [self.E, self.scale, self.ncols, self.gcol, m.dtype(self.floor), state.control, m.num_drives]
 
     def judge(self, state, hold, go, idle, flag):
         """After a step and retry.mark: mark the worlds that gained too much for the retry."""

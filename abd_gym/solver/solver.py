@@ -26,6 +26,7 @@ import warp as wp
 from ..sim import coordinates
 from . import energy_gain, fused
 from ..constitutions import REGISTRY, affine_body, drive
+from ..constitutions.protocol import JOINT
 from .fused import PHASES, fused_kernel
 from .plan import ExecutionPlan, plan_band, resolve_plan, worlds_per_block
 from ..sim.scene import FIXED, PRISMATIC, REVOLUTE
@@ -162,6 +163,13 @@ class Solver:
         self.parts = [c for c in REGISTRY if c.terms(model)]
         self.cols = self._columns(physical=False)
         self.report_cols = self._columns(physical=True)
+        # per report column, the factor that makes its energy physical [J]: a joint's K/2 Σ‖C‖² sits
+        # outside ĥ² in the incremental potential (J·s²), so its physical energy is that over ĥ₀²
+        # (h_joint: the stiffness K/ĥ₀² every step keeps); every other column is in J already
+        self.report_scale = np.ones(len(self.report_cols))
+        for c in self.parts:
+            if c.kind == JOINT:
+                self.report_scale[self.report_cols[c.name]] = 1.0 / self.h_joint**2
         # the prediction q̃ (predict_body), where a retry from a fresh factor starts (fused.solve_world,
         # solver_kernels.converge)
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
@@ -326,7 +334,8 @@ class Solver:
         self.E_report.zero_()
         self.assemble(state, state.q, self.E_report, self.all_active, 0, physical=True)
         e = self.E_report.numpy()
-        return {t: e[:, i].astype(np.float64) for t, i in self.report_cols.items() if t != "scratch"}
+        return {t: e[:, i].astype(np.float64) * self.report_scale[i] for t, i in self.report_cols.items()
+                if t != "scratch"}  # fmt: skip
 
     # ------------------------------------------------------------------ step
     def step(self, state, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None,
