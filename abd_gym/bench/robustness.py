@@ -388,17 +388,16 @@ steps {result['worlds']} worlds from random initial states (seed {result['seed']
   retry of failed steps off (`Simulator(retry=False)`).
 - **substeps 2 / 4**: world-steps that failed (Newton did not converge or broke down), or that
   converged but raised a conservative world's total energy by more than 5% of its swing energy
-  known so far (the energy test, by default where a step turns the scene's fastest gravity mode
-  past 0.16 rad: here from dt 0.03 on, and the chains' light links; docs/design.md §4.1), and were
-  taken again as 2, or 4, substeps (`Simulator.substeps`); a world that fails at 4 too is
-  reported.
+  known so far (the energy test, on by default in every conservative scene; docs/design.md §4.1),
+  and were taken again as 2, or 4, substeps (`Simulator.substeps`); a world that fails at 4 too
+  is reported.
 - **kept gain**: world-steps that still gained more than the energy test allows at 4 substeps and
   were kept (`Simulator.energy_gained`). The goal is 0.
 - **silent**: world-steps whose Newton solve ended unconverged (`converged()` False) in a world
   that was not reported: steps committed with nothing said. The goal is 0.
 - **gain > 5%** and **worst gain** (conservative cases, where no drive acts): the gain
   max_t E(t) − E(0) of each world's total energy E (the sum of `energies()`: kinetic, gravity,
-  orthogonality, joints, limits), relative to its swing energy S = E(0) − min_t V_g(t), the energy
+  orthogonality, joints as their physical energy K/(2ĥ₀²) Σ‖C‖², limits), relative to its swing energy S = E(0) − min_t V_g(t), the energy
   above the lowest gravity potential the world visits (its largest kinetic plus elastic energy
   when energy is conserved; its initial kinetic energy where gravity does no work). Worst gain is
   the largest over the worlds (negative: every world lost energy). The goal is 0 worlds above 5%.

@@ -80,7 +80,8 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   failed is first taken again as 2, then 4 substeps (``Simulator.substeps``; not in a GPU's
   device step): ``info["sim_substeps"]`` (int32 per world) is the substeps of the env step's last
   physics step.  So is one that gained energy in a conservative world (no drive pushing:
-  ``Simulator(energy_gain=...)``, by default at large steps only, ``simulator_options`` to set it);
+  ``Simulator(energy_gain=...)``, here by default at large steps only:
+  ``conditioning.task_energy_gain``; ``simulator_options`` to set it);
   ``info["sim_energy_gained"]`` (bool per world) marks a last physics step that still gained at 4
   substeps and was kept.
 * observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
@@ -128,6 +129,7 @@ from .episodes import Episodes
 from .outcome import batch_info, outcome
 from .pending import PendingMask
 from .randomize import RANDOMIZE_KEYS, Parameters  # noqa: F401 (RANDOMIZE_KEYS: the randomize option's keys)
+from ..sim import conditioning
 from ..sim.simulator import Simulator
 from .single_env import ABDEnv  # noqa: F401 (re-exported: a task module imports both classes from here)
 from .task import Task
@@ -244,6 +246,8 @@ class ABDVectorEnv(Task, VectorEnv):
         if fixed:
             raise ValueError(f"simulator_options may not set {sorted(fixed)}: the task sets dt and the number of "
                              "worlds; device, dtype and integrator are arguments of the env")  # fmt: skip
+        # the energy test only at large steps: under a policy every drive pushes, and the test never runs
+        options.setdefault("energy_gain", conditioning.task_energy_gain(self.scene, self.dt))
         self.sim = Simulator(self.scene, num_worlds=N, dt=self.dt, device=device, dtype=dtype, **extra, **options)
         self.device = self.sim.device
         self.step_dt = self.dt * self.frame_skip  # env step [s]
