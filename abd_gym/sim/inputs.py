@@ -117,6 +117,18 @@ def count(name, value, minimum=0) -> int:
     return int(value)
 
 
+def flag(name, value) -> bool:
+    """A bool (Python's or NumPy's); a TypeError for anything else (a string, a number, None)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
+def seed(value):
+    """A random seed: None, or an integer (Python or NumPy, not bool) >= 0, as a Python int."""
+    return None if value is None else count("seed", value)
+
+
 def world_indices(worlds, num_worlds) -> np.ndarray:
     """``worlds`` (None: every world; an integer or integer array; a bool mask (num_worlds,)) as
     int64 indices, each in [0, num_worlds) and listed once."""

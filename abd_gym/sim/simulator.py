@@ -867,6 +867,7 @@ class Simulator:
         (the default), bounds that leave a world's current coordinate beyond them by more than the
         limit holds (inputs.check_within_limits) are refused; a caller that sets every such world's
         state right after (a reset) passes False."""
+        check_state = inputs.flag("check_state", check_state)
         m = self.model
         j = self.scene.joint_index(joint)
         kind = self.scene.joints[j].kind

@@ -129,7 +129,7 @@ from .episodes import Episodes
 from .outcome import batch_info, outcome
 from .pending import PendingMask
 from .randomize import RANDOMIZE_KEYS, Parameters  # noqa: F401 (RANDOMIZE_KEYS: the randomize option's keys)
-from ..sim import conditioning
+from ..sim import conditioning, inputs
 from ..sim.simulator import Simulator
 from .single_env import ABDEnv  # noqa: F401 (re-exported: a task module imports both classes from here)
 from .task import Task
@@ -288,14 +288,13 @@ class ABDVectorEnv(Task, VectorEnv):
         self._renderer = None
 
     def _check_arguments(self, num_envs, backend, render_mode, max_episode_steps):
-        if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        inputs.count("num_envs", num_envs, minimum=1)
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
-        if max_episode_steps is not None and int(max_episode_steps) < 1:
-            raise ValueError(f"max_episode_steps must be a positive integer or None, got {max_episode_steps!r}")
+        if max_episode_steps is not None:
+            inputs.count("max_episode_steps", max_episode_steps, minimum=1)
 
     # ---- the per-world physical parameters in force (host arrays; randomize.Parameters)
     @property
@@ -394,7 +393,7 @@ class ABDVectorEnv(Task, VectorEnv):
         """
         if self.pending.unread:
             self._pending_now()  # raises, having taken it back, if the device refused the last step
-        super().reset(seed=seed)
+        super().reset(seed=inputs.seed(seed))
         options = dict(options or {})
         mask = options.pop("reset_mask", None)
         if "randomize" in options:
