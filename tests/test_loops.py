@@ -70,7 +70,8 @@ def test_coordinates_that_leave_a_loop_open_are_refused(loop):
 @pytest.mark.parametrize("integrator, dtype", [("bdf2", "float32"), ("implicit_euler", "float64")])
 def test_states_a_step_produced_are_accepted(loop, integrator, dtype):
     """At dt 0.1 s with the crank's drive at full torque, either way at random: the joints' stretch
-    reopens the loop when the read-back coordinates are placed again, and those are accepted."""
+    reopens the loop when the read-back coordinates are placed again, and those are accepted, as
+    are the joint rates and body spins read back (beyond pi a step)."""
     _, scene, (x, xd), _ = loop
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # dt 0.1 s is beyond what the scene's terms take
@@ -85,6 +86,11 @@ def test_states_a_step_produced_are_accepted(loop, integrator, dtype):
         worst = max(worst, float(sim.loops.gaps(x_back).max()))
         saved = sim.get_state()
         sim.set_joint_state(x_back, xd_back)
+        sim.set_state(saved)
+        # the bodies' produced state too: a crank at up to 40 rad/s, 4 rad a step (beyond pi: the
+        # retry's substeps and BDF2's rate produce it, inputs.max_turn)
+        sim.set_body_states(sim.body_positions(), sim.body_rotations(), sim.body_velocities()[..., :3],
+                            sim.body_angular_velocities())  # fmt: skip
         sim.set_state(saved)
     assert worst > 1e-4  # the stretch reopened the loop (it is not closed by construction)
 

@@ -280,15 +280,16 @@ def check_joint_state(names, revolute, x, xd, worlds, dt, limits, turn=math.pi):
     check_within_limits("coordinates", x, worlds, limits, names)
 
 
-def check_body_spin(scene, omega, worlds, dt):
-    """Raise a ValueError where a free body's angular velocity ω (N, bodies, 3) [rad/s] turns it by π
-    or more in one step of ``dt`` [s] (|ω|·dt ≥ π): the step's incremental joint angles lie in
-    (−π, π], and a turn that large leaves A's Newton solve starting from a state whose rounding is
-    metres."""
+def check_body_spin(scene, omega, worlds, dt, turn=math.pi):
+    """Raise a ValueError where a free body's angular velocity ω (N, bodies, 3) [rad/s] turns it by
+    ``turn`` or more in one step of ``dt`` [s] (|ω|·dt ≥ turn): the step's incremental joint angles
+    lie in (−π, π], and a turn that large leaves A's Newton solve starting from a state whose
+    rounding is metres.  ``turn``: ``max_turn`` of the integrator, what a step produces (a body's
+    rate, like a joint's, is a BDF2 combination of two turns or a quarter substep's)."""
     free = np.array([not b.fixed for b in scene.bodies], dtype=bool)
-    fast = (np.linalg.norm(omega, axis=-1) * dt >= math.pi) & free
+    fast = (np.linalg.norm(omega, axis=-1) * dt >= turn) & free
     if fast.any():
         i, b = np.argwhere(fast)[0]
         raise ValueError(f"angular_velocities: body {scene.bodies[b].name!r} in world {int(worlds[i])} turns at "
-                         f"{float(np.linalg.norm(omega[i, b]))!r} rad/s, which turns it by pi or more in one step of "
-                         f"{dt} s (|omega| < {math.pi / dt:.4g})")  # fmt: skip
+                         f"{float(np.linalg.norm(omega[i, b]))!r} rad/s, which turns it by {turn / math.pi:g} pi or "
+                         f"more in one step of {dt} s (|omega| < {turn / dt:.4g})")  # fmt: skip

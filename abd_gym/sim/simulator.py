@@ -535,7 +535,7 @@ class Simulator:
         w = _finite_array("angular_velocities", 0.0 if angular_velocities is None else angular_velocities, (len(idx), nb, 3), **at)
         fixed = np.array([b.fixed for b in self.scene.bodies])
         inputs.check_rotations("rotations", R, idx, names, movable=~fixed)
-        check_body_spin(self.scene, w, idx, self.dt)
+        check_body_spin(self.scene, w, idx, self.dt, self._turn)
         q = np.concatenate([p, R.reshape(len(idx), nb, 9)], axis=-1)
         qd = np.concatenate([v, (_skew(w) @ R).reshape(len(idx), nb, 9)], axis=-1)
         q[:, fixed] = self.model.q0[fixed]
