@@ -602,18 +602,10 @@ class Simulator:
         idx = self._worlds(worlds)
         m = self.model
         nj, N = m.num_joints, len(idx)
-        names, revolute, fixed = self._joint_names()
-        at = dict(worlds=idx, items=names, item="joint", bound=self._state_bound)
-        x = _finite_array("coordinates", coordinates, (N, nj), **at)
-        xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj), **at)
+        x, xd = self.check_joint_state(coordinates, velocities, idx)
         if N == 0:
             return
-        if self._joint_bounds is None:  # kept until set_limit changes the limits
-            self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), revolute, self.num_worlds, self._turn)
-        if not inputs.joint_state_ok(x, xd, idx, self.dt, self._joint_bounds):
-            check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds(), self._turn)  # names the joint
-        if self._loops is not None:
-            self._loops.check("coordinates", x, idx)
+        fixed = self._joint_names()[2]
         idx_dev = self._one_world() if self.num_worlds == 1 else rows.indices(idx, self._stage)
         # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
         # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
@@ -625,6 +617,37 @@ class Simulator:
         self._replay("restart", *kinematics.restart_launch(*self._tree(), self.state, m, self.solver, idx_dev, xx, N,
                                                            self.dt))  # fmt: skip
         self.state.time[idx] = 0.0
+
+    def check_joint_state(self, coordinates, velocities=None, worlds=None, limits=None):
+        """``set_joint_state``'s checks alone (nothing is written): the coordinates and rates as
+        float64 (N, num_joints) arrays, or a ValueError naming the joint, the world and the value.
+        ``limits``: {limited joint index: (lower (N,), upper (N,))} of the worlds listed, bounds
+        to check against in place of those in force (a reset's that are written after the check)."""
+        idx = self._worlds(worlds)
+        nj, N = self.model.num_joints, len(idx)
+        names, revolute, fixed = self._joint_names()
+        at = dict(worlds=idx, items=names, item="joint", bound=self._state_bound)
+        x = _finite_array("coordinates", coordinates, (N, nj), **at)
+        xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj), **at)
+        if N == 0:
+            return x, xd
+        if limits:
+            bounds = self._limit_bounds()
+            for k, (lo, up) in limits.items():
+                lower, upper, rev = bounds[k]
+                lower, upper = lower.astype(np.float64), upper.astype(np.float64)
+                lower[idx], upper[idx] = lo, up
+                bounds[k] = (lower, upper, rev)
+            check_joint_state(names, revolute, x, xd, idx, self.dt, bounds, self._turn)
+        else:
+            if self._joint_bounds is None:  # kept until set_limit changes the limits
+                self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), revolute, self.num_worlds,
+                                                               self._turn)  # fmt: skip
+            if not inputs.joint_state_ok(x, xd, idx, self.dt, self._joint_bounds):
+                check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds(), self._turn)  # names it
+        if self._loops is not None:
+            self._loops.check("coordinates", x, idx)
+        return x, xd
 
     def _restart_world0(self, coordinates, velocities, worlds) -> bool:
         """``set_joint_state`` of a one-world CPU simulator from float64 arrays (1, joints) of
@@ -754,6 +777,13 @@ class Simulator:
         dtype other than this simulator's, a non-finite or overflowing pose or velocity, a rotation
         part that is not a rotation, a limited joint beyond what its limit holds, an unknown
         status code."""
+        self._write_state(*self.check_state(state, worlds))
+
+    def check_state(self, state: dict, worlds=None, limits=None):
+        """``set_state``'s checks alone (nothing is written): (the values as arrays, the worlds),
+        which ``set_state`` writes.  ``limits``: {limited joint index: (lower (W,), upper (W,))},
+        every world's bounds to check against in place of those in force (the vector env's
+        set_state, which restores its parameters after the check)."""
         idx = self._worlds(worlds)
         arrays = self._state_arrays()
         if not isinstance(state, dict):
@@ -784,12 +814,15 @@ class Simulator:
         if self.model.num_joints:
             coord = _finite_array("state['coord']", vals["coord"], vals["coord"].shape, idx, joints, "joint",
                                   self._state_bound)
-            check_within_limits("state['coord']", coord, idx, self._limit_bounds(), joints)
+            bounds = self._limit_bounds()
+            for k, (lo, up) in (limits or {}).items():
+                bounds[k] = (np.asarray(lo, np.float64), np.asarray(up, np.float64), bounds[k][2])
+            check_within_limits("state['coord']", coord, idx, bounds, joints)
         bad = ~np.isin(vals["status"], [int(s) for s in WorldStatus])
         if bad.any():
             raise ValueError(f"state['status'] has an unknown code {vals['status'][bad][0]} in world "
                              f"{int(idx[np.argmax(bad)])}")
-        self._write_state(vals, idx)
+        return vals, idx
 
     def _write_state(self, vals: dict, idx):
         """Write get_state's values (unchecked) into the worlds idx."""
