@@ -223,3 +223,30 @@ def test_the_vector_env_reports_a_kept_gain():
     info = env.step(np.zeros((2, 1), dtype=np.float32))[4]
     np.testing.assert_array_equal(info["sim_energy_gained"], [False, True])
     np.testing.assert_array_equal(info["sim_substeps"], [1, 4])
+
+
+@pytest.mark.parametrize("integrator", ["implicit_euler", "bdf2"])
+def test_a_limits_energy_is_physical_in_the_test_and_the_report(integrator):
+    """A limit's cubic sits outside ĥ² as a joint's penalty does: energies(), the energy test's
+    measure and the robustness report count it as E(x)/dt² [J] (the stiffness of the implicit
+    Euler step that follows a step ending on the limit), one scale for both."""
+    case = rb.case("prismatic_slam")
+    scene = case.scene()
+    dt = 0.01
+    sim = ag.Simulator(scene, num_worlds=4, dt=dt, integrator=integrator, dtype="float64")
+    x, v = case.state(np.random.default_rng(0), 4)
+    sim.set_joint_state(x, v)
+    pressed = np.zeros(4, bool)
+    for _ in range(40):  # until every block has been on its limit at the end of a step
+        sim.step()
+        pressed |= sim.energies()["prismatic_limit"] > 0
+        if pressed.all():
+            break
+    assert pressed.any()
+    col = sim.solver.report_cols["prismatic_limit"]
+    assert sim.solver.report_scale[col] == 1.0 / dt**2
+    check = sim.solver.retry.energy
+    check.measure(sim.state, sim.solver.all_active)
+    stored = check.E.numpy()[:, col]
+    np.testing.assert_array_equal(stored * check.scale.numpy()[col], sim.energies()["prismatic_limit"])
+    # (the seed's E(x)/dt² against a float64 reference: tests/test_constitutions.py)

@@ -23,8 +23,9 @@ default settings (only the scene and dt are chosen).  Per run it reports:
 - ``gap``: the largest joint residual ``joint_violation()`` [mm];
 - ``overshoot``: the largest excursion of a limited joint past its bound (multi-turn angle [rad],
   displacement [m]), and its ratio to the estimate of docs/design.md §3.3 with the world's whole
-  swing energy arriving at the limit: (S/s)^(1/3) rad for a revolute limit of strength s,
-  w·(S/s)^(1/3) m for a prismatic one of range width w;
+  swing energy arriving at the limit: (S dt²/s)^(1/3) rad for a revolute limit of strength s
+  (its physical stiffness s/dt², as ``energies()`` counts it), w·(S dt²/s)^(1/3) m for a
+  prismatic one of range width w;
 - ``iterations``: Newton iterations a step, mean and max;
 - ``refused`` / ``warned``: the simulator raised an error when built or given the initial
   state / issued a warning then.
@@ -268,7 +269,7 @@ def _measure(sim, scene, steps, row):
     gain = (Emax - E0) / swing
     bound = np.zeros_like(over)
     for i, (_, _, _, s, width) in enumerate(limits):
-        bound[:, i] = (swing / s) ** (1 / 3) * (1.0 if width is None else width)
+        bound[:, i] = (swing * sim.dt**2 / s) ** (1 / 3) * (1.0 if width is None else width)
     row.update(reported=int((reported_at >= 0).sum()), first_report_step=int(reported_at[reported_at >= 0].min())
                if (reported_at >= 0).any() else None, causes={str(k): v for k, v in sorted(causes.items())},
                silent=silent, seconds=seconds, substeps={n: int(substeps[n]) for n in (2, 4)}, kept_gain=kept_gain,
@@ -410,9 +411,9 @@ steps {result['worlds']} worlds from random initial states (seed {result['seed']
 - **gap**: the largest joint residual `joint_violation()` over worlds and steps [mm].
 - **overshoot**: where a joint has a limit, its largest excursion past a bound (multi-turn angle
   [rad] or displacement [m]), and in brackets its ratio to the estimate of docs/design.md §3.3
-  with the world's whole swing energy S arriving at the limit: (S/s)^(1/3) rad for a revolute
-  limit of strength s, w·(S/s)^(1/3) m for a prismatic limit of range width w. Above 1: the limit
-  did not hold as the estimate says.
+  with the world's whole swing energy S arriving at the limit: (S dt²/s)^(1/3) rad for a revolute
+  limit of strength s (its physical stiffness s/dt², as `energies()` counts it), w·(S dt²/s)^(1/3) m
+  for a prismatic limit of range width w. Above 1: the limit did not hold as the estimate says.
 - **iterations**: Newton iterations a step, mean and largest.
 - **build**: `refused` when the simulator raised an error when built or given the state, `warned`
   with the warnings it issued.

@@ -14,8 +14,8 @@ The rules, one for every door:
 - a rotation part is a rotation: ‖AAᵀ − I‖_F ≤ ROTATION_TOL and det A > 0;
 - a limited joint lies within its bounds widened by the limit's own scale (``limit_scale``): the
   penetration at which the limit's energy reaches its strength, as much as it can hold.  A state a
-  step produced lies inside that (a limit's penetration grows as (S/s)^(1/3) of that scale with
-  the swing energy S that reaches a limit of strength s, docs/design.md §3.3).
+  step produced lies inside that (a limit's penetration grows as (S dt²/s)^(1/3) of that scale
+  with the swing energy S that reaches a limit of strength s, docs/design.md §3.3).
 """
 from __future__ import annotations
 

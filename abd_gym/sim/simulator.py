@@ -364,7 +364,8 @@ class Simulator:
         its physical energy K/(2ĥ₀²) Σ‖C‖²: the seed's K/2 Σ‖C‖² is a term of the incremental
         potential outside ĥ² (J·s²), so its stiffness is K/ĥ₀² with ĥ₀ the simulator's step (dt,
         2dt/3 under BDF2), which every step keeps (docs/design.md §2), and totals compare across
-        dt.  A limit's is the seed's E(x) as it is."""
+        dt.  A limit's is its physical energy E(x)/dt²: the seed's cubic E(x) sits outside ĥ² too, as
+        it is in every step, and a world whose limit acts takes an implicit Euler step next (ĥ = dt)."""
         return self.solver.energies(self.state)
 
     def joint_violation(self, joints=None) -> np.ndarray:

@@ -25,7 +25,7 @@ import warp as wp
 
 from ..sim import coordinates
 from . import energy_gain, fused
-from ..constitutions import REGISTRY, affine_body, drive
+from ..constitutions import REGISTRY, affine_body, drive, prismatic_limit, revolute_limit
 from ..constitutions.protocol import JOINT
 from .fused import PHASES, fused_kernel
 from .plan import ExecutionPlan, plan_band, resolve_plan, worlds_per_block
@@ -34,6 +34,8 @@ from .kernels import h_row_first, h_row_starts, h_words, kernels as solver_kerne
 from .retry import Retry
 from .terms import fused_flags, joint_terms, term_counts
 from ..core.warp_ops import HESSIAN
+
+LIMITS = (revolute_limit.NAME, prismatic_limit.NAME)  # the limits' energy columns (report_scale)
 
 INTEGRATORS = ("implicit_euler", "bdf2")
 
@@ -165,11 +167,16 @@ class Solver:
         self.report_cols = self._columns(physical=True)
         # per report column, the factor that makes its energy physical [J]: a joint's K/2 Σ‖C‖² sits
         # outside ĥ² in the incremental potential (J·s²), so its physical energy is that over ĥ₀²
-        # (h_joint: the stiffness K/ĥ₀² every step keeps); every other column is in J already
+        # (h_joint: the stiffness K/ĥ₀² every step keeps); a limit's cubic sits there too, as it
+        # is in every step, so its stiffness is s/ĥ² of the step that acts on it: a world whose
+        # limit acts at the end of a step takes an implicit Euler step next (ĥ = dt; docs/design.md
+        # §2.2), so its energy is over dt²; every other column is in J already
         self.report_scale = np.ones(len(self.report_cols))
         for c in self.parts:
             if c.kind == JOINT:
                 self.report_scale[self.report_cols[c.name]] = 1.0 / self.h_joint**2
+            elif c.name in LIMITS:
+                self.report_scale[self.report_cols[c.name]] = 1.0 / self.dt**2
         # the prediction q̃ (predict_body), where a retry from a fresh factor starts (fused.solve_world,
         # solver_kernels.converge)
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
