@@ -85,3 +85,11 @@ def test_fourbar_gains_are_still_caught_in_float32():
         tested = rb.run_case(case, 0.1, "bdf2", "float32", worlds=64, scene=scene)
     assert plain["step_gain_worlds"] > 0
     assert tested["step_gain_worlds"] == 0 and tested["kept_gain"] == 0
+
+
+def test_float32_rest_on_a_limit_is_not_retried():
+    """A double pendulum whose hinges gravity presses onto their lower bound (0.3 rad), settling
+    there in float32: the limit's physical energy (E(x)/dt²) at rest moves within the allowance."""
+    scene = mechanisms.chain(2, limit=(0.3, 0.6, 1e3))
+    x = np.tile([0.31, 0.31], (W, 1)) + np.linspace(0.0, 0.01, W)[:, None]
+    assert _quiet(scene, x, np.zeros((W, 2))) == (0, 0)
