@@ -99,36 +99,42 @@ def point_energy(dtype):
 
 
 @functools.lru_cache(maxsize=None)
-def orthogonality_energy(dtype):
-    """The bodies' orthogonality energies alone: affine_body's body_terms in physical form (the
-    same body_grad, added in the same order) without its 12 × 12 Hessian or its inertia term."""
+def body_energy(dtype):
+    """The bodies' energies in one launch: kinetic and gravity (affine_body's report_terms, as its
+    body_report adds them) and orthogonality (its body_terms in physical form: the same
+    body_grad, added in the same order, without the 12 × 12 Hessian or the inertia term), with
+    the kinetic and orthogonality energies at q's rounding (EnergyCheck.measure's columns)."""
     o = ops(dtype)
     vec3, vec12, mat33 = o.vec3, o.vec12, o.mat33
     body_grad, add_energy = affine_body.body_funcs(dtype).body_grad, o.add_energy
+    report_terms = affine_body.kernels(dtype).report_terms
 
     @wp.kernel(module="unique")
-    def orthogonality_energy(q: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
-                             free: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
-                             mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33), kv: wp.array2d(dtype=dtype),
-                             active: wp.array(dtype=wp.int32), col: int, rcol: int, kcol: int, eps: dtype,
-                             dv: dtype, E: wp.array2d(dtype=dtype)):  # fmt: skip
+    def body_energy(q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
+                    free: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3),
+                    S: wp.array2d(dtype=mat33), kv: wp.array2d(dtype=dtype), gravity: vec3,
+                    active: wp.array(dtype=wp.int32), kcol: int, gcol: int, col: int, roff: int, eps: dtype,
+                    dv: dtype, E: wp.array2d(dtype=dtype)):  # fmt: skip
         w, k = wp.tid()
         if active[w] == 0:
             return
         b = free[k]
         qb = q[w, b]
-        e_inertia, e_ortho, f = body_grad(qb, q_tilde[w, b], mass[w, b], mc[w, b], S[w, b], kv[w, b], 0)
+        m, s = mass[w, b], S[w, b]
+        ke, ge = report_terms(qd[w, b], qb, m, mc[w, b], s, gravity)
+        wp.atomic_add(E, w, kcol, ke)
+        wp.atomic_add(E, w, gcol, ge)
+        e_inertia, e_ortho, f = body_grad(qb, q_tilde[w, b], m, mc[w, b], s, kv[w, b], 0)
         add_energy(E, w, col, e_ortho)
         # the energies at q's rounding: orthogonality ks‖δR‖², ‖δR‖_F ≤ eps (3‖A‖_F² + √3/2); kinetic
         # ½ λmax(M) ‖δq̇‖² with λmax(M) ≤ m + tr S and ‖δq̇‖ ≤ dv ‖q‖ (VELOCITY_ROUNDING)
         a2 = wp.dot(qb, qb) - (qb[0] * qb[0] + qb[1] * qb[1] + qb[2] * qb[2])
         dr = eps * (dtype(3.0) * a2 + dtype(0.8660254037844386))
-        add_energy(E, w, rcol, kv[w, b] * dr * dr)
-        s = S[w, b]
+        add_energy(E, w, roff + col, kv[w, b] * dr * dr)
         dq = dv * wp.length(qb)
-        add_energy(E, w, kcol, dtype(0.5) * (mass[w, b] + s[0, 0] + s[1, 1] + s[2, 2]) * dq * dq)
+        add_energy(E, w, roff + kcol, dtype(0.5) * (m + s[0, 0] + s[1, 1] + s[2, 2]) * dq * dq)
 
-    return orthogonality_energy
+    return body_energy
 
 
 @functools.lru_cache(maxsize=None)
@@ -297,19 +303,16 @@ class EnergyCheck:
         """The physical energies of the worlds in mask into self.E (Solver.assemble, physical),
         but for the drives': a conservative scene's (no position drive) are 0, as the zeroed
         column keeps them, so their launch is left out; the bodies' orthogonality and the point
-        joints' by kernels of their energies alone (orthogonality_energy, point_energy)."""
+        joints' by kernels of their energies alone (body_energy, point_energy)."""
         h = self.solver.dt if h is None else h  # the step that made the state's q̇ (its rounding)
         s, m = self.solver, self.solver.model
         self.E.zero_()
         for c in self.parts:
-            if c.name == affine_body.NAME:  # kinetic and gravity (body_report), orthogonality
-                cols, dim = s.report_cols, (m.num_worlds, m.num_free)
-                wp.launch(affine_body.kernels(m.dtype).body_report, dim=dim,
-                          inputs=[state.q, state.qd, m.free, m.mass, m.mc, m.S, m.gravity, self.E, cols["kinetic"],
-                                  cols["gravity"]], device=m.device)  # fmt: skip
-                wp.launch(orthogonality_energy(m.dtype), dim=dim,
-                          inputs=[state.q, s.q_tilde, m.free, m.mass, m.mc, m.S, m.kv, mask, cols["orthogonality"],
-                                  self.roff + cols["orthogonality"], self.roff + cols["kinetic"], self.eps,
+            if c.name == affine_body.NAME:  # kinetic, gravity and orthogonality in one launch (body_energy)
+                cols = s.report_cols
+                wp.launch(body_energy(m.dtype), dim=(m.num_worlds, m.num_free),
+                          inputs=[state.q, state.qd, s.q_tilde, m.free, m.mass, m.mc, m.S, m.kv, m.gravity, mask,
+                                  cols["kinetic"], cols["gravity"], cols["orthogonality"], self.roff, self.eps,
                                   m.dtype(VELOCITY_ROUNDING * self.eps / h), self.E], device=m.device)  # fmt: skip
             elif c.name in POINT_JOINTS:
                 kind, npts = POINT_JOINTS[c.name]
@@ -382,6 +385,7 @@ class HostViews:
         self.energy0 = state.energy.numpy()[:, 0]  # E_before, NaN where unknown
         # one world with one drive: that control alone decides (an item compare, no reduction)
         self.single = self.control.size == 1
+        self.one_world = self.energy0.size == 1  # (unknown: items, no reduction)
         self.control_item = self.control.reshape(-1) if self.single else None
 
     def any_checked(self) -> bool:
@@ -407,7 +411,9 @@ class HostViews:
         """Whether a world OK has no known energy before its step: its state set (fresh SET) or a
         parameter changed (E NaN).  The energies' dot product with themselves is NaN where one is
         NaN (and only there: squares are never NaN, their sum only where inf meets -inf, which
-        squares are not), a cheaper reduction than a sum or isnan's."""
+        squares are not), a cheaper reduction than a sum or isnan's; of one world, its items."""
+        if self.one_world:
+            return self.status.item(0) == OK and (self.fresh.item(0) == SET or math.isnan(self.energy0.item(0)))
         if not math.isnan(self.energy0.dot(self.energy0)) and SET_BYTES not in self.fresh.tobytes():
             return False
         return bool(((self.status == OK) & ((self.fresh == SET) | np.isnan(self.energy0))).any())
