@@ -21,10 +21,10 @@ rounding of the quantities it is computed from, scaled by the world's own magnit
 (``floor``, 1000 eps of the dtype, times Σ|E_c|) and, per column, the energy R_c its quantity has at
 its rounding (q̇ = Δq/ĥ from q's, 2 eps‖q‖/h; the orthogonality residual AAᵀ − I and a point
 joint's offset from q's), which moves E_c by at most 2√(E_c R_c) + R_c (``total``).  A world at rest
-in float32 (R ~ 1e-10 J for 0.1 kg bodies at dt 0.01) moves by that much with no gain at all.  E is the robustness report's total (a
-joint counted as its physical energy K/(2ĥ₀²) Σ‖C‖², Solver.report_scale), so the test holds a
-step to the report's criterion.  It leaves no
-room for the joints' stretch: every step keeps the joints' stiffness (constitutions/_joint_step.py),
+in float32 (R ~ 1e-10 J for 0.1 kg bodies at dt 0.01) moves by that much with no gain at all.
+E is the robustness report's total (joints and limits counted as their physical energies,
+Solver.report_scale), so the test holds a step to the report's criterion.  It leaves no room
+for the joints' stretch: every step keeps the joints' stiffness (constitutions/_joint_step.py),
 so a retry's substeps do not release the stretch a step made.
 
 ``State.energy`` (W, 4) keeps, after each step, E, V_low, S and A as the next step's "before"; it
@@ -91,7 +91,8 @@ def point_energy(dtype):
         na, nb = wp.length(qa), wp.length(qb)
         for p in range(npts):
             xa, xb = pts_a[w, j, p], pts_b[w, j, p]
-            dc = dtype(JOINT_ROUNDING) * eps * (wp.sqrt(dtype(1.0) + wp.dot(xa, xa)) * na + wp.sqrt(dtype(1.0) + wp.dot(xb, xb)) * nb)
+            rho_a, rho_b = wp.sqrt(dtype(1.0) + wp.dot(xa, xa)), wp.sqrt(dtype(1.0) + wp.dot(xb, xb))
+            dc = dtype(JOINT_ROUNDING) * eps * (rho_a * na + rho_b * nb)
             r += dtype(0.5) * K[w, j] * dc * dc
         add_energy(E, w, rcol, r)
 

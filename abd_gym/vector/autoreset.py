@@ -15,7 +15,6 @@ same seed and actions give the same episodes on every backend and device, and ``
 own stream (explicit resets) is the same as without autoresets.
 """
 
-import copy
 import functools
 
 import numpy as np
@@ -83,10 +82,10 @@ class NextEpisodes:
                  generator=lambda: None):  # fmt: skip
         """``draw(n)`` -> (coordinates, velocities), each (n, num_joints), and with ``task_width``
         the task values (n, task_width) too: n fresh episodes; ``generator()``: the
-        np.random.Generator ``draw`` draws from (None: none), put back where a draw is refused.  ``depth``: rows per world's queue
-        (default_depth of the world count when None).  ``host_task``: the task values stay on the
-        host too (``task_rows``: the NumPy backend's task arrays are host memory, which a kernel on
-        a GPU cannot write)."""
+        np.random.Generator ``draw`` draws from (None: none), put back where a draw is refused.
+        ``depth``: rows per world's queue (default_depth of the world count when None).
+        ``host_task``: the task values stay on the host too (``task_rows``: the NumPy backend's
+        task arrays are host memory, which a kernel on a GPU cannot write)."""
         if depth is None:
             depth = default_depth(sim.num_worlds)
         if depth < 4:
@@ -148,12 +147,13 @@ class NextEpisodes:
         # the rows drawn and checked before anything is counted or written: a refused draw leaves
         # the queues, the counts and the generator as they were
         gen = self.generator()
-        saved = None if gen is None else copy.deepcopy(gen.bit_generator.state)
+        saved = None if gen is None else gen.bit_generator.state  # (a new dict)
         try:
             drawn = [np.asarray(a, dtype=np.float64) for a in self.draw_fn(n)]
             x, xd = drawn[:2]
+            task = drawn[2] if self.task_width else None
             for name, a, shape in (("coordinates", x, (n, nj)), ("velocities", xd, (n, nj)),
-                                   ("task values", drawn[2] if self.task_width else None, (n, self.task_width))):  # fmt: skip
+                                   ("task values", task, (n, self.task_width))):  # fmt: skip
                 if a is not None and (a.shape != shape or not np.all(np.isfinite(a))):
                     raise ValueError(f"the task's initial {name} must be finite with shape {shape}, got {a.shape}")
             try:  # the checks set_joint_state makes (limits, rates, a closed loop closed), a round at a time

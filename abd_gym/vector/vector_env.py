@@ -276,7 +276,8 @@ class ABDVectorEnv(Task, VectorEnv):
         self.next_episodes = None
         if self.autoreset_mode == AutoresetMode.NEXT_STEP and not own_reset:
             self.next_episodes = NextEpisodes(self.sim, self._draw_episodes, task_width=self.episodes.task_width,
-                                              host_task=backend == "numpy", generator=lambda: self._next_rng)  # fmt: skip
+                                              host_task=backend == "numpy",
+                                              generator=lambda: self._next_rng)  # fmt: skip
         self.device_step = DeviceStep(self, graph, compile_outcome)
 
         # ---- per-world physical parameters (host copies of what the simulator holds)
@@ -492,7 +493,7 @@ class ABDVectorEnv(Task, VectorEnv):
     def _rng_state(self):
         """The env's generators as they are (``_set_rng_state`` puts them back)."""
         gen = self._np_random
-        return gen, self._np_random_seed, None if gen is None else copy.deepcopy(gen.bit_generator.state)
+        return gen, self._np_random_seed, None if gen is None else gen.bit_generator.state  # (a new dict)
 
     def _set_rng_state(self, saved):
         gen, seed, state = saved
