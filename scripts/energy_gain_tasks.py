@@ -15,8 +15,8 @@ single-step rise of a world's total energy over its swing energy (``worst step g
 whose step gain exceeds 5%, the substeps the energy test retried and the world-steps it kept
 after 4 substeps.  A scene with a position drive is not conservative (its spring's energy is not
 in ``energies()``) and is listed without gains.  The gravity turn of a step
-(``conditioning.gravity_turn``) says where ``Simulator(energy_gain=None)`` runs the test
-(above ``conditioning.ENERGY_TEST_TURN``).
+(``conditioning.gravity_turn``) says where a vector env runs the test by default (above
+``conditioning.ENERGY_TEST_TURN``; a Simulator runs it in every conservative scene).
 
     python scripts/energy_gain_tasks.py [--tasks Pendulum-v0 ...] [--worlds 64] [--seconds 2]
                                         [--out results/energy_gain_tasks_cpu.json]

@@ -16,7 +16,7 @@ integrator and dtype:
   joint stretch made by an implicit Euler step (stiffness K/h²) and released by a BDF2 step
   (K/ĥ², ĥ = 2h/3) gives under the same load F: the stretch falls from Fh²/K to Fĥ²/K, so gravity
   regains F²(h² − ĥ²)/K = (1 − 4/9)·2E_J/h², E_J the joints' K/2 Σ‖C‖² after the implicit
-  Euler step.
+  Euler step (``energies()`` reports the physical K/(2ĥ₀²) Σ‖C‖², ĥ₀ the simulator's step).
 
     python scripts/loop_energy.py [--dts 0.1 0.2] [--tasks CartPoleSwingUp-v0 DoublePendulumCart-v0]
                                   [--out results/loop_energy_cpu.json]
@@ -78,6 +78,7 @@ def run(scene, state, dt, integrator, dtype, worlds=64, seconds=2.0, controls=No
         E_prev, e_prev, prev_sub = E, e, sub.copy()
     S = np.maximum(E0 - Vmin, 1e-12)
     h2 = dt * dt
+    h0_2 = (2.0 * dt / 3.0 if integrator == "bdf2" else dt) ** 2  # energies()' joints are K/2 Σ‖C‖² over it
     gains = []
     for s in hist:
         for w in np.flatnonzero(s["dE"] / S > LIMIT):
@@ -85,7 +86,7 @@ def run(scene, state, dt, integrator, dtype, worlds=64, seconds=2.0, controls=No
                               dE_J=float(s["dE"][w]), d_gravity_J=float(s["dV"][w]), d_kinetic_J=float(s["dK"][w]),
                               d_joint=float(s["dJ"][w]), substeps=int(s["sub"][w]),
                               substeps_before=int(s["sub_before"][w]),
-                              rebound_J=float((1 - 4 / 9) * 2 * s["J_before"][w] / h2)))  # fmt: skip
+                              rebound_J=float((1 - 4 / 9) * 2 * s["J_before"][w] * h0_2 / h2)))  # fmt: skip
     worst = max((g["gain"] for g in gains), default=max(float((s["dE"] / S).max()) for s in hist))
     row.update(gain_worlds=len({g["world"] for g in gains}), worst_step_gain=worst, gains=gains)
     return row

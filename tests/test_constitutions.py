@@ -642,8 +642,10 @@ class SceneRef:
             out["gravity"] -= g @ (b.mass * q[k, :3] + q[k, 3:].reshape(3, 3) @ (b.mass * b.moments.com))
             out["orthogonality"] += affine_body.orthogonality_np(q[k], b.stiffness * b.shape.volume())[0]
         terms = self.solve_terms(q, q_prev, q, unwrapped, control, limits)
-        for name in ("revolute_joint", "prismatic_joint", "fixed_joint", "revolute_limit", "prismatic_limit"):
-            out[name] = terms[name][0]
+        for name in ("revolute_limit", "prismatic_limit"):  # physical: stiffness s/h² (the next step's)
+            out[name] = terms[name][0] / self.h**2
+        for name in ("revolute_joint", "prismatic_joint", "fixed_joint"):  # physical: stiffness K/ĥ₀²
+            out[name] = terms[name][0] / self.h_eff**2
         for d, dr in enumerate(self.scene.drives):
             if dr.mode == "position":
                 x, _ = self.coordinate(q, q_prev, unwrapped, dr.joint)
@@ -985,8 +987,8 @@ def test_warp_revolute_limit_exactly_zero_at_the_bounds(sims, ref, dtype):
 
 @pytest.mark.parametrize("dtype, rtol", [("float64", 1e-10), ("float32", 1e-4)])
 def test_energies_report_each_terms_own_formula(sims, ref, dtype, rtol):
-    """energies(): orthogonality without h², joints K/2Σ‖C‖², limits the seed's E(x), kinetic ½q̇ᵀMq̇,
-    gravity −g·(m p + A m c), drive ½k(x − x*)² of position drives."""
+    """energies(): orthogonality without h², joints K/(2ĥ₀²)Σ‖C‖², limits the seed's E(x)/h², kinetic
+    ½q̇ᵀMq̇, gravity −g·(m p + A m c), drive ½k(x − x*)² of position drives."""
     rng = np.random.default_rng(8)
     case = make_case(ref, rng, rev_angles=(0.75, -0.7), slides=(0.3, -0.25))
     sim = sims[dtype]

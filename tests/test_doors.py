@@ -263,3 +263,74 @@ def test_names_and_flags_of_the_wrong_type_are_refused():
     s.add_body(box, fixed=True)
     s.add_body(box)
     _refused(lambda: s.add_revolute_joint(0, 1, (0, 0, 0), (0, 1, 0), name=["a"]), "name")
+
+
+BAD_ITEMS = [1.5, -1, 99, np.nan, "nope", None, True, 1 + 1j, np.float64(1.0)]
+
+
+@pytest.mark.parametrize("item", BAD_ITEMS, ids=repr)
+def test_bad_joint_and_body_indices_are_refused(sim, item):
+    """Non-integer, out-of-range, unknown-name and non-real joint and body indices, and a flag
+    that is not a bool."""
+    before = sim.get_state()
+    _refused(lambda: sim.set_limit(item, strength=1e3), "joint")
+    _refused(lambda: sim.set_joint_strength(100.0, joints=[item]), "joint")
+    _refused(lambda: sim.set_body_mass(1.0, bodies=[item]), "body")
+    if not isinstance(item, bool):
+        _refused(lambda: sim.set_limit(1, strength=1e3, check_state=item), "check_state")
+    _same(sim.get_state(), before)
+
+
+@pytest.fixture(scope="module")
+def env():
+    from abd_gym.envs.cartpole import CartPoleVectorEnv
+
+    env = CartPoleVectorEnv(num_envs=2)
+    env.reset(seed=0)
+    yield env
+    env.close()
+
+
+BAD_ACTIONS = [np.nan, np.full((2, 1), 1 + 1j), np.full((2, 1), "x"), np.full((2, 1), None, dtype=object),
+               np.zeros((2, 1), dtype=bool), np.zeros((3, 1)), np.zeros((2, 2)), [[0.0], [0.0, 1.0]]]  # fmt: skip
+
+
+@pytest.mark.parametrize("actions", BAD_ACTIONS, ids=lambda a: repr(np.asarray(a, dtype=object).ravel()[:2]))
+def test_the_vector_env_refuses_bad_actions(env, actions):
+    before = env.sim.get_state()
+    bad = np.full((2, 1), actions) if isinstance(actions, float) else actions
+    _refused(lambda: env.step(bad), "actions")
+    _same(env.sim.get_state(), before)
+
+
+def test_the_vector_env_refuses_bad_arguments(env):
+    """Its constructor's counts, reset's seed and options, set_state's entries."""
+    from abd_gym.envs.cartpole import CartPoleVectorEnv
+
+    for n in (0, -1, 2.5, "2", None, True):
+        _refused(lambda: CartPoleVectorEnv(num_envs=n), "num_envs")
+    for steps in (0, 2.5, "10"):
+        _refused(lambda: CartPoleVectorEnv(num_envs=1, max_episode_steps=steps), "max_episode_steps")
+    before = env.sim.get_state()
+    for seed in (1.5, -1, "x", np.nan, True):
+        _refused(lambda: env.reset(seed=seed), "seed")
+    for options, name in (({"reset_mask": np.array([1, 0])}, "reset_mask"), ({"reset_mask": np.ones(3, bool)}, "reset_mask"),
+                          ({"bogus": 1}, "reset options")):  # fmt: skip
+        _refused(lambda: env.reset(options=options), name)
+    for state in (None, 3, {}, {"sim": 1}):
+        _refused(lambda: env.set_state(state), "state")
+    state = env.get_state()
+    state["sim"]["qd"] = state["sim"]["qd"] * np.nan
+    _refused(lambda: env.set_state(state), "state['qd']")
+    _same(env.sim.get_state(), before)
+
+
+def test_the_single_env_refuses_non_real_actions():
+    from abd_gym.envs.pendulum import PendulumEnv
+
+    env = PendulumEnv()
+    env.reset(seed=0)
+    before = env.sim.get_state()
+    for action in (np.array([1 + 1j]), np.array([True]), np.array(["x"]), np.array([None], dtype=object)):
+        _refused(lambda: env.step(action), "actions")
+    _same(env.sim.get_state(), before)

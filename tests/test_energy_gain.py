@@ -9,7 +9,7 @@ import pytest
 
 import abd_gym as ag
 from abd_gym.bench import robustness as rb
-from abd_gym.sim import mechanisms
+from abd_gym.sim import conditioning, mechanisms
 from abd_gym.solver.kernels import RESTART
 
 W, DT = 16, 0.1
@@ -157,8 +157,8 @@ def test_a_scene_with_a_position_drive_is_not_tested():
 def test_the_tests_energies_are_the_reports_sum():
     """EnergyCheck.measure leaves the drives' launch out (a conservative scene's drives have no
     physical energy) and takes the point joints' energies without their derivatives: its
-    columns equal ``energies()``'s bit for bit, revolute and fixed joints, effort and velocity
-    drives pushing or not."""
+    columns, each times its scale to J, equal ``energies()``'s bit for bit, revolute and fixed
+    joints, effort and velocity drives pushing or not."""
     scene = mechanisms.double_pendulum()
     weight = scene.add_body(ag.Box(half_extents=(0.05, 0.05, 0.05)), mass=0.5, position=(0.1, 0.0, -0.75))
     scene.add_fixed_joint("link1", weight)
@@ -177,18 +177,22 @@ def test_the_tests_energies_are_the_reports_sum():
     check.measure(sim.state, sim.solver.all_active)
     measured, report = check.E.numpy(), sim.energies()
     assert set(report) == {name for name in sim.solver.report_cols if name != "scratch"}
+    scale = check.scale.numpy()  # to J: a joint's column over ĥ₀², every other 1
+    np.testing.assert_array_equal(scale, sim.solver.report_scale)
     for name, col in sim.solver.report_cols.items():
         if name != "scratch":
-            np.testing.assert_array_equal(measured[:, col], report[name])
+            np.testing.assert_array_equal(measured[:, col] * scale[col], report[name])
     assert not report["drive"].any()
 
 
-def test_the_test_runs_by_default_at_large_steps_only():
-    """energy_gain None: on where a step turns the fastest gravity mode past ENERGY_TEST_TURN (the
-    double pendulum's links, 6.2 rad/s: dt 0.03 and 0.1, not 0.01 or 0.02)."""
+def test_the_test_runs_by_default_but_in_envs_at_large_steps_only():
+    """energy_gain None: the simulator tests every conservative scene; a vector env, whose drives
+    push under a policy, only where a step turns the fastest gravity mode past ENERGY_TEST_TURN
+    (the double pendulum's links, 6.2 rad/s: dt 0.03 and 0.1, not 0.01 or 0.02)."""
     for dt, tested in ((0.01, False), (0.02, False), (0.03, True), (0.1, True)):
         sim = ag.Simulator(mechanisms.double_pendulum(), num_worlds=2, dt=dt)
-        assert (sim.solver.retry.energy is not None) == tested, dt
+        assert sim.solver.retry.energy is not None, dt
+        assert (conditioning.task_energy_gain(mechanisms.double_pendulum(), dt) > 0) == tested, dt
 
 
 def test_a_parameter_change_is_not_a_gain(large_dt):
@@ -219,3 +223,30 @@ def test_the_vector_env_reports_a_kept_gain():
     info = env.step(np.zeros((2, 1), dtype=np.float32))[4]
     np.testing.assert_array_equal(info["sim_energy_gained"], [False, True])
     np.testing.assert_array_equal(info["sim_substeps"], [1, 4])
+
+
+@pytest.mark.parametrize("integrator", ["implicit_euler", "bdf2"])
+def test_a_limits_energy_is_physical_in_the_test_and_the_report(integrator):
+    """A limit's cubic sits outside ĥ² as a joint's penalty does: energies(), the energy test's
+    measure and the robustness report count it as E(x)/dt² [J] (the stiffness of the implicit
+    Euler step that follows a step ending on the limit), one scale for both."""
+    case = rb.case("prismatic_slam")
+    scene = case.scene()
+    dt = 0.01
+    sim = ag.Simulator(scene, num_worlds=4, dt=dt, integrator=integrator, dtype="float64")
+    x, v = case.state(np.random.default_rng(0), 4)
+    sim.set_joint_state(x, v)
+    pressed = np.zeros(4, bool)
+    for _ in range(40):  # until every block has been on its limit at the end of a step
+        sim.step()
+        pressed |= sim.energies()["prismatic_limit"] > 0
+        if pressed.all():
+            break
+    assert pressed.any()
+    col = sim.solver.report_cols["prismatic_limit"]
+    assert sim.solver.report_scale[col] == 1.0 / dt**2
+    check = sim.solver.retry.energy
+    check.measure(sim.state, sim.solver.all_active)
+    stored = check.E.numpy()[:, col]
+    np.testing.assert_array_equal(stored * check.scale.numpy()[col], sim.energies()["prismatic_limit"])
+    # (the seed's E(x)/dt² against a float64 reference: tests/test_constitutions.py)

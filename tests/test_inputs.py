@@ -44,12 +44,19 @@ def test_joint_outside_its_limit_is_refused(sim):
 
 
 def test_rate_that_turns_pi_in_a_step_is_refused(sim):
-    """|ẋ|·dt ≥ π: 314.2 rad/s at dt 0.01 is refused, 300 rad/s is accepted."""
+    """|ẋ|·dt beyond what a step produces: 4π with the retry's quarter substeps (1256.6 rad/s at
+    dt 0.01: -1260 rad/s refused, 1250 accepted); without the retry 2π under BDF2 and π under
+    implicit Euler."""
     with pytest.raises(ValueError, match=r"velocities: revolute joint 'revolute0' in world 2 has rate 100000\.0 rad/s"):
         sim.set_joint_state(np.zeros((3, 2)), [[0.0, 0.0], [0.0, 0.0], [1e5, 0.0]])
-    with pytest.raises(ValueError, match=r"rate -315\.0 rad/s"):
-        sim.set_joint_state(np.zeros((3, 2)), [[0.0, -315.0], [0.0, 0.0], [0.0, 0.0]])
-    sim.set_joint_state(np.zeros((3, 2)), [[300.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    with pytest.raises(ValueError, match=r"rate -1260\.0 rad/s, which turns it by 4 pi or more"):
+        sim.set_joint_state(np.zeros((3, 2)), [[0.0, -1260.0], [0.0, 0.0], [0.0, 0.0]])
+    sim.set_joint_state(np.zeros((3, 2)), [[1250.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    for integrator, turn in (("bdf2", 2 * np.pi), ("implicit_euler", np.pi)):
+        plain = ag.Simulator(sim.scene, num_worlds=1, dt=0.01, integrator=integrator, retry=False)
+        with pytest.raises(ValueError, match=r"revolute joint 'revolute1' in world 0 has rate"):
+            plain.set_joint_state(np.zeros((1, 2)), [[0.0, 1.01 * turn / 0.01]])
+        plain.set_joint_state(np.zeros((1, 2)), [[0.0, 0.99 * turn / 0.01]])
 
 
 def test_a_refused_state_changes_no_world(sim):

@@ -65,7 +65,7 @@ def reference(scene, x, xd):
 
 def mixed_scene():
     """A fixed base, a slider listed child-first, a hinge on the slider, a welded tip, a free
-    body with no joint, and a rod closing a loop back to the base."""
+    body with no joint, and a second hinge on the first's axis closing a loop."""
     sc = ag.Scene()
     base = sc.add_body(ag.Box((0.05, 0.05, 0.05)), fixed=True)
     cart = sc.add_body(ag.Box((0.2, 0.1, 0.05)), mass=1.0, position=(0.1, 0.0, 0.2))
@@ -75,7 +75,8 @@ def mixed_scene():
     sc.add_prismatic_joint(cart, base, anchor=(0.0, 0.0, 0.2), axis=(1.0, 0.0, 0.3))  # child first
     sc.add_revolute_joint(cart, arm, anchor=(0.1, 0.0, 0.2), axis=(0.0, 1.0, 0.2))
     sc.add_fixed_joint(arm, tip, anchor=(0.1, 0.0, -0.4))
-    sc.add_revolute_joint(tip, base, anchor=(0.0, 0.0, 0.0), axis=(0.0, 1.0, 0.0))  # closes a loop
+    # closes a loop: a second hinge on the arm's axis, which every coordinate closes
+    sc.add_revolute_joint(cart, arm, anchor=(0.1, 0.1, 0.22), axis=(0.0, 1.0, 0.2), half_length=0.05)
     return sc
 
 

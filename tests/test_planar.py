@@ -91,7 +91,9 @@ def _trajectory(scene, planar_mode, integrator="bdf2", plan=None, steps=100, wor
     assert (sim.plane is not None) == (planar_mode is not False and plan is not STAGED)
     rng = np.random.default_rng(7)
     x = sim.joint_coordinates()
-    sim.set_joint_state(x + rng.uniform(-0.2, 0.2, x.shape), rng.uniform(-1.0, 1.0, x.shape))
+    if sim.loops is None:  # (a closed loop's coordinates must close it: it starts from its zero pose)
+        x = x + rng.uniform(-0.2, 0.2, x.shape)
+    sim.set_joint_state(x, rng.uniform(-1.0, 1.0, x.shape))
     out = []
     for _ in range(steps):
         sim.step()

@@ -191,14 +191,15 @@ def test_one_world_set_joint_state_refuses_what_the_checked_path_refuses():
     # the slider's limit [-2.4, 2.4] m holds 4.8 m (its range) beyond either bound
     cases = [([[2.4 + 4.81, 0.0]], "slider"), ([[0.0, np.nan]], "hinge0"), ([[np.inf, 0.0]], "slider"),
              ([[0.0, 0.0]], "hinge0")]  # fmt: skip
-    rates = [[[0.0, 0.0]]] * 3 + [[[0.0, np.pi / sim.dt]]]  # the last turns the hinge by pi in a step
+    turn = 4 * np.pi  # the most |rate|·dt a step produces: the retry's quarter substeps (inputs.max_turn)
+    rates = [[[0.0, 0.0]]] * 3 + [[[0.0, turn / sim.dt]]]  # the last turns the hinge by 4 pi in a step
     for (x, joint), xd in zip(cases, rates):
         with pytest.raises(ValueError, match=joint):
             sim.set_joint_state(np.array(x), np.array(xd))
         after = sim.get_state()
         for key in before:
             np.testing.assert_array_equal(after[key], before[key], err_msg=key)
-    sim.set_joint_state(np.array([[2.4 + 4.79, 0.0]]), np.array([[0.0, np.pi / sim.dt * 0.99]]))  # within what holds
+    sim.set_joint_state(np.array([[2.4 + 4.79, 0.0]]), np.array([[0.0, turn / sim.dt * 0.99]]))  # within what holds
     assert sim.joint_coordinates()[0, 0] == pytest.approx(7.19, abs=1e-5)
 
 

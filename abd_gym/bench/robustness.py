@@ -23,8 +23,9 @@ default settings (only the scene and dt are chosen).  Per run it reports:
 - ``gap``: the largest joint residual ``joint_violation()`` [mm];
 - ``overshoot``: the largest excursion of a limited joint past its bound (multi-turn angle [rad],
   displacement [m]), and its ratio to the estimate of docs/design.md §3.3 with the world's whole
-  swing energy arriving at the limit: (S/s)^(1/3) rad for a revolute limit of strength s,
-  w·(S/s)^(1/3) m for a prismatic one of range width w;
+  swing energy arriving at the limit: (S dt²/s)^(1/3) rad for a revolute limit of strength s
+  (its physical stiffness s/dt², as ``energies()`` counts it), w·(S dt²/s)^(1/3) m for a
+  prismatic one of range width w;
 - ``iterations``: Newton iterations a step, mean and max;
 - ``refused`` / ``warned``: the simulator raised an error when built or given the initial
   state / issued a warning then.
@@ -268,7 +269,7 @@ def _measure(sim, scene, steps, row):
     gain = (Emax - E0) / swing
     bound = np.zeros_like(over)
     for i, (_, _, _, s, width) in enumerate(limits):
-        bound[:, i] = (swing / s) ** (1 / 3) * (1.0 if width is None else width)
+        bound[:, i] = (swing * sim.dt**2 / s) ** (1 / 3) * (1.0 if width is None else width)
     row.update(reported=int((reported_at >= 0).sum()), first_report_step=int(reported_at[reported_at >= 0].min())
                if (reported_at >= 0).any() else None, causes={str(k): v for k, v in sorted(causes.items())},
                silent=silent, seconds=seconds, substeps={n: int(substeps[n]) for n in (2, 4)}, kept_gain=kept_gain,
@@ -388,17 +389,16 @@ steps {result['worlds']} worlds from random initial states (seed {result['seed']
   retry of failed steps off (`Simulator(retry=False)`).
 - **substeps 2 / 4**: world-steps that failed (Newton did not converge or broke down), or that
   converged but raised a conservative world's total energy by more than 5% of its swing energy
-  known so far (the energy test, by default where a step turns the scene's fastest gravity mode
-  past 0.16 rad: here from dt 0.03 on, and the chains' light links; docs/design.md §4.1), and were
-  taken again as 2, or 4, substeps (`Simulator.substeps`); a world that fails at 4 too is
-  reported.
+  known so far (the energy test, on by default in every conservative scene; docs/design.md §4.1),
+  and were taken again as 2, or 4, substeps (`Simulator.substeps`); a world that fails at 4 too
+  is reported.
 - **kept gain**: world-steps that still gained more than the energy test allows at 4 substeps and
   were kept (`Simulator.energy_gained`). The goal is 0.
 - **silent**: world-steps whose Newton solve ended unconverged (`converged()` False) in a world
   that was not reported: steps committed with nothing said. The goal is 0.
 - **gain > 5%** and **worst gain** (conservative cases, where no drive acts): the gain
   max_t E(t) − E(0) of each world's total energy E (the sum of `energies()`: kinetic, gravity,
-  orthogonality, joints, limits), relative to its swing energy S = E(0) − min_t V_g(t), the energy
+  orthogonality, joints as their physical energy K/(2ĥ₀²) Σ‖C‖², limits), relative to its swing energy S = E(0) − min_t V_g(t), the energy
   above the lowest gravity potential the world visits (its largest kinetic plus elastic energy
   when energy is conserved; its initial kinetic energy where gravity does no work). Worst gain is
   the largest over the worlds (negative: every world lost energy). The goal is 0 worlds above 5%.
@@ -411,9 +411,9 @@ steps {result['worlds']} worlds from random initial states (seed {result['seed']
 - **gap**: the largest joint residual `joint_violation()` over worlds and steps [mm].
 - **overshoot**: where a joint has a limit, its largest excursion past a bound (multi-turn angle
   [rad] or displacement [m]), and in brackets its ratio to the estimate of docs/design.md §3.3
-  with the world's whole swing energy S arriving at the limit: (S/s)^(1/3) rad for a revolute
-  limit of strength s, w·(S/s)^(1/3) m for a prismatic limit of range width w. Above 1: the limit
-  did not hold as the estimate says.
+  with the world's whole swing energy S arriving at the limit: (S dt²/s)^(1/3) rad for a revolute
+  limit of strength s (its physical stiffness s/dt², as `energies()` counts it), w·(S dt²/s)^(1/3) m
+  for a prismatic limit of range width w. Above 1: the limit did not hold as the estimate says.
 - **iterations**: Newton iterations a step, mean and largest.
 - **build**: `refused` when the simulator raised an error when built or given the state, `warned`
   with the warnings it issued.

@@ -337,30 +337,32 @@ def kernels(dtype):
             add_grad(g, w, o, f)
             add_block(H, w, o, o, h)
 
+    @wp.func
+    def report_terms(v: vec12, qb: vec12, m: dtype, c: vec3, s: mat33, gravity: vec3):
+        """(kinetic ½ q̇ᵀMq̇, gravity −g·(m p + A m c)) of one body [J]."""
+        vp = vec3(v[0], v[1], v[2])
+        ke = m * wp.dot(vp, vp)
+        for r in range(3):
+            vr = row(v, r)
+            ke += dtype(2.0) * vp[r] * wp.dot(vr, c) + wp.dot(vr, s * vr)
+        com = m * vec3(qb[0], qb[1], qb[2]) + vec3(wp.dot(row(qb, 0), c), wp.dot(row(qb, 1), c), wp.dot(row(qb, 2), c))
+        return half * ke, -wp.dot(gravity, com)
+
     @wp.kernel(module="unique")
     def body_report(
         q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), free: wp.array(dtype=wp.int32),
         mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33),
         gravity: vec3, E: wp.array2d(dtype=dtype), col_kinetic: int, col_gravity: int,
     ):  # fmt: skip
-        """Physical kinetic ½ q̇ᵀMq̇ and gravity −g·(m p + A m c) energies [J]."""
+        """Physical kinetic ½ q̇ᵀMq̇ and gravity −g·(m p + A m c) energies [J] (report_terms)."""
         w, k = wp.tid()
         b = free[k]
-        v = qd[w, b]
-        qb = q[w, b]
-        m = mass[w, b]
-        c = mc[w, b]
-        s = S[w, b]
-        vp = vec3(v[0], v[1], v[2])
-        ke = m * wp.dot(vp, vp)
-        for r in range(3):
-            vr = row(v, r)
-            ke += dtype(2.0) * vp[r] * wp.dot(vr, c) + wp.dot(vr, s * vr)
-        wp.atomic_add(E, w, col_kinetic, half * ke)
-        com = m * vec3(qb[0], qb[1], qb[2]) + vec3(wp.dot(row(qb, 0), c), wp.dot(row(qb, 1), c), wp.dot(row(qb, 2), c))
-        wp.atomic_add(E, w, col_gravity, -wp.dot(gravity, com))
+        ke, ge = report_terms(qd[w, b], q[w, b], mass[w, b], mc[w, b], S[w, b], gravity)
+        wp.atomic_add(E, w, col_kinetic, ke)
+        wp.atomic_add(E, w, col_gravity, ge)
 
     return SimpleNamespace(psd_part=psd_funcs(dtype).psd_part, body_terms=body_terms, body_report=body_report,
+                           report_terms=report_terms,
                            body_eval=body_eval, body_grad=body.body_grad, retract=retract_func(dtype),
                            hessian_parts=body.hessian_parts, a_block=body.a_block)
 

@@ -1,7 +1,7 @@
 """Fixed joint (weld; our UID 25): revolute constraints plus no relative rotation.
 
 Four points fixed in both bodies, ``anchor`` and ``anchor + L·e_k`` (k = x, y, z; L the
-joint's ``half_length`` [m]), must coincide: ``E = K/2 Σ_p ‖x_i(P_p) − x_j(P_p)‖²`` [J],
+joint's ``half_length`` [m]), must coincide: ``E = K/2 Σ_p ‖x_i(P_p) − x_j(P_p)‖²`` [J·s²],
 ``K = strength_ratio·(m_i + m_j)``; linear constraints, exact PSD Hessian.
 """
 from ._point_joint import launch_points, point_joint_np

@@ -4,7 +4,7 @@ Frame ``(c, t̂, n̂, b̂)`` captured in both bodies at creation; with ``c_k = J
 
     C0 = (c_j − c_i) × t̂_i      C1 = (c_i − c_j) × t̂_j
     C2 = n̂_i − n̂_j              C3 = b̂_i − b̂_j
-    E  = Σ_k K/2 ‖C_k‖²  [J],   K = strength_ratio·(m_i + m_j)
+    E  = Σ_k K/2 ‖C_k‖²  [J·s²],   K = strength_ratio·(m_i + m_j)
 
 Gradient exact; the Hessian is the Gauss–Newton part ``K Σ ∇C_mᵀ∇C_m`` (PSD; C0 and C1 are
 bilinear, and the dropped ``K Σ C_m ∇²C_m`` vanishes as the constraint is met).

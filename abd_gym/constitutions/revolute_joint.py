@@ -2,7 +2,7 @@
 
 Two points on the hinge axis, ``P± = anchor ± L·t̂`` (L = the joint's ``half_length`` [m]), are
 fixed in both bodies at scene creation and must coincide:
-``E = K/2 Σ_± ‖x_i(P±) − x_j(P±)‖²`` [J], ``K = strength_ratio·(m_i + m_j)`` [kg].
+``E = K/2 Σ_± ‖x_i(P±) − x_j(P±)‖²`` [J·s²], ``K = strength_ratio·(m_i + m_j)`` [kg].
 A penalty added to the incremental potential as it is (not inside h²), so its physical
 stiffness is K/h² and the joint stays equally tight at any step size.
 """

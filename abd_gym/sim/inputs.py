@@ -14,8 +14,8 @@ The rules, one for every door:
 - a rotation part is a rotation: ‖AAᵀ − I‖_F ≤ ROTATION_TOL and det A > 0;
 - a limited joint lies within its bounds widened by the limit's own scale (``limit_scale``): the
   penetration at which the limit's energy reaches its strength, as much as it can hold.  A state a
-  step produced lies inside that (a limit's penetration grows as (S/s)^(1/3) of that scale with
-  the swing energy S that reaches a limit of strength s, docs/design.md §3.3).
+  step produced lies inside that (a limit's penetration grows as (S dt²/s)^(1/3) of that scale
+  with the swing energy S that reaches a limit of strength s, docs/design.md §3.3).
 """
 from __future__ import annotations
 
@@ -117,6 +117,18 @@ def count(name, value, minimum=0) -> int:
     return int(value)
 
 
+def flag(name, value) -> bool:
+    """A bool (Python's or NumPy's); a TypeError for anything else (a string, a number, None)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
+def seed(value):
+    """A random seed: None, or an integer (Python or NumPy, not bool) >= 0, as a Python int."""
+    return None if value is None else count("seed", value)
+
+
 def world_indices(worlds, num_worlds) -> np.ndarray:
     """``worlds`` (None: every world; an integer or integer array; a bool mask (num_worlds,)) as
     int64 indices, each in [0, num_worlds) and listed once."""
@@ -206,18 +218,26 @@ def check_within_limits(name, x, worlds, limits, names):
                              f"({float(slack[i]):.4g} {unit}, where its energy reaches its strength)")  # fmt: skip
 
 
-def joint_state_bounds(limits, revolute, num_worlds):
+def max_turn(integrator: str, substeps: int = 1) -> float:
+    """The largest |rate|·dt [rad] a revolute joint's state may have, as much as a step produces: a
+    step turns the joint by δ ∈ (−π, π] (all it can tell), its rate is δ/h under implicit Euler
+    and (3δⁿ⁺¹ − δⁿ)/(2h), up to 2π/h, under BDF2; a step retried as ``substeps`` implicit Euler
+    substeps (solver/retry.py) ends at a substep's rate, up to π·substeps/h."""
+    return max(2.0 * math.pi if integrator == "bdf2" else math.pi, math.pi * substeps)
+
+
+def joint_state_bounds(limits, revolute, num_worlds, turn=math.pi):
     """``check_joint_state``'s bounds as arrays, for ``joint_state_ok``: (lower, upper), each
     (num_worlds, joints), every limited joint's bounds widened by the limit's scale
     (``limit_scale``; −inf and +inf for a joint without a limit), and (joints,) the bound of
-    |rate|·dt, π for a revolute joint, +inf for another.  ``limits`` as for
+    |rate|·dt, ``turn`` (``max_turn``) for a revolute joint, +inf for another.  ``limits`` as for
     ``check_within_limits``, ``revolute`` (joints,) bool."""
     revolute = np.asarray(revolute, dtype=bool)
     lower, upper = np.full((num_worlds, revolute.size), -np.inf), np.full((num_worlds, revolute.size), np.inf)
     for k, (lo, up, rev) in limits.items():
         slack = limit_scale(rev, lo, up)
         lower[:, k], upper[:, k] = lo - slack, up + slack
-    return lower, upper, np.where(revolute, math.pi, np.inf)
+    return lower, upper, np.where(revolute, turn, np.inf)
 
 
 def joint_state_ok(x, xd, worlds, dt, bounds) -> bool:
@@ -232,41 +252,44 @@ def joint_state_ok(x, xd, worlds, dt, bounds) -> bool:
     return not np.count_nonzero(bad)
 
 
-def check_joint_state(names, revolute, x, xd, worlds, dt, limits):
+def check_joint_state(names, revolute, x, xd, worlds, dt, limits, turn=math.pi):
     """Raise a ValueError for a joint state the step cannot start from.
 
     names, revolute: (joints,) the joints' names and whether each is revolute; x, xd: (N, joints)
     coordinates [rad, m] and rates [rad/s, m/s] of the worlds ``worlds``; limits as for
-    ``check_within_limits``.
+    ``check_within_limits``; ``turn``: ``max_turn`` of the integrator.
 
     An unlimited revolute angle may lie outside [−π, π]: it is kept as the multi-turn angle.
 
     - A limited joint must lie within its bounds widened by the limit's scale
       (``check_within_limits``): beyond, the limit's cubic starts the solve from an energy above
       its strength, which no state a step produced has.
-    - A revolute rate must turn the joint less than π in one step (|ẋ|·dt < π): the step's
-      incremental angle δ ∈ (−π, π] cannot tell a larger turn from one the other way.
+    - A revolute rate must turn the joint less than ``turn`` in one step (|ẋ|·dt < turn): the
+      step's incremental angle δ ∈ (−π, π] cannot tell a larger turn from one the other way, and
+      a BDF2 step's rate reaches 2π/h from two turns below π each (``max_turn``).
     """
     rev = np.asarray(revolute, dtype=bool)
     if not rev.size:
         return
-    fast = rev & (np.abs(xd) * dt >= math.pi)
+    fast = rev & (np.abs(xd) * dt >= turn)
     if fast.any():
         i, k = np.argwhere(fast)[0]
         raise ValueError(f"velocities: revolute joint {names[k]!r} in world {int(worlds[i])} has rate {float(xd[i, k])!r} rad/s, "
-                         f"which turns it by pi or more in one step of {dt} s (|rate| < {math.pi / dt:.4g})")  # fmt: skip
+                         f"which turns it by {turn / math.pi:g} pi or more in one step of {dt} s "
+                         f"(|rate| < {turn / dt:.4g})")  # fmt: skip
     check_within_limits("coordinates", x, worlds, limits, names)
 
 
-def check_body_spin(scene, omega, worlds, dt):
-    """Raise a ValueError where a free body's angular velocity ω (N, bodies, 3) [rad/s] turns it by π
-    or more in one step of ``dt`` [s] (|ω|·dt ≥ π): the step's incremental joint angles lie in
-    (−π, π], and a turn that large leaves A's Newton solve starting from a state whose rounding is
-    metres."""
+def check_body_spin(scene, omega, worlds, dt, turn=math.pi):
+    """Raise a ValueError where a free body's angular velocity ω (N, bodies, 3) [rad/s] turns it by
+    ``turn`` or more in one step of ``dt`` [s] (|ω|·dt ≥ turn): the step's incremental joint angles
+    lie in (−π, π], and a turn that large leaves A's Newton solve starting from a state whose
+    rounding is metres.  ``turn``: ``max_turn`` of the integrator, what a step produces (a body's
+    rate, like a joint's, is a BDF2 combination of two turns or a quarter substep's)."""
     free = np.array([not b.fixed for b in scene.bodies], dtype=bool)
-    fast = (np.linalg.norm(omega, axis=-1) * dt >= math.pi) & free
+    fast = (np.linalg.norm(omega, axis=-1) * dt >= turn) & free
     if fast.any():
         i, b = np.argwhere(fast)[0]
         raise ValueError(f"angular_velocities: body {scene.bodies[b].name!r} in world {int(worlds[i])} turns at "
-                         f"{float(np.linalg.norm(omega[i, b]))!r} rad/s, which turns it by pi or more in one step of "
-                         f"{dt} s (|omega| < {math.pi / dt:.4g})")  # fmt: skip
+                         f"{float(np.linalg.norm(omega[i, b]))!r} rad/s, which turns it by {turn / math.pi:g} pi or "
+                         f"more in one step of {dt} s (|omega| < {turn / dt:.4g})")  # fmt: skip

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from . import loops
 from .coordinates import PRISMATIC_CODE, REVOLUTE_CODE
 from .coordinates import funcs as coordinate_funcs
 from ..core.rows import world_of
@@ -45,30 +46,12 @@ class TreePlan:
 def tree_plan(scene, model) -> TreePlan:
     """The order forward kinematics places bodies in (fixed bodies first, then free roots)."""
     bodies = scene.bodies
-    placed = np.array([b.fixed for b in bodies])
     rows = []
-    pending = list(range(len(scene.joints)))
-    while pending:
-        progress = False
-        for k in list(pending):
-            j = scene.joints[k]
-            a, b = j.body_a, j.body_b
-            if placed[a] and placed[b]:
-                pending.remove(k)  # closes a loop: the solver pulls it together
-                continue
-            if not (placed[a] or placed[b]):
-                continue
-            par, ch = (a, b) if placed[a] else (b, a)
-            Bp, Bc = bodies[par], bodies[ch]
-            rows.append(((k, par, ch, model.joint_kind_np[k]), 1.0 if placed[a] else -1.0, Bp.rotation.T @ Bc.rotation,
-                         Bp.rotation.T @ (Bc.position - Bp.position), Bp.to_local_dir(j.frame[0]),
-                         Bp.to_local_point(j.anchor)))  # fmt: skip
-            placed[ch] = True
-            pending.remove(k)
-            progress = True
-        if not progress and pending:
-            # a free body with no placed neighbour: it is a root at its scene pose
-            placed[scene.joints[pending[0]].body_a] = True
+    for k, par, ch, sign in loops.tree_order(scene)[0]:
+        j, Bp, Bc = scene.joints[k], bodies[par], bodies[ch]
+        rows.append(((k, par, ch, model.joint_kind_np[k]), sign, Bp.rotation.T @ Bc.rotation,
+                     Bp.rotation.T @ (Bc.position - Bp.position), Bp.to_local_dir(j.frame[0]),
+                     Bp.to_local_point(j.anchor)))  # fmt: skip
     dev, npd = model.device, model.np_dtype
 
     def arr(values, dtype, shape):

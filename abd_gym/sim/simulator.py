@@ -15,12 +15,14 @@ import numpy as np
 import warp as wp
 
 from . import conditioning, inputs, kinematics
+from .loops import LoopCheck
 from ..core import graphs, launches, rows
 from .coordinates import FIXED_CODE
 from .inputs import check_body_spin, check_joint_state, check_within_limits
 from .inputs import finite_array as _finite_array
 from .model import Model
 from ..solver.plan import ExecutionPlan, as_plan
+from ..solver.retry import SUBSTEPS
 from .scene import REVOLUTE, Scene
 from ..solver.solver import Solver, SolverSettings
 from .state import State
@@ -78,10 +80,10 @@ class Simulator:
     ``energy_gain``: with the retry, a step that converged in a conservative world (no drive
     pushing, no position drive in the scene) but raised its total energy by more than this fraction
     of its swing energy is retried the same way, and if it still gains at 4 substeps it is kept
-    and flagged (``energy_gained``; solver/energy_gain.py); 0: no energy test; None: 0.05 where a
-    step turns the scene's fastest gravity mode by more than conditioning.ENERGY_TEST_TURN (0.16
-    rad), the large steps where BDF2 gains energy, else 0 (the test computes every tested world's
-    energy after each step, a cost on the CPU: docs/design.md §4.1).
+    and flagged (``energy_gained``; solver/energy_gain.py); 0: no energy test; None: 0.05 (the test
+    computes every tested world's energy after each step, a cost on the CPU, and the vector envs,
+    whose drives push in every step under a policy, leave it off below large steps:
+    conditioning.task_energy_gain; docs/design.md §4.1).
 
     How the step runs on the device (kernels, memory layout, launches, graphs) is ``plan``, an
     ExecutionPlan (or a dict of its fields) whose None fields are derived from the device, the
@@ -99,7 +101,7 @@ class Simulator:
         if max_iterations is None:
             max_iterations = conditioning.default_max_iterations(scene)
         if energy_gain is None:
-            energy_gain = 0.05 if conditioning.gravity_turn(scene, dt) > conditioning.ENERGY_TEST_TURN else 0.0
+            energy_gain = 0.05
         settings = SolverSettings(tol=inputs.real_number("tol", tol, positive=True),
                                   max_iterations=inputs.count("max_iterations", max_iterations, minimum=1),
                                   max_line_search=inputs.count("max_line_search", max_line_search, minimum=1),
@@ -139,7 +141,11 @@ class Simulator:
         self._world0_graph = None  # (the restart launch's graph reading _World0Restart.buffer, its arguments)
         self._joints = None  # set_joint_state's joint names and revolute mask (_joint_names)
         self._joint_bounds = None  # set_joint_state's bounds (inputs.joint_state_bounds), until set_limit
+        # a revolute rate's largest |rate|·dt: what a step, or the retry's finest substeps, produce
+        settings = self.solver.settings
+        self._turn = inputs.max_turn(settings.integrator, max(SUBSTEPS) if settings.retry else 1)
         self._tree_plan = None  # set_joint_state's forward-kinematics order (kinematics.tree_plan), built once
+        self._loops = LoopCheck.for_scene(scene, self.model)  # the closing joints' gaps, or None: no loop
         self._torch_views = {}
         self._host_views = {}
         self._host_copies = {}  # view's NumPy copies on the CPU: id -> (array, host view, the copy's dtype)
@@ -152,6 +158,12 @@ class Simulator:
             buffer = wp.zeros((1, 2, self.model.num_joints), dtype=self.model.dtype, device=self.device)
             self._world0_restart = _World0Restart((1, self.model.num_joints), buffer, buffer.numpy().reshape(-1))
         self.reset()
+
+    @property
+    def loops(self):
+        """The check of the coordinates of the scene's closed loops (sim.loops.LoopCheck: ``gaps``,
+        ``check``), or None where no joint closes a loop."""
+        return self._loops
 
     @property
     def plane(self):
@@ -357,8 +369,12 @@ class Simulator:
 
     def energies(self) -> dict:
         """Each term's own energy [J] per world: "kinetic" (the joints' armature's ½aẋ² included),
-        "gravity", "orthogonality" and the joint, limit and drive terms the scene has (K/2 Σ‖C‖² for
-        joints, the seed's E(x) for limits)."""
+        "gravity", "orthogonality" and the joint, limit and drive terms the scene has.  A joint's is
+        its physical energy K/(2ĥ₀²) Σ‖C‖²: the seed's K/2 Σ‖C‖² is a term of the incremental
+        potential outside ĥ² (J·s²), so its stiffness is K/ĥ₀² with ĥ₀ the simulator's step (dt,
+        2dt/3 under BDF2), which every step keeps (docs/design.md §2), and totals compare across
+        dt.  A limit's is its physical energy E(x)/dt²: the seed's cubic E(x) sits outside ĥ² too, as
+        it is in every step, and a world whose limit acts takes an implicit Euler step next (ĥ = dt)."""
         return self.solver.energies(self.state)
 
     def joint_violation(self, joints=None) -> np.ndarray:
@@ -529,7 +545,7 @@ class Simulator:
         w = _finite_array("angular_velocities", 0.0 if angular_velocities is None else angular_velocities, (len(idx), nb, 3), **at)
         fixed = np.array([b.fixed for b in self.scene.bodies])
         inputs.check_rotations("rotations", R, idx, names, movable=~fixed)
-        check_body_spin(self.scene, w, idx, self.dt)
+        check_body_spin(self.scene, w, idx, self.dt, self._turn)
         q = np.concatenate([p, R.reshape(len(idx), nb, 9)], axis=-1)
         qd = np.concatenate([v, (_skew(w) @ R).reshape(len(idx), nb, 9)], axis=-1)
         q[:, fixed] = self.model.q0[fixed]
@@ -582,28 +598,24 @@ class Simulator:
     def set_joint_state(self, coordinates, velocities=None, worlds=None):
         """Forward kinematics for tree mechanisms (kinematics.py, on the device): joint coordinates
         (N, num_joints) [rad, m] and rates, from the scene's zero pose.  Joints that close a loop
-        are not placed: the coordinates given must close it (a gap left holds the joint's penalty,
-        which the first steps release; docs/design.md §5).
+        are not placed: the coordinates given must close it, to within ``loops.LOOP_TOL`` of the
+        closing joint's half_length (a state a step produced reopens it by the joints' stretch
+        only; docs/design.md §5).
 
         Refused with a ValueError naming the joint, the world and the value (nothing is written): a
         non-finite or overflowing value, a limited joint beyond its limit's [lower, upper] by more
         than the limit holds (a penetration a step produced is accepted: inputs.check_within_limits),
-        a revolute rate that turns the joint by π or more in one step."""
+        a revolute rate that turns the joint by π or more in one step, coordinates that leave a
+        closed loop open (``loops.LoopCheck``: naming the closing joint and the gap)."""
         if self._world0_restart is not None and self._restart_world0(coordinates, velocities, worlds):
             return
         idx = self._worlds(worlds)
         m = self.model
         nj, N = m.num_joints, len(idx)
-        names, revolute, fixed = self._joint_names()
-        at = dict(worlds=idx, items=names, item="joint", bound=self._state_bound)
-        x = _finite_array("coordinates", coordinates, (N, nj), **at)
-        xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj), **at)
+        x, xd = self.check_joint_state(coordinates, velocities, idx)
         if N == 0:
             return
-        if self._joint_bounds is None:  # kept until set_limit changes the limits
-            self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), revolute, self.num_worlds)
-        if not inputs.joint_state_ok(x, xd, idx, self.dt, self._joint_bounds):
-            check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds())  # raises, naming the joint
+        fixed = self._joint_names()[2]
         idx_dev = self._one_world() if self.num_worlds == 1 else rows.indices(idx, self._stage)
         # coordinates and rates in one upload; a fixed joint's coordinate (which placing ignores)
         # is 0, which is its multi-turn coordinate; a scene without joints still passes (N, 2, 1)
@@ -616,11 +628,43 @@ class Simulator:
                                                            self.dt))  # fmt: skip
         self.state.time[idx] = 0.0
 
+    def check_joint_state(self, coordinates, velocities=None, worlds=None, limits=None):
+        """``set_joint_state``'s checks alone (nothing is written): the coordinates and rates as
+        float64 (N, num_joints) arrays, or a ValueError naming the joint, the world and the value.
+        ``limits``: {limited joint index: (lower (N,), upper (N,))} of the worlds listed, bounds
+        to check against in place of those in force (a reset's that are written after the check)."""
+        idx = self._worlds(worlds)
+        nj, N = self.model.num_joints, len(idx)
+        names, revolute, fixed = self._joint_names()
+        at = dict(worlds=idx, items=names, item="joint", bound=self._state_bound)
+        x = _finite_array("coordinates", coordinates, (N, nj), **at)
+        xd = _finite_array("velocities", 0.0 if velocities is None else velocities, (N, nj), **at)
+        if N == 0:
+            return x, xd
+        if limits:
+            bounds = self._limit_bounds()
+            for k, (lo, up) in limits.items():
+                lower, upper, rev = bounds[k]
+                lower, upper = lower.astype(np.float64), upper.astype(np.float64)
+                lower[idx], upper[idx] = lo, up
+                bounds[k] = (lower, upper, rev)
+            check_joint_state(names, revolute, x, xd, idx, self.dt, bounds, self._turn)
+        else:
+            if self._joint_bounds is None:  # kept until set_limit changes the limits
+                self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), revolute, self.num_worlds,
+                                                               self._turn)  # fmt: skip
+            if not inputs.joint_state_ok(x, xd, idx, self.dt, self._joint_bounds):
+                check_joint_state(names, revolute, x, xd, idx, self.dt, self._limit_bounds(), self._turn)  # names it
+        if self._loops is not None:
+            self._loops.check("coordinates", x, idx)
+        return x, xd
+
     def _restart_world0(self, coordinates, velocities, worlds) -> bool:
         """``set_joint_state`` of a one-world CPU simulator from float64 arrays (1, joints) of
         coordinates and rates, for world 0 (``worlds`` None or [0]), where each value passes, in
         plain Python floats, the checks that ``set_joint_state`` makes (finite, within half the
-        state bound, within the joint's bounds, |rate|·dt below the joint's turn): the values
+        state bound, within the joint's bounds, |rate|·dt below the joint's turn; a closed loop
+        closed): the values
         written into a kept array that a captured graph of the restart launch reads.  Returns
         False, having written nothing, for any other input, which ``set_joint_state`` then takes
         (and refuses, naming the joint, where it must)."""
@@ -632,7 +676,7 @@ class Simulator:
                                        and worlds[0] == 0):  # fmt: skip
             return False
         if self._joint_bounds is None:  # kept until set_limit changes the limits
-            self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), self._joint_names()[1], 1)
+            self._joint_bounds = inputs.joint_state_bounds(self._limit_bounds(), self._joint_names()[1], 1, self._turn)
         if kept.bounds is not self._joint_bounds:
             lower, upper, turn = self._joint_bounds
             fixed = self._joint_names()[2]
@@ -644,6 +688,8 @@ class Simulator:
         for c, r, (low, high, turn, _) in zip(x, xd, kept.checks):
             if not (-half < c < half and -half < r < half and low <= c <= high and abs(r) * dt < turn):
                 return False
+        if self._loops is not None and not self._loops.closed(coordinates):
+            return False
         nj = len(x)
         for j, (c, r, check) in enumerate(zip(x, xd, kept.checks)):
             kept.values[j] = 0.0 if check[3] else c  # rounded to the model's dtype by the store
@@ -741,6 +787,13 @@ class Simulator:
         dtype other than this simulator's, a non-finite or overflowing pose or velocity, a rotation
         part that is not a rotation, a limited joint beyond what its limit holds, an unknown
         status code."""
+        self._write_state(*self.check_state(state, worlds))
+
+    def check_state(self, state: dict, worlds=None, limits=None):
+        """``set_state``'s checks alone (nothing is written): (the values as arrays, the worlds),
+        which ``set_state`` writes.  ``limits``: {limited joint index: (lower (W,), upper (W,))},
+        every world's bounds to check against in place of those in force (the vector env's
+        set_state, which restores its parameters after the check)."""
         idx = self._worlds(worlds)
         arrays = self._state_arrays()
         if not isinstance(state, dict):
@@ -771,12 +824,15 @@ class Simulator:
         if self.model.num_joints:
             coord = _finite_array("state['coord']", vals["coord"], vals["coord"].shape, idx, joints, "joint",
                                   self._state_bound)
-            check_within_limits("state['coord']", coord, idx, self._limit_bounds(), joints)
+            bounds = self._limit_bounds()
+            for k, (lo, up) in (limits or {}).items():
+                bounds[k] = (np.asarray(lo, np.float64), np.asarray(up, np.float64), bounds[k][2])
+            check_within_limits("state['coord']", coord, idx, bounds, joints)
         bad = ~np.isin(vals["status"], [int(s) for s in WorldStatus])
         if bad.any():
             raise ValueError(f"state['status'] has an unknown code {vals['status'][bad][0]} in world "
                              f"{int(idx[np.argmax(bad)])}")
-        self._write_state(vals, idx)
+        return vals, idx
 
     def _write_state(self, vals: dict, idx):
         """Write get_state's values (unchecked) into the worlds idx."""
@@ -854,6 +910,7 @@ class Simulator:
         (the default), bounds that leave a world's current coordinate beyond them by more than the
         limit holds (inputs.check_within_limits) are refused; a caller that sets every such world's
         state right after (a reset) passes False."""
+        check_state = inputs.flag("check_state", check_state)
         m = self.model
         j = self.scene.joint_index(joint)
         kind = self.scene.joints[j].kind

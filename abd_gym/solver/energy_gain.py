@@ -10,16 +10,21 @@ clipped spring has an energy that ``energies()`` does not report, so a scene wit
 Its total mechanical energy E is the sum of ``Simulator.energies()`` (kinetic, the armature's
 included; gravity; orthogonality; joints; limits; drives).  A step that ended OK gains too much when
 
-    E_after − E_before > tol·S + max(A_before, A_after),
+    E_after − E_before > tol·S + A_before + A_after,
     S = max over the steps since the state was set of E_before − min(V_low, V_g,after),
 
 with V_low the lowest gravity potential the world has reached: S is the largest swing energy the
 world has had (its kinetic plus elastic energy at its lowest point), which does not exceed the
 swing energy of the whole run while no step gains, so the test is at least as strict as a gain of
-tol of the run's swing energy.  The allowance A of a state is what the energy cannot resolve: its
-rounding, ``floor`` (1000 eps of the dtype) times Σ|E_c|.  E is the robustness report's total (a
-joint counted as K/2 Σ‖C‖²), so the test holds a step to the report's criterion.  It leaves no
-room for the joints' stretch: every step keeps the joints' stiffness (constitutions/_joint_step.py),
+tol of the run's swing energy.  The allowance A of a state is what its energy cannot resolve, the
+rounding of the quantities it is computed from, scaled by the world's own magnitudes: the sums'
+(``floor``, 1000 eps of the dtype, times Σ|E_c|) and, per column, the energy R_c its quantity has at
+its rounding (q̇ = Δq/ĥ from q's, 2 eps‖q‖/h; the orthogonality residual AAᵀ − I and a point
+joint's offset from q's), which moves E_c by at most 2√(E_c R_c) + R_c (``total``).  A world at rest
+in float32 (R ~ 1e-10 J for 0.1 kg bodies at dt 0.01) moves by that much with no gain at all.
+E is the robustness report's total (joints and limits counted as their physical energies,
+Solver.report_scale), so the test holds a step to the report's criterion.  It leaves no room
+for the joints' stretch: every step keeps the joints' stiffness (constitutions/_joint_step.py),
 so a retry's substeps do not release the stretch a step made.
 
 ``State.energy`` (W, 4) keeps, after each step, E, V_low, S and A as the next step's "before"; it
@@ -37,8 +42,16 @@ from ..core.warp_ops import ops
 from ..sim.status import OK
 from .kernels import RESET, RESTART, SET, next_attempt
 
-# the energy's own rounding allowed in a step, in units of eps·Σ|E_c|
+# the energy's own rounding allowed in a step, in units of eps·Σ|E_c|: a column's sum, each of its
+# terms a chain of a few dozen operations added in a world's own order, errs by at most γ_n|E_c|,
+# γ_n ≈ n·eps, and n stays below 1000 for the scenes a world holds
 FLOOR_EPS = 1000.0
+# a point joint's offset C_p = (p_a + A_a x̄_a) − (p_b + A_b x̄_b) errs, in units of eps·ρ‖q‖ per body
+# (ρ = √(1 + ‖x̄‖²) ≥ ‖[I, x̄ᵀ ⊗ I]‖₂): q's own rounding (u = eps/2) and the point's 4-term sums (4u)
+JOINT_ROUNDING = 2.5
+# q̇ = (3Δq − (qⁿ − qⁿ⁻¹))/(2h) (BDF2; implicit Euler's Δq/h is less) errs, from q's rounding, by
+# (3·2u + 2u)/(2h) = 2 eps/h per unit of |q|
+VELOCITY_ROUNDING = 2.0
 # fresh == SET as the bytes of an int32: a host-side test without a ufunc (fresh's values, 0 to
 # SET, are one low byte and three zero bytes, so the pattern can match only at a value's start)
 SET_BYTES = np.int32(SET).tobytes()
@@ -65,38 +78,64 @@ def point_energy(dtype):
     def point_energy(q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32), body_a: wp.array(dtype=wp.int32),
                      body_b: wp.array(dtype=wp.int32), pts_a: wp.array3d(dtype=vec3), pts_b: wp.array3d(dtype=vec3),
                      npts: int, K: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), col: int,
-                     E: wp.array2d(dtype=dtype)):  # fmt: skip
+                     rcol: int, eps: dtype, E: wp.array2d(dtype=dtype)):  # fmt: skip
         w, k = wp.tid()
         if active[w] == 0:
             return
         j = ids[k]
-        e, gi, gj, uii, uij, ujj = evaluate(q[w, body_a[j]], q[w, body_b[j]], pts_a, pts_b, w, j, npts, K[w, j], 0)
+        qa, qb = q[w, body_a[j]], q[w, body_b[j]]
+        e, gi, gj, uii, uij, ujj = evaluate(qa, qb, pts_a, pts_b, w, j, npts, K[w, j], 0)
         add_energy(E, w, col, e)
+        # the joint's energy at its points' rounding (JOINT_ROUNDING): δC_p ≤ 5 eps (ρ_a‖q_a‖ + ρ_b‖q_b‖)
+        r = dtype(0.0)
+        na, nb = wp.length(qa), wp.length(qb)
+        for p in range(npts):
+            xa, xb = pts_a[w, j, p], pts_b[w, j, p]
+            rho_a, rho_b = wp.sqrt(dtype(1.0) + wp.dot(xa, xa)), wp.sqrt(dtype(1.0) + wp.dot(xb, xb))
+            dc = dtype(JOINT_ROUNDING) * eps * (rho_a * na + rho_b * nb)
+            r += dtype(0.5) * K[w, j] * dc * dc
+        add_energy(E, w, rcol, r)
 
     return point_energy
 
 
 @functools.lru_cache(maxsize=None)
-def orthogonality_energy(dtype):
-    """The bodies' orthogonality energies alone: affine_body's body_terms in physical form (the
-    same body_grad, added in the same order) without its 12 × 12 Hessian or its inertia term."""
+def body_energy(dtype):
+    """The bodies' energies in one launch: kinetic and gravity (affine_body's report_terms, as its
+    body_report adds them) and orthogonality (its body_terms in physical form: the same
+    body_grad, added in the same order, without the 12 × 12 Hessian or the inertia term), with
+    the kinetic and orthogonality energies at q's rounding (EnergyCheck.measure's columns)."""
     o = ops(dtype)
     vec3, vec12, mat33 = o.vec3, o.vec12, o.mat33
     body_grad, add_energy = affine_body.body_funcs(dtype).body_grad, o.add_energy
+    report_terms = affine_body.kernels(dtype).report_terms
 
     @wp.kernel(module="unique")
-    def orthogonality_energy(q: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
-                             free: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype),
-                             mc: wp.array2d(dtype=vec3), S: wp.array2d(dtype=mat33), kv: wp.array2d(dtype=dtype),
-                             active: wp.array(dtype=wp.int32), col: int, E: wp.array2d(dtype=dtype)):  # fmt: skip
+    def body_energy(q: wp.array2d(dtype=vec12), qd: wp.array2d(dtype=vec12), q_tilde: wp.array2d(dtype=vec12),
+                    free: wp.array(dtype=wp.int32), mass: wp.array2d(dtype=dtype), mc: wp.array2d(dtype=vec3),
+                    S: wp.array2d(dtype=mat33), kv: wp.array2d(dtype=dtype), gravity: vec3,
+                    active: wp.array(dtype=wp.int32), kcol: int, gcol: int, col: int, roff: int, eps: dtype,
+                    dv: dtype, E: wp.array2d(dtype=dtype)):  # fmt: skip
         w, k = wp.tid()
         if active[w] == 0:
             return
         b = free[k]
-        e_inertia, e_ortho, f = body_grad(q[w, b], q_tilde[w, b], mass[w, b], mc[w, b], S[w, b], kv[w, b], 0)
+        qb = q[w, b]
+        m, s = mass[w, b], S[w, b]
+        ke, ge = report_terms(qd[w, b], qb, m, mc[w, b], s, gravity)
+        wp.atomic_add(E, w, kcol, ke)
+        wp.atomic_add(E, w, gcol, ge)
+        e_inertia, e_ortho, f = body_grad(qb, q_tilde[w, b], m, mc[w, b], s, kv[w, b], 0)
         add_energy(E, w, col, e_ortho)
+        # the energies at q's rounding: orthogonality ks‖δR‖², ‖δR‖_F ≤ eps (3‖A‖_F² + √3/2); kinetic
+        # ½ λmax(M) ‖δq̇‖² with λmax(M) ≤ m + tr S and ‖δq̇‖ ≤ dv ‖q‖ (VELOCITY_ROUNDING)
+        a2 = wp.dot(qb, qb) - (qb[0] * qb[0] + qb[1] * qb[1] + qb[2] * qb[2])
+        dr = eps * (dtype(3.0) * a2 + dtype(0.8660254037844386))
+        add_energy(E, w, roff + col, kv[w, b] * dr * dr)
+        dq = dv * wp.length(qb)
+        add_energy(E, w, roff + kcol, dtype(0.5) * (m + s[0, 0] + s[1, 1] + s[2, 2]) * dq * dq)
 
-    return orthogonality_energy
+    return body_energy
 
 
 @functools.lru_cache(maxsize=None)
@@ -104,14 +143,20 @@ def kernels(dtype):
     """The test's kernels for a scalar dtype."""
 
     @wp.func
-    def total(E: wp.array2d(dtype=dtype), w: int, ncols: int, floor: dtype):
-        """(Σ E_c, the gain the test leaves unresolved: floor·Σ|E_c|) of world w's first ncols
-        columns."""
+    def total(E: wp.array2d(dtype=dtype), scale: wp.array(dtype=dtype), w: int, ncols: int, floor: dtype,
+              roff: int):
+        """(Σ E_c, the energy's rounding A) of world w's first ncols columns, each column c its
+        physical energy E_c = scale[c]·E[w, c] (Solver.report_scale) and R_c = scale[c]·E[w, roff + c]
+        the energy of its quantities' rounding: A = Σ floor·|E_c| + 2√(|E_c| R_c) + R_c, the
+        rounding of the sums and the most a quadratic energy changes when its quantity moves by
+        its rounding (½k(x + δ)² − ½kx² ≤ 2√(½kx²·½kδ²) + ½kδ²)."""
         e = dtype(0.0)
         allow = dtype(0.0)
         for c in range(ncols):
-            e += E[w, c]
-            allow += floor * wp.abs(E[w, c])
+            ec = scale[c] * E[w, c]
+            rc = scale[c] * E[w, roff + c]
+            e += ec
+            allow += floor * wp.abs(ec) + dtype(2.0) * wp.sqrt(wp.abs(ec) * rc) + rc
         return e, allow
 
     @wp.func
@@ -123,8 +168,9 @@ def kernels(dtype):
     @wp.func
     def gains(mem: wp.array2d(dtype=dtype), w: int, e: dtype, allow: dtype, g: dtype, tol: dtype):
         """Whether world w's step to energy ``e`` (gravity potential g; ``allow`` its allowance)
-        gains more than tol of S plus the larger allowance of before and after."""
-        return e - mem[w, 0] > tol * swing_of(mem, w, g) + wp.max(allow, mem[w, 3])
+        gains more than tol of S plus the rounding of before and after (the most a difference of
+        two rounded values errs by)."""
+        return e - mem[w, 0] > tol * swing_of(mem, w, g) + allow + mem[w, 3]
 
     @wp.func
     def keep(mem: wp.array2d(dtype=dtype), w: int, e: dtype, allow: dtype, g: dtype):
@@ -154,13 +200,13 @@ def kernels(dtype):
             need[w] = 1
 
     @wp.kernel
-    def remember(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, floor: dtype,
-                 need: wp.array(dtype=wp.int32), mem: wp.array2d(dtype=dtype)):  # fmt: skip
+    def remember(E: wp.array2d(dtype=dtype), scale: wp.array(dtype=dtype), ncols: int, gcol: int, floor: dtype,
+                 roff: int, need: wp.array(dtype=wp.int32), mem: wp.array2d(dtype=dtype)):  # fmt: skip
         """The energy, gravity potential, swing and allowance of the worlds ``need`` marks, as of
         before their step."""
         w = wp.tid()
         if need[w] != 0:
-            e, allow = total(E, w, ncols, floor)
+            e, allow = total(E, scale, w, ncols, floor, roff)
             g = E[w, gcol]
             mem[w, 0] = e
             mem[w, 1] = g
@@ -168,8 +214,8 @@ def kernels(dtype):
             mem[w, 3] = allow
 
     @wp.kernel
-    def judge(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, floor: dtype,
-              control: wp.array2d(dtype=dtype), nd: int,
+    def judge(E: wp.array2d(dtype=dtype), scale: wp.array(dtype=dtype), ncols: int, gcol: int, floor: dtype,
+              roff: int, control: wp.array2d(dtype=dtype), nd: int,
               status: wp.array(dtype=wp.int32), hold: wp.array(dtype=wp.int32), go: wp.array(dtype=wp.int32),
               tol: dtype, mem: wp.array2d(dtype=dtype),
               fresh: wp.array(dtype=wp.int32), substeps: wp.array(dtype=wp.int32), gained: wp.array(dtype=wp.int32),
@@ -188,7 +234,7 @@ def kernels(dtype):
             return
         if status[w] != OK:
             return
-        e, allow = total(E, w, ncols, floor)
+        e, allow = total(E, scale, w, ncols, floor, roff)
         g = E[w, gcol]
         if pushed(control, w, nd) == 0 and gains(mem, w, e, allow, g, tol):
             idle[w] = 0
@@ -200,8 +246,8 @@ def kernels(dtype):
         keep(mem, w, e, allow, g)
 
     @wp.kernel
-    def settle(E: wp.array2d(dtype=dtype), ncols: int, gcol: int, floor: dtype,
-               control: wp.array2d(dtype=dtype), nd: int,
+    def settle(E: wp.array2d(dtype=dtype), scale: wp.array(dtype=dtype), ncols: int, gcol: int, floor: dtype,
+               roff: int, control: wp.array2d(dtype=dtype), nd: int,
                status: wp.array(dtype=wp.int32), tol: dtype, mem: wp.array2d(dtype=dtype),
                fresh: wp.array(dtype=wp.int32), substeps: wp.array(dtype=wp.int32),
                gained: wp.array(dtype=wp.int32), idle: wp.array(dtype=wp.int32), busy: wp.array(dtype=wp.int32),
@@ -216,7 +262,7 @@ def kernels(dtype):
         if idle[w] != 0:
             return
         if status[w] == OK:
-            e, allow = total(E, w, ncols, floor)
+            e, allow = total(E, scale, w, ncols, floor, roff)
             g = E[w, gcol]
             bad = pushed(control, w, nd) == 0 and gains(mem, w, e, allow, g, tol)
             if not bad or next_n == 0:
@@ -242,35 +288,39 @@ class EnergyCheck:
         self.k = kernels(m.dtype)
         cols = solver.report_cols
         self.ncols, self.gcol = len(cols) - 1, cols["gravity"]  # (every column but the scratch)
-        self.E = wp.zeros((m.num_worlds, len(cols)), dtype=m.dtype, device=m.device)
+        # the energies, then from column roff on the energies of their quantities' rounding (total)
+        self.roff = len(cols)
+        self.E = wp.zeros((m.num_worlds, 2 * len(cols)), dtype=m.dtype, device=m.device)
+        self.scale = wp.array(solver.report_scale, dtype=m.dtype, device=m.device)  # each column's to J
         self.parts = [c for c in solver.parts if c.name != drive.NAME]  # (measure)
         self.need = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
         self.busy = wp.zeros(m.num_worlds, dtype=wp.int32, device=m.device)
         self.cpu = wp.get_device(m.device).is_cpu
         self._host = None  # CPU: HostViews of the state the views are of
-        self.floor = FLOOR_EPS * float(np.finfo(m.np_dtype).eps)
+        self.eps = float(np.finfo(m.np_dtype).eps)
+        self.floor = FLOOR_EPS * self.eps
 
-    def measure(self, state, mask):
+    def measure(self, state, mask, h=None):
         """The physical energies of the worlds in mask into self.E (Solver.assemble, physical),
         but for the drives': a conservative scene's (no position drive) are 0, as the zeroed
         column keeps them, so their launch is left out; the bodies' orthogonality and the point
-        joints' by kernels of their energies alone (orthogonality_energy, point_energy)."""
+        joints' by kernels of their energies alone (body_energy, point_energy)."""
+        h = self.solver.dt if h is None else h  # the step that made the state's q̇ (its rounding)
         s, m = self.solver, self.solver.model
         self.E.zero_()
         for c in self.parts:
-            if c.name == affine_body.NAME:  # kinetic and gravity (body_report), orthogonality
-                cols, dim = s.report_cols, (m.num_worlds, m.num_free)
-                wp.launch(affine_body.kernels(m.dtype).body_report, dim=dim,
-                          inputs=[state.q, state.qd, m.free, m.mass, m.mc, m.S, m.gravity, self.E, cols["kinetic"],
-                                  cols["gravity"]], device=m.device)  # fmt: skip
-                wp.launch(orthogonality_energy(m.dtype), dim=dim,
-                          inputs=[state.q, s.q_tilde, m.free, m.mass, m.mc, m.S, m.kv, mask, cols["orthogonality"],
-                                  self.E], device=m.device)  # fmt: skip
+            if c.name == affine_body.NAME:  # kinetic, gravity and orthogonality in one launch (body_energy)
+                cols = s.report_cols
+                wp.launch(body_energy(m.dtype), dim=(m.num_worlds, m.num_free),
+                          inputs=[state.q, state.qd, s.q_tilde, m.free, m.mass, m.mc, m.S, m.kv, m.gravity, mask,
+                                  cols["kinetic"], cols["gravity"], cols["orthogonality"], self.roff, self.eps,
+                                  m.dtype(VELOCITY_ROUNDING * self.eps / h), self.E], device=m.device)  # fmt: skip
             elif c.name in POINT_JOINTS:
                 kind, npts = POINT_JOINTS[c.name]
                 wp.launch(point_energy(m.dtype), dim=(m.num_worlds, m.joint_count[kind]),
                           inputs=[state.q, m.joint_ids[kind], m.body_a, m.body_b, m.pts_a, m.pts_b, npts, m.K, mask,
-                                  s.report_cols[c.name], self.E], device=m.device)  # fmt: skip
+                                  s.report_cols[c.name], self.roff + s.report_cols[c.name], self.eps,
+                                  self.E], device=m.device)  # fmt: skip
             else:
                 c.launch(m, state, s, state.q, self.E, s.g, s.H, mask, 0, s.report_cols, True)
 
@@ -297,18 +347,21 @@ class EnergyCheck:
             return
         wp.launch(self.k["unknown"], dim=m.num_worlds, inputs=[state.status, state.fresh, state.energy, hold, go, self.need],
                   device=m.device)  # fmt: skip
-        self.measure(state, self.need)
-        wp.launch(self.k["remember"], dim=m.num_worlds, inputs=[self.E, self.ncols, self.gcol, m.dtype(self.floor),
-                                                                self.need, state.energy], device=m.device)  # fmt: skip
+        self.measure(state, self.need, self.solver.dt)
+        wp.launch(self.k["remember"], dim=m.num_worlds,
+                  inputs=[self.E, self.scale, self.ncols, self.gcol, m.dtype(self.floor), self.roff, self.need,
+                          state.energy],
+                  device=m.device)  # fmt: skip
 
     def _common(self, state):
         m = self.solver.model
-        return [self.E, self.ncols, self.gcol, m.dtype(self.floor), state.control, m.num_drives]
+        return [self.E, self.scale, self.ncols, self.gcol, m.dtype(self.floor), self.roff, state.control,
+                m.num_drives]
 
     def judge(self, state, hold, go, idle, flag):
         """After a step and retry.mark: mark the worlds that gained too much for the retry."""
         m, s = self.solver.model, self.solver
-        self.measure(state, s.all_active)
+        self.measure(state, s.all_active, s.dt)
         wp.launch(self.k["judge"], dim=m.num_worlds,
                   inputs=self._common(state) + [state.status, hold, go, m.dtype(self.tol), state.energy, state.fresh, state.substeps, state.gained,
                                                 idle, self.busy, flag], device=m.device)  # fmt: skip
@@ -316,7 +369,7 @@ class EnergyCheck:
     def settle(self, state, idle, back, n, next_n):
         """After an attempt of n substeps (retry.settle with the energy test)."""
         m = self.solver.model
-        self.measure(state, self.busy)
+        self.measure(state, self.busy, self.solver.dt / n)
         wp.launch(self.k["settle"], dim=m.num_worlds,
                   inputs=self._common(state) + [state.status, m.dtype(self.tol), state.energy,
                                                 state.fresh, state.substeps, state.gained, idle, self.busy,
@@ -333,6 +386,7 @@ class HostViews:
         self.energy0 = state.energy.numpy()[:, 0]  # E_before, NaN where unknown
         # one world with one drive: that control alone decides (an item compare, no reduction)
         self.single = self.control.size == 1
+        self.one_world = self.energy0.size == 1  # (unknown: items, no reduction)
         self.control_item = self.control.reshape(-1) if self.single else None
 
     def any_checked(self) -> bool:
@@ -358,7 +412,9 @@ class HostViews:
         """Whether a world OK has no known energy before its step: its state set (fresh SET) or a
         parameter changed (E NaN).  The energies' dot product with themselves is NaN where one is
         NaN (and only there: squares are never NaN, their sum only where inf meets -inf, which
-        squares are not), a cheaper reduction than a sum or isnan's."""
+        squares are not), a cheaper reduction than a sum or isnan's; of one world, its items."""
+        if self.one_world:
+            return self.status.item(0) == OK and (self.fresh.item(0) == SET or math.isnan(self.energy0.item(0)))
         if not math.isnan(self.energy0.dot(self.energy0)) and SET_BYTES not in self.fresh.tobytes():
             return False
         return bool(((self.status == OK) & ((self.fresh == SET) | np.isnan(self.energy0))).any())

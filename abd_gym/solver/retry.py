@@ -119,6 +119,7 @@ class Retry:
         self._cpu = wp.get_device(dev).is_cpu
         self._host = None  # CPU: (state, NumPy views of its status and substeps, their bytes when all OK)
         self._graphs = {}  # CPU: (state, hold, go) -> (state, hold, go, the graph of _mark)
+        self._last_graph = (None, None, None, None, None)  # CPU: the last check's (state, hold, go, testing, graph)
         self._flag_host = None  # CPU: flag as a NumPy view
         self._save_graph = None  # CPU, with the energy test: (state, the graph of _save)
 
@@ -168,11 +169,18 @@ class Retry:
         hold = s._no_hold if hold is None else hold
         go = s._go_all if go is None else go
         if self._cpu:  # the energy test's launches every step: replayed (packing their arguments costs more)
-            key = (id(state), hold.ptr, go.ptr, self.testing)
-            if key not in self._graphs:  # the entry keeps state, hold and go alive, so the key stays theirs
-                device = wp.get_device(m.device)
-                self._graphs[key] = (state, hold, go, graphs.capture(device, lambda: self._mark(state, hold, go))[0])
-            wp.capture_launch(self._graphs[key][3])
+            last = self._last_graph  # (the same state, hold, go and test as the last step: no key to build)
+            if last[0] is state and last[1] is hold and last[2] is go and last[3] == self.testing:
+                graph = last[4]
+            else:
+                key = (id(state), hold.ptr, go.ptr, self.testing)
+                if key not in self._graphs:  # the entry keeps state, hold and go alive, so the key stays theirs
+                    device = wp.get_device(m.device)
+                    self._graphs[key] = (state, hold, go,
+                                         graphs.capture(device, lambda: self._mark(state, hold, go))[0])  # fmt: skip
+                graph = self._graphs[key][3]
+                self._last_graph = (state, hold, go, self.testing, graph)
+            wp.capture_launch(graph)
             if self._flag_host is None:
                 self._flag_host = self.flag.numpy()  # (a view of host memory)
             if self._flag_host[0]:  # the branch capture_if takes, without its call

@@ -25,7 +25,8 @@ import warp as wp
 
 from ..sim import coordinates
 from . import energy_gain, fused
-from ..constitutions import REGISTRY, affine_body, drive
+from ..constitutions import REGISTRY, affine_body, drive, prismatic_limit, revolute_limit
+from ..constitutions.protocol import JOINT
 from .fused import PHASES, fused_kernel
 from .plan import ExecutionPlan, plan_band, resolve_plan, worlds_per_block
 from ..sim.scene import FIXED, PRISMATIC, REVOLUTE
@@ -33,6 +34,8 @@ from .kernels import h_row_first, h_row_starts, h_words, kernels as solver_kerne
 from .retry import Retry
 from .terms import fused_flags, joint_terms, term_counts
 from ..core.warp_ops import HESSIAN
+
+LIMITS = (revolute_limit.NAME, prismatic_limit.NAME)  # the limits' energy columns (report_scale)
 
 INTEGRATORS = ("implicit_euler", "bdf2")
 
@@ -162,6 +165,18 @@ class Solver:
         self.parts = [c for c in REGISTRY if c.terms(model)]
         self.cols = self._columns(physical=False)
         self.report_cols = self._columns(physical=True)
+        # per report column, the factor that makes its energy physical [J]: a joint's K/2 Σ‖C‖² sits
+        # outside ĥ² in the incremental potential (J·s²), so its physical energy is that over ĥ₀²
+        # (h_joint: the stiffness K/ĥ₀² every step keeps); a limit's cubic sits there too, as it
+        # is in every step, so its stiffness is s/ĥ² of the step that acts on it: a world whose
+        # limit acts at the end of a step takes an implicit Euler step next (ĥ = dt; docs/design.md
+        # §2.2), so its energy is over dt²; every other column is in J already
+        self.report_scale = np.ones(len(self.report_cols))
+        for c in self.parts:
+            if c.kind == JOINT:
+                self.report_scale[self.report_cols[c.name]] = 1.0 / self.h_joint**2
+            elif c.name in LIMITS:
+                self.report_scale[self.report_cols[c.name]] = 1.0 / self.dt**2
         # the prediction q̃ (predict_body), where a retry from a fresh factor starts (fused.solve_world,
         # solver_kernels.converge)
         self.q_tilde = wp.zeros((W, model.num_bodies), dtype=model.vec12, device=dev)
@@ -326,7 +341,8 @@ class Solver:
         self.E_report.zero_()
         self.assemble(state, state.q, self.E_report, self.all_active, 0, physical=True)
         e = self.E_report.numpy()
-        return {t: e[:, i].astype(np.float64) for t, i in self.report_cols.items() if t != "scratch"}
+        return {t: e[:, i].astype(np.float64) * self.report_scale[i] for t, i in self.report_cols.items()
+                if t != "scratch"}  # fmt: skip
 
     # ------------------------------------------------------------------ step
     def step(self, state, num_steps: int = 1, hold: wp.array | None = None, go: wp.array | None = None,

@@ -78,17 +78,19 @@ class NextEpisodes:
     worlds to autoreset in the next step (``pending``, int32) and each world's count of rows taken
     (``taken``)."""
 
-    def __init__(self, sim, draw, depth: int | None = None, task_width: int = 0, host_task: bool = False):
+    def __init__(self, sim, draw, depth: int | None = None, task_width: int = 0, host_task: bool = False,
+                 generator=lambda: None):  # fmt: skip
         """``draw(n)`` -> (coordinates, velocities), each (n, num_joints), and with ``task_width``
-        the task values (n, task_width) too: n fresh episodes.  ``depth``: rows per world's queue
-        (default_depth of the world count when None).  ``host_task``: the task values stay on the
-        host too (``task_rows``: the NumPy backend's task arrays are host memory, which a kernel on
-        a GPU cannot write)."""
+        the task values (n, task_width) too: n fresh episodes; ``generator()``: the
+        np.random.Generator ``draw`` draws from (None: none), put back where a draw is refused.
+        ``depth``: rows per world's queue (default_depth of the world count when None).
+        ``host_task``: the task values stay on the host too (``task_rows``: the NumPy backend's
+        task arrays are host memory, which a kernel on a GPU cannot write)."""
         if depth is None:
             depth = default_depth(sim.num_worlds)
         if depth < 4:
             raise ValueError(f"depth must be at least 4 (a top-up at half a queue), got {depth}")
-        self.sim, self.draw_fn, self.depth = sim, draw, int(depth)
+        self.sim, self.draw_fn, self.depth, self.generator = sim, draw, int(depth), generator
         m = sim.model
         W, nj = sim.num_worlds, max(m.num_joints, 1)
         dev = sim.device
@@ -140,15 +142,32 @@ class NextEpisodes:
         worlds = [np.flatnonzero(short > j) for j in range(rounds)]
         w = np.concatenate(worlds)
         e = np.concatenate([self._drawn[ws] + j for j, ws in enumerate(worlds)])
-        self._drawn += np.maximum(short, 0)
         m = self.sim.model
         nj, n = m.num_joints, len(w)
-        drawn = [np.asarray(a, dtype=np.float64) for a in self.draw_fn(n)]
-        x, xd = drawn[:2]
-        for name, a, shape in (("coordinates", x, (n, nj)), ("velocities", xd, (n, nj)),
-                               ("task values", drawn[2] if self.task_width else None, (n, self.task_width))):  # fmt: skip
-            if a is not None and (a.shape != shape or not np.all(np.isfinite(a))):
-                raise ValueError(f"the task's initial {name} must be finite with shape {shape}, got {a.shape}")
+        # the rows drawn and checked before anything is counted or written: a refused draw leaves
+        # the queues, the counts and the generator as they were
+        gen = self.generator()
+        saved = None if gen is None else gen.bit_generator.state  # (a new dict)
+        try:
+            drawn = [np.asarray(a, dtype=np.float64) for a in self.draw_fn(n)]
+            x, xd = drawn[:2]
+            task = drawn[2] if self.task_width else None
+            for name, a, shape in (("coordinates", x, (n, nj)), ("velocities", xd, (n, nj)),
+                                   ("task values", task, (n, self.task_width))):  # fmt: skip
+                if a is not None and (a.shape != shape or not np.all(np.isfinite(a))):
+                    raise ValueError(f"the task's initial {name} must be finite with shape {shape}, got {a.shape}")
+            try:  # the checks set_joint_state makes (limits, rates, a closed loop closed), a round at a time
+                start = 0
+                for ws in worlds:
+                    self.sim.check_joint_state(x[start:start + len(ws)], xd[start:start + len(ws)], worlds=ws)
+                    start += len(ws)
+            except ValueError as err:
+                raise ValueError(f"the task's initial state: {err}") from None
+        except (TypeError, ValueError):
+            if gen is not None:
+                gen.bit_generator.state = saved
+            raise
+        self._drawn += np.maximum(short, 0)
         # as set_joint_state: a fixed joint's coordinate is 0; a scene without joints has one 0 column
         xx = np.zeros((n, 2, self.queue.shape[2]), dtype=m.np_dtype)
         xx[:, 0, :nj] = np.where(self._fixed[None, :], 0.0, x)

@@ -92,25 +92,27 @@ class Parameters:
 
     def apply(self, idx: np.ndarray, rng: np.random.Generator):
         """Draw (or restore) the parameters of the worlds ``idx`` and write them to the simulator."""
+        self.write(idx, self.draw(idx, rng))
+
+    def draw(self, idx: np.ndarray, rng: np.random.Generator) -> dict | None:
+        """The parameters of the worlds ``idx`` for a reset, drawn (or nominal), written nowhere:
+        {"mass": (n, free bodies), "ratio": (n, joints) or None, "limits": {limited joint: (lower,
+        upper, strength), each (n,)}}; None where resets write no parameters (``active``)."""
         spec = self.spec
         if spec is None and not self.randomized:
-            return
-        self.randomized = True
+            return None
         spec = spec or {}
-        n, sim, scene = len(idx), self.sim, self.scene
+        n, scene = len(idx), self.scene
 
         def draw(key, k, nominal):
             r = spec.get(key, {}).get(k)
             return np.full(n, nominal) if r is None else rng.uniform(r[0], r[1], size=n)
 
-        free = self.free_bodies
-        mass = np.stack([self.nominal_mass[k] * draw("mass_scale", k, 1.0) for k in free], axis=1)
-        self.body_mass[np.ix_(idx, free)] = mass
-        sim.set_body_mass(mass, bodies=free, worlds=idx)
+        mass = np.stack([self.nominal_mass[k] * draw("mass_scale", k, 1.0) for k in self.free_bodies], axis=1)
+        ratio = None
         if scene.num_joints:
             ratio = np.stack([draw("strength_ratio", k, r) for k, r in enumerate(self.nominal_ratio)], axis=1)
-            self.strength_ratio[idx] = ratio
-            sim.set_joint_strength(ratio, worlds=idx)
+        limits = {}
         for k in self.limited:
             j = scene.joints[k]
             lo, up, st = (j.attributes[f"limit/{a}"] for a in ("lower", "upper", "strength"))
@@ -118,7 +120,21 @@ class Parameters:
             lo_k, up_k = np.minimum(lo * f, up * f), np.maximum(lo * f, up * f)
             if j.kind == REVOLUTE:
                 lo_k, up_k = np.clip(lo_k, -math.pi, math.pi), np.clip(up_k, -math.pi, math.pi)
-            st_k = st * draw("limit_strength_scale", k, 1.0)
+            limits[k] = (lo_k, up_k, st * draw("limit_strength_scale", k, 1.0))
+        return {"mass": mass, "ratio": ratio, "limits": limits}
+
+    def write(self, idx: np.ndarray, drawn: dict | None):
+        """``draw``'s values of the worlds ``idx`` into the values in force and the simulator."""
+        if drawn is None:
+            return
+        self.randomized = True
+        sim, free = self.sim, self.free_bodies
+        self.body_mass[np.ix_(idx, free)] = drawn["mass"]
+        sim.set_body_mass(drawn["mass"], bodies=free, worlds=idx)
+        if drawn["ratio"] is not None:
+            self.strength_ratio[idx] = drawn["ratio"]
+            sim.set_joint_strength(drawn["ratio"], worlds=idx)
+        for k, (lo_k, up_k, st_k) in drawn["limits"].items():
             self.limits[k][idx] = np.stack([lo_k, up_k, st_k], axis=1)
             sim.set_limit(k, lower=lo_k, upper=up_k, strength=st_k, worlds=idx, check_state=False)  # states set next
 
@@ -127,13 +143,38 @@ class Parameters:
         return {"spec": self.spec, "randomized": self.randomized, "body_mass": self.body_mass.copy(),
                 "strength_ratio": self.strength_ratio.copy(), "limits": {k: v.copy() for k, v in self.limits.items()}}
 
+    def check_snapshot(self, snap: dict):
+        """Refuse (ValueError naming the entry) values ``restore`` could not write whole: other
+        entries or shapes than ``snapshot``'s, masses and strengths not positive and finite,
+        limits not finite with lower <= upper."""
+        mine = self.snapshot()
+        if not isinstance(snap, dict) or set(snap) != set(mine):
+            raise ValueError(f"state['parameters'] must hold the entries {sorted(mine)}")
+        if not isinstance(snap["limits"], dict) or set(snap["limits"]) != set(mine["limits"]):
+            raise ValueError(f"state['parameters']['limits'] must hold the limited joints {sorted(mine['limits'])}")
+        arrays = [("['body_mass']", snap["body_mass"], mine["body_mass"]),
+                  ("['strength_ratio']", snap["strength_ratio"], mine["strength_ratio"])]
+        arrays += [(f"['limits'][{k!r}]", snap["limits"][k], v) for k, v in mine["limits"].items()]
+        for name, v, ref in arrays:
+            if not isinstance(v, np.ndarray) or v.shape != ref.shape or v.dtype != ref.dtype:
+                raise ValueError(f"state['parameters']{name} must be {ref.dtype} of shape {ref.shape}")
+            if not np.all(np.isfinite(v)):
+                raise ValueError(f"state['parameters']{name} must be finite")
+        if (snap["body_mass"][:, self.free_bodies] <= 0).any() or (snap["strength_ratio"] <= 0).any():
+            raise ValueError("state['parameters']: masses and strength ratios must be positive")
+        for k, v in snap["limits"].items():
+            if (v[:, 0] > v[:, 1]).any() or (v[:, 2] <= 0).any():
+                raise ValueError(f"state['parameters']['limits'][{k!r}]: lower must not exceed upper, "
+                                 f"strength must be positive")
+
     def restore(self, snap: dict):
         """``snapshot``'s values back, and into the simulator, every world at once, where they were
         ever drawn (the setters compute from the nominal values, so the model arrays come out as
         the original's)."""
+        was = self.randomized  # (values drawn before: the simulator holds them until written back)
         self.spec, self.randomized = snap["spec"], snap["randomized"]
         self.body_mass, self.strength_ratio, self.limits = snap["body_mass"], snap["strength_ratio"], snap["limits"]
-        if not self.randomized:
+        if not (was or self.randomized):
             return
         sim, free = self.sim, self.free_bodies
         sim.set_body_mass(self.body_mass[:, free], bodies=free)

@@ -5,7 +5,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
+from ..sim import inputs
 from .single_step import HostStep, world_info
+from .spaces import real_actions
 
 
 class ABDEnv(gym.Env):
@@ -62,7 +64,7 @@ class ABDEnv(gym.Env):
         return self.vector_env.sim
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
+        super().reset(seed=inputs.seed(seed))
         self.vector_env.np_random = self.np_random  # one generator: seeding this env seeds its world
         if self._host_step is not None and not options:
             return self._host_step.reset()
@@ -74,7 +76,7 @@ class ABDEnv(gym.Env):
             if not self.vector_env._has_reset:
                 raise RuntimeError("call reset() before step()")
             return self._host_step.step(action)
-        a = np.asarray(action, dtype=np.float32).reshape(1, -1)
+        a = np.asarray(real_actions(action), dtype=np.float32).reshape(1, -1)
         obs, reward, terminated, truncated, info = self.vector_env.step(a)
         return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), world_info(info)
 

@@ -39,6 +39,7 @@ import math
 
 import numpy as np
 
+from .spaces import real_actions
 from .task import Task
 
 FLOAT32 = np.dtype(np.float32)  # (NumPy's one instance: an identity test; another float32 byte order is not it)
@@ -106,7 +107,7 @@ class HostStep:
 
     def set_action(self, action):
         """The action as the clipped float32 row ``self.action`` (a NaN raises, nothing written)."""
-        a = np.asarray(action, dtype=np.float32)
+        a = np.asarray(real_actions(action), dtype=np.float32)
         row = self.action
         if a.size != row.size:
             raise ValueError(f"action must have {row.size} entries, got shape {a.shape}")

@@ -12,6 +12,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from .arrays import is_torch, to_numpy
+from ..sim.inputs import REAL_KINDS, real_values
 
 
 def autoreset_mode(mode) -> AutoresetMode:
@@ -36,6 +37,16 @@ def make_spaces(action_dim: int, observation_high, num_envs: int, action_bound: 
     return single_action, single_obs, batch_space(single_action, num_envs), batch_space(single_obs, num_envs)
 
 
+def real_actions(actions) -> np.ndarray:
+    """``actions`` (array-like; a Torch tensor copied to the host) as a NumPy array of real numbers,
+    unconverted: a TypeError naming them for complex, bool, object or string values
+    (inputs.real_values), which a cast to float32 would take in silence or with NumPy's warning."""
+    a = to_numpy(actions) if is_torch(actions) else actions
+    if type(a) is np.ndarray and a.dtype.kind in REAL_KINDS:
+        return a
+    return real_values("actions", a)
+
+
 def prepare_actions(actions, arrays, num_envs: int, action_dim: int, check: bool = True, bound: float = 1.0):
     """The action batch as a float32 backend array (N, action_dim) (``arrays``: the env's Backend);
     with ``check``, clipped to [-bound, bound], and a batch with NaN raises here (which, for a Torch tensor
@@ -43,9 +54,14 @@ def prepare_actions(actions, arrays, num_envs: int, action_dim: int, check: bool
     N, d = num_envs, action_dim
     xp = arrays.xp
     if xp is np:
-        a = np.array(to_numpy(actions), dtype=np.float32)
+        a = np.array(real_actions(actions), dtype=np.float32)
     else:
-        a = actions if is_torch(actions) else xp.as_tensor(np.asarray(actions, dtype=np.float32))
+        if not is_torch(actions):
+            a = xp.as_tensor(np.asarray(real_actions(actions), dtype=np.float32))
+        elif actions.dtype.is_complex or actions.dtype == xp.bool:
+            raise TypeError(f"actions must be real numbers (integer or float), got dtype {actions.dtype}")
+        else:
+            a = actions
         a = a.to(device=arrays.torch_device, dtype=xp.float32)
     if tuple(a.shape) != (N, d):
         if a.ndim == 1 and d == 1 and a.shape[0] == N:

@@ -80,7 +80,8 @@ from the simulator's arrays in one go, and the Gymnasium 1.x vector API on top:
   failed is first taken again as 2, then 4 substeps (``Simulator.substeps``; not in a GPU's
   device step): ``info["sim_substeps"]`` (int32 per world) is the substeps of the env step's last
   physics step.  So is one that gained energy in a conservative world (no drive pushing:
-  ``Simulator(energy_gain=...)``, by default at large steps only, ``simulator_options`` to set it);
+  ``Simulator(energy_gain=...)``, here by default at large steps only:
+  ``conditioning.task_energy_gain``; ``simulator_options`` to set it);
   ``info["sim_energy_gained"]`` (bool per world) marks a last physics step that still gained at 4
   substeps and was kept.
 * observations are float32 and clipped to ``single_observation_space``, whose bounds are finite
@@ -128,6 +129,7 @@ from .episodes import Episodes
 from .outcome import batch_info, outcome
 from .pending import PendingMask
 from .randomize import RANDOMIZE_KEYS, Parameters  # noqa: F401 (RANDOMIZE_KEYS: the randomize option's keys)
+from ..sim import conditioning, inputs
 from ..sim.simulator import Simulator
 from .single_env import ABDEnv  # noqa: F401 (re-exported: a task module imports both classes from here)
 from .task import Task
@@ -244,6 +246,8 @@ class ABDVectorEnv(Task, VectorEnv):
         if fixed:
             raise ValueError(f"simulator_options may not set {sorted(fixed)}: the task sets dt and the number of "
                              "worlds; device, dtype and integrator are arguments of the env")  # fmt: skip
+        # the energy test only at large steps: under a policy every drive pushes, and the test never runs
+        options.setdefault("energy_gain", conditioning.task_energy_gain(self.scene, self.dt))
         self.sim = Simulator(self.scene, num_worlds=N, dt=self.dt, device=device, dtype=dtype, **extra, **options)
         self.device = self.sim.device
         self.step_dt = self.dt * self.frame_skip  # env step [s]
@@ -272,7 +276,8 @@ class ABDVectorEnv(Task, VectorEnv):
         self.next_episodes = None
         if self.autoreset_mode == AutoresetMode.NEXT_STEP and not own_reset:
             self.next_episodes = NextEpisodes(self.sim, self._draw_episodes, task_width=self.episodes.task_width,
-                                              host_task=backend == "numpy")  # fmt: skip
+                                              host_task=backend == "numpy",
+                                              generator=lambda: self._next_rng)  # fmt: skip
         self.device_step = DeviceStep(self, graph, compile_outcome)
 
         # ---- per-world physical parameters (host copies of what the simulator holds)
@@ -284,14 +289,13 @@ class ABDVectorEnv(Task, VectorEnv):
         self._renderer = None
 
     def _check_arguments(self, num_envs, backend, render_mode, max_episode_steps):
-        if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        inputs.count("num_envs", num_envs, minimum=1)
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
-        if max_episode_steps is not None and int(max_episode_steps) < 1:
-            raise ValueError(f"max_episode_steps must be a positive integer or None, got {max_episode_steps!r}")
+        if max_episode_steps is not None:
+            inputs.count("max_episode_steps", max_episode_steps, minimum=1)
 
     # ---- the per-world physical parameters in force (host arrays; randomize.Parameters)
     @property
@@ -350,12 +354,44 @@ class ABDVectorEnv(Task, VectorEnv):
             raise ValueError(f"state must be a dict from this env's get_state, with entries {sorted(keys)}")
         if self.pending.unread or self.pending.in_flight:
             self._pending_now()
-        params = self.parameters.snapshot()
-        try:
-            self._restore(copy.deepcopy(state))
-        except (TypeError, ValueError):
-            self.parameters.restore(params)  # the simulator refused its part before writing any
-            raise
+        state = copy.deepcopy(state)
+        self._check_snapshot(state)  # every part, before any is written
+        self._restore(state)
+
+    def _check_snapshot(self, snap: dict):
+        """Refuse (TypeError or ValueError, naming the entry) a snapshot that ``_restore`` could not
+        restore whole: each part of this env's shapes, the simulator's state as Simulator.set_state
+        checks it against the snapshot's limits."""
+        self.parameters.check_snapshot(snap["parameters"])
+        W = self.num_envs
+        mine = self._snapshot_shapes()
+        for part in ("episodes", "queue"):
+            if part not in snap:
+                continue
+            if not isinstance(snap[part], dict) or set(snap[part]) != set(mine[part]):
+                raise ValueError(f"state[{part!r}] must hold this env's entries {sorted(mine[part])}")
+            for name, (shape, dtype) in mine[part].items():
+                v = snap[part][name]
+                if not isinstance(v, np.ndarray) or v.shape != shape or v.dtype != dtype:
+                    raise ValueError(f"state[{part!r}][{name!r}] must be {dtype} of shape {shape}, got "
+                                     f"{getattr(v, 'dtype', type(v).__name__)} {getattr(v, 'shape', '')}")  # fmt: skip
+        pend = snap["pending"]
+        if not (isinstance(pend, np.ndarray) and pend.dtype == np.bool_ and pend.shape == (W,)):
+            raise ValueError(f"state['pending'] must be a bool array of shape ({W},)")
+        rng = snap["rng"]
+        if not (isinstance(rng, tuple) and len(rng) == 3
+                and all(g is None or isinstance(g, np.random.Generator) for g in (rng[0], rng[2]))):  # fmt: skip
+            raise ValueError("state['rng'] must be get_state's (generator, seed, generator) tuple")
+        limits = {k: (v[:, 0], v[:, 1]) for k, v in snap["parameters"]["limits"].items()}
+        self.sim.check_state(snap["sim"], limits=limits)
+
+    def _snapshot_shapes(self) -> dict:
+        """{part: {entry: (shape, dtype)}} of this env's snapshot's array parts."""
+        ep = self.episodes.snapshot()
+        out = {"episodes": {k: (v.shape, v.dtype) for k, v in ep.items()}}
+        if self.next_episodes is not None:
+            out["queue"] = {k: (v.shape, v.dtype) for k, v in self.next_episodes.snapshot().items()}
+        return out
 
     def _snapshot(self) -> dict:
         """Host values of the simulator's state, the episodes, the parameters in force, the
@@ -390,12 +426,10 @@ class ABDVectorEnv(Task, VectorEnv):
         """
         if self.pending.unread:
             self._pending_now()  # raises, having taken it back, if the device refused the last step
-        super().reset(seed=seed)
+        seed = inputs.seed(seed)
         options = dict(options or {})
         mask = options.pop("reset_mask", None)
-        if "randomize" in options:
-            self.parameters.set_spec(options.pop("randomize"))
-        unknown = set(options) - set(self.reset_option_keys)
+        unknown = set(options) - set(self.reset_option_keys) - {"randomize"}
         if unknown:
             raise ValueError(f"unknown reset options {sorted(unknown)}; this task takes "
                              f"{['reset_mask', 'randomize', *self.reset_option_keys]}")  # fmt: skip
@@ -407,13 +441,23 @@ class ABDVectorEnv(Task, VectorEnv):
                 raise ValueError(f"options['reset_mask'] must be a bool array of shape ({self.num_envs},), "
                                  f"got {mask.dtype} {mask.shape}")  # fmt: skip
             idx = np.flatnonzero(mask)
-        if len(idx):
-            self._reset_worlds(idx, options)
-            if self.next_episodes is not None:
-                self.next_episodes.clear(idx)
-                if mask is None:
-                    # every world's next episodes: the same seed gives the same resets in every mode
-                    self._restart_next_episodes()
+        # a refused reset leaves the env as it was: the spec, the generator and every world
+        spec, rng = self.parameters.spec, self._rng_state()
+        try:
+            if "randomize" in options:
+                self.parameters.set_spec(options.pop("randomize"))
+            super().reset(seed=seed)
+            if len(idx):
+                self._reset_worlds(idx, options)
+        except (TypeError, ValueError):
+            self.parameters.spec = spec
+            self._set_rng_state(rng)
+            raise
+        if len(idx) and self.next_episodes is not None:
+            self.next_episodes.clear(idx)
+            if mask is None:
+                # every world's next episodes: the same seed gives the same resets in every mode
+                self._restart_next_episodes()
         self._has_reset = True
         return self.observation(), {}
 
@@ -422,14 +466,40 @@ class ABDVectorEnv(Task, VectorEnv):
         caller's own fills)."""
         options = options or {}
         rng = self.np_random
-        self.parameters.apply(idx, rng)
+        # everything the reset writes, drawn and checked first (in the generator's order: the
+        # parameters, the state, the task values), so that a refusal writes nothing
+        params = self.parameters.draw(idx, rng)
         coords, vels = self.initial_state(len(idx), rng, options)
+        if params is not None:  # against the limits the reset writes (else set_joint_state checks first)
+            limits = {k: v[:2] for k, v in params["limits"].items()}
+            coords, vels = self.sim.check_joint_state(coords, vels, worlds=idx, limits=limits)
+        task = None
+        own_task = type(self).reset_task is Task.reset_task
+        if own_task and self.episodes.task_width:
+            task = self.episodes.task_matrix(self.draw_task(len(idx), rng, options), len(idx))
+            if not np.all(np.isfinite(task)):
+                raise ValueError(f"the task's initial task values must be finite, got {task}")
+        self.parameters.write(idx, params)
         self.sim.set_joint_state(coords, vels, worlds=idx)
         idx_b = self.arrays.index(idx)
         self.arrays.fill(self.episodes.elapsed, idx_b, 0)  # no value array
-        self.reset_task(idx, rng, options)
+        if task is not None:
+            self.put(self.episodes.task, idx, task)
+        elif not own_task:  # a task's own reset_task: last, its checks its own
+            self.reset_task(idx, rng, options)
         self._pending_now()[idx] = False
         return idx_b
+
+    def _rng_state(self):
+        """The env's generators as they are (``_set_rng_state`` puts them back)."""
+        gen = self._np_random
+        return gen, self._np_random_seed, None if gen is None else gen.bit_generator.state  # (a new dict)
+
+    def _set_rng_state(self, saved):
+        gen, seed, state = saved
+        self._np_random, self._np_random_seed = gen, seed
+        if gen is not None:
+            gen.bit_generator.state = state
 
     def _restart_next_episodes(self):
         """Fresh autoreset queues from a generator spawned from np_random (which a spawn does not

@@ -1,0 +1,95 @@
+"""The energy test's allowance is the rounding of what it compares (solver/energy_gain.py): a
+float32 world at rest or in slow motion, with and without gravity, gains nothing beyond the
+rounding of q, q̇ and its energies, and is neither retried nor flagged; the gains the test exists
+for (the robustness report's double pendulums at dt 0.1 s, the four-bar at dt 0.1 s) are still
+retried away in float32 as in float64."""
+import warnings
+
+import numpy as np
+import pytest
+
+import abd_gym as ag
+from abd_gym.bench import robustness as rb
+from abd_gym.envs.reacher import ReacherVectorEnv
+from abd_gym.sim import mechanisms
+
+W, STEPS = 8, 60
+
+
+def _quiet(scene, x, v, dt=0.01, integrator="bdf2"):
+    """(retried world-steps, flagged world-steps) of STEPS float32 steps with the default test."""
+    sim = ag.Simulator(scene, num_worlds=W, dt=dt, integrator=integrator, dtype="float32")
+    assert sim.solver.retry.energy is not None  # the scene is tested
+    sim.set_joint_state(x, v)
+    retried = flagged = 0
+    for _ in range(STEPS):
+        sim.step()
+        retried += int((sim.substeps() > 1).sum())
+        flagged += int(sim.energy_gained().sum())
+    return retried, flagged
+
+
+@pytest.fixture(scope="module")
+def reacher():
+    """TwoLinkReacher-v0's scene (no gravity) and its reset draws."""
+    env = ReacherVectorEnv(num_envs=1)
+    x, v = env.initial_state(W, np.random.default_rng(0), {})
+    return env.scene, np.asarray(x, np.float64), np.asarray(v, np.float64)
+
+
+@pytest.mark.parametrize("integrator", ["bdf2", "implicit_euler"])
+def test_reacher_resets_in_float32_are_not_retried(reacher, integrator):
+    """Its reset draws (swing energies 1e-10 to 1e-7 J, which q̇'s float32 rounding reaches)."""
+    scene, x, v = reacher
+    assert _quiet(scene, x, v, integrator=integrator) == (0, 0)
+
+
+@pytest.mark.parametrize("gravity", [(0.0, 0.0, 0.0), (0.0, 0.0, -9.81)], ids=["no_gravity", "gravity"])
+@pytest.mark.parametrize("rate", [0.0, 1e-3], ids=["rest", "slow"])
+def test_float32_rest_and_slow_motion_are_not_retried(gravity, rate):
+    """A double pendulum hanging at rest, or turning at 1e-3 rad/s, in float32."""
+    scene = mechanisms.double_pendulum(gravity=gravity)
+    x = np.zeros((W, 2))
+    v = np.full((W, 2), rate) * np.linspace(-1.0, 1.0, W)[:, None]
+    assert _quiet(scene, x, v) == (0, 0)
+
+
+@pytest.fixture(scope="module")
+def large_dt():
+    case = rb.case("large_dt")
+    return case, case.scene()
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_large_steps_gains_are_still_caught(large_dt, dtype):
+    """Double pendulums released from ±2.5 rad at dt 0.1 s (BDF2) gain over 5% of their swing
+    energy in a step without the test; with it no world does, in either dtype."""
+    case, scene = large_dt
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plain = rb.run_case(case, 0.1, "bdf2", dtype, worlds=16, scene=scene, energy_gain=0.0)
+        tested = rb.run_case(case, 0.1, "bdf2", dtype, worlds=16, scene=scene)
+    assert plain["step_gain_worlds"] > 0 and plain["worst_step_gain"] > 0.1
+    assert tested["step_gain_worlds"] == 0 and tested["kept_gain"] == 0
+    assert tested["substeps"][2] > 0
+
+
+def test_fourbar_gains_are_still_caught_in_float32():
+    """FourBar-v0's linkage at dt 0.1 s (BDF2, float32): worlds gaining over 5% in a step
+    without the test, none with it."""
+    case = rb.case("fourbar")
+    scene = case.scene()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plain = rb.run_case(case, 0.1, "bdf2", "float32", worlds=64, scene=scene, energy_gain=0.0)
+        tested = rb.run_case(case, 0.1, "bdf2", "float32", worlds=64, scene=scene)
+    assert plain["step_gain_worlds"] > 0
+    assert tested["step_gain_worlds"] == 0 and tested["kept_gain"] == 0
+
+
+def test_float32_rest_on_a_limit_is_not_retried():
+    """A double pendulum whose hinges gravity presses onto their lower bound (0.3 rad), settling
+    there in float32: the limit's physical energy (E(x)/dt²) at rest moves within the allowance."""
+    scene = mechanisms.chain(2, limit=(0.3, 0.6, 1e3))
+    x = np.tile([0.31, 0.31], (W, 1)) + np.linspace(0.0, 0.01, W)[:, None]
+    assert _quiet(scene, x, np.zeros((W, 2))) == (0, 0)

@@ -1,0 +1,140 @@
+"""A refused reset writes nothing: every door that resets worlds (reset with options, the
+autoreset queues' top-up, set_state) draws and checks all it will write (the parameters against
+which the state is checked, the state, the task values) before it writes any, so that after the
+refusal every array (the model's parameters, the state, the task state, the episode counters,
+the queues) and the generators are bit for bit as before."""
+import copy
+
+import numpy as np
+import pytest
+import warp as wp
+
+from abd_gym.envs.reacher import ReacherVectorEnv
+
+N = 4
+
+
+class Poisoned(ReacherVectorEnv):
+    """The Reacher with the last world's elbow drawn at ``elbow`` (None: as drawn)."""
+
+    elbow = None
+
+    def initial_state(self, n, rng, options):
+        x, v = super().initial_state(n, rng, options)
+        if self.elbow is not None:
+            x[-1, 1] = self.elbow
+        return x, v
+
+
+def _everything(env):
+    """Every value a reset can write: the env's state (the simulator's, the parameters in force,
+    the episodes, the queues, the pending mask; the generators as their bit states) and every
+    array of the simulator's model."""
+    snap = env.get_state()
+    gens = snap.pop("rng")
+    out = {"state": snap, "rng": [None if g is None or isinstance(g, int) else copy.deepcopy(g.bit_generator.state)
+                                  for g in (gens[0], gens[2])] + [gens[1]],
+           "spec": copy.deepcopy(env.parameters.spec)}  # fmt: skip
+    out["model"] = {k: v.numpy().copy() for k, v in vars(env.sim.model).items() if isinstance(v, wp.array)}
+    return out
+
+
+def _same(a, b, where="env"):
+    if isinstance(a, dict):
+        assert set(a) == set(b), where
+        for k in a:
+            _same(a[k], b[k], f"{where}[{k!r}]")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (u, v) in enumerate(zip(a, b)):
+            _same(u, v, f"{where}[{i}]")
+    elif isinstance(a, np.ndarray):
+        np.testing.assert_array_equal(a, b, err_msg=where)
+        assert a.dtype == b.dtype, where
+    else:
+        assert a == b, where
+
+
+@pytest.fixture
+def env():
+    env = Poisoned(num_envs=N, max_episode_steps=3)
+    env.reset(seed=0)
+    env.step(np.zeros((N, 2), np.float32))
+    return env
+
+
+def test_a_reset_refused_against_the_limits_it_draws_writes_nothing(env):
+    """An elbow at 2 rad is inside its ±2.8 rad limit but not inside the ±0.28 rad the reset's
+    randomisation draws for it: refused before the masses, strengths and limits are written."""
+    before = _everything(env)
+    env.elbow = 2.0
+    spec = {"limit_scale": (0.1, 0.1), "mass_scale": (0.5, 2.0), "strength_ratio": (1.0, 2.0)}
+    with pytest.raises(ValueError, match="elbow"):
+        env.reset(seed=5, options={"randomize": spec, "reset_mask": np.array([False, True, False, True])})
+    _same(_everything(env), before)
+    env.elbow = None  # the same reset then goes through
+    env.reset(seed=5, options={"randomize": spec, "reset_mask": np.array([False, True, False, True])})
+    assert env.parameters.limits[1][1, 1] == pytest.approx(0.28)
+
+
+@pytest.mark.parametrize("bad", ["nan_coordinate", "fast_rate", "nan_target", "unknown_option"])
+def test_a_refused_reset_writes_nothing(env, bad):
+    """A NaN coordinate, a rate past the step's turn, a NaN target (task values), an unknown
+    option: the env as before, spec and generators included."""
+    env.reset(seed=1, options={"randomize": {"mass_scale": (0.5, 2.0)}})
+    env.step(np.zeros((N, 2), np.float32))
+    before = _everything(env)
+    options = {"randomize": {"mass_scale": (3.0, 4.0)}}
+    if bad == "nan_coordinate":
+        env.elbow = np.nan
+    elif bad == "fast_rate":
+        env.initial_state = lambda n, rng, options: (np.zeros((n, 2)), np.full((n, 2), 5e3))
+    elif bad == "nan_target":
+        options["target"] = [np.nan, 0.0]
+    else:
+        options["no_such_option"] = 1
+    with pytest.raises(ValueError):
+        env.reset(seed=7, options=options)
+    _same(_everything(env), before)
+
+
+def test_a_refused_queue_top_up_writes_nothing(env):
+    """The autoreset queues' top-up (episodes of 3 steps: every world takes a row each 3 steps)
+    draws a row the checks refuse: the queues, their counts and their generator as before it."""
+    ne = env.next_episodes
+    assert ne is not None
+    env.elbow = 1e9  # beyond the state bound
+    for _ in range(3 * ne.depth):
+        queued = {k: v for k, v in ne.snapshot().items() if k in ("queue", "task_queue", "drawn", "task_host")}
+        gen = copy.deepcopy(env._next_rng.bit_generator.state)
+        try:
+            env.step(np.zeros((N, 2), np.float32))
+        except ValueError as err:
+            assert "initial" in str(err)
+            break
+    else:
+        pytest.fail("no top-up was refused")
+    _same({k: v for k, v in ne.snapshot().items() if k in queued}, queued)
+    assert env._next_rng.bit_generator.state == gen
+
+
+@pytest.mark.parametrize("bad", ["coordinate", "mass", "episodes", "limits"])
+def test_a_refused_set_state_writes_nothing(env, bad):
+    """set_state of a snapshot with a joint past its limit, a negative mass, a clock of another
+    shape, or limits the state lies beyond: the env as before."""
+    saved = env.get_state()
+    env.reset(seed=3, options={"randomize": {"mass_scale": (0.5, 2.0)}})
+    env.step(np.zeros((N, 2), np.float32))
+    before = _everything(env)
+    if bad == "coordinate":
+        saved["sim"]["coord"][2, 1] = 10.0
+    elif bad == "mass":
+        saved["parameters"]["body_mass"][1, 1] = -1.0
+    elif bad == "episodes":
+        saved["episodes"]["elapsed"] = saved["episodes"]["elapsed"][:2]
+    else:  # the saved state inside the limits in force, outside the snapshot's own
+        saved["parameters"]["limits"][1][:, :2] = [-0.01, 0.01]
+        saved["sim"]["coord"][:, 1] = 2.0  # (a limit holds 1 rad past its bound here)
+    with pytest.raises(ValueError):
+        env.set_state(saved)
+    _same(_everything(env), before)
