@@ -117,12 +117,10 @@ STEP_TURN = 1.0
 
 
 # the turn a step of the scene's fastest gravity mode [rad] past which a vector env's energy test
-# runs by default (``task_energy_gain``): BDF2's steps gain more than 5% of the swing energy in many
-# worlds from 0.19 rad a step on (docs/robustness.md: the double pendulum at dt 0.03 to 0.2, the
-# four-bar at 0.03 to 0.2); at the tasks' own steps (0.04–0.15 rad), zero controls, the worst is
-# 5.2% in 2 of 64 DoublePendulumCart-v0 worlds and at most 3.6% elsewhere
-# (scripts/energy_gain_tasks.py), where under a policy every drive pushes, so the test never runs
-# and its check would cost every one-world env step 4–8% (docs/design.md §4.1)
+# runs by default (``task_energy_gain``): BDF2's large steps gain energy in many worlds from about
+# 0.19 rad a step on (docs/robustness.md), while at the tasks' own steps a policy's drives push in
+# every step, so the test would never run there and would only cost each env step its check
+# (figures: docs/design.md §4.1, results/energy_gain_tasks_cpu.json)
 ENERGY_TEST_TURN = 0.16
 
 
