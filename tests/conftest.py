@@ -6,6 +6,20 @@ import pytest
 
 os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.path.expanduser("~"), ".cache", "warp"))
 
+import warp as wp  # noqa: E402
+
+# The tests build a few hundred CPU kernel modules and run most of them for a handful of steps
+# on a handful of worlds, so on the CPU the suite's time goes to LLVM optimising kernels rather
+# than to running them.  The CPU test run therefore builds its kernels at optimisation level 0.
+# The library's own default (Warp's, for users' kernels) is untouched.  CPU results stay the
+# same bits as at the default level: tests/test_golden.py compares stored trajectories.  Warp's
+# module hash includes the level, so these builds sit beside the default-level ones in a shared
+# kernel cache instead of replacing them.  A GPU test run (ABD_GYM_DEVICE=cuda:N) keeps the
+# default level, for its CUDA kernels are built at it.  pytest-xdist workers import this file
+# before collecting tests, so the level is set in each worker before any kernel is built.
+if os.environ.get("ABD_GYM_DEVICE", "cpu") == "cpu":
+    wp.config.optimization_level = 0
+
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "slow: a longer check (learning, long trajectories); runs by default")
