@@ -6,6 +6,7 @@ import pytest
 
 import abd_gym as ag
 from abd_gym.sim import mechanisms
+from abd_gym.sim.loops import tree_order
 from abd_gym.sim.scene import PRISMATIC, REVOLUTE
 
 
@@ -21,42 +22,25 @@ def reference(scene, x, xd):
     p = [b.position.copy() for b in bodies]
     v = [np.zeros(3) for _ in bodies]
     w = [np.zeros(3) for _ in bodies]
-    placed = [b.fixed for b in bodies]
-    pending = list(range(len(scene.joints)))
-    while pending:
-        progress = False
-        for k in list(pending):
-            j = scene.joints[k]
-            a, b = j.body_a, j.body_b
-            if placed[a] and placed[b]:
-                pending.remove(k)
-                continue
-            if not (placed[a] or placed[b]):
-                continue
-            sign = 1.0 if placed[a] else -1.0
-            par, ch = (a, b) if placed[a] else (b, a)
-            Bp, Bc = bodies[par], bodies[ch]
-            R_rel, p_rel = Bp.rotation.T @ Bc.rotation, Bp.rotation.T @ (Bc.position - Bp.position)
-            t, c = Bp.to_local_dir(j.frame[0]), Bp.to_local_point(j.anchor)
-            xs, vs = sign * x[k], sign * xd[k]
-            if j.kind == REVOLUTE:
-                G = _rot(t, xs)
-                R_rel, p_rel = G @ R_rel, c + G @ (p_rel - c)
-            elif j.kind == PRISMATIC:
-                p_rel = p_rel + xs * t
-            R[ch], p[ch] = R[par] @ R_rel, p[par] + R[par] @ p_rel
-            t_world = R[par] @ t
-            v[ch], w[ch] = v[par] + np.cross(w[par], p[ch] - p[par]), w[par].copy()
-            if j.kind == REVOLUTE:
-                w[ch] = w[ch] + vs * t_world
-                v[ch] = v[ch] + np.cross(vs * t_world, p[ch] - (p[par] + R[par] @ c))
-            elif j.kind == PRISMATIC:
-                v[ch] = v[ch] + vs * t_world
-            placed[ch] = True
-            pending.remove(k)
-            progress = True
-        if not progress and pending:
-            placed[scene.joints[pending[0]].body_a] = True
+    for k, par, ch, sign in tree_order(scene)[0]:  # the placement order; the placing below is the reference's own
+        j = scene.joints[k]
+        Bp, Bc = bodies[par], bodies[ch]
+        R_rel, p_rel = Bp.rotation.T @ Bc.rotation, Bp.rotation.T @ (Bc.position - Bp.position)
+        t, c = Bp.to_local_dir(j.frame[0]), Bp.to_local_point(j.anchor)
+        xs, vs = sign * x[k], sign * xd[k]
+        if j.kind == REVOLUTE:
+            G = _rot(t, xs)
+            R_rel, p_rel = G @ R_rel, c + G @ (p_rel - c)
+        elif j.kind == PRISMATIC:
+            p_rel = p_rel + xs * t
+        R[ch], p[ch] = R[par] @ R_rel, p[par] + R[par] @ p_rel
+        t_world = R[par] @ t
+        v[ch], w[ch] = v[par] + np.cross(w[par], p[ch] - p[par]), w[par].copy()
+        if j.kind == REVOLUTE:
+            w[ch] = w[ch] + vs * t_world
+            v[ch] = v[ch] + np.cross(vs * t_world, p[ch] - (p[par] + R[par] @ c))
+        elif j.kind == PRISMATIC:
+            v[ch] = v[ch] + vs * t_world
     skew = [np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]]) for u in w]
     q = np.array([np.concatenate([p[i], R[i].ravel()]) for i in range(len(bodies))])
     qd = np.array([np.concatenate([v[i], (skew[i] @ R[i]).ravel()]) for i in range(len(bodies))])
