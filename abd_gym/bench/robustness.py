@@ -389,7 +389,8 @@ steps {result['worlds']} worlds from random initial states (seed {result['seed']
   retry of failed steps off (`Simulator(retry=False)`).
 - **substeps 2 / 4**: world-steps that failed (Newton did not converge or broke down), or that
   converged but raised a conservative world's total energy by more than 5% of its swing energy
-  known so far (the energy test, on by default in every conservative scene; docs/design.md §4.1),
+  known so far (the energy test, by default where a step turns the scene's fastest gravity mode past 0.16
+  rad: here from dt 0.03 on; docs/design.md §4.1),
   and were taken again as 2, or 4, substeps (`Simulator.substeps`); a world that fails at 4 too
   is reported.
 - **kept gain**: world-steps that still gained more than the energy test allows at 4 substeps and

@@ -116,8 +116,8 @@ def _list(worlds, most=8) -> str:
 STEP_TURN = 1.0
 
 
-# the turn a step of the scene's fastest gravity mode [rad] past which a vector env's energy test
-# runs by default (``task_energy_gain``): BDF2's large steps gain energy in many worlds from about
+# the turn a step of the scene's fastest gravity mode [rad] past which the energy test runs by
+# default (``task_energy_gain``, for simulators and vector envs alike): BDF2's large steps gain energy in many worlds from about
 # 0.19 rad a step on (docs/robustness.md), while at the tasks' own steps a policy's drives push in
 # every step, so the test would never run there and would only cost each env step its check
 # (figures: docs/design.md §4.1, results/energy_gain_tasks_cpu.json)
@@ -125,7 +125,7 @@ ENERGY_TEST_TURN = 0.16
 
 
 def task_energy_gain(scene, dt: float) -> float:
-    """The energy test's tolerance a vector env gives its simulator by default: 0.05 where a step
+    """The energy test's default tolerance (Simulator's energy_gain None): 0.05 where a step
     turns the scene's fastest gravity mode past ENERGY_TEST_TURN, else 0 (off)."""
     return 0.05 if gravity_turn(scene, dt) > ENERGY_TEST_TURN else 0.0
 

@@ -80,10 +80,11 @@ class Simulator:
     ``energy_gain``: with the retry, a step that converged in a conservative world (no drive
     pushing, no position drive in the scene) but raised its total energy by more than this fraction
     of its swing energy is retried the same way, and if it still gains at 4 substeps it is kept
-    and flagged (``energy_gained``; solver/energy_gain.py); 0: no energy test; None: 0.05 (the test
-    computes every tested world's energy after each step, a cost on the CPU, and the vector envs,
-    whose drives push in every step under a policy, leave it off below large steps:
-    conditioning.task_energy_gain; docs/design.md §4.1).
+    and flagged (``energy_gained``; solver/energy_gain.py); 0: no energy test; None: 0.05 where a
+    step turns the scene's fastest gravity mode past conditioning.ENERGY_TEST_TURN (the large
+    steps where BDF2 gains energy in many worlds), else 0: the test computes every tested world's
+    energy after each step and copies its state before it, which a healthy world would pay at
+    every step (conditioning.task_energy_gain; docs/design.md §4.1).
 
     How the step runs on the device (kernels, memory layout, launches, graphs) is ``plan``, an
     ExecutionPlan (or a dict of its fields) whose None fields are derived from the device, the
@@ -101,7 +102,7 @@ class Simulator:
         if max_iterations is None:
             max_iterations = conditioning.default_max_iterations(scene)
         if energy_gain is None:
-            energy_gain = 0.05
+            energy_gain = conditioning.task_energy_gain(scene, dt)
         settings = SolverSettings(tol=inputs.real_number("tol", tol, positive=True),
                                   max_iterations=inputs.count("max_iterations", max_iterations, minimum=1),
                                   max_line_search=inputs.count("max_line_search", max_line_search, minimum=1),
