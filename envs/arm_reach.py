@@ -46,6 +46,7 @@ import warnings
 import numpy as np
 
 import abd_gym as ag
+from abd_gym.core.affine import axis_rotations
 from abd_gym.vector.render import Renderer
 from abd_gym.vector.vector_env import ABDEnv
 
@@ -94,13 +95,6 @@ def pusher_arm_scene(drive: str = "effort") -> ag.Scene:
         return ag.Scene.from_mjcf(pusher_arm_model(drive), exclude=EXCLUDE, ignore_contacts=True)
 
 
-def _rotations(axis, angle):
-    """(n, 3, 3) rotations by ``angle`` (n,) [rad] about the unit ``axis`` (3,) (Rodrigues)."""
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    return np.eye(3) + s * k + (1 - c) * (k @ k)
-
-
 class ArmKinematics:
     """Forward kinematics of a serial chain of hinges from its zero pose (the product of
     exponentials): joint k turns everything after it by q_k about its zero-pose axis through its
@@ -126,7 +120,7 @@ class ArmKinematics:
         """(n, 3) fingertip [m] at joint angles q (n, 7)."""
         x = np.broadcast_to(self.tip0, (len(q), 3)).copy()
         for k in reversed(range(len(self.axes))):
-            x = np.einsum("nij,nj->ni", _rotations(self.axes[k], q[:, k]), x - self.anchors[k]) + self.anchors[k]
+            x = np.einsum("nij,nj->ni", axis_rotations(self.axes[k], q[:, k]), x - self.anchors[k]) + self.anchors[k]
         return x
 
     def jacobian(self, q):
@@ -138,7 +132,7 @@ class ArmKinematics:
         for k in range(nj):
             axes[:, k] = rot @ self.axes[k]
             anchors[:, k] = rot @ self.anchors[k] + shift
-            r = _rotations(self.axes[k], q[:, k])
+            r = axis_rotations(self.axes[k], q[:, k])
             # x ↦ rot·(r·(x − a) + a) + shift: the joints up to k
             shift = np.einsum("nij,nj->ni", rot, self.anchors[k] - r @ self.anchors[k]) + shift
             rot = rot @ r

@@ -8,6 +8,13 @@ from __future__ import annotations
 import numpy as np
 
 
+def axis_rotations(axis, angle) -> np.ndarray:
+    """(n, 3, 3) rotations by ``angle`` (n,) [rad] about the unit ``axis`` (3,) (Rodrigues)."""
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
+
+
 def J(x) -> np.ndarray:
     """3x12 map q -> p + A x."""
     x = np.asarray(x, dtype=np.float64)

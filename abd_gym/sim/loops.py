@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..core.affine import axis_rotations
 from .scene import FIXED, PRISMATIC, REVOLUTE
 
 # a closing joint's gap accepted, as a fraction of its half_length
@@ -55,13 +56,6 @@ def tree_order(scene):
             # a free body with no placed neighbour: it is a root at its scene pose
             placed[scene.joints[pending[0]].body_a] = True
     return rows, closing
-
-
-def _axis_rotation(t, x):
-    """Rotations (N, 3, 3) by angles x (N,) about the unit axis t (3,) (Rodrigues)."""
-    K = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    s, c = np.sin(x)[:, None, None], np.cos(x)[:, None, None]
-    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
 
 
 class LoopCheck:
@@ -100,7 +94,7 @@ class LoopCheck:
             kind, xs = self.scene.joints[k].kind, sign * x[:, k]
             R_rel, p_rel = np.broadcast_to(R_rel0, (N, 3, 3)), np.broadcast_to(p_rel0, (N, 3))
             if kind == REVOLUTE:
-                G = _axis_rotation(t, xs)
+                G = axis_rotations(t, xs)
                 R_rel, p_rel = G @ R_rel0, c + np.einsum("nij,j->ni", G, p_rel0 - c)
             elif kind == PRISMATIC:
                 p_rel = p_rel0 + xs[:, None] * t
