@@ -89,9 +89,12 @@ class Task:
         """Task state of the worlds ``idx`` for a new episode: by default the ``task_state`` values
         ``draw_task`` draws.  A task that overrides this resets on the host (no autoresets on the
         device, no step graph)."""
-        ep = self.episodes
-        if ep.task_width:
-            self.put(ep.task, idx, ep.task_matrix(self.draw_task(len(idx), rng, options), len(idx)))
+        if self.episodes.task_width:
+            self.put(self.episodes.task, idx, self.task_values(len(idx), rng, options))
+
+    def task_values(self, n: int, rng: np.random.Generator, options: dict) -> np.ndarray:
+        """The (n, task width) task state of n new episodes: ``draw_task``'s values as one matrix."""
+        return self.episodes.task_matrix(self.draw_task(n, rng, options), n)
 
     def info(self, obs) -> dict:
         """Per-step info: a dict of batched arrays (each gets an all-True ``"_key"`` mask)."""

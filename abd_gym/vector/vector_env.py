@@ -476,7 +476,7 @@ class ABDVectorEnv(Task, VectorEnv):
         task = None
         own_task = type(self).reset_task is Task.reset_task
         if own_task and self.episodes.task_width:
-            task = self.episodes.task_matrix(self.draw_task(len(idx), rng, options), len(idx))
+            task = self.task_values(len(idx), rng, options)
             if not np.all(np.isfinite(task)):
                 raise ValueError(f"the task's initial task values must be finite, got {task}")
         self.parameters.write(idx, params)
@@ -513,7 +513,7 @@ class ABDVectorEnv(Task, VectorEnv):
         x, xd = self.initial_state(n, self._next_rng, {})
         if not self.episodes.task_width:
             return x, xd
-        return x, xd, self.episodes.task_matrix(self.draw_task(n, self._next_rng, {}), n)
+        return x, xd, self.task_values(n, self._next_rng, {})
 
     def fixed_outputs(self):
         """Views (obs, reward, terminated, truncated) of one buffer that every later ``step`` on the
