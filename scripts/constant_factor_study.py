@@ -42,19 +42,24 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import os
 import platform
 import sys
 import time
 import warnings
 
-import numpy as np
-import scipy.linalg as sla
-import warp as wp
+# the systems are small (≤ 360 unknowns) and solved one world at a time: BLAS threads only contend
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-import abd_gym as ag
-from abd_gym.bench.cases import CASES
-from abd_gym.constitutions import affine_body
-from abd_gym.core.warp_ops import GRADIENT, HESSIAN
+import numpy as np  # noqa: E402
+import scipy.linalg as sla  # noqa: E402
+import warp as wp  # noqa: E402
+
+import abd_gym as ag  # noqa: E402
+from abd_gym.bench.cases import CASES  # noqa: E402
+from abd_gym.constitutions import affine_body  # noqa: E402
+from abd_gym.core.warp_ops import GRADIENT, HESSIAN  # noqa: E402
 
 CASE_NAMES = ("alt_chain5", "alt_chain10", "alt_chain20", "alt_chain30", "pusher_arm", "double_pendulum", "fourbar")
 METHODS = ("newton", "rest", "corot", "step", "corot_pcg", "dual")
@@ -83,8 +88,8 @@ def body_frame(R: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- flop model
 def envelope(H: np.ndarray) -> np.ndarray:
-    """Each row's first column with a non-zero entry (the factor's envelope: Cholesky fills nothing
-    left of it)."""
+    """Each row's first column with a non-zero entry (an envelope: Cholesky fills nothing left of
+    it); the dual system's, from its block pattern."""
     nz = np.abs(H) > 0
     n = len(H)
     first = np.array([int(np.argmax(nz[i, : i + 1])) for i in range(n)])
@@ -130,7 +135,7 @@ ASSEMBLY = {
 class Driver:
     """The library's staged step with this script's direction (see the module docstring)."""
 
-    def __init__(self, case, worlds, dt, tol, max_iterations=100, cg_tol=1e-3):
+    def __init__(self, case, worlds, dt, tol, max_iterations=100, cg_tol=1e-3, check_step=True):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             self.sim = ag.Simulator(case.scene(), num_worlds=worlds, dt=dt, dtype="float64", tol=tol,
@@ -146,6 +151,7 @@ class Driver:
         self.coord_parts = [c for c in parts if c.kind == "coordinate"]
         self.joint_parts = [c for c in parts if c.kind == "joint"]
         self.h, self.tol, self.max_iterations, self.cg_tol, self.worlds = dt, tol, max_iterations, cg_tol, worlds
+        self.check_step = check_step
         # the constant factors, from the scene's pose (every world's: they share the mechanism)
         q0 = self.sim.state.q.numpy()
         H0 = self.system(q0, parts=[c for c in parts if c not in self.coord_parts])[2][0]
@@ -155,7 +161,7 @@ class Driver:
         self.B = _sym(T0.T @ H0 @ T0)  # the whole Hessian in the bodies' co-rotated frames
         self.BD = _sym(T0.T @ D0 @ T0)  # its block diagonal: each body's inertia and orthogonality
         self.chol = {"rest": sla.cho_factor(H0), "corot": sla.cho_factor(self.B)}
-        self.first = envelope(H0)
+        self.first = m.first.numpy()[: self.n]  # the library's envelope: each row from its first coupled body
 
     # --- the library's pieces
     def system(self, q, derivs=HESSIAN, parts=None, active=None):
@@ -209,6 +215,7 @@ class Driver:
         s, state, W = self.solver, self.sim.state, self.worlds
         s.open_step(state)
         q = state.q.numpy()
+        q_open = q.copy()
         n = {k: np.zeros(W, int) for k in ("iterations", "factorizations", "cg", "rank_one", "trials")}
         done = np.zeros(W, bool)
         step_chol = [None] * W
@@ -247,10 +254,27 @@ class Driver:
             q = q_new
             if done.all():
                 break
+        n["step_error"] = self.step_error(q_open, q, done) if self.check_step else np.zeros(W)
         state.q.assign(q)
         s.close_step(state)
         state.time += self.h
         return n, done
+
+    def step_error(self, q_open, q, done) -> np.ndarray:
+        """Per world, ‖q − q*‖∞ of this step's solution q against q*, the same step solved by
+        Newton (a fresh factor every iteration) to ``STEP_TOL`` from the same guess: the solve's own
+        error, which a trajectory's divergence (a long chain's motion is chaotic) does not blur."""
+        qt, W = q_open.copy(), self.worlds
+        active = done.copy()
+        for _ in range(50):
+            E, g, H = self.system(qt)
+            for w in np.flatnonzero(active):
+                d = sla.cho_solve(sla.cho_factor(H[w]), -g[w])
+                qt[w], _, small = self.search(qt, w, d, E[w], g[w], STEP_TOL)
+                active[w] &= not small
+            if not active.any():
+                break
+        return np.where(done, np.abs(q - qt).reshape(W, -1).max(axis=1), np.nan)
 
     def apply(self, method, qw, chol, lim):
         """v ↦ (P + U diag(c) Uᵀ)⁻¹ v for the method's matrix P (constant, co-rotated or the step's
@@ -294,11 +318,11 @@ class Driver:
             p = z + (rz / rz_old) * p
         return x, 500
 
-    def search(self, q, w, d, E0, g):
+    def search(self, q, w, d, E0, g, tol=None):
         """Armijo's backtracking on world w along the retraction (as the staged step's ``accept``):
         returns (q_w, trial energies, converged).  Converged: a step taken under h·tol (or q's
         rounding floor), or one the energy's rounding cannot judge within 1000× that."""
-        floor = max(self.h * self.tol, 4 * np.finfo(float).eps * (1 + np.abs(q[w]).max()))
+        floor = max(self.h * (self.tol if tol is None else tol), 4 * np.finfo(float).eps * (1 + np.abs(q[w]).max()))
         step, gd = np.abs(d).max(), g @ d
         if step < 10 * floor or -gd <= 1600 * np.finfo(float).eps * abs(E0):
             return self.retract(q[w], d, 1.0), 0, step < 1000 * floor
@@ -319,6 +343,7 @@ def _sym(H):
 
 # ----------------------------------------------------------------------------- work a step
 FINE = 10  # the fine reference's steps a step
+STEP_TOL = 1e-11  # the tolerance [m/s] of the Newton solve a driver step is checked against
 ROWS = {"revolute": 6, "fixed": 12, "prismatic": 12}  # penalty rows a joint (3 a point; the prismatic's C₀…C₃)
 
 
@@ -413,7 +438,7 @@ class Run:
 
     def __init__(self, name, sim, driver=None, method=None):
         self.name, self.sim, self.driver, self.method = name, sim, driver, method
-        self.fine_error = 0.0
+        self.fine_error, self.step_err = 0.0, None if driver is None else 0.0
         self.counts = {k: 0 for k in ("iterations", "factorizations", "cg", "rank_one", "trials")}
         self.max_iterations, self.steps, self.failed_at, self.error, self.gap = 0, 0, None, 0.0, 0.0
         self.E0 = total_energy(sim)
@@ -428,6 +453,8 @@ class Run:
             c = {"iterations": its, "factorizations": self.sim.newton_factorizations(), "trials": its}
         else:
             c, ok = self.driver.step(self.method)
+        if "step_error" in c:
+            self.step_err = max(self.step_err, float(np.nanmax(c.pop("step_error"), initial=0.0)))
         for k, v in c.items():
             self.counts[k] += float(np.sum(v))
         self.max_iterations = max(self.max_iterations, int(np.max(c["iterations"])))
@@ -445,7 +472,8 @@ class Run:
         r = dict(method=self.name, steps=self.steps, failed_at_step=self.failed_at,
                  iterations=per["iterations"], max_iterations=self.max_iterations,
                  factorizations=per["factorizations"], cg_iterations=per["cg"], rank_one=per["rank_one"],
-                 trials=per["trials"], joint_error=self.error, fine_error=self.fine_error, joint_gap=self.gap,
+                 trials=per["trials"], joint_error=self.error, fine_error=self.fine_error, step_error=self.step_err,
+                 joint_gap=self.gap,
                  energy_change=float(np.abs(total_energy(self.sim) - self.E0).max()),
                  flops=work.per_step(self.name if self.driver is None else self.method, per))  # fmt: skip
         return r
@@ -497,8 +525,8 @@ def main(argv=None):
     out = dict(command="python scripts/constant_factor_study.py " + " ".join(given),
                machine=f"{platform.machine()} {platform.processor() or platform.node()}, CPU, float64",
                date=datetime.date.today().isoformat(), assembly_flops=ASSEMBLY, cases=[])  # fmt: skip
-    print(f"{'case':16} {'dt':>5} {'method':11} {'its':>6} {'max':>4} {'fact':>5} {'cg':>6} {'err [rad]':>9} "
-          f"{'vs dt/10':>9} {'gap [m]':>8} {'dE [J]':>8} {'kflop':>8}")  # fmt: skip
+    print(f"{'case':16} {'dt':>5} {'method':11} {'its':>6} {'max':>4} {'fact':>5} {'cg':>6} {'step [m]':>8} "
+          f"{'err [rad]':>9} {'vs dt/10':>9} {'gap [m]':>8} {'dE [J]':>8} {'kflop':>8}")  # fmt: skip
     for name in args.cases.split(","):
         for dt in (float(x) for x in args.dts.split(",")):
             t0 = time.perf_counter()
@@ -512,7 +540,8 @@ def main(argv=None):
                 if r["failed_at_step"] is not None:
                     print(head + f"unconverged within {args.max_iterations} iterations at step {r['failed_at_step']}")
                     continue
-                print(head + f"{r['joint_error']:9.1e} {r['fine_error']:9.1e} {r['joint_gap']:8.1e} "
+                step = "       —" if r["step_error"] is None else f"{r['step_error']:8.1e}"
+                print(head + f"{step} {r['joint_error']:9.1e} {r['fine_error']:9.1e} {r['joint_gap']:8.1e} "
                       f"{r['energy_change']:8.1e} {r['flops'] / 1e3:8.1f}", flush=True)  # fmt: skip
             if args.out:
                 with open(args.out, "w") as f:
