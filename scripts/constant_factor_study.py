@@ -26,14 +26,18 @@ Methods (``--methods``):
 - ``corot_pcg``: inexact Newton, H(q)Δq = −g by conjugate gradients preconditioned by ``corot``
   (relative residual ``--cg-tol``), no factorisation.
 
-Against the library itself (fused, default plan): ``lib_newton`` (defaults) and ``lib_reuse``
-(``reuse_factor=True``), and the reference ``lib_tight`` (tol ``--ref-tol``), all float64.
+Against the library itself (fused, default plan, float64): ``lib_newton`` (defaults) and
+``lib_reuse`` (``reuse_factor=True``); the references are the library's too, at tol ``--ref-tol``
+(same dt, and dt/10).  ``dual_tight`` is ``dual`` at tol/100.
 
 Per method and case: Newton iterations a step (mean, max), factorisations a step, CG iterations
-a step, worlds that did not converge, the largest joint-coordinate error against the tight reference
-over the run [rad or m], the largest joint gap [m], the energy change over the run [J], and the
-work a step in floating-point operations (``work``: exact counts for the envelope factor and
-solves, estimates for assembly, stated in the JSON).
+a step, the step where a world first did not converge (the run stops there), the largest difference
+of a step's solution from the same step solved tightly by Newton (``step_error``, driver methods),
+the largest joint-coordinate error over the run [rad or m] against the tight reference (same dt)
+and against one of dt/10 (both over the worlds whose references took every step whole: a retry's
+substeps change a reference's path), the largest joint gap [m], the energy change over the run
+[J], and the work a step in floating-point operations (``Work``: exact counts for the envelope
+factors and solves, estimates for assembly, ``ASSEMBLY``).
 
     python scripts/constant_factor_study.py --out results/constant_factor_study_cpu.json
 """
@@ -162,6 +166,13 @@ class Driver:
         self.BD = _sym(T0.T @ D0 @ T0)  # its block diagonal: each body's inertia and orthogonality
         self.chol = {"rest": sla.cho_factor(H0), "corot": sla.cho_factor(self.B)}
         self.first = m.first.numpy()[: self.n]  # the library's envelope: each row from its first coupled body
+        # the joints of the coordinate terms with curvature: every limit (it acts near its bounds), and the
+        # instances of the other terms whose Hessian is not 0 at the pose (a passive term, a position drive)
+        self.curved = []
+        for c in self.coord_parts:
+            H = self.system(q0, parts=[c])[2][0]
+            if "limit" in c.name or np.abs(H).max() > 0:
+                self.curved += [int(j) for j in c.instances(m)]
 
     # --- the library's pieces
     def system(self, q, derivs=HESSIAN, parts=None, active=None):
@@ -364,8 +375,12 @@ class Work:
         self.solve = solve_flops(driver.first)
         self.matvec = matvec_flops(driver.H_rest)
         self.rotate = nb * (a["polar"] + a["rotate"])
-        # the dual (constraint-space) system of the joints: rows a joint, coupled where joints share a body
-        rows = [ROWS[j.kind] for j in joints]
+        # the dual (constraint-space) system of the joints: a joint's penalty rows and one row for each
+        # coordinate term with curvature on it (E″∇x∇xᵀ: a limit, a passive term, a position drive),
+        # coupled where joints share a body
+        index = {id(j): k for k, j in enumerate(scene.joints)}
+        coord = [driver.curved.count(index[id(j)]) for j in joints]
+        rows = [ROWS[j.kind] + c for j, c in zip(joints, coord)]
         offs = np.concatenate([[0], np.cumsum(rows)]).astype(int)
         S = np.zeros((offs[-1], offs[-1]), bool)
         per_body = {b: [] for b in free}
@@ -378,11 +393,18 @@ class Work:
                 for k2 in ks:
                     S[offs[k1]:offs[k1 + 1], offs[k2]:offs[k2 + 1]] = True
         first = envelope(S.astype(float))
-        body_triples = [sum(rows[k] // 3 for k in ks) for ks in per_body.values()]
-        self.dual_form = sum(90 * t * (t + 1) // 2 for t in body_triples) + offs[-1]
-        self.dual_factor = factor_flops(first)
         body_solve = 4 * 78  # forward and back through a body's constant 12 × 12 factor
-        self.dual_solve = solve_flops(first) + 2 * nb * body_solve + 32 * offs[-1] + 2 * self.rotate // 2
+        # a body's point rows meet in 3 × 3 blocks: RᵦCRᵦᵀ of a constant C = J(x̄)Bᵦ⁻¹J(x̄′)ᵀ (90 flops); a
+        # coordinate row's ∇x goes through the body's factor (turned in and out) and meets every row there
+        self.dual_form = offs[-1]
+        for ks in per_body.values():
+            t = sum(ROWS[joints[k].kind] // 3 for k in ks)
+            self.dual_form += 90 * t * (t + 1) // 2 + sum(coord[k] for k in ks) * (
+                body_solve + a["rotate"] + 24 * sum(rows[k] for k in ks))
+        self.dual_factor = factor_flops(first)
+        point_rows = sum(ROWS[j.kind] for j in joints)
+        self.dual_solve = (solve_flops(first) + 2 * nb * body_solve + 32 * point_rows + 96 * sum(coord)
+                           + nb * a["rotate"])  # fmt: skip
         self.dual_rows = int(offs[-1])
         self.n = driver.n
 
@@ -403,7 +425,7 @@ class Work:
             cg_iteration = self.matvec + self.solve + self.rotate + 10 * self.n
             return base + it * (self.hessian + self.rotate) + cg * cg_iteration
         if method.startswith("dual"):
-            return base + it * (self.rotate + self.dual_form + self.dual_factor) + (it + r1) * self.dual_solve
+            return base + it * (self.rotate + self.dual_form + self.dual_factor + self.dual_solve)
         raise ValueError(method)
 
 
@@ -443,7 +465,7 @@ class Run:
         self.max_iterations, self.steps, self.failed_at, self.error, self.gap = 0, 0, None, 0.0, 0.0
         self.E0 = total_energy(sim)
 
-    def step(self, ref, fine):
+    def step(self, ref, fine, kept):
         if self.failed_at is not None:
             return
         if self.driver is None:
@@ -462,9 +484,10 @@ class Run:
         if not np.all(ok):
             self.failed_at = self.steps
             return
-        coords = self.sim.joint_coordinates()
-        self.error = max(self.error, angle_error(coords, ref.joint_coordinates()))
-        self.fine_error = max(self.fine_error, angle_error(coords, fine.joint_coordinates()))
+        if kept.any():
+            coords = self.sim.joint_coordinates()[kept]
+            self.error = max(self.error, angle_error(coords, ref.joint_coordinates()[kept]))
+            self.fine_error = max(self.fine_error, angle_error(coords, fine.joint_coordinates()[kept]))
         self.gap = max(self.gap, float(self.sim.joint_violation().max()))
 
     def row(self, work: Work, worlds) -> dict:
@@ -494,16 +517,69 @@ def run_case(name, dt, worlds, duration, seed, tol, ref_tol, methods, cg_tol, ma
             runs.append(Run(m, d.sim, d, method))
     work = Work(case.scene(), next(r.driver for r in runs if r.driver is not None) if any(r.driver for r in runs)
                 else Driver(case, worlds, dt, tol))  # fmt: skip
+    kept = np.ones(worlds, bool)  # worlds whose references took every step whole (no retry's substeps)
     for _ in range(int(round(duration / dt))):
         ref.step()
-        fine.step(FINE)
+        kept &= (ref.substeps() == 1) & (ref.world_status() == 0)
+        for _ in range(FINE):
+            fine.step()
+            kept &= (fine.substeps() == 1) & (fine.world_status() == 0)
         for r in runs:
-            r.step(ref, fine)
+            r.step(ref, fine, kept)
     rows = [r.row(work, worlds) for r in runs]
     info = dict(case=name, dt=dt, unknowns=work.n, dual_rows=work.dual_rows, factor_flops=work.factor,
                 solve_flops=work.solve, dual_factor_flops=work.dual_factor, dual_solve_flops=work.dual_solve,
-                reference_gap=float(ref.joint_violation().max()))  # fmt: skip
+                reference_gap=float(ref.joint_violation().max()), reference_worlds=int(kept.sum()))  # fmt: skip
     return info, rows
+
+
+def cpu_name() -> str:
+    """The CPU's model name (Linux), else the platform's."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
+
+
+def recount(path):
+    """The flops of a study's JSON counted again from its runs' counts (after a change of ``Work``)."""
+    with open(path) as f:
+        out = json.load(f)
+    works = {}
+    for info in out["cases"]:
+        name = info["case"]
+        if name not in works:
+            case = CASES[name]
+            works[name] = Work(case.scene(), Driver(case, 1, info["dt"], 1e-5))
+        work = works[name]
+        info.update(factor_flops=work.factor, solve_flops=work.solve, dual_rows=work.dual_rows,
+                    dual_factor_flops=work.dual_factor, dual_solve_flops=work.dual_solve)  # fmt: skip
+        for r in info["rows"]:
+            counts = dict(r, cg=r["cg_iterations"])
+            method = "dual" if r["method"] == "dual_tight" else r["method"]
+            r["flops"] = work.per_step(method, counts)
+    out["assembly_flops"] = ASSEMBLY
+    with open(path, "w") as f:
+        json.dump(out, f, indent=1, default=lambda o: o.item())
+    return out
+
+
+def table(out, header=True):
+    """The study's table: a row a case, dt and method."""
+    if header:
+        print(f"{'case':16} {'dt':>5} {'method':11} {'its':>6} {'max':>4} {'fact':>5} {'cg':>6} {'step [m]':>8} "
+              f"{'err [rad]':>9} {'vs dt/10':>9} {'gap [m]':>8} {'dE [J]':>8} {'kflop':>8}")  # fmt: skip
+    for info in out["cases"]:
+        for r in info["rows"]:
+            head = (f"{info['case']:16} {info['dt']:5.2f} {r['method']:11} {r['iterations']:6.2f} "
+                    f"{r['max_iterations']:4d} {r['factorizations']:5.2f} {r['cg_iterations']:6.1f} ")  # fmt: skip
+            if r["failed_at_step"] is not None:
+                print(head + f"unconverged within {r['max_iterations']} iterations at step {r['failed_at_step']}")
+                continue
+            step = "       —" if r["step_error"] is None else f"{r['step_error']:8.1e}"
+            print(head + f"{step} {r['joint_error']:9.1e} {r['fine_error']:9.1e} {r['joint_gap']:8.1e} "
+                  f"{r['energy_change']:8.1e} {r['flops'] / 1e3:8.1f}", flush=True)  # fmt: skip
 
 
 def main(argv=None):
@@ -519,14 +595,16 @@ def main(argv=None):
     ap.add_argument("--cg-tol", type=float, default=1e-3)
     ap.add_argument("--max-iterations", type=int, default=100, help="a driver step's budget (then the run stops)")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--recount", default=None, help="a study's JSON: count its flops again, print its table")
     args = ap.parse_args(argv)
+    if args.recount:
+        table(recount(args.recount))
+        return
     methods = args.methods.split(",")
     given = argv if argv is not None else sys.argv[1:]
     out = dict(command="python scripts/constant_factor_study.py " + " ".join(given),
-               machine=f"{platform.machine()} {platform.processor() or platform.node()}, CPU, float64",
+               machine=f"{cpu_name()}, {os.cpu_count()} cores, float64",
                date=datetime.date.today().isoformat(), assembly_flops=ASSEMBLY, cases=[])  # fmt: skip
-    print(f"{'case':16} {'dt':>5} {'method':11} {'its':>6} {'max':>4} {'fact':>5} {'cg':>6} {'step [m]':>8} "
-          f"{'err [rad]':>9} {'vs dt/10':>9} {'gap [m]':>8} {'dE [J]':>8} {'kflop':>8}")  # fmt: skip
     for name in args.cases.split(","):
         for dt in (float(x) for x in args.dts.split(",")):
             t0 = time.perf_counter()
@@ -534,15 +612,7 @@ def main(argv=None):
                                   args.cg_tol, args.max_iterations)  # fmt: skip
             info.update(rows=rows, seconds=time.perf_counter() - t0)
             out["cases"].append(info)
-            for r in rows:
-                head = (f"{name:16} {dt:5.2f} {r['method']:11} {r['iterations']:6.2f} {r['max_iterations']:4d} "
-                        f"{r['factorizations']:5.2f} {r['cg_iterations']:6.1f} ")  # fmt: skip
-                if r["failed_at_step"] is not None:
-                    print(head + f"unconverged within {args.max_iterations} iterations at step {r['failed_at_step']}")
-                    continue
-                step = "       —" if r["step_error"] is None else f"{r['step_error']:8.1e}"
-                print(head + f"{step} {r['joint_error']:9.1e} {r['fine_error']:9.1e} {r['joint_gap']:8.1e} "
-                      f"{r['energy_change']:8.1e} {r['flops'] / 1e3:8.1f}", flush=True)  # fmt: skip
+            table(dict(cases=[info]), header=len(out["cases"]) == 1)
             if args.out:
                 with open(args.out, "w") as f:
                     json.dump(out, f, indent=1, default=lambda o: o.item())
