@@ -24,7 +24,16 @@ Methods (``--methods``):
 - ``step``: one fresh factor at the step's first iterate, reused for its later iterations
   (simplified Newton), limits as rank-one changes;
 - ``corot_pcg``: inexact Newton, H(q)Δq = −g by conjugate gradients preconditioned by ``corot``
-  (relative residual ``--cg-tol``), no factorisation.
+  (relative residual ``--cg-tol``), no factorisation;
+- ``dual``: M-ABD's structure with the seeds' penalties: P = T(q) D T(q)ᵀ + the joints' and
+  coordinate terms' exact Hessians at q, D the bodies' constant co-rotated blocks (inertia and
+  orthogonality at a rotation, one factor a body for every world of the mechanism).  By Woodbury,
+  P⁻¹ = D'⁻¹ − D'⁻¹Lᵀ(K⁻¹ + LD'⁻¹Lᵀ)⁻¹LD'⁻¹ with L the joints' rows: a dual system of the joints'
+  rows, factored each iteration (``Work`` counts it so); the study solves P densely, the same
+  direction.  It drops only the orthogonality's strain terms, so it converges linearly.
+
+"Limits" above are every coordinate term with curvature (limits, passive terms, position drives):
+E″∇x∇xᵀ, rank one each.
 
 Against the library itself (fused, default plan, float64): ``lib_newton`` (defaults) and
 ``lib_reuse`` (``reuse_factor=True``); the references are the library's too, at tol ``--ref-tol``
