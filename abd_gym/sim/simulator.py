@@ -378,6 +378,13 @@ class Simulator:
         it is in every step, and a world whose limit acts takes an implicit Euler step next (ĥ = dt)."""
         return self.solver.energies(self.state)
 
+    def energy_allowance(self) -> np.ndarray:
+        """(num_worlds,) [J]: how much of the total of ``energies()`` is rounding, as the energy
+        test (``energy_gain``) allows it: the sums' rounding and each term's energy at its
+        quantity's rounding (solver/energy_gain.py).  A change of the total between two states
+        resolves a gain only beyond the sum of their allowances."""
+        return self.solver.energy_allowance(self.state)
+
     def joint_violation(self, joints=None) -> np.ndarray:
         """(num_worlds,) largest joint position residual [m] over all joints, or over the indices
         ``joints`` (a loop's closing joints: how far the loop is open): ‖x_i(P) − x_j(P)‖ of revolute

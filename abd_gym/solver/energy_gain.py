@@ -276,7 +276,15 @@ def kernels(dtype):
         if next_attempt(status, fresh, substeps, idle, w, n, next_n) != 0:
             busy[w] = 0
 
-    return {"unknown": unknown, "remember": remember, "judge": judge, "settle": settle}
+    @wp.kernel(module="unique")
+    def allowance(E: wp.array2d(dtype=dtype), scale: wp.array(dtype=dtype), ncols: int, floor: dtype, roff: int,
+                  out: wp.array(dtype=dtype)):  # fmt: skip
+        """out[w]: the allowance A of world w's energy (total), as the test allows it."""
+        w = wp.tid()
+        e, allow = total(E, scale, w, ncols, floor, roff)
+        out[w] = allow
+
+    return {"unknown": unknown, "remember": remember, "judge": judge, "settle": settle, "allowance": allowance}
 
 
 class EnergyCheck:
@@ -323,6 +331,17 @@ class EnergyCheck:
                                   self.E], device=m.device)  # fmt: skip
             else:
                 c.launch(m, state, s, state.q, self.E, s.g, s.H, mask, 0, s.report_cols, True)
+
+    def allowance(self, state) -> np.ndarray:
+        """(num_worlds,) float64: the allowance A of every world's energy in ``state`` (total: what
+        the test allows a state's energy for its rounding), with q̇'s rounding that of a step of
+        dt (a world's retried substeps round more)."""
+        m = self.solver.model
+        self.measure(state, self.solver.all_active, self.solver.dt)
+        out = wp.zeros(m.num_worlds, dtype=m.dtype, device=m.device)
+        wp.launch(self.k["allowance"], dim=m.num_worlds,
+                  inputs=[self.E, self.scale, self.ncols, m.dtype(self.floor), self.roff, out], device=m.device)
+        return out.numpy().astype(np.float64)
 
     def host(self, state) -> "HostViews":
         """CPU: the NumPy views of ``state`` the host-side checks read (made once per state)."""
