@@ -127,3 +127,38 @@ def test_the_report_counts_no_float32_rounding_as_a_gain(reacher):
     sim.set_joint_state(x, v)
     row = rb._measure(sim, scene, STEPS, dict(conservative=True))
     assert row["step_gain_worlds"] == 0 and row["gain_worlds"] == 0
+
+
+def _prismatic_column(sim, q):
+    """(E, R) [J] of the prismatic joints' column that the energy test measures at body states q
+    (float64 (W, bodies, 12), cast to the simulator's dtype), each times the column's scale."""
+    sim.state.q.assign(q.astype(sim.model.np_dtype))
+    check = sim.solver.retry.energy
+    check.measure(sim.state, sim.solver.all_active)
+    E, col = check.E.numpy().astype(np.float64), sim.solver.report_cols["prismatic_joint"]
+    scale = sim.solver.report_scale[col]
+    return E[:, col] * scale, E[:, check.roff + col] * scale
+
+
+def test_a_prismatic_joints_rounding_bounds_its_float32_energy():
+    """A slider's prismatic joint in float32 (the block moved 1e-7 to 1e-3 off its rail, its
+    frame turned as much): the joint energy at the float32 state, in float32, differs from the
+    float64 energy of the exact state by less than its allowance 1000 eps |E| + 2 sqrt(E R) + R
+    (R the energy of the four residuals' rounding), where the sums' term alone falls short."""
+    n = 16
+    scene = mechanisms.slider()
+    sims = {d: ag.Simulator(scene, num_worlds=n, dt=0.01, dtype=d, energy_gain=0.05) for d in ("float32", "float64")}
+    rng = np.random.default_rng(1)
+    sims["float64"].set_joint_state(rng.uniform(-1.0, 1.0, (n, 1)), rng.uniform(-3.0, 3.0, (n, 1)))
+    sims["float64"].step()
+    q = sims["float64"].state.q.numpy().copy()
+    off = np.logspace(-7, -3, n)[:, None]
+    q[:, 1] += rng.normal(0.0, 1.0, (n, 12)) * off  # the block (body 1) off its rail
+    e64, _ = _prismatic_column(sims["float64"], q)
+    e32, r32 = _prismatic_column(sims["float32"], q)
+    np.testing.assert_array_equal(e32, sims["float32"].energies()["prismatic_joint"])  # the report's, bit for bit
+    err = np.abs(e32 - e64)
+    sums = 1000.0 * np.finfo(np.float32).eps * np.abs(e32)
+    assert (r32 > 0).all()
+    assert (err <= sums + 2.0 * np.sqrt(np.abs(e32) * r32) + r32).all()
+    assert (err > sums).sum() >= n // 2

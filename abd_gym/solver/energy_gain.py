@@ -19,8 +19,9 @@ swing energy of the whole run while no step gains, so the test is at least as st
 tol of the run's swing energy.  The allowance A of a state is what its energy cannot resolve, the
 rounding of the quantities it is computed from, scaled by the world's own magnitudes: the sums'
 (``floor``, 1000 eps of the dtype, times Σ|E_c|) and, per column, the energy R_c its quantity has at
-its rounding (q̇ = Δq/ĥ from q's, 2 eps‖q‖/h; the orthogonality residual AAᵀ − I and a point
-joint's offset from q's), which moves E_c by at most 2√(E_c R_c) + R_c (``total``).  A world at rest
+its rounding (q̇ = Δq/ĥ from q's, 2 eps‖q‖/h; the orthogonality residual AAᵀ − I, a point
+joint's offset and a prismatic joint's four residuals from q's), which moves E_c by at most
+2√(E_c R_c) + R_c (``total``); the limits' cubic energies and the armature's have the sums' term alone.  A world at rest
 in float32 (R ~ 1e-10 J for 0.1 kg bodies at dt 0.01) moves by that much with no gain at all.
 E is the robustness report's total (joints and limits counted as their physical energies,
 Solver.report_scale), so the test holds a step to the report's criterion.  It leaves no room
@@ -37,7 +38,7 @@ import math
 import numpy as np
 import warp as wp
 
-from ..constitutions import _point_joint, affine_body, drive, fixed_joint, revolute_joint
+from ..constitutions import _point_joint, affine_body, drive, fixed_joint, prismatic_joint, revolute_joint
 from ..core.warp_ops import ops
 from ..sim.status import OK
 from .kernels import RESET, RESTART, SET, next_attempt
@@ -49,6 +50,9 @@ FLOOR_EPS = 1000.0
 # a point joint's offset C_p = (p_a + A_a x̄_a) − (p_b + A_b x̄_b) errs, in units of eps·ρ‖q‖ per body
 # (ρ = √(1 + ‖x̄‖²) ≥ ‖[I, x̄ᵀ ⊗ I]‖₂): q's own rounding (u = eps/2) and the point's 4-term sums (4u)
 JOINT_ROUNDING = 2.5
+# a cross product d × T errs, in units of eps·‖d‖‖T‖, by its own products and differences (2u) and d's
+# difference of two points (u)
+CROSS_ROUNDING = 1.5
 # q̇ = (3Δq − (qⁿ − qⁿ⁻¹))/(2h) (BDF2; implicit Euler's Δq/h is less) errs, from q's rounding, by
 # (3·2u + 2u)/(2h) = 2 eps/h per unit of |q|
 VELOCITY_ROUNDING = 2.0
@@ -97,6 +101,47 @@ def point_energy(dtype):
         add_energy(E, w, rcol, r)
 
     return point_energy
+
+
+@functools.lru_cache(maxsize=None)
+def prismatic_energy(dtype):
+    """The prismatic joints' energies alone (prismatic_joint's prismatic_grad without its
+    gradient: the same energy, added in the same order) and their energies at q's rounding."""
+    o = ops(dtype)
+    vec3, vec12, point, direction = o.vec3, o.vec12, o.point, o.direction
+    energy, add_energy = prismatic_joint.kernel(dtype).grad, o.add_energy
+
+    @wp.kernel(module="unique")
+    def prismatic_energy(q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32), body_a: wp.array(dtype=wp.int32),
+                         body_b: wp.array(dtype=wp.int32), c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3),
+                         t_a: wp.array2d(dtype=vec3), t_b: wp.array2d(dtype=vec3), n_a: wp.array2d(dtype=vec3),
+                         n_b: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+                         K: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), col: int, rcol: int,
+                         eps: dtype, E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        qa, qb = q[w, body_a[j]], q[w, body_b[j]]
+        ca, cb, ta, tb = c_a[w, j], c_b[w, j], t_a[w, j], t_b[w, j]
+        e, gi, gj = energy(qa, qb, ca, cb, ta, tb, n_a[w, j], n_b[w, j], b_a[w, j], b_b[w, j], K[w, j], 0)
+        add_energy(E, w, col, e)
+        # the energy at q's rounding (JOINT_ROUNDING, CROSS_ROUNDING): δd ≤ 2.5 eps (ρ_a‖q_a‖ + ρ_b‖q_b‖) of
+        # d = c_b − c_a, δT ≤ 2.5 eps ‖t̄‖‖q‖ of a direction T = A t̄; δ(d × T) ≤ δd‖T‖ + ‖d‖δT + 1.5 eps ‖d‖‖T‖
+        na, nb = wp.length(qa), wp.length(qb)
+        one, r = dtype(1.0), dtype(JOINT_ROUNDING) * eps
+        d = point(qb, cb) - point(qa, ca)
+        Ta, Tb = direction(qa, ta), direction(qb, tb)
+        dd = r * (wp.sqrt(one + wp.dot(ca, ca)) * na + wp.sqrt(one + wp.dot(cb, cb)) * nb)
+        ld, lta, ltb = wp.length(d), wp.length(Ta), wp.length(Tb)
+        cross = dtype(CROSS_ROUNDING) * eps * ld
+        d0 = dd * lta + ld * r * wp.length(ta) * na + cross * lta
+        d1 = dd * ltb + ld * r * wp.length(tb) * nb + cross * ltb
+        d2 = r * (wp.length(n_a[w, j]) * na + wp.length(n_b[w, j]) * nb)
+        d3 = r * (wp.length(b_a[w, j]) * na + wp.length(b_b[w, j]) * nb)
+        add_energy(E, w, rcol, dtype(0.5) * K[w, j] * (d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3))
+
+    return prismatic_energy
 
 
 @functools.lru_cache(maxsize=None)
@@ -329,6 +374,12 @@ class EnergyCheck:
                           inputs=[state.q, m.joint_ids[kind], m.body_a, m.body_b, m.pts_a, m.pts_b, npts, m.K, mask,
                                   s.report_cols[c.name], self.roff + s.report_cols[c.name], self.eps,
                                   self.E], device=m.device)  # fmt: skip
+            elif c.name == prismatic_joint.NAME:
+                kind, col = prismatic_joint.KIND, s.report_cols[c.name]
+                wp.launch(prismatic_energy(m.dtype), dim=(m.num_worlds, m.joint_count[kind]),
+                          inputs=[state.q, m.joint_ids[kind], m.body_a, m.body_b, m.c_a, m.c_b, m.t_a, m.t_b, m.n_a,
+                                  m.n_b, m.b_a, m.b_b, m.K, mask, col, self.roff + col, self.eps, self.E],
+                          device=m.device)  # fmt: skip
             else:
                 c.launch(m, state, s, state.q, self.E, s.g, s.H, mask, 0, s.report_cols, True)
 
