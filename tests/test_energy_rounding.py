@@ -162,3 +162,36 @@ def test_a_prismatic_joints_rounding_bounds_its_float32_energy():
     assert (r32 > 0).all()
     assert (err <= sums + 2.0 * np.sqrt(np.abs(e32) * r32) + r32).all()
     assert (err > sums).sum() >= n // 2
+
+
+def _limit_column(sim, q):
+    """(E, R) [J] of the prismatic limits' column at body states q (as _prismatic_column)."""
+    sim.state.q.assign(q.astype(sim.model.np_dtype))
+    check = sim.solver.retry.energy
+    check.measure(sim.state, sim.solver.all_active)
+    E, col = check.E.numpy().astype(np.float64), sim.solver.report_cols["prismatic_limit"]
+    scale = sim.solver.report_scale[col]
+    return E[:, col] * scale, E[:, check.roff + col] * scale
+
+
+def test_a_prismatic_limits_rounding_bounds_its_float32_energy():
+    """The slammer's block (a prismatic limit at ±0.25 m, strength 1e5) pressed 1e-6 to 1e-2 m past
+    its bound, or 1e-7 m short of it: the limit's energy at the float32 state, in float32, differs
+    from the float64 energy of the exact state by less than its allowance, where the sums' term
+    alone falls short."""
+    n = 16
+    scene = rb.slammer()
+    sims = {d: ag.Simulator(scene, num_worlds=n, dt=0.01, dtype=d, energy_gain=0.05) for d in ("float32", "float64")}
+    past = np.concatenate([np.logspace(-6, -2, n - 2), [-1e-7, -1e-7]])
+    x = (0.25 + past) * np.where(np.arange(n) % 2, 1.0, -1.0)
+    sims["float64"].set_joint_state(x[:, None])
+    q = sims["float64"].state.q.numpy().copy()
+    q[:, 1, 3:] += np.random.default_rng(2).normal(0.0, 1e-6, (n, 9))  # its frame turned a little
+    e64, _ = _limit_column(sims["float64"], q)
+    e32, r32 = _limit_column(sims["float32"], q)
+    np.testing.assert_array_equal(e32, sims["float32"].energies()["prismatic_limit"])  # the report's, bit for bit
+    err = np.abs(e32 - e64)
+    sums = 1000.0 * np.finfo(np.float32).eps * np.abs(e32)
+    assert (r32 > 0).all()
+    assert (err <= sums + 2.0 * np.sqrt(np.abs(e32) * r32) + r32).all()
+    assert (err > sums).sum() >= n // 4

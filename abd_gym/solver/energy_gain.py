@@ -21,7 +21,9 @@ rounding of the quantities it is computed from, scaled by the world's own magnit
 (``floor``, 1000 eps of the dtype, times Σ|E_c|) and, per column, the energy R_c its quantity has at
 its rounding (q̇ = Δq/ĥ from q's, 2 eps‖q‖/h; the orthogonality residual AAᵀ − I, a point
 joint's offset and a prismatic joint's four residuals from q's), which moves E_c by at most
-2√(E_c R_c) + R_c (``total``); the limits' cubic energies and the armature's have the sums' term alone.  A world at rest
+2√(E_c R_c) + R_c (``total``); a prismatic limit's cubic, from its displacement's rounding, the R
+that 2√(E R) + R turns into the cubic's change; revolute limits and the armature have the sums'
+term alone.  A world at rest
 in float32 (R ~ 1e-10 J for 0.1 kg bodies at dt 0.01) moves by that much with no gain at all.
 E is the robustness report's total (joints and limits counted as their physical energies,
 Solver.report_scale), so the test holds a step to the report's criterion.  It leaves no room
@@ -38,7 +40,8 @@ import math
 import numpy as np
 import warp as wp
 
-from ..constitutions import _point_joint, affine_body, drive, fixed_joint, prismatic_joint, revolute_joint
+from ..constitutions import (_point_joint, affine_body, drive, fixed_joint, prismatic_joint, prismatic_limit,
+                             revolute_joint)
 from ..core.warp_ops import ops
 from ..sim.status import OK
 from .kernels import RESET, RESTART, SET, next_attempt
@@ -53,6 +56,8 @@ JOINT_ROUNDING = 2.5
 # a cross product d × T errs, in units of eps·‖d‖‖T‖, by its own products and differences (2u) and d's
 # difference of two points (u)
 CROSS_ROUNDING = 1.5
+# a dot product T·d errs, in units of eps·‖d‖‖T‖, by its products and sums (3u) and d's difference (u)
+DOT_ROUNDING = 2.0
 # q̇ = (3Δq − (qⁿ − qⁿ⁻¹))/(2h) (BDF2; implicit Euler's Δq/h is less) errs, from q's rounding, by
 # (3·2u + 2u)/(2h) = 2 eps/h per unit of |q|
 VELOCITY_ROUNDING = 2.0
@@ -142,6 +147,55 @@ def prismatic_energy(dtype):
         add_energy(E, w, rcol, dtype(0.5) * K[w, j] * (d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3))
 
     return prismatic_energy
+
+
+@functools.lru_cache(maxsize=None)
+def prismatic_limit_energy(dtype):
+    """The prismatic limits' energies alone (prismatic_limit's parts without their gradient: the
+    same energy, added in the same order) and, per limit, the R that ``total`` turns into the most
+    its cubic changes when the displacement moves by its rounding."""
+    o = ops(dtype)
+    vec3, vec12, point, direction = o.vec3, o.vec12, o.point, o.direction
+    parts, add_energy = prismatic_limit.kernel(dtype).parts, o.add_energy
+
+    @wp.kernel(module="unique")
+    def prismatic_limit_energy(q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32),
+                               body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32),
+                               c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
+                               lower: wp.array2d(dtype=dtype), upper: wp.array2d(dtype=dtype),
+                               strength: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), col: int,
+                               rcol: int, eps: dtype, E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        qa, qb = q[w, body_a[j]], q[w, body_b[j]]
+        ca, cb, ta = c_a[w, j], c_b[w, j], t_a[w, j]
+        lo, up, st = lower[w, k], upper[w, k], strength[w, k]
+        e, de, dde, gi, gj = parts(qa, qb, ca, cb, ta, lo, up, st, 0)
+        add_energy(E, w, col, e)
+        # the displacement x = T·d (T = A_a t̄, d = c_b − c_a) errs by δx ≤ δd‖T‖ + ‖d‖δT + 2 eps ‖d‖‖T‖
+        # (JOINT_ROUNDING for δd and δT, DOT_ROUNDING), so the cubic s(p/w)³ of the penetration p
+        # changes by at most Δ = s((p + δx)³ − p³)/w³; R = (√(E + Δ) − √E)², which total's
+        # 2√(E R) + R turns back into Δ
+        one, r = dtype(1.0), dtype(JOINT_ROUNDING) * eps
+        na, nb = wp.length(qa), wp.length(qb)
+        d = point(qb, cb) - point(qa, ca)
+        T = direction(qa, ta)
+        ld, lt = wp.length(d), wp.length(T)
+        dd = r * (wp.sqrt(one + wp.dot(ca, ca)) * na + wp.sqrt(one + wp.dot(cb, cb)) * nb)
+        dx = dd * lt + ld * r * wp.length(ta) * na + dtype(DOT_ROUNDING) * eps * ld * lt
+        x = wp.dot(T, d)
+        p = wp.max(wp.max(x - up, lo - x), dtype(0.0))
+        inv = one
+        if up > lo:
+            inv = one / (up - lo)
+        change = st * inv * inv * inv * ((p + dx) * (p + dx) * (p + dx) - p * p * p)
+        root = wp.sqrt(e + change) + wp.sqrt(e)
+        if root > dtype(0.0):
+            add_energy(E, w, rcol, change * change / (root * root))
+
+    return prismatic_limit_energy
 
 
 @functools.lru_cache(maxsize=None)
@@ -379,6 +433,12 @@ class EnergyCheck:
                 wp.launch(prismatic_energy(m.dtype), dim=(m.num_worlds, m.joint_count[kind]),
                           inputs=[state.q, m.joint_ids[kind], m.body_a, m.body_b, m.c_a, m.c_b, m.t_a, m.t_b, m.n_a,
                                   m.n_b, m.b_a, m.b_b, m.K, mask, col, self.roff + col, self.eps, self.E],
+                          device=m.device)  # fmt: skip
+            elif c.name == prismatic_limit.NAME:
+                kind, col = prismatic_limit.KIND, s.report_cols[c.name]
+                wp.launch(prismatic_limit_energy(m.dtype), dim=(m.num_worlds, len(m.limit_joints[kind])),
+                          inputs=[state.q, m.limit_joint_ids[kind], m.body_a, m.body_b, m.c_a, m.c_b, m.t_a,
+                                  *m.limit_params[kind], mask, col, self.roff + col, self.eps, self.E],
                           device=m.device)  # fmt: skip
             else:
                 c.launch(m, state, s, state.q, self.E, s.g, s.H, mask, 0, s.report_cols, True)
