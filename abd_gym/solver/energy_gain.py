@@ -21,9 +21,8 @@ rounding of the quantities it is computed from, scaled by the world's own magnit
 (``floor``, 1000 eps of the dtype, times Σ|E_c|) and, per column, the energy R_c its quantity has at
 its rounding (q̇ = Δq/ĥ from q's, 2 eps‖q‖/h; the orthogonality residual AAᵀ − I, a point
 joint's offset and a prismatic joint's four residuals from q's), which moves E_c by at most
-2√(E_c R_c) + R_c (``total``); a prismatic limit's cubic, from its displacement's rounding, the R
-that 2√(E R) + R turns into the cubic's change; revolute limits and the armature have the sums'
-term alone.  A world at rest
+2√(E_c R_c) + R_c (``total``); a limit's cubic, from its coordinate's rounding, the R that
+2√(E R) + R turns into the cubic's change; the armature's ½aẋ², from ẋ's rounding.  A world at rest
 in float32 (R ~ 1e-10 J for 0.1 kg bodies at dt 0.01) moves by that much with no gain at all.
 E is the robustness report's total (joints and limits counted as their physical energies,
 Solver.report_scale), so the test holds a step to the report's criterion.  It leaves no room
@@ -36,12 +35,14 @@ changed it (E NaN: Simulator's setters).
 """
 import functools
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 
-from ..constitutions import (_point_joint, affine_body, drive, fixed_joint, prismatic_joint, prismatic_limit,
-                             revolute_joint)
+from ..constitutions import (_point_joint, affine_body, drive, fixed_joint, passive, prismatic_joint, prismatic_limit,
+                             revolute_joint, revolute_limit)
+from ..core.angles import angle_ops
 from ..core.warp_ops import ops
 from ..sim.status import OK
 from .kernels import RESET, RESTART, SET, next_attempt
@@ -58,6 +59,11 @@ JOINT_ROUNDING = 2.5
 CROSS_ROUNDING = 1.5
 # a dot product T·d errs, in units of eps·‖d‖‖T‖, by its products and sums (3u) and d's difference (u)
 DOT_ROUNDING = 2.0
+# an angle atan2(s', c') with s', c' products of (c, s) and the step's reference, summed with θ0: its
+# own and the products' rounding (2u each) and θ0 + δ's (u|x|), in units of eps (1 + |x|)
+ANGLE_ROUNDING = 2.0
+# a coordinate's rate (3x^{n+1} − 4xⁿ + x^{n−1})/(2h) errs, per unit of each x's rounding δx, by 8/(2h)
+COORDINATE_RATE_ROUNDING = 4.0
 # q̇ = (3Δq − (qⁿ − qⁿ⁻¹))/(2h) (BDF2; implicit Euler's Δq/h is less) errs, from q's rounding, by
 # (3·2u + 2u)/(2h) = 2 eps/h per unit of |q|
 VELOCITY_ROUNDING = 2.0
@@ -150,11 +156,63 @@ def prismatic_energy(dtype):
 
 
 @functools.lru_cache(maxsize=None)
+def rounding(dtype):
+    """wp.funcs of a joint coordinate's rounding from q's and of the R it gives a limit's cubic:
+    ``displacement_error`` (a prismatic joint's x = T·d), ``angle_error`` (a revolute joint's x
+    = θ0 + ΔΘ) and ``cubic_r``."""
+    o, a = ops(dtype), angle_ops(dtype)
+    vec3, vec12, point, direction, cos_sin = o.vec3, o.vec12, o.point, o.direction, a.cos_sin
+    one, half = dtype(1.0), dtype(0.5)
+
+    @wp.func
+    def displacement_error(qa: vec12, qb: vec12, ca: vec3, cb: vec3, ta: vec3, eps: dtype):
+        """δx of x = T·d (T = A_a t̄, d = c_b − c_a): δd‖T‖ + ‖d‖δT + 2 eps ‖d‖‖T‖ (JOINT_ROUNDING for
+        δd and δT, DOT_ROUNDING for the dot)."""
+        r = dtype(JOINT_ROUNDING) * eps
+        na, nb = wp.length(qa), wp.length(qb)
+        d = point(qb, cb) - point(qa, ca)
+        ld, lt = wp.length(d), wp.length(direction(qa, ta))
+        dd = r * (wp.sqrt(one + wp.dot(ca, ca)) * na + wp.sqrt(one + wp.dot(cb, cb)) * nb)
+        return dd * lt + ld * r * wp.length(ta) * na + dtype(DOT_ROUNDING) * eps * ld * lt
+
+    @wp.func
+    def angle_error(qa: vec12, qb: vec12, na: vec3, ba: vec3, nb: vec3, bb: vec3, x: dtype, eps: dtype):
+        """δx of x = θ0 + atan2 of (c, s) = ½(B_a·B_b + N_a·N_b, N_a·B_b − B_a·N_b), each direction
+        U = A ū within JOINT_ROUNDING eps ‖ū‖‖q‖ and each dot within DOT_ROUNDING: (δc + δs)/√(c² + s²),
+        and ANGLE_ROUNDING eps (1 + |x|) for atan2, its products and θ0 + δ."""
+        r = dtype(JOINT_ROUNDING) * eps
+        la, lb = wp.length(qa), wp.length(qb)
+        Na, Ba, Nb, Bb = direction(qa, na), direction(qa, ba), direction(qb, nb), direction(qb, bb)
+        lNa, lBa, lNb, lBb = wp.length(Na), wp.length(Ba), wp.length(Nb), wp.length(Bb)
+        dNa, dBa = r * wp.length(na) * la, r * wp.length(ba) * la
+        dNb, dBb = r * wp.length(nb) * lb, r * wp.length(bb) * lb
+        dot = dtype(DOT_ROUNDING) * eps
+        dc = half * (dBa * lBb + lBa * dBb + dNa * lNb + lNa * dNb + dot * (lBa * lBb + lNa * lNb))
+        ds = half * (dNa * lBb + lNa * dBb + dBa * lNb + lBa * dNb + dot * (lNa * lBb + lBa * lNb))
+        c, s = cos_sin(qa, qb, na, ba, nb, bb)
+        return (dc + ds) / wp.max(wp.sqrt(c * c + s * s), eps) + dtype(ANGLE_ROUNDING) * eps * (one + wp.abs(x))
+
+    @wp.func
+    def cubic_r(e: dtype, p: dtype, dx: dtype, st: dtype):
+        """The R of a cubic st·p³ at penetration p (energy e) whose coordinate moves by dx: its
+        change Δ = st((p + dx)³ − p³) as (√(e + Δ) − √e)², which total's 2√(e R) + R turns back
+        into Δ (a column's sum of them still bounds its limits' sum: Cauchy–Schwarz)."""
+        change = st * ((p + dx) * (p + dx) * (p + dx) - p * p * p)
+        root = wp.sqrt(e + change) + wp.sqrt(e)
+        out = dtype(0.0)
+        if root > dtype(0.0):
+            out = change * change / (root * root)
+        return out
+
+    return SimpleNamespace(displacement_error=displacement_error, angle_error=angle_error, cubic_r=cubic_r)
+
+
+@functools.lru_cache(maxsize=None)
 def prismatic_limit_energy(dtype):
     """The prismatic limits' energies alone (prismatic_limit's parts without their gradient: the
-    same energy, added in the same order) and, per limit, the R that ``total`` turns into the most
-    its cubic changes when the displacement moves by its rounding."""
-    o = ops(dtype)
+    same energy, added in the same order) and, per limit, the R of its cubic s(p/w)³ at its
+    displacement's rounding (rounding)."""
+    o, rnd = ops(dtype), rounding(dtype)
     vec3, vec12, point, direction = o.vec3, o.vec12, o.point, o.direction
     parts, add_energy = prismatic_limit.kernel(dtype).parts, o.add_energy
 
@@ -174,28 +232,86 @@ def prismatic_limit_energy(dtype):
         lo, up, st = lower[w, k], upper[w, k], strength[w, k]
         e, de, dde, gi, gj = parts(qa, qb, ca, cb, ta, lo, up, st, 0)
         add_energy(E, w, col, e)
-        # the displacement x = T·d (T = A_a t̄, d = c_b − c_a) errs by δx ≤ δd‖T‖ + ‖d‖δT + 2 eps ‖d‖‖T‖
-        # (JOINT_ROUNDING for δd and δT, DOT_ROUNDING), so the cubic s(p/w)³ of the penetration p
-        # changes by at most Δ = s((p + δx)³ − p³)/w³; R = (√(E + Δ) − √E)², which total's
-        # 2√(E R) + R turns back into Δ
-        one, r = dtype(1.0), dtype(JOINT_ROUNDING) * eps
-        na, nb = wp.length(qa), wp.length(qb)
-        d = point(qb, cb) - point(qa, ca)
-        T = direction(qa, ta)
-        ld, lt = wp.length(d), wp.length(T)
-        dd = r * (wp.sqrt(one + wp.dot(ca, ca)) * na + wp.sqrt(one + wp.dot(cb, cb)) * nb)
-        dx = dd * lt + ld * r * wp.length(ta) * na + dtype(DOT_ROUNDING) * eps * ld * lt
-        x = wp.dot(T, d)
-        p = wp.max(wp.max(x - up, lo - x), dtype(0.0))
-        inv = one
+        x = wp.dot(direction(qa, ta), point(qb, cb) - point(qa, ca))
+        inv = dtype(1.0)
         if up > lo:
-            inv = one / (up - lo)
-        change = st * inv * inv * inv * ((p + dx) * (p + dx) * (p + dx) - p * p * p)
-        root = wp.sqrt(e + change) + wp.sqrt(e)
-        if root > dtype(0.0):
-            add_energy(E, w, rcol, change * change / (root * root))
+            inv = dtype(1.0) / (up - lo)
+        p = wp.max(wp.max(x - up, lo - x), dtype(0.0))
+        add_energy(E, w, rcol, rnd.cubic_r(e, p, rnd.displacement_error(qa, qb, ca, cb, ta, eps), st * inv * inv * inv))
 
     return prismatic_limit_energy
+
+
+@functools.lru_cache(maxsize=None)
+def revolute_limit_energy(dtype):
+    """The revolute limits' energies alone (revolute_limit's parts without their gradient) and,
+    per limit, the R of its cubic s p³ at its angle's rounding (rounding)."""
+    o, a, rnd = ops(dtype), angle_ops(dtype), rounding(dtype)
+    vec3, vec12, cos_sin, delta_theta = o.vec3, o.vec12, a.cos_sin, a.delta_theta
+    parts, add_energy = revolute_limit.kernel(dtype).parts, o.add_energy
+
+    @wp.kernel(module="unique")
+    def revolute_limit_energy(q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32),
+                              body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32),
+                              n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3),
+                              b_b: wp.array2d(dtype=vec3), theta0: wp.array2d(dtype=dtype),
+                              c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+                              lower: wp.array2d(dtype=dtype), upper: wp.array2d(dtype=dtype),
+                              strength: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), col: int,
+                              rcol: int, eps: dtype, E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        qa, qb = q[w, body_a[j]], q[w, body_b[j]]
+        na, ba, nb, bb = n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j]
+        lo, up, st = lower[w, k], upper[w, k], strength[w, k]
+        e, de, dde, gi, gj = parts(qa, qb, na, ba, nb, bb, theta0[w, j], c_prev[w, j], s_prev[w, j], lo, up, st, 0)
+        add_energy(E, w, col, e)
+        c, s = cos_sin(qa, qb, na, ba, nb, bb)
+        x = theta0[w, j] + delta_theta(c, s, c_prev[w, j], s_prev[w, j])
+        p = wp.max(wp.max(x - up, lo - x), dtype(0.0))
+        add_energy(E, w, rcol, rnd.cubic_r(e, p, rnd.angle_error(qa, qb, na, ba, nb, bb, x, eps), st))
+
+    return revolute_limit_energy
+
+
+@functools.lru_cache(maxsize=None)
+def armature_energy(dtype):
+    """The joints' armature energies ½aẋ² alone (passive's physical part: the same energy, added
+    in the same order, to the kinetic column) and their energies at ẋ's rounding: ẋ from three
+    coordinates (BDF2's difference; implicit Euler's is less) errs by COORDINATE_RATE_ROUNDING δx/h,
+    δx a coordinate's rounding (rounding) and its own, eps |x|."""
+    o, rnd = ops(dtype), rounding(dtype)
+    vec3, vec12 = o.vec3, o.vec12
+    add_energy, half = o.add_energy, dtype(0.5)
+
+    @wp.kernel(module="unique")
+    def armature_energy(q: wp.array2d(dtype=vec12), joint: wp.array(dtype=wp.int32),
+                        joint_kind: wp.array(dtype=wp.int32), body_a: wp.array(dtype=wp.int32),
+                        body_b: wp.array(dtype=wp.int32), c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3),
+                        t_a: wp.array2d(dtype=vec3), n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3),
+                        n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3), armature: wp.array2d(dtype=dtype),
+                        unwrapped: wp.array2d(dtype=dtype), velocity: wp.array2d(dtype=dtype),
+                        active: wp.array(dtype=wp.int32), col: int, rcol: int, eps: dtype, rate: dtype,
+                        E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = joint[k]
+        v = velocity[w, j]
+        add_energy(E, w, col, half * armature[w, k] * v * v)
+        qa, qb = q[w, body_a[j]], q[w, body_b[j]]
+        x = unwrapped[w, j]
+        dx = eps * wp.abs(x)
+        if joint_kind[j] == 0:  # revolute
+            dx += rnd.angle_error(qa, qb, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], x, eps)
+        else:
+            dx += rnd.displacement_error(qa, qb, c_a[w, j], c_b[w, j], t_a[w, j], eps)
+        dv = rate * dx
+        add_energy(E, w, rcol, half * armature[w, k] * dv * dv)
+
+    return armature_energy
 
 
 @functools.lru_cache(maxsize=None)
@@ -410,8 +526,10 @@ class EnergyCheck:
     def measure(self, state, mask, h=None):
         """The physical energies of the worlds in mask into self.E (Solver.assemble, physical),
         but for the drives': a conservative scene's (no position drive) are 0, as the zeroed
-        column keeps them, so their launch is left out; the bodies' orthogonality and the point
-        joints' by kernels of their energies alone (body_energy, point_energy)."""
+        column keeps them, so their launch is left out; the bodies', the joints', the limits' and
+        the armature's by kernels of their energies alone, with their energies at their
+        quantities' rounding (body_energy, point_energy, prismatic_energy, the limits' and
+        armature_energy)."""
         h = self.solver.dt if h is None else h  # the step that made the state's q̇ (its rounding)
         s, m = self.solver, self.solver.model
         self.E.zero_()
@@ -440,6 +558,19 @@ class EnergyCheck:
                           inputs=[state.q, m.limit_joint_ids[kind], m.body_a, m.body_b, m.c_a, m.c_b, m.t_a,
                                   *m.limit_params[kind], mask, col, self.roff + col, self.eps, self.E],
                           device=m.device)  # fmt: skip
+            elif c.name == revolute_limit.NAME:
+                kind, col = revolute_limit.KIND, s.report_cols[c.name]
+                wp.launch(revolute_limit_energy(m.dtype), dim=(m.num_worlds, len(m.limit_joints[kind])),
+                          inputs=[state.q, m.limit_joint_ids[kind], m.body_a, m.body_b, m.n_a, m.b_a, m.n_b, m.b_b,
+                                  state.theta0, state.c_prev, state.s_prev, *m.limit_params[kind], mask, col,
+                                  self.roff + col, self.eps, self.E], device=m.device)  # fmt: skip
+            elif c.name == passive.NAME:  # (its physical part: the armature's kinetic energy)
+                col = s.report_cols["kinetic"]
+                wp.launch(armature_energy(m.dtype), dim=(m.num_worlds, m.num_passive),
+                          inputs=[state.q, m.passive_joint, m.joint_kind, m.body_a, m.body_b, m.c_a, m.c_b, m.t_a,
+                                  m.n_a, m.b_a, m.n_b, m.b_b, m.passive_armature, state.unwrapped, state.coord_vel,
+                                  mask, col, self.roff + col, self.eps, m.dtype(COORDINATE_RATE_ROUNDING / h),
+                                  self.E], device=m.device)  # fmt: skip
             else:
                 c.launch(m, state, s, state.q, self.E, s.g, s.H, mask, 0, s.report_cols, True)
 
