@@ -13,8 +13,8 @@ energy test off (``energy_gain=0``) and on (``energy_gain=0.05``).  Two draws of
 Per run, as ``python -m abd_gym.bench robustness`` measures it (bench/robustness.py): the largest
 single-step rise of a world's total energy beyond the rounding allowance of the two states
 (``Simulator.energy_allowance``) over its swing energy (``worst step gain``; far below 0 where
-the allowance exceeds the swing energy), the worlds whose step gain exceeds 5%, the substeps the energy test retried and the world-steps it kept
-after 4 substeps.  A scene with a position drive is not conservative (its spring's energy is not
+the allowance exceeds the swing energy), the worlds whose step gain exceeds 5%, the substeps
+the energy test retried and the world-steps it kept after 4 substeps.  A scene with a position drive is not conservative (its spring's energy is not
 in ``energies()``) and is listed without gains.  The gravity turn of a step
 (``conditioning.gravity_turn``) says where a vector env runs the test by default (above
 ``conditioning.ENERGY_TEST_TURN``; a Simulator runs it in every conservative scene).

@@ -467,12 +467,12 @@ class ABDVectorEnv(Task, VectorEnv):
                 limits = None if drawn is None or drawn.params is None else \
                     {k: v[:2] for k, v in drawn.params["limits"].items()}
                 queues = self._draw_next_episodes(limits)
+            if drawn is not None:  # (set_joint_state, its first write, checks a state no parameter was drawn for)
+                self._write_reset(idx, drawn, options)
         except (TypeError, ValueError):
             self.parameters.spec = spec
             self._set_rng_state(rng)
             raise
-        if drawn is not None:
-            self._write_reset(idx, drawn, options)
         if len(idx) and self.next_episodes is not None:
             self.next_episodes.clear(idx)
         if queues is not None:
@@ -490,14 +490,15 @@ class ABDVectorEnv(Task, VectorEnv):
     def _draw_reset(self, idx: np.ndarray, options: dict) -> _Reset:
         """Everything a reset of the worlds idx writes, drawn and checked (in the generator's
         order: the parameters, the state, the task values), written nowhere: a refusal raises
-        having written nothing (the generator is the caller's to put back)."""
+        having written nothing (the generator is the caller's to put back).  Where no parameter
+        is drawn, the state is checked by ``_write_reset``'s first write, set_joint_state."""
         rng = self.np_random
         params = self.parameters.draw(idx, rng)
         self.parameters.check(idx, params)
         coords, vels = self.initial_state(len(idx), rng, options)
-        limits = None if params is None else {k: v[:2] for k, v in params["limits"].items()}
-        # against the limits the reset writes (else those in force)
-        coords, vels = self.sim.check_joint_state(coords, vels, worlds=idx, limits=limits)
+        if params is not None:  # against the limits the reset writes (else set_joint_state checks first)
+            limits = {k: v[:2] for k, v in params["limits"].items()}
+            coords, vels = self.sim.check_joint_state(coords, vels, worlds=idx, limits=limits)
         task = None
         if self._own_task and self.episodes.task_width:
             task = self.task_values(len(idx), rng, options)
