@@ -11,9 +11,10 @@ energy test off (``energy_gain=0``) and on (``energy_gain=0.05``).  Two draws of
   following the loop.
 
 Per run, as ``python -m abd_gym.bench robustness`` measures it (bench/robustness.py): the largest
-single-step rise of a world's total energy over its swing energy (``worst step gain``), the worlds
-whose step gain exceeds 5%, the substeps the energy test retried and the world-steps it kept
-after 4 substeps.  A scene with a position drive is not conservative (its spring's energy is not
+single-step rise of a world's total energy beyond the rounding allowance of the two states
+(``Simulator.energy_allowance``) over its swing energy (``worst step gain``; far below 0 where
+the allowance exceeds the swing energy), the worlds whose step gain exceeds 5%, the substeps
+the energy test retried and the world-steps it kept after 4 substeps.  A scene with a position drive is not conservative (its spring's energy is not
 in ``energies()``) and is listed without gains.  The gravity turn of a step
 (``conditioning.gravity_turn``) says where a vector env runs the test by default (above
 ``conditioning.ENERGY_TEST_TURN``; a Simulator runs it in every conservative scene).
@@ -31,6 +32,15 @@ drive pushing); each variant's time against the test off at the same controls.
 
     python scripts/energy_gain_tasks.py --cost [--ids CartPole-v0 InvertedPendulum-v5]
                                         [--out results/energy_gain_cost_cpu.json]
+
+``--profile`` times where a tested step's time goes: each phase of a Simulator step (the test's
+``before``: host checks and the state's copy; the step's own launches; ``check``: ``mark`` and
+the verdict, whose energy ``measure`` is also timed alone) of the pendulum and double pendulum
+above at zero controls, the test off and on, best of alternating rounds (µs of process CPU time
+a call: the CPU's concurrent Newton launches count each core's time).
+
+    python scripts/energy_gain_tasks.py --profile [--profile-worlds 1 64 1024] [--rounds 3]
+                                        [--out results/energy_gain_profile_cpu.json]
 """
 import argparse
 import datetime
@@ -44,6 +54,7 @@ import time
 import warnings
 
 import numpy as np
+import warp as wp
 
 import abd_gym
 from abd_gym.bench.robustness import _measure
@@ -214,6 +225,62 @@ def cost(ids, steps, sim_steps, rounds, sims=True):
     return rows
 
 
+def _phase_times(sim, n):
+    """{phase: µs of process CPU time a call} of one step's phases (Solver.step_phases: the test's ``before``, the
+    step's own parts, ``check``), each replayed n times as the simulator's step replays it (a
+    capturable phase as a graph), and of the test's energy measure alone (``measure``, a graph)."""
+    from abd_gym.core import graphs
+
+    state, solver = sim.state, sim.solver
+    dev = sim.device
+    calls = {}
+    for phase, capturable in solver.step_phases(1):
+        name = getattr(phase, "func", phase).__name__
+        if capturable:
+            graph = graphs.capture(dev, lambda phase=phase: phase(state))[0]
+            calls[name] = lambda graph=graph: wp.capture_launch(graph)
+        else:
+            calls[name] = lambda phase=phase: phase(state)
+    energy = solver.retry.energy if solver.retry is not None else None
+    if energy is not None:
+        graph = graphs.capture(dev, lambda: energy.measure(state, solver.all_active))[0]
+        calls["measure"] = lambda: wp.capture_launch(graph)
+    calls["step"] = sim.step
+    out = {}
+    for name, call in calls.items():
+        t0 = time.process_time()
+        for _ in range(n):
+            call()
+        out[name] = (time.process_time() - t0) / n * 1e6
+    return out
+
+
+def profile(worlds, rounds):
+    """Rows of µs a call (best of ``rounds`` alternating rounds) of each phase of a simulator step,
+    the test off (0) and on (0.05) at controls 0 (module docstring, --profile)."""
+    from abd_gym.sim import mechanisms
+
+    sims = {}
+    for label, build in (("pendulum", mechanisms.pendulum), ("double pendulum", mechanisms.double_pendulum)):
+        scene = build()
+        scene.add_drive(0, mode="effort")
+        for w in worlds:
+            for gain in GAINS:
+                sim = Simulator(scene, num_worlds=w, dt=0.01, energy_gain=gain)
+                x0 = np.random.default_rng(0).uniform(-1.0, 1.0, (w, scene.num_joints))
+                sim.set_joint_state(x0, np.zeros_like(x0))
+                sim.step(3)
+                sims[(label, w, gain)] = sim
+    best = {}
+    for _ in range(rounds):
+        for (label, w, gain), sim in sims.items():
+            for phase, us in _phase_times(sim, max(100, 20000 // w)).items():
+                key = (label, w, gain, phase)
+                best[key] = min(best.get(key, math.inf), us)
+    return [dict(what=f"sim {label} x{w}", energy_gain=gain, phase=phase, us=us)
+            for (label, w, gain, phase), us in best.items()]
+
+
 def cost_table(rows) -> str:
     lines = ["| what | variant | steps/s (process CPU) | time vs off |", "|---|---|---|---|"]
     for r in rows:
@@ -238,6 +305,8 @@ def main(argv=None):
     p.add_argument("--sim-steps", type=int, default=1000, help="--cost: simulator steps a round")
     p.add_argument("--rounds", type=int, default=3, help="--cost: alternating rounds")
     p.add_argument("--envs-only", action="store_true", help="--cost: the envs only, not the simulator loops")
+    p.add_argument("--profile", action="store_true", help="time each phase of a simulator step instead")
+    p.add_argument("--profile-worlds", nargs="*", type=int, default=[1, 64, 1024])
     a = p.parse_args(argv)
     meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                 machine=platform.processor() or platform.machine(), device="cpu",
@@ -246,6 +315,15 @@ def main(argv=None):
     if a.table:
         with open(a.table) as f:
             print(table(json.load(f)["rows"]))
+        return
+    if a.profile:
+        rows = profile(a.profile_worlds, a.rounds)
+        for r in rows:
+            print(f"| {r['what']} | {r['energy_gain']} | {r['phase']} | {r['us']:.1f} |")
+        out = a.out or "results/energy_gain_profile_cpu.json"
+        with open(out, "w") as f:
+            json.dump(dict(meta=meta, rows=rows), f, indent=1)
+        print(f"wrote {out}")
         return
     if a.cost:
         rows = cost(a.ids, a.steps, a.sim_steps, a.rounds, sims=not a.envs_only)

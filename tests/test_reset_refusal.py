@@ -15,14 +15,18 @@ N = 4
 
 
 class Poisoned(ReacherVectorEnv):
-    """The Reacher with the last world's elbow drawn at ``elbow`` (None: as drawn)."""
+    """The Reacher with the last world's elbow drawn at ``elbow`` (None: as drawn), and the last
+    row of each draw for the autoreset queues (from a generator other than np_random) at
+    ``queue_elbow``."""
 
     elbow = None
+    queue_elbow = None
 
     def initial_state(self, n, rng, options):
         x, v = super().initial_state(n, rng, options)
-        if self.elbow is not None:
-            x[-1, 1] = self.elbow
+        elbow = self.elbow if rng is self.np_random else self.queue_elbow
+        if elbow is not None:
+            x[-1, 1] = elbow
         return x, v
 
 
@@ -32,8 +36,9 @@ def _everything(env):
     array of the simulator's model."""
     snap = env.get_state()
     gens = snap.pop("rng")
-    out = {"state": snap, "rng": [None if g is None or isinstance(g, int) else copy.deepcopy(g.bit_generator.state)
+    out = {"state": snap, "rng": [None if g is None else copy.deepcopy(g.bit_generator.state)
                                   for g in (gens[0], gens[2])] + [gens[1]],
+           "spawned": [None if g is None else g.bit_generator.seed_seq.n_children_spawned for g in (gens[0], gens[2])],
            "spec": copy.deepcopy(env.parameters.spec)}  # fmt: skip
     out["model"] = {k: v.numpy().copy() for k, v in vars(env.sim.model).items() if isinstance(v, wp.array)}
     return out
@@ -103,7 +108,7 @@ def test_a_refused_queue_top_up_writes_nothing(env):
     draws a row the checks refuse: the queues, their counts and their generator as before it."""
     ne = env.next_episodes
     assert ne is not None
-    env.elbow = 1e9  # beyond the state bound
+    env.queue_elbow = 1e9  # beyond the state bound
     for _ in range(3 * ne.depth):
         queued = {k: v for k, v in ne.snapshot().items() if k in ("queue", "task_queue", "drawn", "task_host")}
         gen = copy.deepcopy(env._next_rng.bit_generator.state)
@@ -116,6 +121,45 @@ def test_a_refused_queue_top_up_writes_nothing(env):
         pytest.fail("no top-up was refused")
     _same({k: v for k, v in ne.snapshot().items() if k in queued}, queued)
     assert env._next_rng.bit_generator.state == gen
+
+
+@pytest.mark.parametrize("seed", [9, None])
+def test_a_full_reset_whose_queues_are_refused_writes_nothing(env, seed):
+    """A full reset draws every world's next episodes for the autoreset queues too: a row of
+    them refused (an elbow beyond the state bound) refuses the reset before any world, queue or
+    generator is written, the spawn of the queues' generator included (seed None: the same
+    generator, whose next spawn must stay the one it was)."""
+    before, saved = _everything(env), env.get_state()
+    env.queue_elbow = 1e9
+    with pytest.raises(ValueError, match="initial"):
+        env.reset(seed=seed)
+    _same(_everything(env), before)
+    env.queue_elbow = None  # the same reset then goes through as in an env never refused
+    twin = Poisoned(num_envs=N, max_episode_steps=3)
+    twin.set_state(saved)
+    for e in (env, twin):
+        e.reset(seed=seed)
+        e.step(np.zeros((N, 2), np.float32))
+    _same(_everything(env), _everything(twin))
+
+
+def test_a_full_reset_checks_its_queues_against_the_limits_it_draws(env):
+    """The queues' rows are checked against the limits the same reset draws (±0.28 rad here),
+    before those limits are written."""
+    before = _everything(env)
+    env.queue_elbow = 2.0  # inside the ±2.8 rad limit in force
+    with pytest.raises(ValueError, match="elbow"):
+        env.reset(seed=5, options={"randomize": {"limit_scale": (0.1, 0.1)}})
+    _same(_everything(env), before)
+
+
+def test_a_reset_refused_for_a_parameter_the_simulator_refuses_writes_nothing(env):
+    """Drawn masses past the simulator's bound are refused by the parameters' own checks, before
+    any parameter is written."""
+    before = _everything(env)
+    with pytest.raises(ValueError, match="mass"):
+        env.reset(seed=5, options={"randomize": {"strength_ratio": (1.0, 2.0), "mass_scale": (1e30, 1e30)}})
+    _same(_everything(env), before)
 
 
 @pytest.mark.parametrize("bad", ["coordinate", "mass", "episodes", "limits"])

@@ -19,7 +19,9 @@ default settings (only the scene and dt are chosen).  Per run it reports:
   its energy above the lowest gravity potential it visits (for a conservative world, its largest
   kinetic plus elastic energy; T(0) where gravity does no work), ``step gain``, the largest rise
   of E in one OK step over S, and ``ΔE at end``, the mean (E(end) − E(0)) / S (the energy a run
-  kept);
+  kept); a gain and a step's rise are counted beyond the rounding allowances A of the two states
+  compared (``Simulator.energy_allowance``, the energy test's), so a world gains only what its
+  energy can resolve;
 - ``gap``: the largest joint residual ``joint_violation()`` [mm];
 - ``overshoot``: the largest excursion of a limited joint past its bound (multi-turn angle [rad],
   displacement [m]), and its ratio to the estimate of docs/design.md §3.3 with the world's whole
@@ -223,7 +225,8 @@ def _measure(sim, scene, steps, row):
     limits = _limits(scene)
     e = sim.energies()
     E0, Vmin = sum(e.values()), e["gravity"].copy()
-    Emax = np.full(W, -np.inf)  # largest energy after a step
+    A0 = sim.energy_allowance()  # the energy test's rounding allowance of each state's total
+    Emax = np.full(W, -np.inf)  # largest energy after a step less its allowance
     alive = np.ones(W, bool)  # not reported so far
     reported_at = np.full(W, -1)
     causes = {}
@@ -231,10 +234,10 @@ def _measure(sim, scene, steps, row):
     gap = np.zeros(W)
     over = np.zeros((W, len(limits)))
     iters = []
-    step_gain = np.full(W, -np.inf)  # largest energy change of one OK step
+    step_gain = np.full(W, -np.inf)  # largest energy change of one OK step beyond both states' allowances
     substeps = np.zeros(5, dtype=int)  # world-steps taken as 1, 2 or 4 substeps
     kept_gain = 0  # world-steps that gained at 4 substeps too (kept)
-    E_prev = E0
+    E_prev, A_prev = E0, A0
     t0 = time.perf_counter()
     for k in range(steps):
         sim.step()
@@ -252,10 +255,10 @@ def _measure(sim, scene, steps, row):
         silent += int((~sim.converged() & alive).sum())
         iters.append(np.where(alive, sim.newton_iterations(), -1))
         e = sim.energies()
-        E = sum(e.values())
-        Emax = np.where(alive, np.maximum(Emax, E), Emax)
-        step_gain = np.where(alive, np.maximum(step_gain, E - E_prev), step_gain)
-        E_prev = E
+        E, A = sum(e.values()), sim.energy_allowance()
+        Emax = np.where(alive, np.maximum(Emax, E - A), Emax)
+        step_gain = np.where(alive, np.maximum(step_gain, E - E_prev - A - A_prev), step_gain)
+        E_prev, A_prev = E, A
         Vmin = np.where(alive, np.minimum(Vmin, e["gravity"]), Vmin)
         gap = np.where(alive, np.maximum(gap, np.nan_to_num(sim.joint_violation(), nan=np.inf)), gap)
         if limits:
@@ -266,7 +269,7 @@ def _measure(sim, scene, steps, row):
     it = np.array(iters)
     it = it[it >= 0]
     swing = np.maximum(E0 - Vmin, 1e-12)
-    gain = (Emax - E0) / swing
+    gain = (Emax - E0 - A0) / swing
     bound = np.zeros_like(over)
     for i, (_, _, _, s, width) in enumerate(limits):
         bound[:, i] = (swing * sim.dt**2 / s) ** (1 / 3) * (1.0 if width is None else width)
@@ -407,6 +410,10 @@ steps {result['worlds']} worlds from random initial states (seed {result['seed']
   step of a world not reported, relative to S: worlds with a step above 5%, and the largest.
   BDF2's energy is not monotone from step to step (its two-step history carries energy between
   steps), so a step's rise can exceed the run's.
+- Both gains are counted beyond the rounding of the two energies compared: E(t) − E(0) less
+  A(t) + A(0), A a state's allowance `Simulator.energy_allowance()`, the energy test's (the sums'
+  rounding and each term's energy at its quantity's rounding, docs/design.md §4.1), so a world
+  counts only a gain its energy can resolve (float32 worlds of swing energies of 1e-9 J do not).
 - **ΔE at end**: (E(end) − E(0)) / S, the mean over worlds: the energy a run kept (the numerical
   damping of a dissipative integrator shows here).
 - **gap**: the largest joint residual `joint_violation()` over worlds and steps [mm].

@@ -378,6 +378,13 @@ class Simulator:
         it is in every step, and a world whose limit acts takes an implicit Euler step next (ĥ = dt)."""
         return self.solver.energies(self.state)
 
+    def energy_allowance(self) -> np.ndarray:
+        """(num_worlds,) [J]: how much of the total of ``energies()`` is rounding, as the energy
+        test (``energy_gain``) allows it: the sums' rounding and each term's energy at its
+        quantity's rounding (solver/energy_gain.py).  A change of the total between two states
+        resolves a gain only beyond the sum of their allowances."""
+        return self.solver.energy_allowance(self.state)
+
     def joint_violation(self, joints=None) -> np.ndarray:
         """(num_worlds,) largest joint position residual [m] over all joints, or over the indices
         ``joints`` (a loop's closing joints: how far the loop is open): ‖x_i(P) − x_j(P)‖ of revolute
@@ -862,9 +869,9 @@ class Simulator:
         before their next step (State.energy NaN)."""
         self._write_rows(self.state.energy, idx, np.full((len(idx), 4), np.nan))
 
-    def set_body_mass(self, mass, bodies=None, worlds=None):
-        """Per-world body masses [kg] (N, len(bodies)); every mass moment scales with it, and joint
-        strengths K = strength_ratio·(m_i + m_j) follow."""
+    def check_body_mass(self, mass, bodies=None, worlds=None):
+        """``set_body_mass``'s checks alone (nothing is written): (world indices, body indices,
+        the masses as float64 (N, len(bodies))), or a ValueError naming the world and the body."""
         m = self.model
         idx = self._worlds(worlds)
         bi = np.arange(m.num_bodies) if bodies is None else np.array([self.scene.body_index(b) for b in np.atleast_1d(bodies)])
@@ -874,6 +881,13 @@ class Simulator:
             i, k = np.argwhere(vals <= 0)[0]
             raise ValueError(f"mass must be positive, got {vals[i, k]} in world {int(idx[i])}, "
                              f"body {self.scene.bodies[bi[k]].name!r}")  # fmt: skip
+        return idx, bi, vals
+
+    def set_body_mass(self, mass, bodies=None, worlds=None):
+        """Per-world body masses [kg] (N, len(bodies)); every mass moment scales with it, and joint
+        strengths K = strength_ratio·(m_i + m_j) follow."""
+        m = self.model
+        idx, bi, vals = self.check_body_mass(mass, bodies, worlds)
         self._mass[np.ix_(idx, bi)] = vals
         scale = self._mass[idx] / m.base_mass  # only the listed worlds' rows travel to the device
         idx_dev = rows.indices(idx, self._stage)
@@ -883,8 +897,9 @@ class Simulator:
         self._update_K(idx)
         self._warn_conditioning(idx)
 
-    def set_joint_strength(self, strength_ratio, joints=None, worlds=None):
-        """Per-world joint strength ratios (N, len(joints)): K = strength_ratio·(m_i + m_j)."""
+    def check_joint_strength(self, strength_ratio, joints=None, worlds=None):
+        """``set_joint_strength``'s checks alone (nothing is written): (world indices, joint
+        indices, the ratios as float64 (N, len(joints))), or a ValueError naming the world and the joint."""
         idx = self._worlds(worlds)
         ji = np.arange(self.model.num_joints) if joints is None else np.array([self.scene.joint_index(j) for j in np.atleast_1d(joints)])
         vals = _finite_array("strength_ratio", strength_ratio, (len(idx), len(ji)), idx,
@@ -893,6 +908,11 @@ class Simulator:
             i, k = np.argwhere(vals <= 0)[0]
             raise ValueError(f"strength_ratio must be positive, got {vals[i, k]} in world {int(idx[i])}, "
                              f"joint {self.scene.joints[ji[k]].name!r}")  # fmt: skip
+        return idx, ji, vals
+
+    def set_joint_strength(self, strength_ratio, joints=None, worlds=None):
+        """Per-world joint strength ratios (N, len(joints)): K = strength_ratio·(m_i + m_j)."""
+        idx, ji, vals = self.check_joint_strength(strength_ratio, joints, worlds)
         self._ratio[np.ix_(idx, ji)] = vals
         self._update_K(idx)
         self._warn_conditioning(idx)
@@ -907,10 +927,23 @@ class Simulator:
 
     def set_limit(self, joint, lower=None, upper=None, strength=None, worlds=None, check_state=True):
         """Per-world bounds [rad or m] and strength [J] of a joint's limit (each (N,) or scalar).
-        Checked before anything is written: a bad value changes no world.  With ``check_state``
-        (the default), bounds that leave a world's current coordinate beyond them by more than the
-        limit holds (inputs.check_within_limits) are refused; a caller that sets every such world's
-        state right after (a reset) passes False."""
+        Checked before anything is written (``check_limit``): a bad value changes no world.  With
+        ``check_state`` (the default), bounds that leave a world's current coordinate beyond them
+        by more than the limit holds (inputs.check_within_limits) are refused; a caller that sets
+        every such world's state right after (a reset) passes False."""
+        kind, col, idx, new = self.check_limit(joint, lower, upper, strength, worlds, check_state)
+        m, host = self.model, self._limits[kind]
+        idx_dev = rows.indices(idx, self._stage)
+        self._joint_bounds = None
+        for h, v, dev_a in zip(host, new, m.limit_params[kind]):
+            h[idx, col] = v
+            self._write_rows(dev_a, idx_dev, h[idx])
+        self._energy_changed(idx)
+
+    def check_limit(self, joint, lower=None, upper=None, strength=None, worlds=None, check_state=True):
+        """``set_limit``'s checks alone (nothing is written): (the joint's kind, its column among
+        that kind's limits, the world indices, [lower, upper, strength] as float64 (N,) each), or
+        a ValueError naming the joint and the world."""
         check_state = inputs.flag("check_state", check_state)
         m = self.model
         j = self.scene.joint_index(joint)
@@ -942,9 +975,4 @@ class Simulator:
             bounds[j][0][idx], bounds[j][1][idx] = lo, up
             names = [jt.name for jt in self.scene.joints]
             check_within_limits("set_limit", self.joint_coordinates()[idx], idx, bounds, names)
-        idx_dev = rows.indices(idx, self._stage)
-        self._joint_bounds = None
-        for h, v, dev_a in zip(host, new, m.limit_params[kind]):
-            h[idx, col] = v
-            self._write_rows(dev_a, idx_dev, h[idx])
-        self._energy_changed(idx)
+        return kind, col, idx, new

@@ -19,8 +19,10 @@ swing energy of the whole run while no step gains, so the test is at least as st
 tol of the run's swing energy.  The allowance A of a state is what its energy cannot resolve, the
 rounding of the quantities it is computed from, scaled by the world's own magnitudes: the sums'
 (``floor``, 1000 eps of the dtype, times Σ|E_c|) and, per column, the energy R_c its quantity has at
-its rounding (q̇ = Δq/ĥ from q's, 2 eps‖q‖/h; the orthogonality residual AAᵀ − I and a point
-joint's offset from q's), which moves E_c by at most 2√(E_c R_c) + R_c (``total``).  A world at rest
+its rounding (q̇ = Δq/ĥ from q's, 2 eps‖q‖/h; the orthogonality residual AAᵀ − I, a point
+joint's offset and a prismatic joint's four residuals from q's), which moves E_c by at most
+2√(E_c R_c) + R_c (``total``); a limit's cubic, from its coordinate's rounding, the R that
+2√(E R) + R turns into the cubic's change; the armature's ½aẋ², from ẋ's rounding.  A world at rest
 in float32 (R ~ 1e-10 J for 0.1 kg bodies at dt 0.01) moves by that much with no gain at all.
 E is the robustness report's total (joints and limits counted as their physical energies,
 Solver.report_scale), so the test holds a step to the report's criterion.  It leaves no room
@@ -33,11 +35,14 @@ changed it (E NaN: Simulator's setters).
 """
 import functools
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 
-from ..constitutions import _point_joint, affine_body, drive, fixed_joint, revolute_joint
+from ..constitutions import (_point_joint, affine_body, drive, fixed_joint, passive, prismatic_joint, prismatic_limit,
+                             revolute_joint, revolute_limit)
+from ..core.angles import angle_ops
 from ..core.warp_ops import ops
 from ..sim.status import OK
 from .kernels import RESET, RESTART, SET, next_attempt
@@ -49,6 +54,16 @@ FLOOR_EPS = 1000.0
 # a point joint's offset C_p = (p_a + A_a x̄_a) − (p_b + A_b x̄_b) errs, in units of eps·ρ‖q‖ per body
 # (ρ = √(1 + ‖x̄‖²) ≥ ‖[I, x̄ᵀ ⊗ I]‖₂): q's own rounding (u = eps/2) and the point's 4-term sums (4u)
 JOINT_ROUNDING = 2.5
+# a cross product d × T errs, in units of eps·‖d‖‖T‖, by its own products and differences (2u) and d's
+# difference of two points (u)
+CROSS_ROUNDING = 1.5
+# a dot product T·d errs, in units of eps·‖d‖‖T‖, by its products and sums (3u) and d's difference (u)
+DOT_ROUNDING = 2.0
+# an angle atan2(s', c') with s', c' products of (c, s) and the step's reference, summed with θ0: its
+# own and the products' rounding (2u each) and θ0 + δ's (u|x|), in units of eps (1 + |x|)
+ANGLE_ROUNDING = 2.0
+# a coordinate's rate (3x^{n+1} − 4xⁿ + x^{n−1})/(2h) errs, per unit of each x's rounding δx, by 8/(2h)
+COORDINATE_RATE_ROUNDING = 4.0
 # q̇ = (3Δq − (qⁿ − qⁿ⁻¹))/(2h) (BDF2; implicit Euler's Δq/h is less) errs, from q's rounding, by
 # (3·2u + 2u)/(2h) = 2 eps/h per unit of |q|
 VELOCITY_ROUNDING = 2.0
@@ -97,6 +112,206 @@ def point_energy(dtype):
         add_energy(E, w, rcol, r)
 
     return point_energy
+
+
+@functools.lru_cache(maxsize=None)
+def prismatic_energy(dtype):
+    """The prismatic joints' energies alone (prismatic_joint's prismatic_grad without its
+    gradient: the same energy, added in the same order) and their energies at q's rounding."""
+    o = ops(dtype)
+    vec3, vec12, point, direction = o.vec3, o.vec12, o.point, o.direction
+    energy, add_energy = prismatic_joint.kernel(dtype).grad, o.add_energy
+
+    @wp.kernel(module="unique")
+    def prismatic_energy(q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32), body_a: wp.array(dtype=wp.int32),
+                         body_b: wp.array(dtype=wp.int32), c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3),
+                         t_a: wp.array2d(dtype=vec3), t_b: wp.array2d(dtype=vec3), n_a: wp.array2d(dtype=vec3),
+                         n_b: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3),
+                         K: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), col: int, rcol: int,
+                         eps: dtype, E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        qa, qb = q[w, body_a[j]], q[w, body_b[j]]
+        ca, cb, ta, tb = c_a[w, j], c_b[w, j], t_a[w, j], t_b[w, j]
+        e, gi, gj = energy(qa, qb, ca, cb, ta, tb, n_a[w, j], n_b[w, j], b_a[w, j], b_b[w, j], K[w, j], 0)
+        add_energy(E, w, col, e)
+        # the energy at q's rounding (JOINT_ROUNDING, CROSS_ROUNDING): δd ≤ 2.5 eps (ρ_a‖q_a‖ + ρ_b‖q_b‖) of
+        # d = c_b − c_a, δT ≤ 2.5 eps ‖t̄‖‖q‖ of a direction T = A t̄; δ(d × T) ≤ δd‖T‖ + ‖d‖δT + 1.5 eps ‖d‖‖T‖
+        na, nb = wp.length(qa), wp.length(qb)
+        one, r = dtype(1.0), dtype(JOINT_ROUNDING) * eps
+        d = point(qb, cb) - point(qa, ca)
+        Ta, Tb = direction(qa, ta), direction(qb, tb)
+        dd = r * (wp.sqrt(one + wp.dot(ca, ca)) * na + wp.sqrt(one + wp.dot(cb, cb)) * nb)
+        ld, lta, ltb = wp.length(d), wp.length(Ta), wp.length(Tb)
+        cross = dtype(CROSS_ROUNDING) * eps * ld
+        d0 = dd * lta + ld * r * wp.length(ta) * na + cross * lta
+        d1 = dd * ltb + ld * r * wp.length(tb) * nb + cross * ltb
+        d2 = r * (wp.length(n_a[w, j]) * na + wp.length(n_b[w, j]) * nb)
+        d3 = r * (wp.length(b_a[w, j]) * na + wp.length(b_b[w, j]) * nb)
+        add_energy(E, w, rcol, dtype(0.5) * K[w, j] * (d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3))
+
+    return prismatic_energy
+
+
+@functools.lru_cache(maxsize=None)
+def rounding(dtype):
+    """wp.funcs of a joint coordinate's rounding from q's and of the R it gives a limit's cubic:
+    ``displacement_error`` (a prismatic joint's x = T·d), ``angle_error`` (a revolute joint's x
+    = θ0 + ΔΘ) and ``cubic_r``."""
+    o, a = ops(dtype), angle_ops(dtype)
+    vec3, vec12, point, direction, cos_sin = o.vec3, o.vec12, o.point, o.direction, a.cos_sin
+    one, half = dtype(1.0), dtype(0.5)
+
+    @wp.func
+    def displacement_error(qa: vec12, qb: vec12, ca: vec3, cb: vec3, ta: vec3, eps: dtype):
+        """δx of x = T·d (T = A_a t̄, d = c_b − c_a): δd‖T‖ + ‖d‖δT + 2 eps ‖d‖‖T‖ (JOINT_ROUNDING for
+        δd and δT, DOT_ROUNDING for the dot)."""
+        r = dtype(JOINT_ROUNDING) * eps
+        na, nb = wp.length(qa), wp.length(qb)
+        d = point(qb, cb) - point(qa, ca)
+        ld, lt = wp.length(d), wp.length(direction(qa, ta))
+        dd = r * (wp.sqrt(one + wp.dot(ca, ca)) * na + wp.sqrt(one + wp.dot(cb, cb)) * nb)
+        return dd * lt + ld * r * wp.length(ta) * na + dtype(DOT_ROUNDING) * eps * ld * lt
+
+    @wp.func
+    def angle_error(qa: vec12, qb: vec12, na: vec3, ba: vec3, nb: vec3, bb: vec3, x: dtype, eps: dtype):
+        """δx of x = θ0 + atan2 of (c, s) = ½(B_a·B_b + N_a·N_b, N_a·B_b − B_a·N_b), each direction
+        U = A ū within JOINT_ROUNDING eps ‖ū‖‖q‖ and each dot within DOT_ROUNDING: (δc + δs)/√(c² + s²),
+        and ANGLE_ROUNDING eps (1 + |x|) for atan2, its products and θ0 + δ."""
+        r = dtype(JOINT_ROUNDING) * eps
+        la, lb = wp.length(qa), wp.length(qb)
+        Na, Ba, Nb, Bb = direction(qa, na), direction(qa, ba), direction(qb, nb), direction(qb, bb)
+        lNa, lBa, lNb, lBb = wp.length(Na), wp.length(Ba), wp.length(Nb), wp.length(Bb)
+        dNa, dBa = r * wp.length(na) * la, r * wp.length(ba) * la
+        dNb, dBb = r * wp.length(nb) * lb, r * wp.length(bb) * lb
+        dot = dtype(DOT_ROUNDING) * eps
+        dc = half * (dBa * lBb + lBa * dBb + dNa * lNb + lNa * dNb + dot * (lBa * lBb + lNa * lNb))
+        ds = half * (dNa * lBb + lNa * dBb + dBa * lNb + lBa * dNb + dot * (lNa * lBb + lBa * lNb))
+        c, s = cos_sin(qa, qb, na, ba, nb, bb)
+        return (dc + ds) / wp.max(wp.sqrt(c * c + s * s), eps) + dtype(ANGLE_ROUNDING) * eps * (one + wp.abs(x))
+
+    @wp.func
+    def cubic_r(e: dtype, p: dtype, dx: dtype, st: dtype):
+        """The R of a cubic st·p³ at penetration p (energy e) whose coordinate moves by dx: its
+        change Δ = st((p + dx)³ − p³) as (√(e + Δ) − √e)², which total's 2√(e R) + R turns back
+        into Δ (a column's sum of them still bounds its limits' sum: Cauchy–Schwarz)."""
+        change = st * ((p + dx) * (p + dx) * (p + dx) - p * p * p)
+        root = wp.sqrt(e + change) + wp.sqrt(e)
+        out = dtype(0.0)
+        if root > dtype(0.0):
+            out = change * change / (root * root)
+        return out
+
+    return SimpleNamespace(displacement_error=displacement_error, angle_error=angle_error, cubic_r=cubic_r)
+
+
+@functools.lru_cache(maxsize=None)
+def prismatic_limit_energy(dtype):
+    """The prismatic limits' energies alone (prismatic_limit's parts without their gradient: the
+    same energy, added in the same order) and, per limit, the R of its cubic s(p/w)³ at its
+    displacement's rounding (rounding)."""
+    o, rnd = ops(dtype), rounding(dtype)
+    vec3, vec12, point, direction = o.vec3, o.vec12, o.point, o.direction
+    parts, add_energy = prismatic_limit.kernel(dtype).parts, o.add_energy
+
+    @wp.kernel(module="unique")
+    def prismatic_limit_energy(q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32),
+                               body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32),
+                               c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3), t_a: wp.array2d(dtype=vec3),
+                               lower: wp.array2d(dtype=dtype), upper: wp.array2d(dtype=dtype),
+                               strength: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), col: int,
+                               rcol: int, eps: dtype, E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        qa, qb = q[w, body_a[j]], q[w, body_b[j]]
+        ca, cb, ta = c_a[w, j], c_b[w, j], t_a[w, j]
+        lo, up, st = lower[w, k], upper[w, k], strength[w, k]
+        e, de, dde, gi, gj = parts(qa, qb, ca, cb, ta, lo, up, st, 0)
+        add_energy(E, w, col, e)
+        x = wp.dot(direction(qa, ta), point(qb, cb) - point(qa, ca))
+        inv = dtype(1.0)
+        if up > lo:
+            inv = dtype(1.0) / (up - lo)
+        p = wp.max(wp.max(x - up, lo - x), dtype(0.0))
+        add_energy(E, w, rcol, rnd.cubic_r(e, p, rnd.displacement_error(qa, qb, ca, cb, ta, eps), st * inv * inv * inv))
+
+    return prismatic_limit_energy
+
+
+@functools.lru_cache(maxsize=None)
+def revolute_limit_energy(dtype):
+    """The revolute limits' energies alone (revolute_limit's parts without their gradient) and,
+    per limit, the R of its cubic s p³ at its angle's rounding (rounding)."""
+    o, a, rnd = ops(dtype), angle_ops(dtype), rounding(dtype)
+    vec3, vec12, cos_sin, delta_theta = o.vec3, o.vec12, a.cos_sin, a.delta_theta
+    parts, add_energy = revolute_limit.kernel(dtype).parts, o.add_energy
+
+    @wp.kernel(module="unique")
+    def revolute_limit_energy(q: wp.array2d(dtype=vec12), ids: wp.array(dtype=wp.int32),
+                              body_a: wp.array(dtype=wp.int32), body_b: wp.array(dtype=wp.int32),
+                              n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3), n_b: wp.array2d(dtype=vec3),
+                              b_b: wp.array2d(dtype=vec3), theta0: wp.array2d(dtype=dtype),
+                              c_prev: wp.array2d(dtype=dtype), s_prev: wp.array2d(dtype=dtype),
+                              lower: wp.array2d(dtype=dtype), upper: wp.array2d(dtype=dtype),
+                              strength: wp.array2d(dtype=dtype), active: wp.array(dtype=wp.int32), col: int,
+                              rcol: int, eps: dtype, E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = ids[k]
+        qa, qb = q[w, body_a[j]], q[w, body_b[j]]
+        na, ba, nb, bb = n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j]
+        lo, up, st = lower[w, k], upper[w, k], strength[w, k]
+        e, de, dde, gi, gj = parts(qa, qb, na, ba, nb, bb, theta0[w, j], c_prev[w, j], s_prev[w, j], lo, up, st, 0)
+        add_energy(E, w, col, e)
+        c, s = cos_sin(qa, qb, na, ba, nb, bb)
+        x = theta0[w, j] + delta_theta(c, s, c_prev[w, j], s_prev[w, j])
+        p = wp.max(wp.max(x - up, lo - x), dtype(0.0))
+        add_energy(E, w, rcol, rnd.cubic_r(e, p, rnd.angle_error(qa, qb, na, ba, nb, bb, x, eps), st))
+
+    return revolute_limit_energy
+
+
+@functools.lru_cache(maxsize=None)
+def armature_energy(dtype):
+    """The joints' armature energies ½aẋ² alone (passive's physical part: the same energy, added
+    in the same order, to the kinetic column) and their energies at ẋ's rounding: ẋ from three
+    coordinates (BDF2's difference; implicit Euler's is less) errs by COORDINATE_RATE_ROUNDING δx/h,
+    δx a coordinate's rounding (rounding) and its own, eps |x|."""
+    o, rnd = ops(dtype), rounding(dtype)
+    vec3, vec12 = o.vec3, o.vec12
+    add_energy, half = o.add_energy, dtype(0.5)
+
+    @wp.kernel(module="unique")
+    def armature_energy(q: wp.array2d(dtype=vec12), joint: wp.array(dtype=wp.int32),
+                        joint_kind: wp.array(dtype=wp.int32), body_a: wp.array(dtype=wp.int32),
+                        body_b: wp.array(dtype=wp.int32), c_a: wp.array2d(dtype=vec3), c_b: wp.array2d(dtype=vec3),
+                        t_a: wp.array2d(dtype=vec3), n_a: wp.array2d(dtype=vec3), b_a: wp.array2d(dtype=vec3),
+                        n_b: wp.array2d(dtype=vec3), b_b: wp.array2d(dtype=vec3), armature: wp.array2d(dtype=dtype),
+                        unwrapped: wp.array2d(dtype=dtype), velocity: wp.array2d(dtype=dtype),
+                        active: wp.array(dtype=wp.int32), col: int, rcol: int, eps: dtype, rate: dtype,
+                        E: wp.array2d(dtype=dtype)):  # fmt: skip
+        w, k = wp.tid()
+        if active[w] == 0:
+            return
+        j = joint[k]
+        v = velocity[w, j]
+        add_energy(E, w, col, half * armature[w, k] * v * v)
+        qa, qb = q[w, body_a[j]], q[w, body_b[j]]
+        x = unwrapped[w, j]
+        dx = eps * wp.abs(x)
+        if joint_kind[j] == 0:  # revolute
+            dx += rnd.angle_error(qa, qb, n_a[w, j], b_a[w, j], n_b[w, j], b_b[w, j], x, eps)
+        else:
+            dx += rnd.displacement_error(qa, qb, c_a[w, j], c_b[w, j], t_a[w, j], eps)
+        dv = rate * dx
+        add_energy(E, w, rcol, half * armature[w, k] * dv * dv)
+
+    return armature_energy
 
 
 @functools.lru_cache(maxsize=None)
@@ -276,7 +491,15 @@ def kernels(dtype):
         if next_attempt(status, fresh, substeps, idle, w, n, next_n) != 0:
             busy[w] = 0
 
-    return {"unknown": unknown, "remember": remember, "judge": judge, "settle": settle}
+    @wp.kernel(module="unique")
+    def allowance(E: wp.array2d(dtype=dtype), scale: wp.array(dtype=dtype), ncols: int, floor: dtype, roff: int,
+                  out: wp.array(dtype=dtype)):  # fmt: skip
+        """out[w]: the allowance A of world w's energy (total), as the test allows it."""
+        w = wp.tid()
+        e, allow = total(E, scale, w, ncols, floor, roff)
+        out[w] = allow
+
+    return {"unknown": unknown, "remember": remember, "judge": judge, "settle": settle, "allowance": allowance}
 
 
 class EnergyCheck:
@@ -303,8 +526,10 @@ class EnergyCheck:
     def measure(self, state, mask, h=None):
         """The physical energies of the worlds in mask into self.E (Solver.assemble, physical),
         but for the drives': a conservative scene's (no position drive) are 0, as the zeroed
-        column keeps them, so their launch is left out; the bodies' orthogonality and the point
-        joints' by kernels of their energies alone (body_energy, point_energy)."""
+        column keeps them, so their launch is left out; the bodies', the joints', the limits' and
+        the armature's by kernels of their energies alone, with their energies at their
+        quantities' rounding (body_energy, point_energy, prismatic_energy, the limits' and
+        armature_energy)."""
         h = self.solver.dt if h is None else h  # the step that made the state's q̇ (its rounding)
         s, m = self.solver, self.solver.model
         self.E.zero_()
@@ -321,8 +546,44 @@ class EnergyCheck:
                           inputs=[state.q, m.joint_ids[kind], m.body_a, m.body_b, m.pts_a, m.pts_b, npts, m.K, mask,
                                   s.report_cols[c.name], self.roff + s.report_cols[c.name], self.eps,
                                   self.E], device=m.device)  # fmt: skip
+            elif c.name == prismatic_joint.NAME:
+                kind, col = prismatic_joint.KIND, s.report_cols[c.name]
+                wp.launch(prismatic_energy(m.dtype), dim=(m.num_worlds, m.joint_count[kind]),
+                          inputs=[state.q, m.joint_ids[kind], m.body_a, m.body_b, m.c_a, m.c_b, m.t_a, m.t_b, m.n_a,
+                                  m.n_b, m.b_a, m.b_b, m.K, mask, col, self.roff + col, self.eps, self.E],
+                          device=m.device)  # fmt: skip
+            elif c.name == prismatic_limit.NAME:
+                kind, col = prismatic_limit.KIND, s.report_cols[c.name]
+                wp.launch(prismatic_limit_energy(m.dtype), dim=(m.num_worlds, len(m.limit_joints[kind])),
+                          inputs=[state.q, m.limit_joint_ids[kind], m.body_a, m.body_b, m.c_a, m.c_b, m.t_a,
+                                  *m.limit_params[kind], mask, col, self.roff + col, self.eps, self.E],
+                          device=m.device)  # fmt: skip
+            elif c.name == revolute_limit.NAME:
+                kind, col = revolute_limit.KIND, s.report_cols[c.name]
+                wp.launch(revolute_limit_energy(m.dtype), dim=(m.num_worlds, len(m.limit_joints[kind])),
+                          inputs=[state.q, m.limit_joint_ids[kind], m.body_a, m.body_b, m.n_a, m.b_a, m.n_b, m.b_b,
+                                  state.theta0, state.c_prev, state.s_prev, *m.limit_params[kind], mask, col,
+                                  self.roff + col, self.eps, self.E], device=m.device)  # fmt: skip
+            elif c.name == passive.NAME:  # (its physical part: the armature's kinetic energy)
+                col = s.report_cols["kinetic"]
+                wp.launch(armature_energy(m.dtype), dim=(m.num_worlds, m.num_passive),
+                          inputs=[state.q, m.passive_joint, m.joint_kind, m.body_a, m.body_b, m.c_a, m.c_b, m.t_a,
+                                  m.n_a, m.b_a, m.n_b, m.b_b, m.passive_armature, state.unwrapped, state.coord_vel,
+                                  mask, col, self.roff + col, self.eps, m.dtype(COORDINATE_RATE_ROUNDING / h),
+                                  self.E], device=m.device)  # fmt: skip
             else:
                 c.launch(m, state, s, state.q, self.E, s.g, s.H, mask, 0, s.report_cols, True)
+
+    def allowance(self, state) -> np.ndarray:
+        """(num_worlds,) float64: the allowance A of every world's energy in ``state`` (total: what
+        the test allows a state's energy for its rounding), with q̇'s rounding that of a step of
+        dt (a world's retried substeps round more)."""
+        m = self.solver.model
+        self.measure(state, self.solver.all_active, self.solver.dt)
+        out = wp.zeros(m.num_worlds, dtype=m.dtype, device=m.device)
+        wp.launch(self.k["allowance"], dim=m.num_worlds,
+                  inputs=[self.E, self.scale, self.ncols, m.dtype(self.floor), self.roff, out], device=m.device)
+        return out.numpy().astype(np.float64)
 
     def host(self, state) -> "HostViews":
         """CPU: the NumPy views of ``state`` the host-side checks read (made once per state)."""

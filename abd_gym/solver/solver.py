@@ -252,6 +252,7 @@ class Solver:
         # BDF2 restarts a world's history where a limit is engaged (solver_kernels.open_body)
         self.restarts = bool(self.bdf2 and any(model.limit_joints.values()))
         self._restart_cmds = {}  # restart_joints' recorded launches
+        self._allowance = None  # energy_allowance's EnergyCheck, made on first use
         # the retry of failed worlds as substeps (retry.py; not in the substep solvers themselves)
         self.retry = None
         if retry and settings.retry:
@@ -335,6 +336,13 @@ class Solver:
         if self.lanes:
             return E.numpy(), g.numpy()[:, :n].copy(), self._unpack(H.numpy().reshape(W, -1))
         return E.numpy(), self.gradient(), self.hessian(fused=True)
+
+    def energy_allowance(self, state) -> np.ndarray:
+        """(num_worlds,) the energy test's rounding allowance of each world's energy in ``state``
+        (energy_gain.EnergyCheck.allowance; from arrays of its own, whether the test runs or not)."""
+        if self._allowance is None:
+            self._allowance = energy_gain.EnergyCheck(self, 0.0)
+        return self._allowance.allowance(state)
 
     def energies(self, state) -> dict:
         """Each term's own physical energy [J] per world (see Simulator.energies)."""

@@ -16,6 +16,7 @@ own stream (explicit resets) is the same as without autoresets.
 """
 
 import functools
+from typing import NamedTuple
 
 import numpy as np
 import warp as wp
@@ -35,6 +36,19 @@ def default_depth(num_worlds: int) -> int:
     device runs dry."""
     fit = QUEUE_ROWS // max(int(num_worlds), 1)
     return int(min(64, max(8, 1 << max(fit.bit_length() - 1, 0))))
+
+
+class TopUp(NamedTuple):
+    """Rows drawn and checked for the queues (NextEpisodes.draw_rows), not yet written: ``counts``
+    (W,) rows per world, row ``rows[i]`` of world ``worlds[i]``'s queue holding ``coordinates[i]``,
+    ``velocities[i]`` (and ``task[i]``: task values, or None)."""
+
+    counts: np.ndarray
+    worlds: np.ndarray
+    rows: np.ndarray
+    coordinates: np.ndarray
+    velocities: np.ndarray
+    task: np.ndarray | None
 
 
 @functools.lru_cache(maxsize=None)
@@ -80,9 +94,10 @@ class NextEpisodes:
 
     def __init__(self, sim, draw, depth: int | None = None, task_width: int = 0, host_task: bool = False,
                  generator=lambda: None):  # fmt: skip
-        """``draw(n)`` -> (coordinates, velocities), each (n, num_joints), and with ``task_width``
-        the task values (n, task_width) too: n fresh episodes; ``generator()``: the
-        np.random.Generator ``draw`` draws from (None: none), put back where a draw is refused.
+        """``draw(n, gen)`` -> (coordinates, velocities), each (n, num_joints), and with
+        ``task_width`` the task values (n, task_width) too: n fresh episodes from the
+        np.random.Generator ``gen``; ``generator()``: the one the queues' top-ups draw from
+        (None: none), put back where a draw is refused.
         ``depth``: rows per world's queue (default_depth of the world count when None).
         ``host_task``: the task values stay on the host too (``task_rows``: the NumPy backend's
         task arrays are host memory, which a kernel on a GPU cannot write)."""
@@ -114,52 +129,59 @@ class NextEpisodes:
         self._stage = rows.Staging(dev)  # the top-ups' rows to the device without waiting for it
         self._cmds = {}  # the queues' recorded launches (launches.replay)
 
-    def restart(self):
-        """Fresh queues for every world (after a full reset, from the env's new generator)."""
+    def restart(self, drawn: "TopUp"):
+        """Fresh queues for every world (after a full reset): ``drawn`` is ``draw_rows(gen,
+        fresh=True)``'s, from the env's new generator."""
         self.taken.zero_()
         self._taken[:] = 0
         self._drawn[:] = 0
-        self._top_up()
+        self._write(drawn)
 
     def took(self, mask: np.ndarray):
         """The worlds of the host bool ``mask`` (W,) took a row in this step (the host learns it from
         the ended-world mask); the queues are topped up once some world has used half of its own."""
         self._taken += mask
         if (self._drawn - self._taken).min() <= self.depth // 2:
-            self._top_up()
+            drawn = self.draw_rows(self.generator())
+            if drawn is not None:
+                self._write(drawn)
 
-    def _top_up(self):
-        """Draw every world's missing rows (world w: taken + depth − 1 − drawn of them) in one upload:
-        round j draws row drawn + j of each world still short, in world order.  A queue holds at
-        most depth − 1 rows ahead: the slot left is the row last taken, so a top-up made while the
-        host counts one row too many for a world (a step the device refused, which the host learns
-        a call late and takes back: vector_env) never overwrites the row the world takes next."""
+    def draw_rows(self, gen, fresh: bool = False, limits: dict | None = None) -> "TopUp | None":
+        """Draw from ``gen`` and check every world's missing rows (world w: taken + depth − 1 − drawn
+        of them; ``fresh``: every queue empty, as ``restart`` leaves it), written nowhere; None
+        where none is missing.  Round j draws row drawn + j of each world still short, in world
+        order.  A queue holds at most depth − 1 rows ahead: the slot left is the row last taken, so
+        a top-up made while the host counts one row too many for a world (a step the device
+        refused, which the host learns a call late and takes back: vector_env) never overwrites
+        the row the world takes next.  The rows are checked as set_joint_state checks them (limits,
+        rates, a closed loop closed), against ``limits`` ({limited joint: (lower (W,), upper
+        (W,))}, a reset's written after the check) where given, else those in force; a refused
+        draw puts ``gen``'s state back and raises."""
         W, K = len(self._taken), self.depth
-        short = self._taken + K - 1 - self._drawn
+        taken, drawn_rows = (np.zeros(W, np.int64),) * 2 if fresh else (self._taken, self._drawn)
+        short = taken + K - 1 - drawn_rows
         rounds = int(short.max())
         if rounds <= 0:
-            return
+            return None
         worlds = [np.flatnonzero(short > j) for j in range(rounds)]
         w = np.concatenate(worlds)
-        e = np.concatenate([self._drawn[ws] + j for j, ws in enumerate(worlds)])
-        m = self.sim.model
-        nj, n = m.num_joints, len(w)
-        # the rows drawn and checked before anything is counted or written: a refused draw leaves
-        # the queues, the counts and the generator as they were
-        gen = self.generator()
+        e = np.concatenate([drawn_rows[ws] + j for j, ws in enumerate(worlds)])
+        nj, n = self.sim.model.num_joints, len(w)
         saved = None if gen is None else gen.bit_generator.state  # (a new dict)
         try:
-            drawn = [np.asarray(a, dtype=np.float64) for a in self.draw_fn(n)]
+            drawn = [np.asarray(a, dtype=np.float64) for a in self.draw_fn(n, gen)]
             x, xd = drawn[:2]
             task = drawn[2] if self.task_width else None
             for name, a, shape in (("coordinates", x, (n, nj)), ("velocities", xd, (n, nj)),
                                    ("task values", task, (n, self.task_width))):  # fmt: skip
                 if a is not None and (a.shape != shape or not np.all(np.isfinite(a))):
                     raise ValueError(f"the task's initial {name} must be finite with shape {shape}, got {a.shape}")
-            try:  # the checks set_joint_state makes (limits, rates, a closed loop closed), a round at a time
+            try:  # a round at a time
                 start = 0
                 for ws in worlds:
-                    self.sim.check_joint_state(x[start:start + len(ws)], xd[start:start + len(ws)], worlds=ws)
+                    rows_at = None if limits is None else {k: (lo[ws], up[ws]) for k, (lo, up) in limits.items()}
+                    self.sim.check_joint_state(x[start:start + len(ws)], xd[start:start + len(ws)], worlds=ws,
+                                               limits=rows_at)  # fmt: skip
                     start += len(ws)
             except ValueError as err:
                 raise ValueError(f"the task's initial state: {err}") from None
@@ -167,22 +189,29 @@ class NextEpisodes:
             if gen is not None:
                 gen.bit_generator.state = saved
             raise
-        self._drawn += np.maximum(short, 0)
+        return TopUp(np.maximum(short, 0), w, e, x, xd, task)
+
+    def _write(self, drawn: "TopUp"):
+        """``draw_rows``' rows into the queues (one upload each), counted drawn."""
+        W, K = len(self._taken), self.depth
+        m = self.sim.model
+        w, e, n = drawn.worlds, drawn.rows, len(drawn.worlds)
+        self._drawn += drawn.counts
         # as set_joint_state: a fixed joint's coordinate is 0; a scene without joints has one 0 column
         xx = np.zeros((n, 2, self.queue.shape[2]), dtype=m.np_dtype)
-        xx[:, 0, :nj] = np.where(self._fixed[None, :], 0.0, x)
-        xx[:, 1, :nj] = xd
+        xx[:, 0, :m.num_joints] = np.where(self._fixed[None, :], 0.0, drawn.coordinates)
+        xx[:, 1, :m.num_joints] = drawn.velocities
         stage = self._stage
         idx_dev = rows.indices((e % K) * W + w, stage, "queue_idx")
         src = stage("queue_rows", xx.reshape(n, -1), m.dtype)
         launches.replay(self._cmds, "queue_top_up", rows.kernels(m.dtype)["scatter"], (n, self._rows.shape[1]),
                         [self._rows, idx_dev, src], self.sim.device)  # fmt: skip
         if self.task_width:
-            src = stage("queue_task_rows", drawn[2], m.dtype)
+            src = stage("queue_task_rows", drawn.task, m.dtype)
             launches.replay(self._cmds, "queue_task_top_up", rows.kernels(m.dtype)["scatter"], (n, self.task_width),
                             [self.task_queue, idx_dev, src], self.sim.device)  # fmt: skip
             if self._task_host is not None:
-                self._task_host[(e % K) * W + w] = drawn[2]
+                self._task_host[(e % K) * W + w] = drawn.task
 
     def task_rows(self, mask: np.ndarray) -> np.ndarray:
         """The task values (n, task_width) that the worlds of the host bool ``mask`` take in this

@@ -123,8 +123,23 @@ class Parameters:
             limits[k] = (lo_k, up_k, st * draw("limit_strength_scale", k, 1.0))
         return {"mass": mass, "ratio": ratio, "limits": limits}
 
+    def check(self, idx: np.ndarray, drawn: dict | None):
+        """The simulator's checks of ``draw``'s values for the worlds ``idx`` (those its setters
+        make: finite, within bounds, positive, ordered bounds), a ValueError naming the world and
+        the item; nothing is written.  The states that the limits must hold are checked apart
+        (Simulator.check_joint_state with these limits)."""
+        if drawn is None:
+            return
+        sim = self.sim
+        sim.check_body_mass(drawn["mass"], bodies=self.free_bodies, worlds=idx)
+        if drawn["ratio"] is not None:
+            sim.check_joint_strength(drawn["ratio"], worlds=idx)
+        for k, (lo_k, up_k, st_k) in drawn["limits"].items():
+            sim.check_limit(k, lower=lo_k, upper=up_k, strength=st_k, worlds=idx, check_state=False)
+
     def write(self, idx: np.ndarray, drawn: dict | None):
-        """``draw``'s values of the worlds ``idx`` into the values in force and the simulator."""
+        """``draw``'s values of the worlds ``idx`` into the values in force and the simulator
+        (``check``ed first by the caller that must write all or nothing)."""
         if drawn is None:
             return
         self.randomized = True

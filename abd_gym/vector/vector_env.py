@@ -115,7 +115,7 @@ the class docstring; docs/custom_task.md walks through a new task from scene to 
 from __future__ import annotations
 
 import copy
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -137,6 +137,17 @@ from .task import Task
 __all__ = ["ABDVectorEnv", "ABDEnv", "AutoresetMode"]
 
 MAX_DEFAULT_RENDER_WORLDS = 16
+
+
+class _Reset(NamedTuple):
+    """What a reset writes into its worlds, drawn and checked (ABDVectorEnv._draw_reset):
+    Parameters.draw's values (None: none), the initial joint coordinates and rates (n, joints),
+    the task values (n, task width; None: none, or the task's own reset_task draws them)."""
+
+    params: dict | None
+    coordinates: np.ndarray
+    velocities: np.ndarray
+    task: np.ndarray | None
 
 
 def _render_worlds(render_worlds, num_envs: int) -> list:
@@ -447,17 +458,26 @@ class ABDVectorEnv(Task, VectorEnv):
             if "randomize" in options:
                 self.parameters.set_spec(options.pop("randomize"))
             super().reset(seed=seed)
-            if len(idx):
-                self._reset_worlds(idx, options)
+            # everything the reset writes, drawn and checked before any of it is written: the
+            # worlds' parameters, states and task values, and after a full reset every world's
+            # next episodes (against the limits the reset writes)
+            drawn = self._draw_reset(idx, options) if len(idx) else None
+            queues = None
+            if mask is None and self.next_episodes is not None:
+                limits = None if drawn is None or drawn.params is None else \
+                    {k: v[:2] for k, v in drawn.params["limits"].items()}
+                queues = self._draw_next_episodes(limits)
+            if drawn is not None:  # (set_joint_state, its first write, checks a state no parameter was drawn for)
+                self._write_reset(idx, drawn, options)
         except (TypeError, ValueError):
             self.parameters.spec = spec
             self._set_rng_state(rng)
             raise
         if len(idx) and self.next_episodes is not None:
             self.next_episodes.clear(idx)
-            if mask is None:
-                # every world's next episodes: the same seed gives the same resets in every mode
-                self._restart_next_episodes()
+        if queues is not None:
+            # every world's next episodes: the same seed gives the same resets in every mode
+            self._restart_next_episodes(queues)
         self._has_reset = True
         return self.observation(), {}
 
@@ -465,30 +485,44 @@ class ABDVectorEnv(Task, VectorEnv):
         """Reset the worlds idx; returns idx as a backend index array (uploaded once, for the
         caller's own fills)."""
         options = options or {}
+        return self._write_reset(idx, self._draw_reset(idx, options), options)
+
+    def _draw_reset(self, idx: np.ndarray, options: dict) -> _Reset:
+        """Everything a reset of the worlds idx writes, drawn and checked (in the generator's
+        order: the parameters, the state, the task values), written nowhere: a refusal raises
+        having written nothing (the generator is the caller's to put back).  Where no parameter
+        is drawn, the state is checked by ``_write_reset``'s first write, set_joint_state."""
         rng = self.np_random
-        # everything the reset writes, drawn and checked first (in the generator's order: the
-        # parameters, the state, the task values), so that a refusal writes nothing
         params = self.parameters.draw(idx, rng)
+        self.parameters.check(idx, params)
         coords, vels = self.initial_state(len(idx), rng, options)
         if params is not None:  # against the limits the reset writes (else set_joint_state checks first)
             limits = {k: v[:2] for k, v in params["limits"].items()}
             coords, vels = self.sim.check_joint_state(coords, vels, worlds=idx, limits=limits)
         task = None
-        own_task = type(self).reset_task is Task.reset_task
-        if own_task and self.episodes.task_width:
+        if self._own_task and self.episodes.task_width:
             task = self.task_values(len(idx), rng, options)
             if not np.all(np.isfinite(task)):
                 raise ValueError(f"the task's initial task values must be finite, got {task}")
-        self.parameters.write(idx, params)
-        self.sim.set_joint_state(coords, vels, worlds=idx)
+        return _Reset(params, coords, vels, task)
+
+    def _write_reset(self, idx: np.ndarray, drawn: _Reset, options: dict):
+        """``_draw_reset``'s values into the worlds idx; returns idx as a backend index array."""
+        self.parameters.write(idx, drawn.params)
+        self.sim.set_joint_state(drawn.coordinates, drawn.velocities, worlds=idx)
         idx_b = self.arrays.index(idx)
         self.arrays.fill(self.episodes.elapsed, idx_b, 0)  # no value array
-        if task is not None:
-            self.put(self.episodes.task, idx, task)
-        elif not own_task:  # a task's own reset_task: last, its checks its own
-            self.reset_task(idx, rng, options)
+        if drawn.task is not None:
+            self.put(self.episodes.task, idx, drawn.task)
+        elif not self._own_task:  # a task's own reset_task: last, its checks its own
+            self.reset_task(idx, self.np_random, options)
         self._pending_now()[idx] = False
         return idx_b
+
+    @property
+    def _own_task(self) -> bool:
+        """Whether the task's state is drawn by Task.reset_task (task_values), not a reset_task of its own."""
+        return type(self).reset_task is Task.reset_task
 
     def _rng_state(self):
         """The env's generators as they are (``_set_rng_state`` puts them back)."""
@@ -501,19 +535,34 @@ class ABDVectorEnv(Task, VectorEnv):
         if gen is not None:
             gen.bit_generator.state = state
 
-    def _restart_next_episodes(self):
-        """Fresh autoreset queues from a generator spawned from np_random (which a spawn does not
-        advance: explicit resets draw what they would without autoresets)."""
-        self._next_rng = np.random.Generator(self.np_random.bit_generator.spawn(1)[0])
-        self.next_episodes.restart()
+    def _draw_next_episodes(self, limits: dict | None = None):
+        """(the generator, its rows): every world's next episodes for fresh autoreset queues, drawn
+        and checked (NextEpisodes.draw_rows; ``limits``: a reset's, written after) from the
+        generator that np_random's next spawn gives, which is not spawned yet: a refusal leaves
+        np_random's spawns as they were (a spawn does not advance its draws either: explicit resets
+        draw what they would without autoresets)."""
+        seq = self.np_random.bit_generator.seed_seq
+        # the child SeedSequence.spawn(1) makes next (its entropy, the spawn key extended by the count)
+        child = np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, seq.n_children_spawned),
+                                       pool_size=seq.pool_size)  # fmt: skip
+        gen = np.random.Generator(type(self.np_random.bit_generator)(child))
+        return gen, self.next_episodes.draw_rows(gen, fresh=True, limits=limits)
 
-    def _draw_episodes(self, n: int):
-        """n next episodes for the autoreset queues (autoreset.py), from the generator spawned at
-        the last full reset: initial coordinates, rates and (with ``task_state``) task values."""
-        x, xd = self.initial_state(n, self._next_rng, {})
+    def _restart_next_episodes(self, drawn):
+        """Fresh autoreset queues from ``_draw_next_episodes``' (generator, rows), whose spawn from
+        np_random is counted now."""
+        self.np_random.bit_generator.spawn(1)
+        self._next_rng, rows = drawn
+        self.next_episodes.restart(rows)
+
+    def _draw_episodes(self, n: int, rng: np.random.Generator):
+        """n next episodes for the autoreset queues (autoreset.py), from ``rng`` (the generator
+        spawned at the last full reset): initial coordinates, rates and (with ``task_state``) task
+        values."""
+        x, xd = self.initial_state(n, rng, {})
         if not self.episodes.task_width:
             return x, xd
-        return x, xd, self.task_values(n, self._next_rng, {})
+        return x, xd, self.task_values(n, rng, {})
 
     def fixed_outputs(self):
         """Views (obs, reward, terminated, truncated) of one buffer that every later ``step`` on the
@@ -545,7 +594,7 @@ class ABDVectorEnv(Task, VectorEnv):
         a = prepare_actions(actions, self.arrays, self.num_envs, self.action_dim, check, self.action_bound)
         if on_device:
             if self._next_rng is None:  # no full reset yet (only masked ones): the queues start now
-                self._restart_next_episodes()
+                self._restart_next_episodes(self._draw_next_episodes())
             return self.device_step.step(a)
 
         self.sim.set_controls(self.controls(a))
