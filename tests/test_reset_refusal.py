@@ -162,6 +162,47 @@ def test_a_reset_refused_for_a_parameter_the_simulator_refuses_writes_nothing(en
     _same(_everything(env), before)
 
 
+class OwnTarget(ReacherVectorEnv):
+    """The Reacher with a ``reset_task`` of its own: it draws the targets, writes them, then
+    refuses the draw where a target lies farther than ``reach`` (None: none refused) from the
+    base, as a task's own code may do after the reset has written the worlds."""
+
+    reach = None
+
+    def reset_task(self, idx, rng, options):
+        target = rng.uniform(-0.2, 0.2, size=(len(idx), 2))
+        self.put(self.target, idx, target)
+        if self.reach is not None and np.any(np.hypot(target[:, 0], target[:, 1]) > self.reach):
+            raise RuntimeError("target out of reach")
+
+
+@pytest.mark.parametrize("mask", [None, [True, False, True, True]])
+def test_a_reset_refused_by_the_task_s_own_reset_task_writes_nothing(mask):
+    """A task's own ``reset_task`` runs after the reset has written the parameters, the states and
+    the clocks, writes its targets and then raises: every array, the spec and the generator are
+    put back bit for bit, and the env then resets and steps as a twin never refused."""
+    env = OwnTarget(num_envs=N, max_episode_steps=3)
+    assert env.next_episodes is None  # (its resets run on the host)
+    env.reset(seed=0, options={"randomize": {"mass_scale": (0.5, 2.0)}})
+    env.step(np.zeros((N, 2), np.float32))
+    before, saved = _everything(env), env.get_state()
+    env.reach = 0.05  # a target in [-0.2, 0.2]^2 beyond 0.05 m in one of 3 or 4 worlds: all but certain
+    options = {"randomize": {"mass_scale": (3.0, 4.0), "limit_scale": (0.5, 0.5), "strength_ratio": (1.0, 2.0)}}
+    if mask is not None:
+        options["reset_mask"] = np.array(mask)
+    with pytest.raises(RuntimeError, match="out of reach"):
+        env.reset(seed=7, options=options)
+    _same(_everything(env), before)
+    env.reach = None
+    twin = OwnTarget(num_envs=N, max_episode_steps=3)
+    twin.set_state(saved)
+    for e in (env, twin):
+        e.reset(seed=7, options=dict(options))
+        for _ in range(4):  # through an autoreset (episodes of 3 steps), on the host
+            e.step(np.full((N, 2), 0.5, np.float32))
+    _same(_everything(env), _everything(twin))
+
+
 @pytest.mark.parametrize("bad", ["coordinate", "mass", "episodes", "limits"])
 def test_a_refused_set_state_writes_nothing(env, bad):
     """set_state of a snapshot with a joint past its limit, a negative mass, a clock of another

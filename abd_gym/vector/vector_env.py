@@ -469,7 +469,7 @@ class ABDVectorEnv(Task, VectorEnv):
                 queues = self._draw_next_episodes(limits)
             if drawn is not None:  # (set_joint_state, its first write, checks a state no parameter was drawn for)
                 self._write_reset(idx, drawn, options)
-        except (TypeError, ValueError):
+        except Exception:  # a refusal, or a task's own reset_task raising (_write_reset undid its writes)
             self.parameters.spec = spec
             self._set_rng_state(rng)
             raise
@@ -507,17 +507,41 @@ class ABDVectorEnv(Task, VectorEnv):
         return _Reset(params, coords, vels, task)
 
     def _write_reset(self, idx: np.ndarray, drawn: _Reset, options: dict):
-        """``_draw_reset``'s values into the worlds idx; returns idx as a backend index array."""
+        """``_draw_reset``'s values into the worlds idx; returns idx as a backend index array.
+        A task's own ``reset_task`` runs last (it may read the state just written) and may raise:
+        what the reset wrote is then put back (``_undo_reset``) before the exception goes on."""
+        saved = None if self._own_task else self._reset_undo(idx, drawn)
         self.parameters.write(idx, drawn.params)
         self.sim.set_joint_state(drawn.coordinates, drawn.velocities, worlds=idx)
         idx_b = self.arrays.index(idx)
         self.arrays.fill(self.episodes.elapsed, idx_b, 0)  # no value array
         if drawn.task is not None:
             self.put(self.episodes.task, idx, drawn.task)
-        elif not self._own_task:  # a task's own reset_task: last, its checks its own
-            self.reset_task(idx, self.np_random, options)
+        elif saved is not None:
+            try:
+                self.reset_task(idx, self.np_random, options)
+            except Exception:
+                self._undo_reset(idx, saved)
+                raise
         self._pending_now()[idx] = False
         return idx_b
+
+    def _reset_undo(self, idx: np.ndarray, drawn: _Reset):
+        """What a reset of the worlds idx overwrites, as host copies: the parameters in force
+        (None where the reset draws none), the worlds' simulator state, the episodes' clocks and
+        task values."""
+        params = None if drawn.params is None else self.parameters.snapshot()
+        return params, self.sim.get_state(idx), self.episodes.snapshot()
+
+    def _undo_reset(self, idx: np.ndarray, saved):
+        """``_reset_undo``'s values written back, bit for bit (the parameters first: the state is
+        checked against the limits they hold).  A task's own attributes outside ``task_state``
+        are its own to keep."""
+        params, state, episodes = saved
+        if params is not None:
+            self.parameters.restore(params)
+        self.sim.set_state(state, worlds=idx)
+        self.episodes.restore(episodes)
 
     @property
     def _own_task(self) -> bool:
