@@ -103,24 +103,37 @@ def test_a_refused_reset_writes_nothing(env, bad):
     _same(_everything(env), before)
 
 
-def test_a_refused_queue_top_up_writes_nothing(env):
+def test_a_refused_queue_top_up_leaves_the_step_unrun(env):
     """The autoreset queues' top-up (episodes of 3 steps: every world takes a row each 3 steps)
-    draws a row the checks refuse: the queues, their counts and their generator as before it."""
+    draws a row the checks refuse: the step that draws it raises before its physics, with every
+    array (the worlds' states, clocks, queues, their counts), the generators and the spawn counts
+    bit for bit as before the call, again on a second call; the env then steps as a twin never
+    refused."""
     ne = env.next_episodes
     assert ne is not None
     env.queue_elbow = 1e9  # beyond the state bound
-    for _ in range(3 * ne.depth):
-        queued = {k: v for k, v in ne.snapshot().items() if k in ("queue", "task_queue", "drawn", "task_host")}
-        gen = copy.deepcopy(env._next_rng.bit_generator.state)
+    a = np.full((N, 2), 0.5, np.float32)
+    for steps in range(3 * ne.depth):
+        before, saved = _everything(env), env.get_state()
         try:
-            env.step(np.zeros((N, 2), np.float32))
+            env.step(a)
         except ValueError as err:
             assert "initial" in str(err)
             break
     else:
         pytest.fail("no top-up was refused")
-    _same({k: v for k, v in ne.snapshot().items() if k in queued}, queued)
-    assert env._next_rng.bit_generator.state == gen
+    assert steps > ne.depth // 2  # a top-up in mid-run, after autoresets used the queues
+    _same(_everything(env), before)
+    with pytest.raises(ValueError, match="initial"):
+        env.step(a)
+    _same(_everything(env), before)
+    env.queue_elbow = None
+    twin = Poisoned(num_envs=N, max_episode_steps=3)
+    twin.set_state(saved)
+    for _ in range(4):
+        for e in (env, twin):
+            e.step(a)
+    _same(_everything(env), _everything(twin))
 
 
 @pytest.mark.parametrize("seed", [9, None])

@@ -619,6 +619,8 @@ class ABDVectorEnv(Task, VectorEnv):
         if on_device:
             if self._next_rng is None:  # no full reset yet (only masked ones): the queues start now
                 self._restart_next_episodes(self._draw_next_episodes())
+            else:  # the rows the last steps' autoresets took, drawn before anything of this step is written
+                self.next_episodes.top_up()
             return self.device_step.step(a)
 
         self.sim.set_controls(self.controls(a))
