@@ -199,7 +199,10 @@ class ABDVectorEnv(Task, VectorEnv):
       named by the attributes ((N,) for width 1, else (N, width)); they are drawn ahead on the
       device's autoreset path too.
     * ``reset_task(idx, rng, options)``: task state of the worlds ``idx`` (host int array) at a
-      reset; default: write ``draw_task``'s values.  A task that overrides it resets on the host.
+      reset; default: write ``draw_task``'s values.  A task that overrides it resets on the host;
+      its ``reset_task`` runs after the reset has written the worlds (it reads their new state),
+      and where it raises, the reset's writes are put back before the exception goes on (in an
+      autoreset within ``step``, whose physics has then run: the worlds have moved).
     * ``info(obs) -> {key: (N,) array}``: per-step info values; default none.
     * ``world_observation(q, v)``, ``world_reward(obs, action)``, ``world_terminated(obs)``:
       optional, all three or none: one world's observe / reward / terminated in plain Python
