@@ -10,6 +10,7 @@ import pytest
 import warp as wp
 
 from abd_gym.envs.reacher import ReacherVectorEnv
+from abd_gym.vector.single_env import ABDEnv
 
 N = 4
 
@@ -214,6 +215,38 @@ def test_a_reset_refused_by_the_task_s_own_reset_task_writes_nothing(mask):
         for _ in range(4):  # through an autoreset (episodes of 3 steps), on the host
             e.step(np.full((N, 2), 0.5, np.float32))
     _same(_everything(env), _everything(twin))
+
+
+class OneOwnTarget(ABDEnv):
+    vector_class = OwnTarget
+
+
+def _world(env):
+    """_everything of a one-world env's vector env, with its own generator's bit state and seed."""
+    gen = env._np_random
+    return dict(_everything(env.vector_env), own=[None if gen is None else copy.deepcopy(gen.bit_generator.state),
+                                                  env._np_random_seed])  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", [7, None])
+def test_a_one_world_reset_refused_by_the_task_s_own_reset_task_writes_nothing(seed):
+    """The one-world env's reset (its plain-Python path) of a task whose own ``reset_task``
+    raises: the world, the generators (seeded anew or not) and the seed as before, and the env
+    then resets and steps as a twin never refused."""
+    env, twin = OneOwnTarget(), OneOwnTarget()
+    for e in (env, twin):
+        e.reset(seed=0)
+        e.step(np.zeros(2, np.float32))
+    before = _world(env)
+    env.vector_env.reach = 1e-3  # a target in [-0.2, 0.2]^2 within 1 mm: all but impossible
+    with pytest.raises(RuntimeError, match="out of reach"):
+        env.reset(seed=seed)
+    _same(_world(env), before)
+    env.vector_env.reach = None
+    for e in (env, twin):
+        e.reset(seed=seed)
+        e.step(np.full(2, 0.5, np.float32))
+    _same(_world(env), _world(twin))
 
 
 @pytest.mark.parametrize("bad", ["coordinate", "mass", "episodes", "limits"])
