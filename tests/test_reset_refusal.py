@@ -10,6 +10,7 @@ import pytest
 import warp as wp
 
 from abd_gym.envs.reacher import ReacherVectorEnv
+from abd_gym.vector.single_env import ABDEnv
 
 N = 4
 
@@ -103,24 +104,37 @@ def test_a_refused_reset_writes_nothing(env, bad):
     _same(_everything(env), before)
 
 
-def test_a_refused_queue_top_up_writes_nothing(env):
+def test_a_refused_queue_top_up_leaves_the_step_unrun(env):
     """The autoreset queues' top-up (episodes of 3 steps: every world takes a row each 3 steps)
-    draws a row the checks refuse: the queues, their counts and their generator as before it."""
+    draws a row the checks refuse: the step that draws it raises before its physics, with every
+    array (the worlds' states, clocks, queues, their counts), the generators and the spawn counts
+    bit for bit as before the call, again on a second call; the env then steps as a twin never
+    refused."""
     ne = env.next_episodes
     assert ne is not None
     env.queue_elbow = 1e9  # beyond the state bound
-    for _ in range(3 * ne.depth):
-        queued = {k: v for k, v in ne.snapshot().items() if k in ("queue", "task_queue", "drawn", "task_host")}
-        gen = copy.deepcopy(env._next_rng.bit_generator.state)
+    a = np.full((N, 2), 0.5, np.float32)
+    for steps in range(3 * ne.depth):
+        before, saved = _everything(env), env.get_state()
         try:
-            env.step(np.zeros((N, 2), np.float32))
+            env.step(a)
         except ValueError as err:
             assert "initial" in str(err)
             break
     else:
         pytest.fail("no top-up was refused")
-    _same({k: v for k, v in ne.snapshot().items() if k in queued}, queued)
-    assert env._next_rng.bit_generator.state == gen
+    assert steps > ne.depth // 2  # a top-up in mid-run, after autoresets used the queues
+    _same(_everything(env), before)
+    with pytest.raises(ValueError, match="initial"):
+        env.step(a)
+    _same(_everything(env), before)
+    env.queue_elbow = None
+    twin = Poisoned(num_envs=N, max_episode_steps=3)
+    twin.set_state(saved)
+    for _ in range(4):
+        for e in (env, twin):
+            e.step(a)
+    _same(_everything(env), _everything(twin))
 
 
 @pytest.mark.parametrize("seed", [9, None])
@@ -160,6 +174,79 @@ def test_a_reset_refused_for_a_parameter_the_simulator_refuses_writes_nothing(en
     with pytest.raises(ValueError, match="mass"):
         env.reset(seed=5, options={"randomize": {"strength_ratio": (1.0, 2.0), "mass_scale": (1e30, 1e30)}})
     _same(_everything(env), before)
+
+
+class OwnTarget(ReacherVectorEnv):
+    """The Reacher with a ``reset_task`` of its own: it draws the targets, writes them, then
+    refuses the draw where a target lies farther than ``reach`` (None: none refused) from the
+    base, as a task's own code may do after the reset has written the worlds."""
+
+    reach = None
+
+    def reset_task(self, idx, rng, options):
+        target = rng.uniform(-0.2, 0.2, size=(len(idx), 2))
+        self.put(self.target, idx, target)
+        if self.reach is not None and np.any(np.hypot(target[:, 0], target[:, 1]) > self.reach):
+            raise RuntimeError("target out of reach")
+
+
+@pytest.mark.parametrize("mask", [None, [True, False, True, True]])
+def test_a_reset_refused_by_the_task_s_own_reset_task_writes_nothing(mask):
+    """A task's own ``reset_task`` runs after the reset has written the parameters, the states and
+    the clocks, writes its targets and then raises: every array, the spec and the generator are
+    put back bit for bit, and the env then resets and steps as a twin never refused."""
+    env = OwnTarget(num_envs=N, max_episode_steps=3)
+    assert env.next_episodes is None  # (its resets run on the host)
+    env.reset(seed=0, options={"randomize": {"mass_scale": (0.5, 2.0)}})
+    env.step(np.zeros((N, 2), np.float32))
+    before, saved = _everything(env), env.get_state()
+    env.reach = 0.05  # a target in [-0.2, 0.2]^2 beyond 0.05 m in one of 3 or 4 worlds: all but certain
+    options = {"randomize": {"mass_scale": (3.0, 4.0), "limit_scale": (0.5, 0.5), "strength_ratio": (1.0, 2.0)}}
+    if mask is not None:
+        options["reset_mask"] = np.array(mask)
+    with pytest.raises(RuntimeError, match="out of reach"):
+        env.reset(seed=7, options=options)
+    _same(_everything(env), before)
+    env.reach = None
+    twin = OwnTarget(num_envs=N, max_episode_steps=3)
+    twin.set_state(saved)
+    for e in (env, twin):
+        e.reset(seed=7, options=dict(options))
+        for _ in range(4):  # through an autoreset (episodes of 3 steps), on the host
+            e.step(np.full((N, 2), 0.5, np.float32))
+    _same(_everything(env), _everything(twin))
+
+
+class OneOwnTarget(ABDEnv):
+    vector_class = OwnTarget
+
+
+def _world(env):
+    """_everything of a one-world env's vector env, with its own generator's bit state and seed."""
+    gen = env._np_random
+    return dict(_everything(env.vector_env), own=[None if gen is None else copy.deepcopy(gen.bit_generator.state),
+                                                  env._np_random_seed])  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", [7, None])
+def test_a_one_world_reset_refused_by_the_task_s_own_reset_task_writes_nothing(seed):
+    """The one-world env's reset (its plain-Python path) of a task whose own ``reset_task``
+    raises: the world, the generators (seeded anew or not) and the seed as before, and the env
+    then resets and steps as a twin never refused."""
+    env, twin = OneOwnTarget(), OneOwnTarget()
+    for e in (env, twin):
+        e.reset(seed=0)
+        e.step(np.zeros(2, np.float32))
+    before = _world(env)
+    env.vector_env.reach = 1e-3  # a target in [-0.2, 0.2]^2 within 1 mm: all but impossible
+    with pytest.raises(RuntimeError, match="out of reach"):
+        env.reset(seed=seed)
+    _same(_world(env), before)
+    env.vector_env.reach = None
+    for e in (env, twin):
+        e.reset(seed=seed)
+        e.step(np.full(2, 0.5, np.float32))
+    _same(_world(env), _world(twin))
 
 
 @pytest.mark.parametrize("bad", ["coordinate", "mass", "episodes", "limits"])

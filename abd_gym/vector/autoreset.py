@@ -8,7 +8,9 @@ worlds, the queues, each world's count of episodes taken), which need nothing fr
 which a graph can hold.  The host follows the counts from the ended-world masks it
 reads anyway (one step late: the step in which the device takes the row) and tops the queues up
 in one upload when a world has used half its queue: an autoreset step returns neither flag, so
-a world takes at most one row every two steps, and a queue never runs dry between top-ups.
+a world takes at most one row every two steps, and a queue never runs dry between top-ups.  The
+top-up that a step's counts call for is drawn and written at the start of the next step, before
+its physics: a draw refused there raises having written nothing (not after a step has run).
 
 Draws come from a generator the env spawns from its own (``np_random``) at each full reset: the
 same seed and actions give the same episodes on every backend and device, and ``np_random``'s
@@ -139,8 +141,14 @@ class NextEpisodes:
 
     def took(self, mask: np.ndarray):
         """The worlds of the host bool ``mask`` (W,) took a row in this step (the host learns it from
-        the ended-world mask); the queues are topped up once some world has used half of its own."""
+        the ended-world mask); counted only: ``top_up`` draws the rows they call for."""
         self._taken += mask
+
+    def top_up(self):
+        """Top the queues up once some world has used half of its own (the counts ``took`` left):
+        called by the env's step before its physics, so that a refused draw (``draw_rows``: the
+        generator put back, nothing written) leaves the step unrun.  The rows are those the end of
+        the last step would have drawn: the counts and the generator are the same."""
         if (self._drawn - self._taken).min() <= self.depth // 2:
             drawn = self.draw_rows(self.generator())
             if drawn is not None:

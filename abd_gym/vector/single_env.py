@@ -64,11 +64,19 @@ class ABDEnv(gym.Env):
         return self.vector_env.sim
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=inputs.seed(seed))
-        self.vector_env.np_random = self.np_random  # one generator: seeding this env seeds its world
-        if self._host_step is not None and not options:
-            return self._host_step.reset()
-        obs, info = self.vector_env.reset(options=options)
+        # a refused reset (the world's draws, a task's own reset_task: nothing written, the
+        # vector env's resets) leaves this env's generator, its seed and its state as they were
+        saved = self._np_random, self._np_random_seed, self.vector_env._rng_state()
+        try:
+            super().reset(seed=inputs.seed(seed))
+            self.vector_env.np_random = self.np_random  # one generator: seeding this env seeds its world
+            if self._host_step is not None and not options:
+                return self._host_step.reset()
+            obs, info = self.vector_env.reset(options=options)
+        except Exception:
+            self._np_random, self._np_random_seed = saved[:2]
+            self.vector_env._set_rng_state(saved[2])
+            raise
         return obs[0], world_info(info)
 
     def step(self, action):

@@ -88,7 +88,9 @@ class Task:
     def reset_task(self, idx: np.ndarray, rng: np.random.Generator, options: dict):
         """Task state of the worlds ``idx`` for a new episode: by default the ``task_state`` values
         ``draw_task`` draws.  A task that overrides this resets on the host (no autoresets on the
-        device, no step graph)."""
+        device, no step graph); it runs after the reset's other writes, and an exception it raises
+        puts them back (the env's arrays, ``task_state`` values included; attributes of the task's
+        own are its own to keep)."""
         if self.episodes.task_width:
             self.put(self.episodes.task, idx, self.task_values(len(idx), rng, options))
 

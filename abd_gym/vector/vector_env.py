@@ -199,7 +199,10 @@ class ABDVectorEnv(Task, VectorEnv):
       named by the attributes ((N,) for width 1, else (N, width)); they are drawn ahead on the
       device's autoreset path too.
     * ``reset_task(idx, rng, options)``: task state of the worlds ``idx`` (host int array) at a
-      reset; default: write ``draw_task``'s values.  A task that overrides it resets on the host.
+      reset; default: write ``draw_task``'s values.  A task that overrides it resets on the host;
+      its ``reset_task`` runs after the reset has written the worlds (it reads their new state),
+      and where it raises, the reset's writes are put back before the exception goes on (in an
+      autoreset within ``step``, whose physics has then run: the worlds have moved).
     * ``info(obs) -> {key: (N,) array}``: per-step info values; default none.
     * ``world_observation(q, v)``, ``world_reward(obs, action)``, ``world_terminated(obs)``:
       optional, all three or none: one world's observe / reward / terminated in plain Python
@@ -469,7 +472,7 @@ class ABDVectorEnv(Task, VectorEnv):
                 queues = self._draw_next_episodes(limits)
             if drawn is not None:  # (set_joint_state, its first write, checks a state no parameter was drawn for)
                 self._write_reset(idx, drawn, options)
-        except (TypeError, ValueError):
+        except Exception:  # a refusal, or a task's own reset_task raising (_write_reset undid its writes)
             self.parameters.spec = spec
             self._set_rng_state(rng)
             raise
@@ -507,17 +510,41 @@ class ABDVectorEnv(Task, VectorEnv):
         return _Reset(params, coords, vels, task)
 
     def _write_reset(self, idx: np.ndarray, drawn: _Reset, options: dict):
-        """``_draw_reset``'s values into the worlds idx; returns idx as a backend index array."""
+        """``_draw_reset``'s values into the worlds idx; returns idx as a backend index array.
+        A task's own ``reset_task`` runs last (it may read the state just written) and may raise:
+        what the reset wrote is then put back (``_undo_reset``) before the exception goes on."""
+        saved = None if self._own_task else self._reset_undo(idx, drawn)
         self.parameters.write(idx, drawn.params)
         self.sim.set_joint_state(drawn.coordinates, drawn.velocities, worlds=idx)
         idx_b = self.arrays.index(idx)
         self.arrays.fill(self.episodes.elapsed, idx_b, 0)  # no value array
         if drawn.task is not None:
             self.put(self.episodes.task, idx, drawn.task)
-        elif not self._own_task:  # a task's own reset_task: last, its checks its own
-            self.reset_task(idx, self.np_random, options)
+        elif saved is not None:
+            try:
+                self.reset_task(idx, self.np_random, options)
+            except Exception:
+                self._undo_reset(idx, saved)
+                raise
         self._pending_now()[idx] = False
         return idx_b
+
+    def _reset_undo(self, idx: np.ndarray, drawn: _Reset):
+        """What a reset of the worlds idx overwrites, as host copies: the parameters in force
+        (None where the reset draws none), the worlds' simulator state, the episodes' clocks and
+        task values."""
+        params = None if drawn.params is None else self.parameters.snapshot()
+        return params, self.sim.get_state(idx), self.episodes.snapshot()
+
+    def _undo_reset(self, idx: np.ndarray, saved):
+        """``_reset_undo``'s values written back, bit for bit (the parameters first: the state is
+        checked against the limits they hold).  A task's own attributes outside ``task_state``
+        are its own to keep."""
+        params, state, episodes = saved
+        if params is not None:
+            self.parameters.restore(params)
+        self.sim.set_state(state, worlds=idx)
+        self.episodes.restore(episodes)
 
     @property
     def _own_task(self) -> bool:
@@ -595,6 +622,8 @@ class ABDVectorEnv(Task, VectorEnv):
         if on_device:
             if self._next_rng is None:  # no full reset yet (only masked ones): the queues start now
                 self._restart_next_episodes(self._draw_next_episodes())
+            else:  # the rows the last steps' autoresets took, drawn before anything of this step is written
+                self.next_episodes.top_up()
             return self.device_step.step(a)
 
         self.sim.set_controls(self.controls(a))
