@@ -57,6 +57,12 @@ def test_import_abd_gym_imports_no_task_or_training_module(tmp_path):
     assert out.stdout.strip() == "[]"
 
 
+def _purelib(py: Path) -> str:
+    """The site-packages folder of the environment whose interpreter is ``py``."""
+    return subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                          capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
+
+
 def _venv_seeing_these_packages(venv: Path) -> Path:
     """A virtual environment at ``venv`` that sees the packages this interpreter sees (its python).
 
@@ -67,11 +73,21 @@ def _venv_seeing_these_packages(venv: Path) -> Path:
     not among them, so ``import abd_gym`` finds what is installed in the new environment."""
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
     py = venv / "bin" / "python"
-    own = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-                         capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
+    own = _purelib(py)
     seen = [p for p in sys.path if Path(p).name in ("site-packages", "dist-packages") and Path(p).is_dir()]
     (Path(own) / "parent_site_packages.pth").write_text("".join(f"{p}\n" for p in seen))
     return py
+
+
+def _build_at_this_runs_level(py: Path) -> None:
+    """Make the environment of ``py`` build Warp kernels at this test run's optimisation level
+    (tests/conftest.py): a .pth line, run at each interpreter start there, sets it.  The training
+    run's kernels are then the ones the other tests build, not a second build of them."""
+    import warp as wp
+
+    own = _purelib(py)
+    level = wp.config.optimization_level
+    (Path(own) / "test_build_level.pth").write_text(f"import warp; warp.config.optimization_level = {level!r}\n")
 
 
 def test_venv_seeing_these_packages_finds_them(tmp_path):
@@ -125,6 +141,7 @@ def test_the_wheel_holds_only_the_abd_gym_namespace_and_trains_from_any_director
     where = subprocess.run([str(py), "-c", "import abd_gym.envs; print(abd_gym.envs.__file__)"], cwd=work,
                            capture_output=True, text=True, check=True).stdout
     assert str(venv) in where, where  # the installed copy, not the repository's
+    _build_at_this_runs_level(py)
     run = subprocess.run([str(venv / "bin" / "abd-gym-train"), "cartpole_ppo", "--total-timesteps", "256", "--num-envs", "4",
                           "--eval-episodes", "1", "--no-progress", "--run-dir", str(work / "run")],
                          cwd=work, capture_output=True, text=True)  # fmt: skip

@@ -71,7 +71,7 @@ def test_single_env_steps_as_the_vector_envs_world_bit_for_bit(task, kwargs):
 def test_failed_world_is_reported_as_the_vector_env_does():
     """An iteration budget of 1 leaves some steps unconverged: a rejected step gives a zero
     observation and reward, terminated, sim_failed and the status code, in both envs alike."""
-    options = {"simulator_options": {"max_iterations": 1, "quadratic_stop": 0.0}}
+    options = {"simulator_options": {"max_iterations": 1}}
     single, vector = _pair("CartPole-v0", **options)
     infos = _compare(single, vector)
     failed = [info for info in infos if info["sim_failed"]]

@@ -24,7 +24,19 @@ TINY = [
 
 @pytest.fixture(scope="module")
 def local_ray():
-    ray.init(num_cpus=2, include_dashboard=False)  # the CI machine: 2 cores
+    """A local Ray instance of 2 CPUs (the CI machine's cores) whose worker processes build Warp
+    kernels at this test run's optimisation level (tests/conftest.py), as the test processes do:
+    the trials' kernels are then the ones other tests have built, not a second build of them."""
+    import warp as wp
+
+    level = wp.config.optimization_level
+
+    def build_level():
+        import warp as wp
+
+        wp.config.optimization_level = level
+
+    ray.init(num_cpus=2, include_dashboard=False, runtime_env={"worker_process_setup_hook": build_level})
     yield
     ray.shutdown()
 
