@@ -503,7 +503,7 @@ class ABDVectorEnv(Task, VectorEnv):
             limits = {k: v[:2] for k, v in params["limits"].items()}
             coords, vels = self.sim.check_joint_state(coords, vels, worlds=idx, limits=limits)
         task = None
-        if self._own_task and self.episodes.task_width:
+        if self._default_task_reset and self.episodes.task_width:
             task = self.task_values(len(idx), rng, options)
             if not np.all(np.isfinite(task)):
                 raise ValueError(f"the task's initial task values must be finite, got {task}")
@@ -513,7 +513,7 @@ class ABDVectorEnv(Task, VectorEnv):
         """``_draw_reset``'s values into the worlds idx; returns idx as a backend index array.
         A task's own ``reset_task`` runs last (it may read the state just written) and may raise:
         what the reset wrote is then put back (``_undo_reset``) before the exception goes on."""
-        saved = None if self._own_task else self._reset_undo(idx, drawn)
+        saved = None if self._default_task_reset else self._reset_undo(idx, drawn)
         self.parameters.write(idx, drawn.params)
         self.sim.set_joint_state(drawn.coordinates, drawn.velocities, worlds=idx)
         idx_b = self.arrays.index(idx)
@@ -547,7 +547,7 @@ class ABDVectorEnv(Task, VectorEnv):
         self.episodes.restore(episodes)
 
     @property
-    def _own_task(self) -> bool:
+    def _default_task_reset(self) -> bool:
         """Whether the task's state is drawn by Task.reset_task (task_values), not a reset_task of its own."""
         return type(self).reset_task is Task.reset_task
 
