@@ -140,9 +140,15 @@ def _column(sim, q, name):
     return E[:, col] * scale, E[:, check.roff + col] * scale
 
 
-def _beyond_sums(e32, r32, e64):
-    """Asserts every world's float32 energy is within its allowance 1000 eps |E| + 2 sqrt(E R) + R
-    of the float64 one; returns how many are off by more than the sums' term 1000 eps |E| alone."""
+def _float32_within_allowance(sims, q, name) -> int:
+    """Asserts the column ``name`` of the float32 simulator at ``q`` equals its energies() report
+    bit for bit, has a positive R in every world, and is within its allowance 1000 eps |E| +
+    2 sqrt(E R) + R of the float64 energy; returns how many worlds are off by more than the sums'
+    term 1000 eps |E| alone."""
+    e64, _ = _column(sims["float64"], q, name)
+    e32, r32 = _column(sims["float32"], q, name)
+    np.testing.assert_array_equal(e32, sims["float32"].energies()[name])  # the report's, bit for bit
+    assert (r32 > 0).all()
     err = np.abs(e32 - e64)
     sums = 1000.0 * np.finfo(np.float32).eps * np.abs(e32)
     assert (err <= sums + 2.0 * np.sqrt(np.abs(e32) * r32) + r32).all()
@@ -163,11 +169,7 @@ def test_a_prismatic_joints_rounding_bounds_its_float32_energy():
     q = sims["float64"].state.q.numpy().copy()
     off = np.logspace(-7, -3, n)[:, None]
     q[:, 1] += rng.normal(0.0, 1.0, (n, 12)) * off  # the block (body 1) off its rail
-    e64, _ = _column(sims["float64"], q, "prismatic_joint")
-    e32, r32 = _column(sims["float32"], q, "prismatic_joint")
-    np.testing.assert_array_equal(e32, sims["float32"].energies()["prismatic_joint"])  # the report's, bit for bit
-    assert (r32 > 0).all()
-    assert _beyond_sums(e32, r32, e64) >= n // 2
+    assert _float32_within_allowance(sims, q, "prismatic_joint") >= n // 2
 
 
 def test_a_prismatic_limits_rounding_bounds_its_float32_energy():
@@ -183,11 +185,7 @@ def test_a_prismatic_limits_rounding_bounds_its_float32_energy():
     sims["float64"].set_joint_state(x[:, None])
     q = sims["float64"].state.q.numpy().copy()
     q[:, 1, 3:] += np.random.default_rng(2).normal(0.0, 1e-6, (n, 9))  # its frame turned a little
-    e64, _ = _column(sims["float64"], q, "prismatic_limit")
-    e32, r32 = _column(sims["float32"], q, "prismatic_limit")
-    np.testing.assert_array_equal(e32, sims["float32"].energies()["prismatic_limit"])  # the report's, bit for bit
-    assert (r32 > 0).all()
-    assert _beyond_sums(e32, r32, e64) >= n // 4
+    assert _float32_within_allowance(sims, q, "prismatic_limit") >= n // 4
 
 
 def test_a_revolute_limits_rounding_bounds_its_float32_energy():
@@ -203,11 +201,7 @@ def test_a_revolute_limits_rounding_bounds_its_float32_energy():
         sim.set_joint_state(x[:, None])
     q = sims["float64"].state.q.numpy().copy()
     q[:, -1, 3:] += np.random.default_rng(3).normal(0.0, 1e-6, (n, 9))  # the link's frame turned a little
-    e64, _ = _column(sims["float64"], q, "revolute_limit")
-    e32, r32 = _column(sims["float32"], q, "revolute_limit")
-    np.testing.assert_array_equal(e32, sims["float32"].energies()["revolute_limit"])
-    assert (r32 > 0).all()
-    assert _beyond_sums(e32, r32, e64) >= n // 4
+    assert _float32_within_allowance(sims, q, "revolute_limit") >= n // 4
 
 
 def test_the_armature_has_its_rates_rounding():
